@@ -1,0 +1,35 @@
+# The two commands a new user needs:  `make demo`  and  `make test`  (both set up first).
+VENV := .venv/bin
+export PYTHONUNBUFFERED := 1
+
+.PHONY: setup demo test test-slow lint bench eval train proto clean
+setup:
+	@bash scripts/setup.sh
+
+demo: setup          ## the main job on the bundled building
+	$(VENV)/macroloc demo
+
+test: setup          ## the fast suite (< 10 min on 2 cores) + lint and type check
+	$(VENV)/ruff check graph perception sim service tests bench scripts
+	$(VENV)/mypy
+	$(VENV)/python -m pytest -q
+
+test-slow: setup     ## training, long flights, soak: the heavy checks behind the `slow` marker
+	$(VENV)/python -m pytest -q -m slow
+
+bench: setup         ## benchmarks, each figure printed beside its target
+	MACROLOC_EXTRAS=dev,bench bash scripts/setup.sh
+	$(VENV)/python -m bench.run_all
+
+eval: setup          ## the project's own localization evaluation on every bundled building
+	for b in data/buildings/*.ifc; do $(VENV)/macroloc eval $$b --n 200 --seed 1; done
+
+train: setup         ## reproduce the shipped detector weights (needs torch: the train extra)
+	MACROLOC_EXTRAS=dev,train bash scripts/setup.sh
+	$(VENV)/python -m perception.train
+
+proto: setup         ## regenerate the committed Python from proto/
+	$(VENV)/python scripts/gen_proto.py
+
+clean:
+	rm -rf .venv .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,73 @@
+"""Macro-features of a building: the typed record every other module speaks.
+
+Frames: everything here is in the CAD frame (the model's world frame, z up), metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+FeatureType = Literal["door", "window"]
+FEATURE_TYPES: tuple[FeatureType, ...] = ("door", "window")
+Orientation = Literal["vertical", "horizontal"]
+
+
+@dataclass(frozen=True)
+class MacroFeature:
+    """One door or window of the model.
+
+    corners_cad: (4, 3) opening rectangle, ordered (-u,-z) (+u,-z) (+u,+z) (-u,+z) with u = z x normal
+    (for a horizontal skylight the rectangle spans u and the horizontal normal direction instead of z).
+    normal_cad: unit horizontal wall normal (+z for a skylight); its sign points away from the building's
+    horizontal centre of features.
+    """
+
+    id: str
+    type: FeatureType
+    storey: str | None
+    corners_cad: np.ndarray
+    centroid_cad: np.ndarray
+    normal_cad: np.ndarray
+    width_m: float
+    height_m: float
+    orientation: Orientation = "vertical"
+    name: str | None = None
+    duplicates: tuple[str, ...] = ()
+
+    def to_json(self) -> dict:
+        return {
+            "id": self.id,
+            "type": self.type,
+            "storey": self.storey,
+            "centroid": [round(float(v), 5) for v in self.centroid_cad],
+            "corners": [[round(float(v), 5) for v in c] for c in self.corners_cad],
+            "normal": [round(float(v), 5) for v in self.normal_cad],
+            "width": round(self.width_m, 4),
+            "height": round(self.height_m, 4),
+            "orientation": self.orientation,
+        }
+
+
+@dataclass
+class BuildingModel:
+    """A building's macro-features plus what was learnt while reading it."""
+
+    source: str
+    sha256: str
+    features: list[MacroFeature]
+    storeys: list[str] = field(default_factory=list)
+    storey_elevations_m: dict[str, float] = field(default_factory=dict)
+    report: dict = field(default_factory=dict)  # counts: elements, no_geometry, duplicates_merged, ...
+
+    def centroids_cad(self) -> np.ndarray:
+        """(N, 3) feature centroids in the CAD frame, metres."""
+        return np.array([f.centroid_cad for f in self.features], dtype=float).reshape(-1, 3)
+
+    def by_storey(self) -> dict[str | None, list[MacroFeature]]:
+        out: dict[str | None, list[MacroFeature]] = {}
+        for f in self.features:
+            out.setdefault(f.storey, []).append(f)
+        return out

@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# One-time set-up on a fresh Debian/Ubuntu machine: system packages, a virtual environment
+# in .venv, and macroloc installed into it (editable). Idempotent: a second run is fast.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+APT_PACKAGES=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libusb-1.0-0)
+missing=()
+for p in "${APT_PACKAGES[@]}"; do
+    dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")
+done
+if ((${#missing[@]})); then
+    echo "setup: installing system packages: ${missing[*]}"
+    SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"
+fi
+
+PY=${PYTHON:-python3}
+EXTRAS=${MACROLOC_EXTRAS:-dev}
+stamp=.venv/.setup-stamp
+want="$(sha256sum pyproject.toml | cut -c1-16) extras=$EXTRAS"
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
+    exit 0
+fi
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+echo "setup: installing macroloc[$EXTRAS] into .venv (first time: a few minutes)"
+.venv/bin/python -m pip install -q -e ".[$EXTRAS]"
+echo "$want" > "$stamp"
+echo "setup: done (.venv/bin/macroloc)"

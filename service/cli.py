@@ -1,0 +1,91 @@
+"""The `macroloc` command line: a thin shell over library functions, with one error boundary.
+
+Each command lives in `service/commands/<name>.py` and exposes `register(app)`; heavy modules are
+imported inside the command bodies so that `macroloc --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+
+import typer
+
+from graph.errors import UserInputError
+
+COMMAND_MODULES = (
+    "features",
+    "localize",
+    "eval",
+    "inspect",
+    "simulate",
+    "detect",
+    "perceive",
+    "replay",
+    "serve",
+    "demo",
+    "dump_config",
+)
+
+app = typer.Typer(
+    name="macroloc",
+    help=(
+        "Localize a drone indoors inside its building's own CAD/BIM model from the doors and windows it sees, "
+        "then guide it to goals given in that model.\n\n"
+        "Start with `macroloc demo`; `macroloc COMMAND --help` explains each command."
+    ),
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _register_all() -> None:
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(f"service.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"service.commands.{name}":
+                continue  # command not built yet
+            raise
+        module.register(app)
+
+
+@app.callback()
+def _root(
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress at INFO level on stderr."),
+) -> None:
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point. A user's mistake becomes one stderr line and exit 2; a bug keeps its traceback."""
+    _register_all()
+    try:
+        app(args=argv, standalone_mode=False)
+    except UserInputError as exc:
+        print(f"macroloc: error: {exc}", file=sys.stderr)
+        return 2
+    except typer.Exit as exc:
+        return int(exc.exit_code or 0)
+    except typer.Abort:
+        print("macroloc: aborted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # click usage errors
+        import click
+
+        if isinstance(exc, click.exceptions.ClickException):
+            message = exc.format_message().splitlines()[0] if exc.format_message() else str(exc)
+            print(f"macroloc: error: {message}", file=sys.stderr)
+            return 2
+        raise
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

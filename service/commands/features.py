@@ -1,0 +1,43 @@
+"""`macroloc features BUILDING --json`: the doors and windows of a building model, CAD frame, metres."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def features(
+        building: Path = typer.Argument(..., help="IFC file, or a mesh (OBJ, GLB, DAE, ...) of the building."),
+        json_out: bool = typer.Option(False, "--json", help="Print the contract's JSON document on stdout."),
+    ) -> None:
+        """List the building's macro-features (doors, windows): id, type, storey, corners, centroid, normal.
+
+        Results are cached per building file (its SHA-256) in ~/.cache/macroloc, so a second run is instant.
+        """
+        from graph.bim import load_building
+        from service.commands._io import print_json
+
+        model = load_building(building)
+        if json_out:
+            print_json({"unit": "m", "features": [f.to_json() for f in model.features],
+                        "storeys": model.storeys, "report": {k: (len(v) if isinstance(v, list) and k == "no_geometry"
+                                                                  else v) for k, v in model.report.items()}})
+            return
+        from collections import Counter
+
+        from rich.console import Console
+        from rich.table import Table
+
+        counts = Counter((f.storey, f.type) for f in model.features)
+        table = Table(title=f"{Path(model.source).name}: {len(model.features)} macro-features")
+        for col in ("storey", "doors", "windows"):
+            table.add_column(col)
+        for storey in sorted({s for s, _ in counts}, key=str):
+            table.add_row(str(storey), str(counts[(storey, "door")]), str(counts[(storey, "window")]))
+        Console().print(table)
+        r = model.report
+        Console().print(f"elements: {r.get('elements')}, without geometry: {len(r.get('no_geometry', []))}, "
+                        f"duplicates merged: {r.get('duplicates_merged')}")

@@ -1,0 +1,99 @@
+"""The one typed configuration of macroloc: defaults here, overridable by a JSON/TOML file, environment
+variables (MACROLOC_<SECTION>__<KEY>, e.g. MACROLOC_ZENOH__MODE=client) and command-line flags.
+
+Components never read this object: factories in `service/` turn its sections into typed constructor
+arguments. `macroloc dump-config` prints the resolved configuration.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, Field, ValidationError
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from graph.errors import UserInputError
+
+
+class LocalizeConfig(BaseModel):
+    """Registration of observed macro-features to the CAD model (graph/registration)."""
+
+    method: Literal["robust", "paper"] = Field("robust", description="'paper' = the paper's algorithm exactly")
+    inlier_threshold_m: float = Field(0.30, description="centroid residual under which a match is an inlier, m")
+    candidates_per_observation: int = Field(8, description="descriptor candidates kept per observed feature")
+    ambiguity_ratio: float = Field(0.8, description="second-best / best support above which the answer is 'ambiguous'")
+    min_inliers: int = Field(4, description="fewer inliers than this: not_localized")
+    seed: int = Field(0, description="RANSAC random seed (deterministic answers)")
+
+
+class CameraConfig(BaseModel):
+    """The rectified stereo camera (simulator defaults; a real vehicle sends its own CameraInfo)."""
+
+    width: int = 640
+    height: int = 480
+    fx: float = 480.0
+    fy: float = 480.0
+    cx: float = 319.5
+    cy: float = 239.5
+    baseline_m: float = 0.12
+    rate_hz: float = 30.0
+
+
+class ZenohConfig(BaseModel):
+    """Zenoh session: peer mode on loopback with multicast scouting off is the embedded default."""
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    connect: list[str] = Field(default_factory=list, description="endpoints to connect to, e.g. tcp/10.0.0.2:7447")
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"], description="endpoints to listen on")
+    config_file: Path | None = Field(None, description="a zenoh JSON5 config file, applied before the keys above")
+    multicast_scouting: bool = False
+
+
+class ServiceConfig(BaseModel):
+    """The long-running process."""
+
+    vehicle: str = Field("drone1", description="key prefix: macroloc/<vehicle>/...")
+    building: Path | None = Field(None, description="IFC or mesh file of the building")
+    state_dir: Path = Field(Path("~/.local/state/macroloc").expanduser(), description="maps and logs")
+    queue_size: int = Field(4, description="bounded queue between the frame ring and the heavy worker")
+
+
+class PlanningConfig(BaseModel):
+    """Occupancy grid and A* (paper §3.3)."""
+
+    cell_m: float = 0.20
+    vehicle_radius_m: float = 0.35
+    flight_height_m: float = 1.4
+
+
+class MacrolocConfig(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="MACROLOC_", env_nested_delimiter="__", extra="forbid")
+
+    localize: LocalizeConfig = Field(default_factory=LocalizeConfig)
+    camera: CameraConfig = Field(default_factory=CameraConfig)
+    zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
+    service: ServiceConfig = Field(default_factory=ServiceConfig)
+    planning: PlanningConfig = Field(default_factory=PlanningConfig)
+
+
+def load_config(path: Path | None = None, **overrides: dict) -> MacrolocConfig:
+    """Defaults < file (JSON or TOML) < environment < explicit overrides (one dict per section)."""
+    doc: dict = {}
+    if path is not None:
+        if not path.exists():
+            raise UserInputError(f"config file not found: {path}")
+        try:
+            doc = tomllib.loads(path.read_text()) if path.suffix == ".toml" else json.loads(path.read_text())
+        except (ValueError, tomllib.TOMLDecodeError) as exc:
+            raise UserInputError(f"config file {path} is not valid {path.suffix[1:] or 'JSON'}: {exc}") from None
+    for section, values in overrides.items():
+        doc.setdefault(section, {}).update(values)
+    try:
+        return MacrolocConfig(**doc)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise UserInputError(f"config: {where}: {first['msg']}") from None
