@@ -76,15 +76,20 @@ def main(argv: list[str] | None = None) -> int:
     except typer.Abort:
         print("macroloc: aborted", file=sys.stderr)
         return 130
-    except Exception as exc:  # click usage errors
-        import click
-
-        if isinstance(exc, click.exceptions.ClickException):
-            message = exc.format_message().splitlines()[0] if exc.format_message() else str(exc)
-            print(f"macroloc: error: {message}", file=sys.stderr)
-            return 2
-        raise
+    except _usage_error() as exc:  # bad flags or arguments: click's message, on one line
+        lines = exc.format_message().strip().splitlines()
+        print(f"macroloc: error: {lines[0] if lines else exc}", file=sys.stderr)
+        return 2
     return 0
+
+
+def _usage_error() -> type[Exception]:
+    """The click exception base that this typer raises (vendored as typer._click since typer 0.20)."""
+    try:
+        from typer._click.exceptions import ClickException
+    except ImportError:  # older typer on plain click
+        from click.exceptions import ClickException  # type: ignore[no-redef]
+    return ClickException
 
 
 if __name__ == "__main__":

@@ -50,6 +50,7 @@ class ZenohConfig(BaseModel):
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"], description="endpoints to listen on")
     config_file: Path | None = Field(None, description="a zenoh JSON5 config file, applied before the keys above")
     multicast_scouting: bool = False
+    gossip_scouting: bool = Field(False, description="off for fixed endpoints; on when peers meet through a router")
 
 
 class ServiceConfig(BaseModel):
@@ -59,6 +60,11 @@ class ServiceConfig(BaseModel):
     building: Path | None = Field(None, description="IFC or mesh file of the building")
     state_dir: Path = Field(Path("~/.local/state/macroloc").expanduser(), description="maps and logs")
     queue_size: int = Field(4, description="bounded queue between the frame ring and the heavy worker")
+    ring_size: int = Field(2, description="latest stereo frames kept by the ring channel")
+    cameras: list[str] = Field(default_factory=lambda: ["front"], description="accepted StereoFrame camera ids")
+    status_period_s: float = Field(1.0, description="period of status and diagnostics messages, s")
+    save_period_s: float = Field(5.0, description="period of saving the map to state_dir, s (and at exit)")
+    log_json: bool = Field(False, description="structured logs: one JSON object per line on stderr")
 
 
 class PlanningConfig(BaseModel):
@@ -67,6 +73,20 @@ class PlanningConfig(BaseModel):
     cell_m: float = 0.20
     vehicle_radius_m: float = 0.35
     flight_height_m: float = 1.4
+    replan_period_s: float = Field(2.0, description="replan to the active goal from the current pose this often, s")
+
+
+class SimConfig(BaseModel):
+    """The camera simulator (`macroloc simulate`): flights through a building model and their recordings."""
+
+    duration_s: float = Field(60.0, description="flight duration, s")
+    speed_mps: float = Field(1.0, description="cruise speed, m/s")
+    min_height_m: float = Field(1.0, description="lowest flight height above the storey's floor, m")
+    max_height_m: float = Field(1.8, description="highest flight height above the storey's floor, m")
+    imu_rate_hz: float = 200.0
+    image_encoding: Literal["png", "jpeg", "raw"] = Field("jpeg", description="stereo images in the recording "
+                                                          "(jpeg: quality 92, ~100 KB; png of a noisy image: ~450 KB)")
+    depth: bool = Field(True, description="record the ground-truth depth (RAW_DEPTH_F32, m, 1 mm steps) per frame")
 
 
 class MacrolocConfig(BaseSettings):
@@ -77,10 +97,18 @@ class MacrolocConfig(BaseSettings):
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     service: ServiceConfig = Field(default_factory=ServiceConfig)
     planning: PlanningConfig = Field(default_factory=PlanningConfig)
+    sim: SimConfig = Field(default_factory=SimConfig)
+
+    @classmethod
+    def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,  # noqa: ANN001, ANN206
+                                   file_secret_settings):
+        """The environment overrides the config file (passed as init values); flags are applied after both."""
+        return env_settings, init_settings, dotenv_settings, file_secret_settings
 
 
 def load_config(path: Path | None = None, **overrides: dict) -> MacrolocConfig:
-    """Defaults < file (JSON or TOML) < environment < explicit overrides (one dict per section)."""
+    """Defaults < file (JSON or TOML) < environment (MACROLOC_<SECTION>__<KEY>) < explicit overrides (one dict
+    per section, e.g. from command-line flags)."""
     doc: dict = {}
     if path is not None:
         if not path.exists():
@@ -89,10 +117,12 @@ def load_config(path: Path | None = None, **overrides: dict) -> MacrolocConfig:
             doc = tomllib.loads(path.read_text()) if path.suffix == ".toml" else json.loads(path.read_text())
         except (ValueError, tomllib.TOMLDecodeError) as exc:
             raise UserInputError(f"config file {path} is not valid {path.suffix[1:] or 'JSON'}: {exc}") from None
-    for section, values in overrides.items():
-        doc.setdefault(section, {}).update(values)
     try:
-        return MacrolocConfig(**doc)
+        cfg = MacrolocConfig(**doc)
+        for section, values in overrides.items():
+            current = getattr(cfg, section)
+            setattr(cfg, section, type(current).model_validate({**current.model_dump(), **values}))
+        return cfg
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"])

@@ -122,18 +122,20 @@ class Odometry(_message.Message):
     def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., T_map_body: _Optional[_Union[Pose, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ObservedFeature(_message.Message):
-    __slots__ = ("type", "score", "corners", "box_xyxy", "id")
+    __slots__ = ("type", "score", "corners", "box_xyxy", "id", "centroid")
     TYPE_FIELD_NUMBER: _ClassVar[int]
     SCORE_FIELD_NUMBER: _ClassVar[int]
     CORNERS_FIELD_NUMBER: _ClassVar[int]
     BOX_XYXY_FIELD_NUMBER: _ClassVar[int]
     ID_FIELD_NUMBER: _ClassVar[int]
+    CENTROID_FIELD_NUMBER: _ClassVar[int]
     type: str
     score: float
     corners: _containers.RepeatedCompositeFieldContainer[Vector3]
     box_xyxy: _containers.RepeatedScalarFieldContainer[float]
     id: str
-    def __init__(self, type: _Optional[str] = ..., score: _Optional[float] = ..., corners: _Optional[_Iterable[_Union[Vector3, _Mapping]]] = ..., box_xyxy: _Optional[_Iterable[float]] = ..., id: _Optional[str] = ...) -> None: ...
+    centroid: Vector3
+    def __init__(self, type: _Optional[str] = ..., score: _Optional[float] = ..., corners: _Optional[_Iterable[_Union[Vector3, _Mapping]]] = ..., box_xyxy: _Optional[_Iterable[float]] = ..., id: _Optional[str] = ..., centroid: _Optional[_Union[Vector3, _Mapping]] = ...) -> None: ...
 
 class ObservedFeatures(_message.Message):
     __slots__ = ("header", "features")
@@ -176,31 +178,37 @@ class PoseEstimate(_message.Message):
     def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., T_cad_body: _Optional[_Union[Pose, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., storey: _Optional[str] = ..., T_cad_map: _Optional[_Union[Pose, _Mapping]] = ..., inliers: _Optional[int] = ...) -> None: ...
 
 class Goal(_message.Message):
-    __slots__ = ("header", "position_cad", "feature_id", "space_name")
+    __slots__ = ("header", "position_cad", "feature_id", "space_name", "start_cad", "has_start")
     HEADER_FIELD_NUMBER: _ClassVar[int]
     POSITION_CAD_FIELD_NUMBER: _ClassVar[int]
     FEATURE_ID_FIELD_NUMBER: _ClassVar[int]
     SPACE_NAME_FIELD_NUMBER: _ClassVar[int]
+    START_CAD_FIELD_NUMBER: _ClassVar[int]
+    HAS_START_FIELD_NUMBER: _ClassVar[int]
     header: Header
     position_cad: Vector3
     feature_id: str
     space_name: str
-    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., position_cad: _Optional[_Union[Vector3, _Mapping]] = ..., feature_id: _Optional[str] = ..., space_name: _Optional[str] = ...) -> None: ...
+    start_cad: Vector3
+    has_start: bool
+    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., position_cad: _Optional[_Union[Vector3, _Mapping]] = ..., feature_id: _Optional[str] = ..., space_name: _Optional[str] = ..., start_cad: _Optional[_Union[Vector3, _Mapping]] = ..., has_start: _Optional[bool] = ...) -> None: ...
 
 class Waypoints(_message.Message):
-    __slots__ = ("header", "points_cad", "path_length_m", "goal_description")
+    __slots__ = ("header", "points_cad", "path_length_m", "goal_description", "error")
     HEADER_FIELD_NUMBER: _ClassVar[int]
     POINTS_CAD_FIELD_NUMBER: _ClassVar[int]
     PATH_LENGTH_M_FIELD_NUMBER: _ClassVar[int]
     GOAL_DESCRIPTION_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
     header: Header
     points_cad: _containers.RepeatedCompositeFieldContainer[Vector3]
     path_length_m: float
     goal_description: str
-    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., points_cad: _Optional[_Iterable[_Union[Vector3, _Mapping]]] = ..., path_length_m: _Optional[float] = ..., goal_description: _Optional[str] = ...) -> None: ...
+    error: str
+    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., points_cad: _Optional[_Iterable[_Union[Vector3, _Mapping]]] = ..., path_length_m: _Optional[float] = ..., goal_description: _Optional[str] = ..., error: _Optional[str] = ...) -> None: ...
 
 class Diagnostics(_message.Message):
-    __slots__ = ("header", "rates_hz", "latencies_ms", "dropped", "state")
+    __slots__ = ("header", "rates_hz", "latencies_ms", "dropped", "state", "counts")
     class RatesHzEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -222,17 +230,26 @@ class Diagnostics(_message.Message):
         key: str
         value: int
         def __init__(self, key: _Optional[str] = ..., value: _Optional[int] = ...) -> None: ...
+    class CountsEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: int
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[int] = ...) -> None: ...
     HEADER_FIELD_NUMBER: _ClassVar[int]
     RATES_HZ_FIELD_NUMBER: _ClassVar[int]
     LATENCIES_MS_FIELD_NUMBER: _ClassVar[int]
     DROPPED_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
+    COUNTS_FIELD_NUMBER: _ClassVar[int]
     header: Header
     rates_hz: _containers.ScalarMap[str, float]
     latencies_ms: _containers.ScalarMap[str, float]
     dropped: _containers.ScalarMap[str, int]
     state: str
-    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., rates_hz: _Optional[_Mapping[str, float]] = ..., latencies_ms: _Optional[_Mapping[str, float]] = ..., dropped: _Optional[_Mapping[str, int]] = ..., state: _Optional[str] = ...) -> None: ...
+    counts: _containers.ScalarMap[str, int]
+    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., rates_hz: _Optional[_Mapping[str, float]] = ..., latencies_ms: _Optional[_Mapping[str, float]] = ..., dropped: _Optional[_Mapping[str, int]] = ..., state: _Optional[str] = ..., counts: _Optional[_Mapping[str, int]] = ...) -> None: ...
 
 class ServiceStatus(_message.Message):
     __slots__ = ("header", "version", "vehicle", "status", "building", "keyframes", "landmarks")
@@ -251,6 +268,28 @@ class ServiceStatus(_message.Message):
     keyframes: int
     landmarks: int
     def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., version: _Optional[str] = ..., vehicle: _Optional[str] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., building: _Optional[str] = ..., keyframes: _Optional[int] = ..., landmarks: _Optional[int] = ...) -> None: ...
+
+class MapSnapshot(_message.Message):
+    __slots__ = ("header", "building", "building_sha256", "status", "T_cad_map", "storey", "landmarks_map", "T_map_body", "keyframes")
+    HEADER_FIELD_NUMBER: _ClassVar[int]
+    BUILDING_FIELD_NUMBER: _ClassVar[int]
+    BUILDING_SHA256_FIELD_NUMBER: _ClassVar[int]
+    STATUS_FIELD_NUMBER: _ClassVar[int]
+    T_CAD_MAP_FIELD_NUMBER: _ClassVar[int]
+    STOREY_FIELD_NUMBER: _ClassVar[int]
+    LANDMARKS_MAP_FIELD_NUMBER: _ClassVar[int]
+    T_MAP_BODY_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    header: Header
+    building: str
+    building_sha256: str
+    status: PoseEstimate.Status
+    T_cad_map: Pose
+    storey: str
+    landmarks_map: _containers.RepeatedCompositeFieldContainer[ObservedFeature]
+    T_map_body: Pose
+    keyframes: int
+    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., building: _Optional[str] = ..., building_sha256: _Optional[str] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., T_cad_map: _Optional[_Union[Pose, _Mapping]] = ..., storey: _Optional[str] = ..., landmarks_map: _Optional[_Iterable[_Union[ObservedFeature, _Mapping]]] = ..., T_map_body: _Optional[_Union[Pose, _Mapping]] = ..., keyframes: _Optional[int] = ...) -> None: ...
 
 class GroundTruth(_message.Message):
     __slots__ = ("header", "T_cad_body", "T_body_cam", "features_cam", "corner_visible", "depth")

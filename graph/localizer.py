@@ -1,0 +1,292 @@
+"""The localizer: the paper's loop over keyframes, as a thin orchestrator over the pose graph.
+
+Per keyframe: predict the pose from odometry, level it with gravity, add the sightings of doors and windows
+as landmark factors (re-observations or new landmarks), update iSAM2 with the new factors only, register the
+map to the building model while exploring, link newly seen landmarks to their CAD features once localized,
+and return the pose in the CAD frame with its status.
+
+Frames: map = this flight's odometry frame with z up (gravity); body = x forward, y left, z up;
+cad = the model. Sightings arrive with their 4 corners in the body frame, metres.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from graph.features import BuildingModel
+from graph.landmarks import closer_flip, feature_frame_cad, is_vertical, observed_frame
+from graph.mapstore import StoredLandmark, StoredMap
+from graph.posegraph import PoseGraph
+from graph.registrar import Registrar
+from graph.relocalize import ObservedRect
+
+log = logging.getLogger(__name__)
+
+Z_UP = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """A door/window seen in one frame: type and corners (4, 3) in the body frame (any order), metres."""
+
+    type: str
+    corners_body: np.ndarray
+    truth_id: str | None = None  # ground truth (simulated flights), for scoring only: never used to match
+
+
+@dataclass(frozen=True)
+class LocalizerParams:
+    associate_m: float = 0.6  # a sighting within this of a same-type landmark re-observes it
+    cad_link_m: float = 0.5  # once localized: a landmark within this of a same-type CAD feature is linked
+    odometry_sigma_per_m: float = 0.03  # translation sigma per metre travelled (drift model of the odometry)
+    odometry_rot_sigma_per_m: float = 0.01  # rad per metre travelled
+    sighting_sigma_m: tuple[float, float] = (0.03, 0.004)  # sigma = a + b * range^2 (stereo) of a sighting's position
+    sighting_sigma_rad: tuple[float, float] = (0.03, 0.012)  # same for its orientation (plane of noisy corners)
+    max_range_m: float = 7.0  # sightings further away are ignored
+    degraded_after_s: float = 5.0  # localized but no CAD-linked sighting for this long
+    lost_after_s: float = 20.0
+
+
+@dataclass
+class Estimate:
+    """What the localizer says after a keyframe (or a frame between keyframes)."""
+
+    stamp_ns: int
+    status: str  # exploring | localized | ambiguous | degraded | lost
+    T_map_body: np.ndarray
+    T_cad_body: np.ndarray | None = None
+    T_cad_map: np.ndarray | None = None
+    covariance: np.ndarray | None = None  # 6x6 [rot; trans] of T_cad_body (or T_map_body before), body tangent
+    inliers: int = 0
+    keyframe: int = -1
+    update_ms: float = 0.0
+    matches: dict[int, str] = field(default_factory=dict)  # landmark key -> CAD feature id
+
+
+@dataclass
+class Landmark:
+    key: int
+    type: str
+    corners_map: np.ndarray  # (4, 3) at first sighting, metres
+    n_sightings: int = 1
+    truth_id: str | None = None  # scoring only
+
+
+class Localizer:
+    """Keyframe-by-keyframe localization in the building model (see module doc)."""
+
+    def __init__(self, model: BuildingModel, graph: PoseGraph, registrar: Registrar,
+                 params: LocalizerParams | None = None, T_body_cam: np.ndarray | None = None) -> None:
+        self.model = model
+        self.graph = graph
+        self.registrar = registrar
+        self.params = params or LocalizerParams()
+        self.viewer_body = (np.eye(4) if T_body_cam is None else T_body_cam)[:3, 3]
+        self.features = {f.id: f for f in model.features}
+        self.landmarks: dict[int, Landmark] = {}
+        self.links: dict[int, str] = {}  # landmark key -> CAD feature id
+        self.status = "exploring"
+        self.inliers = 0
+        self.registrations: list[tuple[int, str]] = []  # (stamp_ns, status) of every registration attempt
+        self.keyframe_stamps_ns: list[int] = []
+        self._T_odom_prev: np.ndarray | None = None
+        self._last_link_ns: int | None = None
+        self._registered_with = 0
+
+    # --- the loop ---------------------------------------------------------------------------------------------
+
+    def add_keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting],
+                     up_body: np.ndarray | None = None, with_covariance: bool = False) -> Estimate:
+        """One keyframe: odometry pose T_odom_body (4x4, odometry frame z up), sightings, gravity's up (body)."""
+        i, T_map_body = self._predict(T_odom_body)
+        self.keyframe_stamps_ns.append(stamp_ns)
+        up_body = self._add_gravity(i, T_map_body, up_body)
+        self._add_sightings(i, T_map_body, sightings, up_body, stamp_ns)
+        self.graph.update()
+        if self._should_register():
+            self._register(stamp_ns)
+        elif self.graph.has_anchor:
+            self._link_new_landmarks(stamp_ns)
+        self._update_status(stamp_ns)
+        return self._estimate(stamp_ns, i, with_covariance)
+
+    def track(self, stamp_ns: int, T_odom_body: np.ndarray) -> Estimate:
+        """A frame between keyframes: the last keyframe's estimate moved by the odometry since then."""
+        i = self.graph.n_keyframes - 1
+        assert self._T_odom_prev is not None, "track() before the first keyframe"
+        T_map_body = self.graph.T_map_body(i) @ np.linalg.inv(self._T_odom_prev) @ T_odom_body
+        return self._estimate_at(stamp_ns, i, T_map_body)
+
+    # --- steps ------------------------------------------------------------------------------------------------
+
+    def _predict(self, T_odom_body: np.ndarray) -> tuple[int, np.ndarray]:
+        if self._T_odom_prev is None:
+            self._T_odom_prev = T_odom_body
+            return self.graph.add_first_keyframe(T_odom_body), T_odom_body  # map = odometry frame at start
+        T_prev_curr = np.linalg.inv(self._T_odom_prev) @ T_odom_body
+        T_map_body = self.graph.T_map_body(self.graph.n_keyframes - 1) @ T_prev_curr
+        travelled = float(np.linalg.norm(T_prev_curr[:3, 3])) + 0.05  # + a floor: hovering still drifts
+        p = self.params
+        sigmas = np.r_[np.full(3, p.odometry_rot_sigma_per_m * travelled),  # [rot; trans]
+                       np.full(3, p.odometry_sigma_per_m * travelled)]
+        self._T_odom_prev = T_odom_body
+        return self.graph.add_keyframe(T_prev_curr, sigmas, T_map_body), T_map_body
+
+    def _add_gravity(self, i: int, T_map_body: np.ndarray, up_body: np.ndarray | None) -> np.ndarray:
+        """A roll/pitch prior when the IMU gives up; returns up in the body frame (estimated when not given)."""
+        if up_body is None:
+            return T_map_body[:3, :3].T @ Z_UP
+        up_body = np.asarray(up_body, float) / np.linalg.norm(up_body)
+        T_level = T_map_body.copy()
+        T_level[:3, :3] = _rotation_aligning(T_map_body[:3, :3] @ up_body, Z_UP) @ T_map_body[:3, :3]
+        self.graph.add_gravity(i, T_level)
+        return up_body
+
+    def _add_sightings(self, i: int, T_map_body: np.ndarray, sightings: list[Sighting], up_body: np.ndarray,
+                       stamp_ns: int) -> None:
+        p = self.params
+        for s in sightings:
+            if not is_vertical(s.corners_body, up_body):
+                continue
+            T_body_rect = observed_frame(s.corners_body, up_body, self.viewer_body)
+            rng = float(np.linalg.norm(T_body_rect[:3, 3] - self.viewer_body))
+            if rng > p.max_range_m:
+                continue
+            T_map_rect = T_map_body @ T_body_rect
+            j = self._associate(s.type, T_map_rect)
+            if j is None:
+                j = len(self.landmarks)
+                corners_map = (T_map_body[:3, :3] @ s.corners_body.T).T + T_map_body[:3, 3]
+                self.landmarks[j] = Landmark(j, s.type, corners_map, truth_id=s.truth_id)
+                self.graph.add_landmark(j, T_map_rect)
+            else:
+                self.landmarks[j].n_sightings += 1
+                T_body_rect = np.linalg.inv(T_map_body) @ closer_flip(T_map_rect, self.graph.T_map_rect(j))
+                if j in self.links:
+                    self._last_link_ns = stamp_ns
+            sigmas = np.r_[np.full(3, p.sighting_sigma_rad[0] + p.sighting_sigma_rad[1] * rng**2),  # [rot; trans]
+                           np.full(3, p.sighting_sigma_m[0] + p.sighting_sigma_m[1] * rng**2)]
+            self.graph.add_sighting(i, j, T_body_rect, sigmas)
+
+    def _associate(self, kind: str, T_map_rect: np.ndarray) -> int | None:
+        """The same-type landmark nearest to the sighting within `associate_m`, or None (a new landmark)."""
+        best, best_d = None, self.params.associate_m
+        for j, lm in self.landmarks.items():
+            if lm.type != kind:
+                continue
+            T_j = self.graph.T_map_rect(j)
+            d = float(np.linalg.norm(T_j[:3, 3] - T_map_rect[:3, 3]))
+            if d < best_d and abs(float(np.dot(T_j[:3, 1], T_map_rect[:3, 1]))) > 0.8:
+                best, best_d = j, d
+        return best
+
+    def _should_register(self) -> bool:
+        n = len(self.landmarks)
+        return (self.status in ("exploring", "ambiguous") and n >= self.registrar.min_landmarks
+                and n > self._registered_with)
+
+    def _register(self, stamp_ns: int) -> None:
+        """Register the map's landmarks to the model; on success anchor the graph to the CAD frame."""
+        keys = sorted(self.landmarks)
+        observed = [ObservedRect(j, self.landmarks[j].type, self.graph.T_map_rect(j)) for j in keys]
+        corners = [self.landmarks[j].corners_map for j in keys]
+        result = self.registrar(observed, corners)
+        self._registered_with = len(keys)
+        self.registrations.append((stamp_ns, result.status))
+        self.inliers = result.inliers
+        if result.status != "localized" or result.T_cad_map is None:
+            self.status = result.status if result.status == "ambiguous" else "exploring"
+            return
+        log.info("localized with %d inliers of %d landmarks (%d matches)", result.inliers, len(keys),
+                 len(result.matches))
+        self.graph.add_anchor(np.linalg.inv(result.T_cad_map))
+        for j, fid in result.matches:
+            self._link(j, fid, result.T_cad_map)
+        self.status = "localized"
+        self._last_link_ns = stamp_ns
+        self.graph.update(extra_iterations=2)
+        self._link_new_landmarks(stamp_ns)
+
+    def _link_new_landmarks(self, stamp_ns: int) -> None:
+        """Landmarks not yet linked that lie within `cad_link_m` of a same-type CAD feature are linked."""
+        T_cad_map = self.graph.T_cad_map()
+        assert T_cad_map is not None
+        linked = set(self.links.values())
+        added = False
+        for j, lm in self.landmarks.items():
+            if j in self.links:
+                continue
+            T_cad_rect = T_cad_map @ self.graph.T_map_rect(j)
+            fid = self._nearest_feature(lm.type, T_cad_rect[:3, 3], exclude=linked)
+            if fid is not None:
+                self._link(j, fid, T_cad_map)
+                linked.add(fid)
+                added = True
+                self._last_link_ns = stamp_ns
+        if added:
+            self.graph.update()
+
+    def _nearest_feature(self, kind: str, xyz_cad: np.ndarray, exclude: set[str]) -> str | None:
+        best, best_d = None, self.params.cad_link_m
+        for f in self.features.values():
+            if f.type != kind or f.orientation != "vertical" or f.id in exclude:
+                continue
+            d = float(np.linalg.norm(f.centroid_cad - xyz_cad))
+            if d < best_d:
+                best, best_d = f.id, d
+        return best
+
+    def _link(self, j: int, fid: str, T_cad_map: np.ndarray) -> None:
+        feature = self.features.get(fid)
+        if feature is None or feature.orientation != "vertical":
+            return
+        T_cad_pred = T_cad_map @ self.graph.T_map_rect(j)
+        self.graph.add_cad_link(j, closer_flip(feature_frame_cad(feature), T_cad_pred))
+        self.links[j] = fid
+
+    def _update_status(self, stamp_ns: int) -> None:
+        if self.status not in ("localized", "degraded", "lost") or self._last_link_ns is None:
+            return
+        silent_s = (stamp_ns - self._last_link_ns) * 1e-9
+        p = self.params
+        self.status = "lost" if silent_s > p.lost_after_s else "degraded" if silent_s > p.degraded_after_s \
+            else "localized"
+
+    def stored_map(self) -> StoredMap:
+        """This flight's map for a later flight to re-localize into (graph.mapstore)."""
+        T_cad_map = self.graph.T_cad_map()
+        keyframes = [(s, self.graph.T_map_body(i)) for i, s in enumerate(self.keyframe_stamps_ns)]
+        landmarks = [StoredLandmark(j, lm.type, self.graph.T_map_rect(j), lm.corners_map, self.links.get(j))
+                     for j, lm in self.landmarks.items()]
+        return StoredMap(self.model.sha256, T_cad_map, keyframes, landmarks)
+
+    # --- output -----------------------------------------------------------------------------------------------
+
+    def _estimate(self, stamp_ns: int, i: int, with_covariance: bool) -> Estimate:
+        est = self._estimate_at(stamp_ns, i, self.graph.T_map_body(i))
+        est.update_ms = self.graph.last_update_ms
+        if with_covariance:
+            est.covariance = self.graph.covariance_cad_body(i)
+        return est
+
+    def _estimate_at(self, stamp_ns: int, i: int, T_map_body: np.ndarray) -> Estimate:
+        T_cad_map = self.graph.T_cad_map()
+        T_cad_body = None if T_cad_map is None else T_cad_map @ T_map_body
+        return Estimate(stamp_ns, self.status, T_map_body, T_cad_body, T_cad_map, inliers=self.inliers, keyframe=i,
+                        matches=dict(self.links))
+
+
+def _rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector a onto unit vector b (3x3)."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(np.dot(a, b))
+    if c < -1 + 1e-9:
+        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    V = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + V + V @ V / (1 + c)

@@ -1,0 +1,183 @@
+"""The pose graph: keyframes, rectangle landmarks and the CAD anchor in GTSAM iSAM2.
+
+Variables (all gtsam.Pose3):
+  X(i)  T_map_body of keyframe i              (map = this flight's odometry frame, z up from gravity)
+  L(j)  T_map_rect of landmark j              (a door or window, see graph.landmarks)
+  A(0)  T_map_cad, the CAD anchor              (the localization result is its inverse, T_cad_map)
+
+Factors (all built-in, so the real-time path never calls Python):
+  PriorFactorPose3(X(0))                       fixes the map frame at the first keyframe
+  BetweenFactorPose3(X(i-1), X(i), T_prev_curr) odometry
+  PriorFactorPose3(X(i)), roll/pitch only     gravity (yaw and translation free)
+  BetweenFactorPose3(X(i), L(j), T_body_rect)  a sighting of landmark j from keyframe i
+  BetweenFactorPose3(A(0), L(j), T_cad_feature) robust: landmark j is the CAD feature
+      (between(T_map_cad, T_map_rect) = T_cad_map T_map_rect = T_cad_rect, so the anchor is stored as
+       T_map_cad and no inverse-direction trap arises)
+
+Every `update()` hands iSAM2 only the factors and values added since the previous one; `batch_graph()`
+returns everything ever added so a batch optimiser can be checked against iSAM2 (the oracle test).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+X = gtsam.symbol_shorthand.X
+L = gtsam.symbol_shorthand.L
+A = gtsam.symbol_shorthand.A
+ANCHOR = A(0)
+
+# Pose3 sigmas are in GTSAM's tangent order [rot (rad) x3; trans (m) x3].
+FIRST_POSE_SIGMAS = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3])
+GRAVITY_SIGMAS = np.array([0.01, 0.01, 1e3, 1e4, 1e4, 1e4])  # roll, pitch from gravity; the rest free
+SIGHTING_SIGMAS = np.array([0.05, 0.05, 0.05, 0.05, 0.05, 0.05])  # 3 deg, 5 cm at 1 m (scaled by range)
+CAD_LINK_SIGMAS = np.array([0.05, 0.05, 0.05, 0.05, 0.05, 0.05])  # model vs. reality: 3 deg, 5 cm
+ANCHOR_PRIOR_SIGMAS = np.array([0.5, 0.5, 0.5, 5.0, 5.0, 5.0])  # weak: keeps A(0) determined at any time
+CAD_LINK_CAUCHY_K = 2.0  # whitened residual where the Cauchy loss halves a link's weight
+
+
+def pose3(T: np.ndarray) -> gtsam.Pose3:
+    return gtsam.Pose3(np.asarray(T, dtype=float))
+
+
+def diagonal(sigmas: np.ndarray) -> gtsam.noiseModel.Diagonal:
+    return gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=float))
+
+
+def robust(sigmas: np.ndarray, cauchy_k: float = CAD_LINK_CAUCHY_K) -> gtsam.noiseModel.Robust:
+    """Cauchy loss over a diagonal model: a wrong CAD match far from the estimate weighs ~ (k / r)^2."""
+    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k), diagonal(sigmas))
+
+
+@dataclass(frozen=True)
+class IsamSettings:
+    relinearize_threshold: float = 0.01
+    relinearize_skip: int = 1
+
+
+class PoseGraph:
+    """Incremental keyframe graph; a thin typed layer over iSAM2 that speaks 4x4 numpy transforms."""
+
+    def __init__(self, settings: IsamSettings | None = None) -> None:
+        settings = settings or IsamSettings()
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(settings.relinearize_threshold)
+        params.relinearizeSkip = settings.relinearize_skip
+        self.isam = gtsam.ISAM2(params)
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._all_factors = gtsam.NonlinearFactorGraph()
+        self._all_values = gtsam.Values()
+        self.n_keyframes = 0
+        self.landmarks: set[int] = set()
+        self.has_anchor = False
+        self.last_update_ms = 0.0
+
+    # --- adding variables and factors (buffered until update) -----------------------------------------------
+
+    def _add(self, factor: gtsam.NonlinearFactor) -> None:
+        self._new_factors.add(factor)
+        self._all_factors.add(factor)
+
+    def _insert(self, key: int, T: np.ndarray) -> None:
+        self._new_values.insert(key, pose3(T))
+        self._all_values.insert(key, pose3(T))
+
+    def add_first_keyframe(self, T_map_body: np.ndarray) -> int:
+        """Keyframe 0 defines the map frame: a tight prior at `T_map_body` (4x4)."""
+        self._insert(X(0), T_map_body)
+        self._add(gtsam.PriorFactorPose3(X(0), pose3(T_map_body), diagonal(FIRST_POSE_SIGMAS)))
+        self.n_keyframes = 1
+        return 0
+
+    def add_keyframe(self, T_prev_curr: np.ndarray, odometry_sigmas: np.ndarray,
+                     T_map_body_guess: np.ndarray) -> int:
+        """Keyframe i = n with an odometry factor from keyframe i-1 (T_prev_curr 4x4, sigmas [rot; trans])."""
+        i = self.n_keyframes
+        self._insert(X(i), T_map_body_guess)
+        self._add(gtsam.BetweenFactorPose3(X(i - 1), X(i), pose3(T_prev_curr), diagonal(odometry_sigmas)))
+        self.n_keyframes += 1
+        return i
+
+    def add_gravity(self, i: int, T_map_body_level: np.ndarray) -> None:
+        """Roll and pitch of keyframe i from gravity: `T_map_body_level` has the measured attitude."""
+        self._add(gtsam.PriorFactorPose3(X(i), pose3(T_map_body_level), diagonal(GRAVITY_SIGMAS)))
+
+    def add_landmark(self, j: int, T_map_rect_guess: np.ndarray) -> None:
+        self._insert(L(j), T_map_rect_guess)
+        self.landmarks.add(j)
+
+    def add_sighting(self, i: int, j: int, T_body_rect: np.ndarray, sigmas: np.ndarray = SIGHTING_SIGMAS) -> None:
+        """Landmark j seen from keyframe i as T_body_rect (4x4)."""
+        self._add(gtsam.BetweenFactorPose3(X(i), L(j), pose3(T_body_rect), diagonal(sigmas)))
+
+    def add_anchor(self, T_map_cad_guess: np.ndarray) -> None:
+        """The CAD anchor variable A(0) = T_map_cad, initialised from a registration."""
+        self._insert(ANCHOR, T_map_cad_guess)
+        self._add(gtsam.PriorFactorPose3(ANCHOR, pose3(T_map_cad_guess), diagonal(ANCHOR_PRIOR_SIGMAS)))
+        self.has_anchor = True
+
+    def add_cad_link(self, j: int, T_cad_rect: np.ndarray, sigmas: np.ndarray = CAD_LINK_SIGMAS) -> None:
+        """Landmark j is the CAD feature with frame T_cad_rect (robust: a wrong match loses its weight)."""
+        self._add(gtsam.BetweenFactorPose3(ANCHOR, L(j), pose3(T_cad_rect), robust(sigmas)))
+
+    # --- solving ----------------------------------------------------------------------------------------------
+
+    def update(self, extra_iterations: int = 0) -> float:
+        """Pass only the new factors and values to iSAM2; returns the update time in ms."""
+        start = time.perf_counter()
+        self.isam.update(self._new_factors, self._new_values)
+        for _ in range(extra_iterations):
+            self.isam.update()
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self.last_update_ms = (time.perf_counter() - start) * 1e3
+        return self.last_update_ms
+
+    def batch_graph(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """Every factor ever added, with the initial guesses: for a batch optimisation of the same problem."""
+        return self._all_factors, self._all_values
+
+    # --- reading the estimate ---------------------------------------------------------------------------------
+
+    def T_map_body(self, i: int) -> np.ndarray:
+        return self._value(X(i))
+
+    def T_map_rect(self, j: int) -> np.ndarray:
+        return self._value(L(j))
+
+    def T_cad_map(self) -> np.ndarray | None:
+        return np.linalg.inv(self._value(ANCHOR)) if self.has_anchor else None
+
+    def _value(self, key: int) -> np.ndarray:
+        """The current estimate of one variable (iSAM2's, or the initial guess of one not yet solved)."""
+        if self._new_values.exists(key):
+            return self._new_values.atPose3(key).matrix()
+        return self.isam.calculateEstimatePose3(key).matrix()
+
+    def estimate(self) -> gtsam.Values:
+        """All variables' current estimates (for tests and reports; costs O(n))."""
+        return self.isam.calculateEstimate()
+
+    def covariance_cad_body(self, i: int) -> np.ndarray:
+        """6x6 covariance of T_cad_body of keyframe i in its body tangent space, [rot; trans] (marginals).
+
+        T_cad_body = between(T_map_cad, T_map_body); the joint marginal of A(0) and X(i) is propagated through
+        the Jacobians of `between`. Before registration: the covariance of T_map_body.
+        """
+        if not self.has_anchor:
+            return np.asarray(self.isam.marginalCovariance(X(i)))
+        keys = gtsam.KeyVector([ANCHOR, X(i)])
+        joint = self.isam.jointMarginalCovariance(keys).fullMatrix()
+        H1, H2 = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+        anchor, pose = self.isam.calculateEstimatePose3(ANCHOR), self.isam.calculateEstimatePose3(X(i))
+        anchor.between(pose, H1, H2)
+        J = np.hstack([H1, H2])
+        return J @ joint @ J.T

@@ -1,0 +1,74 @@
+"""Registration strategies for the localizer: the map's landmarks -> T_cad_map and matches.
+
+`ModelRegistrar` asks the foundation's robust registration (`graph.registration.register`, descriptor
+matching + RANSAC) to place the map's landmarks in the whole building model; while that module is absent it
+falls back to the rectangle-hypothesis alignment of `graph.relocalize` over the model's vertical features.
+`StoredMapRegistrar` re-localizes into a stored map: only the landmarks a previous flight linked to the
+model are candidates, so a couple of sightings settle it.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Protocol
+
+import numpy as np
+
+from graph.features import BuildingModel
+from graph.landmarks import feature_frame_cad
+from graph.relocalize import Alignment, KnownRect, ObservedRect, align_rectangles
+
+log = logging.getLogger(__name__)
+
+
+class Registrar(Protocol):
+    """Places the map's landmarks in the CAD frame. Input: landmarks with T_map_rect and their corners
+    (4, 3) in the map frame (or None); the map frame's z is up (gravity)."""
+
+    min_landmarks: int
+
+    def __call__(self, landmarks: list[ObservedRect], corners_map: list[np.ndarray | None]) -> Alignment: ...
+
+
+class ModelRegistrar:
+    """Registration against the whole building model (see module doc)."""
+
+    def __init__(self, model: BuildingModel, method: str = "robust", storey_hint: str | None = None,
+                 min_landmarks: int = 4) -> None:
+        self.model = model
+        self.method = method
+        self.storey_hint = storey_hint
+        self.min_landmarks = min_landmarks
+        self._ids = [f.id for f in model.features]
+        self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
+                       if f.orientation == "vertical" and (storey_hint is None or f.storey == storey_hint)]
+        try:
+            from graph import registration
+        except ImportError:
+            log.warning("graph.registration absent: registering with the rectangle-hypothesis alignment")
+            self._register = None
+        else:
+            self._register = registration.register
+
+    def __call__(self, landmarks: list[ObservedRect], corners_map: list[np.ndarray | None]) -> Alignment:
+        if self._register is None:
+            return align_rectangles(landmarks, self._known, min_inliers=self.min_landmarks)
+        from graph.observations import Observation, ObservationSet
+
+        obs = [Observation(type=lm.type, centroid_map=lm.T_map_rect[:3, 3], corners_map=c)
+               for lm, c in zip(landmarks, corners_map, strict=True)]
+        gravity_map = np.array([0.0, 0.0, -1.0])  # the map frame's z is up
+        result = self._register(self.model, ObservationSet(obs, gravity_map, self.storey_hint), method=self.method)
+        matches = [(landmarks[i].key, fid) for i, fid in result.matches]
+        return Alignment(result.status, result.T_cad_map, matches, int(result.inliers))
+
+
+class StoredMapRegistrar:
+    """Re-localization against the CAD-linked landmarks of a stored map (T_cad_rect of each)."""
+
+    def __init__(self, known: list[KnownRect], min_landmarks: int = 3) -> None:
+        self.known = known
+        self.min_landmarks = min_landmarks
+
+    def __call__(self, landmarks: list[ObservedRect], corners_map: list[np.ndarray | None]) -> Alignment:
+        return align_rectangles(landmarks, self.known, min_inliers=self.min_landmarks)

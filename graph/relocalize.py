@@ -1,0 +1,105 @@
+"""Aligning observed rectangle landmarks to known rectangles in the CAD frame (gravity-aware, 4 DOF).
+
+One matched vertical door or window fixes T_cad_map up to the flip of its normal (both frames are
+gravity-aligned), so every (observed, known, flip) triple of the same type is a hypothesis; each is scored
+by how many observed centroids land within `inlier_m` of a known centroid of the same type with a
+compatible wall normal. A second, clearly different hypothesis with nearly as much support makes the answer
+`ambiguous` (a symmetric building), never a guess.
+
+This is what re-localizes a new flight into a stored map (its known rectangles are the landmarks that
+flight linked to the model), and a stand-in registration against a whole model while
+`graph.registration` is absent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from graph.landmarks import FLIP_ABOUT_UP
+
+NORMAL_COS_MIN = np.cos(np.radians(35.0))  # |n_obs . n_known| above this: same wall direction
+CHUNK = 256  # hypotheses scored at once (memory: CHUNK x observed x known x 3 floats)
+
+
+@dataclass(frozen=True)
+class KnownRect:
+    """A rectangle known in the CAD frame: id, type, T_cad_rect (4x4)."""
+
+    id: str
+    type: str
+    T_cad_rect: np.ndarray
+
+
+@dataclass(frozen=True)
+class ObservedRect:
+    """A landmark of this flight: its key j, type, T_map_rect (4x4)."""
+
+    key: int
+    type: str
+    T_map_rect: np.ndarray
+
+
+@dataclass
+class Alignment:
+    status: str  # "localized" | "ambiguous" | "not_localized"
+    T_cad_map: np.ndarray | None
+    matches: list[tuple[int, str]] = field(default_factory=list)  # (landmark key, known id)
+    inliers: int = 0
+
+
+def align_rectangles(observed: list[ObservedRect], known: list[KnownRect], inlier_m: float = 0.35,
+                     min_inliers: int = 3, ambiguity_ratio: float = 0.8, max_seeds: int = 12) -> Alignment:
+    """Best gravity-aligned T_cad_map explaining `observed` by `known`, with its matches; see module doc."""
+    if len(observed) < min_inliers or not known:
+        return Alignment("not_localized", None)
+    known_xyz = np.array([k.T_cad_rect[:3, 3] for k in known])
+    known_n = np.array([k.T_cad_rect[:3, 1] for k in known])
+    known_type = np.array([k.type for k in known])
+    obs_T = np.array([o.T_map_rect for o in observed])
+    obs_type = np.array([o.type for o in observed])
+    same_type = obs_type[:, None] == known_type[None, :]  # (O, K)
+    hyps = []
+    for o in range(min(max_seeds, len(observed))):
+        for k in np.flatnonzero(same_type[o]):
+            for flip in (np.eye(4), FLIP_ABOUT_UP):
+                hyps.append(known[k].T_cad_rect @ flip @ np.linalg.inv(obs_T[o]))
+    if not hyps:
+        return Alignment("not_localized", None)
+    H = np.array(hyps)  # (N, 4, 4) candidate T_cad_map
+    best_k = np.zeros((len(H), len(observed)), dtype=int)
+    hit = np.zeros((len(H), len(observed)), dtype=bool)
+    for lo in range(0, len(H), CHUNK):
+        best_k[lo:lo + CHUNK], hit[lo:lo + CHUNK] = _nearest_known(H[lo:lo + CHUNK], obs_T, same_type, known_xyz,
+                                                                  known_n, inlier_m)
+    support = np.array([len(set(best_k[n][hit[n]].tolist())) for n in range(len(H))])
+    order = np.argsort(-support, kind="stable")
+    best = int(order[0])
+    if support[best] < min_inliers:
+        return Alignment("not_localized", None, inliers=int(support[best]))
+    matches = [(observed[o].key, known[int(best_k[best, o])].id) for o in np.flatnonzero(hit[best])]
+    for n in order[1:]:
+        if support[n] < ambiguity_ratio * support[best]:
+            break
+        if _differs(H[n], H[best]):
+            return Alignment("ambiguous", H[best], matches, int(support[best]))
+    return Alignment("localized", H[best], matches, int(support[best]))
+
+
+def _nearest_known(H: np.ndarray, obs_T: np.ndarray, same_type: np.ndarray, known_xyz: np.ndarray,
+                   known_n: np.ndarray, inlier_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """For hypotheses H (N, 4, 4): index of the compatible known rectangle nearest to each observed one
+    (N, O), and whether it lies within `inlier_m` (N, O)."""
+    xyz = np.einsum("nij,oj->noi", H[:, :3, :3], obs_T[:, :3, 3]) + H[:, None, :3, 3]  # (N, O, 3) in cad
+    nrm = np.einsum("nij,oj->noi", H[:, :3, :3], obs_T[:, :3, 1])
+    dist = np.linalg.norm(xyz[:, :, None, :] - known_xyz[None, None], axis=3)  # (N, O, K)
+    ok = (dist < inlier_m) & same_type[None] & (np.abs(nrm @ known_n.T) > NORMAL_COS_MIN)
+    dist = np.where(ok, dist, np.inf)
+    return dist.argmin(axis=2), np.isfinite(dist.min(axis=2))
+
+
+def _differs(T_a: np.ndarray, T_b: np.ndarray, trans_m: float = 1.0, angle_rad: float = np.radians(15.0)) -> bool:
+    D = np.linalg.inv(T_a) @ T_b
+    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
+    return bool(np.linalg.norm(D[:3, 3]) > trans_m or angle > angle_rad)

@@ -1,0 +1,89 @@
+"""Rigid transforms: the paper's weighted SVD fit (eqs. 11–17), a gravity-constrained (yaw) fit, helpers.
+
+Convention: `T_a_b` (4x4) maps points from frame b into frame a: p_a = R p_b + t.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+Z_UP = np.array([0.0, 0.0, 1.0])
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    R, t = T[:3, :3], T[:3, 3]
+    return make_T(R.T, -R.T @ t)
+
+
+def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Transform (..., 3) points by the 4x4 T."""
+    return np.asarray(points) @ T[:3, :3].T + T[:3, 3]
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def weighted_rigid_fit(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """T_dst_src minimising sum_i w_i |R a_i + t - b_i|^2 (eq. 11) by weighted SVD.
+
+    eq. (12): weighted centroids; eq. (13): centred vectors; eq. (14): S = X W Y^T; eq. (15): S = U s V^T;
+    eq. (16): R = V U^T — with the reflection case handled (R = V diag(1, 1, det(V U^T)) U^T, Umeyama);
+    eq. (17): t = b_bar - R a_bar.  src, dst: (N, 3), N >= 3 and not collinear.
+    """
+    a = np.asarray(src, dtype=float).reshape(-1, 3)
+    b = np.asarray(dst, dtype=float).reshape(-1, 3)
+    w = np.ones(len(a)) if weights is None else np.asarray(weights, dtype=float)
+    w_sum = w.sum()
+    a_bar = (w[:, None] * a).sum(axis=0) / w_sum  # eq. (12)
+    b_bar = (w[:, None] * b).sum(axis=0) / w_sum
+    X = (a - a_bar).T  # eq. (13), 3 x N
+    Y = (b - b_bar).T
+    S = X @ np.diag(w) @ Y.T  # eq. (14)
+    U, _, Vt = np.linalg.svd(S)  # eq. (15)
+    V = Vt.T
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(V @ U.T)) or 1.0])
+    R = V @ D @ U.T  # eq. (16), reflection-safe
+    return make_T(R, b_bar - R @ a_bar)  # eq. (17)
+
+
+def yaw_rigid_fit(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """T_dst_src restricted to a rotation about +z and a translation (both frames gravity-aligned, 4 DoF)."""
+    a = np.asarray(src, dtype=float).reshape(-1, 3)
+    b = np.asarray(dst, dtype=float).reshape(-1, 3)
+    w = np.ones(len(a)) if weights is None else np.asarray(weights, dtype=float)
+    a_bar = (w[:, None] * a).sum(axis=0) / w.sum()
+    b_bar = (w[:, None] * b).sum(axis=0) / w.sum()
+    x, y = a[:, :2] - a_bar[:2], b[:, :2] - b_bar[:2]
+    s_cos = float((w * (x[:, 0] * y[:, 0] + x[:, 1] * y[:, 1])).sum())
+    s_sin = float((w * (x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0])).sum())
+    R = rot_z(np.arctan2(s_sin, s_cos))
+    return make_T(R, b_bar - R @ a_bar)
+
+
+def rot_z(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation R with R a_hat = b_hat (Rodrigues), for unit or non-unit 3-vectors."""
+    a = np.asarray(a, dtype=float) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=float) / np.linalg.norm(b)
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    if c < -1.0 + 1e-12:  # opposite: turn by pi about any axis perpendicular to a
+        axis = np.cross(a, [1.0, 0.0, 0.0])
+        if np.linalg.norm(axis) < 1e-6:
+            axis = np.cross(a, [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + K + K @ K / (1.0 + c)

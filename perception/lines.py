@@ -1,0 +1,163 @@
+"""Line refinement of a detection box (paper §2.2.2): LSD inside the box, broken segments joined,
+the longest lines nearest the box's two vertical sides taken as the feature's sides.
+
+Pixels: (u right, v down) of the full image. A segment is `(2, 2)` float: [[u0, v0], [u1, v1]], top end first.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from perception.stereo import to_gray
+
+log = logging.getLogger(__name__)
+
+JOIN_ANGLE_DEG = 2.0  # paper: slopes within 2 degrees
+JOIN_GAP_PX = 10.0  # paper: close endpoints within 10 pixels
+
+
+@dataclass(frozen=True)
+class LineConfig:
+    join_angle_deg: float = JOIN_ANGLE_DEG
+    join_gap_px: float = JOIN_GAP_PX
+    join_offset_px: float = 3.0  # our addition: the joined pieces must also be collinear (perpendicular offset)
+    max_tilt_deg: float = 25.0  # |angle from the image vertical| for a side candidate (drone roll up to ~20 deg)
+    margin: float = 0.10  # the box grows by this fraction of its size on each side before LSD
+    side_band: float = 0.30  # a side candidate lies within this fraction of the box width from that edge
+    min_length: float = 0.35  # ... and is at least this fraction of the box height long
+    near_length: float = 0.6  # among candidates at least this fraction of the longest, the nearest wins
+
+
+@dataclass(frozen=True)
+class Sides:
+    """The feature's two vertical sides in image pixels, each (2,2) top end first, extended to the box's
+    top and bottom rows; `from_lines[i]` says whether side i came from LSD (else the box edge)."""
+
+    left_px: np.ndarray
+    right_px: np.ndarray
+    from_lines: tuple[bool, bool]
+
+
+def _orient(seg: np.ndarray) -> np.ndarray:
+    return seg if seg[0, 1] <= seg[1, 1] else seg[::-1]
+
+
+def _angle_deg(seg: np.ndarray) -> float:
+    """Undirected angle of a segment in [0, 180) degrees."""
+    d = seg[1] - seg[0]
+    return float(np.degrees(np.arctan2(d[1], d[0])) % 180.0)
+
+
+def _angle_diff_deg(a: float, b: float) -> float:
+    d = abs(a - b) % 180.0
+    return min(d, 180.0 - d)
+
+
+def _joinable(a: np.ndarray, b: np.ndarray, cfg: LineConfig) -> bool:
+    if _angle_diff_deg(_angle_deg(a), _angle_deg(b)) > cfg.join_angle_deg:
+        return False
+    gap = min(np.linalg.norm(p - q) for p in a for q in b)
+    if gap > cfg.join_gap_px:
+        return False
+    d = (a[1] - a[0]) / max(np.linalg.norm(a[1] - a[0]), 1e-9)
+    normal = np.array([-d[1], d[0]])
+    return bool(np.max(np.abs((b - a[0]) @ normal)) <= cfg.join_offset_px)
+
+
+def _merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The segment between the two farthest-apart endpoints of a and b."""
+    pts = np.vstack([a, b])
+    dists = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    i, j = np.unravel_index(int(np.argmax(dists)), dists.shape)
+    return _orient(np.stack([pts[i], pts[j]]))
+
+
+def join_segments(segments: list[np.ndarray], cfg: LineConfig | None = None) -> list[np.ndarray]:
+    """Join broken segments (angle <= 2 deg, endpoint gap <= 10 px, collinear) until none can be joined."""
+    cfg = cfg or LineConfig()
+    segs = [_orient(np.asarray(s, np.float64).reshape(2, 2)) for s in segments]
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(segs)):
+            for j in range(i + 1, len(segs)):
+                if _joinable(segs[i], segs[j], cfg):
+                    segs[i] = _merge(segs[i], segs[j])
+                    del segs[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return segs
+
+
+def detect_segments(gray: np.ndarray) -> list[np.ndarray]:
+    """LSD segments of a grey image, each (2,2) in its pixels."""
+    lsd = cv2.createLineSegmentDetector()
+    lines = lsd.detect(gray)[0]
+    if lines is None:
+        return []
+    return [line.reshape(2, 2).astype(np.float64) for line in lines]
+
+
+def _extend_to_rows(seg: np.ndarray, v_top: float, v_bottom: float) -> np.ndarray:
+    (u0, v0), (u1, v1) = seg
+    slope = (u1 - u0) / (v1 - v0) if abs(v1 - v0) > 1e-9 else 0.0  # du/dv of a near-vertical line
+    return np.array([[u0 + slope * (v_top - v0), v_top], [u0 + slope * (v_bottom - v0), v_bottom]])
+
+
+def _pick_side(cands: list[np.ndarray], edge_u: float, cfg: LineConfig) -> np.ndarray | None:
+    if not cands:
+        return None
+    lengths = np.array([np.linalg.norm(s[1] - s[0]) for s in cands])
+    dist = np.array([abs(s[:, 0].mean() - edge_u) for s in cands])
+    ok = lengths >= cfg.near_length * lengths.max()
+    best = int(np.argmin(np.where(ok, dist, np.inf)))
+    return cands[best]
+
+
+def refine_box(image: np.ndarray, box_xyxy: tuple[float, float, float, float], cfg: LineConfig | None = None) -> Sides:
+    """The two vertical sides of the feature inside a detection box (image pixels)."""
+    cfg = cfg or LineConfig()
+    gray = to_gray(image)
+    h_img, w_img = gray.shape
+    x0, y0, x1, y1 = box_xyxy
+    bw, bh = x1 - x0, y1 - y0
+    cx0, cy0 = int(max(0, np.floor(x0 - cfg.margin * bw))), int(max(0, np.floor(y0 - cfg.margin * bh)))
+    cx1, cy1 = int(min(w_img, np.ceil(x1 + cfg.margin * bw))), int(min(h_img, np.ceil(y1 + cfg.margin * bh)))
+    segs = [s + np.array([cx0, cy0]) for s in detect_segments(np.ascontiguousarray(gray[cy0:cy1, cx0:cx1]))]
+    vertical = [s for s in segs if _angle_diff_deg(_angle_deg(s), 90.0) <= cfg.max_tilt_deg]
+    joined = [_orient(s) for s in join_segments(vertical, cfg)]
+    long_enough = [s for s in joined if s[1, 1] - s[0, 1] >= cfg.min_length * bh]
+    left = _pick_side([s for s in long_enough if abs(s[:, 0].mean() - x0) <= cfg.side_band * bw], x0, cfg)
+    right = _pick_side([s for s in long_enough if abs(s[:, 0].mean() - x1) <= cfg.side_band * bw], x1, cfg)
+    if left is not None and right is not None and right[:, 0].mean() - left[:, 0].mean() < 0.3 * bw:
+        left, right = None, None  # both picked the same edge region: not a usable pair
+    return Sides(
+        _extend_to_rows(left, y0, y1) if left is not None else _edge_column(gray, box_xyxy, x0, cfg),
+        _extend_to_rows(right, y0, y1) if right is not None else _edge_column(gray, box_xyxy, x1, cfg),
+        (left is not None, right is not None),
+    )
+
+
+def _edge_column(gray: np.ndarray, box_xyxy: tuple[float, float, float, float], edge_u: float,
+                 cfg: LineConfig) -> np.ndarray:
+    """Fallback when LSD finds no side: the image column of strongest horizontal gradient within the side band
+    (summed over the box's rows), as a vertical segment over the box's rows; the box edge if nothing stands out."""
+    x0, y0, x1, y1 = box_xyxy
+    band = cfg.side_band * (x1 - x0)
+    u_lo, u_hi = int(max(1, edge_u - band)), int(min(gray.shape[1] - 1, edge_u + band))
+    v_lo, v_hi = int(max(0, y0)), int(min(gray.shape[0], y1))
+    if u_hi - u_lo < 3 or v_hi - v_lo < 3:
+        return np.array([[edge_u, y0], [edge_u, y1]])
+    strip = gray[v_lo:v_hi, u_lo - 1:u_hi + 1].astype(np.float32)
+    profile = np.abs(strip[:, 2:] - strip[:, :-2]).sum(axis=0)  # central difference d/du, summed over rows
+    profile = np.convolve(profile, np.ones(3) / 3, mode="same")
+    if profile.max() <= 2.0 * np.median(profile) + 1e-6:
+        return np.array([[edge_u, y0], [edge_u, y1]])
+    u = float(u_lo + int(np.argmax(profile)))
+    return np.array([[u, y0], [u, y1]])

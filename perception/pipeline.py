@@ -1,0 +1,137 @@
+"""The perception chain (paper §2.2): stereo pair -> doors and windows with 4 corners in the camera frame.
+
+detect (CNN) -> refine sides (LSD) -> stereo depth (SGBM, eq. 2) -> 3D sides and corners -> plausibility.
+Frames: `corners_cam` in the rectified left camera's optical frame (x right, y down, z forward), metres;
+`box_xyxy` in the left image's pixels; `gravity_cam` (optional) a unit vector in the camera frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from perception.calib import StereoRig
+from perception.detector import DEFAULT_MODEL, Detection, Detector
+from perception.lines import LineConfig, Sides, refine_box
+from perception.reconstruct import PlausibilityConfig, check_plausible, measure, reconstruct_sides
+from perception.stereo import SgbmConfig, SgbmMatcher, depth_from_disparity
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class StereoPair:
+    """A rectified stereo pair (uint8, grey HxW or BGR HxWx3), its rig, and gravity in the camera frame if known."""
+
+    left: np.ndarray
+    right: np.ndarray
+    rig: StereoRig
+    gravity_cam: np.ndarray | None = None
+    stamp_ns: int = 0
+
+
+@dataclass(frozen=True)
+class ObservedFeature:
+    """A door or window seen in one frame: corners (4,3) in the camera frame, m (TL, TR, BR, BL in the image)."""
+
+    type: str
+    score: float
+    box_xyxy: tuple[float, float, float, float]
+    corners_cam: np.ndarray
+    width_m: float
+    height_m: float
+    tilt_deg: float
+    sides_px: tuple[np.ndarray, np.ndarray]
+    sides_from_lines: tuple[bool, bool]
+
+    @property
+    def centroid_cam(self) -> np.ndarray:
+        return self.corners_cam.mean(axis=0)
+
+    def to_json(self) -> dict[str, object]:
+        return {"type": self.type, "score": round(self.score, 4), "box_xyxy": [round(v, 1) for v in self.box_xyxy],
+                "corners_cam": np.round(self.corners_cam, 4).tolist(), "width_m": round(self.width_m, 3),
+                "height_m": round(self.height_m, 3), "tilt_deg": round(self.tilt_deg, 2)}
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A detection that did not become a feature, and why."""
+
+    detection: Detection
+    reason: str
+
+
+@dataclass
+class PerceptionResult:
+    features: list[ObservedFeature]
+    rejected: list[Rejected]
+    detections: list[Detection]
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class Perception:
+    """The whole chain with its components; `process(pair)` is the paper's §2.2 step by step."""
+
+    def __init__(self, detector: Detector, matcher: SgbmMatcher, lines: LineConfig | None = None,
+                 plausibility: PlausibilityConfig | None = None) -> None:
+        self.detector = detector
+        self.matcher = matcher
+        self.lines = lines or LineConfig()
+        self.plausibility = plausibility or PlausibilityConfig()
+
+    @staticmethod
+    def create(model_path: Path = DEFAULT_MODEL, sgbm: SgbmConfig | None = None, threads: int = 2) -> Perception:
+        return Perception(Detector(model_path, threads=threads), SgbmMatcher(sgbm))
+
+    def process(self, pair: StereoPair) -> PerceptionResult:
+        clock = _Clock()
+        detections = self.detector.detect(pair.left)
+        clock.lap("detect")
+        return self.process_boxes(pair, detections, clock)
+
+    def process_boxes(self, pair: StereoPair, detections: list[Detection], clock: _Clock | None = None
+                      ) -> PerceptionResult:
+        """The chain after the detector, on given boxes (the detector's, or ground truth's for evaluation)."""
+        clock = clock or _Clock()
+        depth_m = depth_from_disparity(self.matcher.disparity_px(pair.left, pair.right), pair.rig)
+        clock.lap("stereo")
+        sides = [refine_box(pair.left, d.box_xyxy, self.lines) for d in detections]
+        clock.lap("lines")
+        features, rejected = [], []
+        for det, side in zip(detections, sides, strict=True):
+            result = self._reconstruct(det, side, depth_m, pair)
+            (features if isinstance(result, ObservedFeature) else rejected).append(result)
+        clock.lap("reconstruct")
+        for r in rejected:
+            log.debug("rejected %s %.2f at %s: %s", r.detection.type, r.detection.score, r.detection.box_xyxy, r.reason)
+        return PerceptionResult(features, rejected, detections, clock.laps)
+
+    def _reconstruct(self, det: Detection, sides: Sides, depth_m: np.ndarray,
+                     pair: StereoPair) -> ObservedFeature | Rejected:
+        fitted = reconstruct_sides(sides, depth_m, pair.rig)
+        if isinstance(fitted, str):
+            return Rejected(det, fitted)
+        corners_cam, lines = fitted
+        rec = measure(corners_cam, pair.gravity_cam)
+        reason = check_plausible(det.type, rec, (lines[0].direction, lines[1].direction),
+                                 pair.gravity_cam is not None, self.plausibility)
+        if reason is not None:
+            return Rejected(det, reason)
+        return ObservedFeature(det.type, det.score, det.box_xyxy, corners_cam, rec.width_m, rec.height_m,
+                               rec.tilt_deg, (sides.left_px, sides.right_px), sides.from_lines)
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.laps: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = (now - self._t) * 1e3
+        self._t = now

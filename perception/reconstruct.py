@@ -1,0 +1,172 @@
+"""3D sides and corners of a macro-feature (paper §2.2.3), and the plausibility checks.
+
+Points sampled along each 2D side are back-projected with their stereo depth (eq. 2); a 3D line is fitted by
+orthogonal regression (total least squares), points farther than a threshold removed, the line refitted.
+The side's ends are the points of the fitted line nearest the viewing rays through the 2D side's ends
+(the paper projects the 3D endpoints onto the line; the rays need no depth at the very ends, where
+stereo is least reliable).
+Frames: camera optical frame (x right, y down, z forward), metres. Corners are ordered
+top-left, top-right, bottom-right, bottom-left as seen in the image.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from perception.calib import StereoRig
+from perception.lines import Sides
+from perception.stereo import back_project, ray_cam, sample_depth_m
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Line3D:
+    """A 3D line: a point on it and a unit direction (camera frame, m); `inliers` used in the final fit."""
+
+    point_m: np.ndarray
+    direction: np.ndarray
+    inliers: np.ndarray
+
+    def distances_m(self, points_m: np.ndarray) -> np.ndarray:
+        rel = points_m - self.point_m
+        return np.linalg.norm(rel - np.outer(rel @ self.direction, self.direction), axis=1)
+
+
+def fit_line_tls(points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Orthogonal-regression line through points (N,3): (centroid, unit direction of largest spread)."""
+    centroid = points_m.mean(axis=0)
+    _, _, vt = np.linalg.svd(points_m - centroid, full_matrices=False)
+    return centroid, vt[0]
+
+
+def fit_line_robust(points_m: np.ndarray, threshold_m: float = 0.08, mad_k: float = 3.0,
+                    min_points: int = 4, max_rounds: int = 5) -> Line3D | None:
+    """Fit, drop points farther than the cut, refit (paper §2.2.3), repeated until the inliers settle.
+
+    The paper does one removal and one refit. With gross outliers the first fit is pulled off the line
+    and a fixed threshold can reject every point, so the cut starts adaptive,
+    max(threshold_m, median + mad_k * 1.4826 * MAD of the inliers' distances), and the rounds repeat.
+    """
+    pts = points_m[np.all(np.isfinite(points_m), axis=1)]
+    if len(pts) < min_points:
+        return None
+    inliers = np.ones(len(pts), bool)
+    for _ in range(max_rounds):
+        centroid, direction = fit_line_tls(pts[inliers])
+        d = Line3D(centroid, direction, inliers).distances_m(pts)
+        d_in = d[inliers]
+        cut = max(threshold_m, float(np.median(d_in) + mad_k * 1.4826 * np.median(np.abs(d_in - np.median(d_in)))))
+        new = d <= cut
+        if new.sum() < min_points:
+            return None
+        if np.array_equal(new, inliers):
+            break
+        inliers = new
+    centroid, direction = fit_line_tls(pts[inliers])
+    return Line3D(centroid, direction, inliers)
+
+
+def closest_point_to_ray(line: Line3D, ray: np.ndarray) -> np.ndarray | None:
+    """Point of `line` nearest the ray from the camera centre along unit `ray` (None if they are parallel)."""
+    d, r = line.direction, ray
+    # Minimise |p + s d - t r|: solve the 2x2 normal equations for (s, t).
+    A = np.array([[d @ d, -(d @ r)], [d @ r, -(r @ r)]])
+    b = -np.array([line.point_m @ d, line.point_m @ r])
+    if abs(np.linalg.det(A)) < 1e-9:
+        return None
+    s, _ = np.linalg.solve(A, b)
+    return line.point_m + s * d
+
+
+@dataclass(frozen=True)
+class PlausibilityConfig:
+    """Limits a reconstructed door/window must meet (m, degrees)."""
+
+    depth_range_m: tuple[float, float] = (0.5, 12.0)
+    door_width_m: tuple[float, float] = (0.5, 2.6)
+    door_height_m: tuple[float, float] = (1.5, 3.2)
+    window_width_m: tuple[float, float] = (0.25, 4.0)
+    window_height_m: tuple[float, float] = (0.25, 3.5)
+    max_tilt_deg: float = 15.0  # side direction vs gravity, when gravity is known
+    max_tilt_no_gravity_deg: float = 30.0  # vs the camera's y axis when it is not (drone roll up to ~20 deg)
+    max_side_angle_deg: float = 15.0  # the two sides must be nearly parallel
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """4 corners (4,3) in the camera frame (m), width/height (m), tilt of the sides from vertical (deg)."""
+
+    corners_cam: np.ndarray
+    width_m: float
+    height_m: float
+    tilt_deg: float
+    depth_m: float
+
+
+def _side_points(side_px: np.ndarray, depth_m: np.ndarray, rig: StereoRig, n: int, inward_px: float) -> np.ndarray:
+    """Back-projected points along a side. Depth is read `inward_px` towards the feature's inside (sign of
+    `inward_px` gives the direction in u): at the side itself the window mixes the feature with what is beside
+    it (an open doorway, the far side of a window), whose depth can differ by metres."""
+    t = np.linspace(0.05, 0.95, n)[:, None]
+    uv = side_px[0] * (1 - t) + side_px[1] * t
+    depth = sample_depth_m(depth_m, uv + np.array([inward_px, 0.0]))
+    return back_project(uv, depth, rig)
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(abs(a @ b) / np.linalg.norm(a) / np.linalg.norm(b), 0, 1))))
+
+
+def reconstruct_sides(sides: Sides, depth_m: np.ndarray, rig: StereoRig, n_samples: int = 40,
+                      threshold_m: float = 0.08, min_inlier_fraction: float = 0.5, inward_px: float = 3.0,
+                      ) -> tuple[np.ndarray, list[Line3D]] | str:
+    """Corners (4,3) from the two 2D sides and the depth image, or the reason it failed."""
+    lines, ends = [], []
+    for name, side, sign in (("left", sides.left_px, 1.0), ("right", sides.right_px, -1.0)):
+        pts = _side_points(side, depth_m, rig, n_samples, sign * inward_px)
+        valid = int(np.all(np.isfinite(pts), axis=1).sum())
+        line = fit_line_robust(pts, threshold_m)
+        if line is None or line.inliers.sum() < min_inlier_fraction * n_samples:
+            return f"{name} side: too few points with depth ({valid}/{n_samples})"
+        top, bottom = (closest_point_to_ray(line, r) for r in ray_cam(side, rig))
+        if top is None or bottom is None:
+            return f"{name} side: line along the viewing ray"
+        lines.append(line)
+        ends.append((top, bottom))
+    (tl, bl), (tr, br) = ends
+    return np.stack([tl, tr, br, bl]), lines
+
+
+def measure(corners_cam: np.ndarray, gravity_cam: np.ndarray | None) -> Reconstruction:
+    """Width (mean of top and bottom edges), height (mean of the sides), tilt of the sides from vertical."""
+    tl, tr, br, bl = corners_cam
+    width = 0.5 * (np.linalg.norm(tr - tl) + np.linalg.norm(br - bl))
+    height = 0.5 * (np.linalg.norm(bl - tl) + np.linalg.norm(br - tr))
+    up = np.array([0.0, 1.0, 0.0]) if gravity_cam is None else np.asarray(gravity_cam, np.float64)
+    tilt = max(_angle_deg(bl - tl, up), _angle_deg(br - tr, up))
+    return Reconstruction(corners_cam, float(width), float(height), tilt, float(corners_cam[:, 2].mean()))
+
+
+def check_plausible(kind: str, rec: Reconstruction, side_dirs: tuple[np.ndarray, np.ndarray],
+                    gravity_known: bool, cfg: PlausibilityConfig | None = None) -> str | None:
+    """None if the reconstruction is a plausible door/window, else the reason to reject it."""
+    cfg = cfg or PlausibilityConfig()
+    z = rec.corners_cam[:, 2]
+    if z.min() < cfg.depth_range_m[0] or z.max() > cfg.depth_range_m[1]:
+        return f"depth {z.min():.2f}-{z.max():.2f} m outside {cfg.depth_range_m}"
+    w_lim, h_lim = (cfg.door_width_m, cfg.door_height_m) if kind == "door" else (cfg.window_width_m,
+                                                                                  cfg.window_height_m)
+    if not w_lim[0] <= rec.width_m <= w_lim[1]:
+        return f"width {rec.width_m:.2f} m outside {w_lim}"
+    if not h_lim[0] <= rec.height_m <= h_lim[1]:
+        return f"height {rec.height_m:.2f} m outside {h_lim}"
+    max_tilt = cfg.max_tilt_deg if gravity_known else cfg.max_tilt_no_gravity_deg
+    if rec.tilt_deg > max_tilt:
+        return f"sides {rec.tilt_deg:.1f} deg from vertical (> {max_tilt})"
+    if _angle_deg(*side_dirs) > cfg.max_side_angle_deg:
+        return f"sides {_angle_deg(*side_dirs):.1f} deg apart (not parallel)"
+    return None

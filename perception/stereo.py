@@ -1,0 +1,102 @@
+"""Stereo depth: OpenCV SGBM (3-way mode) on a rectified pair, depth from disparity, back-projection (eq. 2).
+
+Frames: pixels (u right, v down) of the rectified left image; points in the left camera's optical frame
+(x right, y down, z forward), metres.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from perception.calib import StereoRig
+
+log = logging.getLogger(__name__)
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 2:
+        return image
+    if image.shape[2] == 1:
+        return image[:, :, 0]
+    return cv2.cvtColor(image[:, :, :3], cv2.COLOR_BGR2GRAY)
+
+
+@dataclass(frozen=True)
+class SgbmConfig:
+    """SGBM parameters: disparities searched (multiple of 16), block size (odd, px), 3-way mode."""
+
+    num_disparities: int = 64
+    block_size: int = 5
+    uniqueness_ratio: int = 5
+    speckle_window: int = 100
+    speckle_range: int = 2
+    three_way: bool = True
+
+
+class SgbmMatcher:
+    """Dense disparity of the left image (px, float32; NaN where unknown).
+
+    Both images are padded on the left by `num_disparities` columns first, so that SGBM's blind band on
+    the left edge falls in the padding: a near-edge pixel whose match lies inside the right image is kept.
+    """
+
+    def __init__(self, config: SgbmConfig | None = None) -> None:
+        c = config or SgbmConfig()
+        self.config = c
+        self._sgbm = cv2.StereoSGBM.create(
+            minDisparity=0, numDisparities=c.num_disparities, blockSize=c.block_size,
+            P1=8 * c.block_size**2, P2=32 * c.block_size**2, disp12MaxDiff=1,
+            uniquenessRatio=c.uniqueness_ratio, speckleWindowSize=c.speckle_window, speckleRange=c.speckle_range,
+            mode=cv2.StereoSGBM_MODE_SGBM_3WAY if c.three_way else cv2.StereoSGBM_MODE_SGBM,
+        )
+
+    def disparity_px(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        pad = self.config.num_disparities
+        gl = cv2.copyMakeBorder(to_gray(left), 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+        gr = cv2.copyMakeBorder(to_gray(right), 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+        raw = self._sgbm.compute(gl, gr)[:, pad:]
+        disparity = raw.astype(np.float32) / 16.0  # SGBM returns fixed point with 4 fractional bits
+        disparity[raw <= 0] = np.nan
+        return disparity
+
+
+def depth_from_disparity(disparity_px: np.ndarray, rig: StereoRig) -> np.ndarray:
+    """depth_m = fx * baseline / disparity (NaN where the disparity is unknown or not positive)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth_m = rig.fx_px * rig.baseline_m / disparity_px
+    return np.where(np.isfinite(depth_m) & (depth_m > 0), depth_m, np.nan).astype(np.float32)
+
+
+def back_project(uv_px: np.ndarray, depth_m: np.ndarray, rig: StereoRig) -> np.ndarray:
+    """Pixels (N,2) with depths (N,) -> points (N,3) in the camera frame.
+
+    eq. (2): P3 = d * [(u - cx)/fx, (v - cy)/fy, 1].
+    """
+    uv = np.asarray(uv_px, np.float64).reshape(-1, 2)
+    d = np.asarray(depth_m, np.float64).reshape(-1)
+    return np.stack([d * (uv[:, 0] - rig.cx_px) / rig.fx_px, d * (uv[:, 1] - rig.cy_px) / rig.fy_px, d], axis=1)
+
+
+def ray_cam(uv_px: np.ndarray, rig: StereoRig) -> np.ndarray:
+    """Viewing rays (N,3), unit length, through pixels (N,2), in the camera frame (eq. 2 with d = 1, normalised)."""
+    rays = back_project(uv_px, np.ones(len(np.asarray(uv_px).reshape(-1, 2))), rig)
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def sample_depth_m(depth_m: np.ndarray, uv_px: np.ndarray, half_width_px: int = 2) -> np.ndarray:
+    """Depth at pixels (N,2): median of the valid depths in a (2h+1)-wide horizontal window (NaN if none)."""
+    h, w = depth_m.shape
+    out = np.full(len(uv_px), np.nan)
+    for i, (u, v) in enumerate(np.asarray(uv_px, np.float64).reshape(-1, 2)):
+        ui, vi = int(round(u)), int(round(v))
+        if not (0 <= vi < h):
+            continue
+        window = depth_m[vi, max(0, ui - half_width_px): min(w, ui + half_width_px + 1)]
+        window = window[np.isfinite(window)]
+        if window.size:
+            out[i] = float(np.median(window))
+    return out

@@ -1,0 +1,165 @@
+"""Detector data: YOLO-labelled images, the class mapping, the fixed split, and augmentation (numpy/OpenCV).
+
+Boxes are `boxes_xyxy` in the pixels of the image they belong to; classes are indices into
+`perception.detector.CLASS_NAMES` (0 door, 1 window, 2 neither).
+
+Facade photos (`../shared/data/images/facades`, labels `0 window, 1 cantilever, 2 arch, 3 signboard,
+4 win_ad, 5 door`): 5 -> door, 0 and 4 -> window, 1/2/3 -> neither (the paper's third class, §2.2.1).
+The held-out real test split is every `img_n.jpg` with n % 5 == 0 (the simulator's textures avoid it too);
+the rest is split, seeded, into train and validation (the validation part sets the score threshold).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from perception.detector import PAD_VALUE
+
+log = logging.getLogger(__name__)
+
+FACADE_CLASS_MAP = {5: 0, 0: 1, 4: 1, 1: 2, 2: 2, 3: 2}
+ROTATIONS_DEG = tuple(range(-20, 21, 5))  # paper §2.2.1: ±20° in 5° steps, eq. (1)
+
+
+@dataclass
+class Sample:
+    """An image held in memory (BGR uint8, long side <= cache size) with its boxes (K,4) and classes (K,)."""
+
+    name: str
+    image_bgr: np.ndarray
+    boxes_xyxy: np.ndarray
+    classes: np.ndarray
+
+
+def read_yolo_labels(label_path: Path, width_px: int, height_px: int,
+                     class_map: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """YOLO `class cx cy w h` (normalised) -> (boxes_xyxy in pixels (K,4), mapped classes (K,))."""
+    boxes, classes = [], []
+    if label_path.exists():
+        for line in label_path.read_text().splitlines():
+            parts = line.split()
+            if len(parts) != 5 or int(parts[0]) not in class_map:
+                continue
+            cx, cy, w, h = (float(v) for v in parts[1:])
+            boxes.append([(cx - w / 2) * width_px, (cy - h / 2) * height_px,
+                          (cx + w / 2) * width_px, (cy + h / 2) * height_px])
+            classes.append(class_map[int(parts[0])])
+    return np.asarray(boxes, np.float64).reshape(-1, 4), np.asarray(classes, np.int64)
+
+
+def facade_number(path: Path) -> int:
+    match = re.search(r"(\d+)", path.stem)
+    if match is None:
+        raise ValueError(f"no image number in {path.name}")
+    return int(match.group(1))
+
+
+def is_real_test(path: Path) -> bool:
+    """The held-out real test split: img_n.jpg with n % 5 == 0 (never trained on, never a sim texture)."""
+    return facade_number(path) % 5 == 0
+
+
+def split_facades(root: Path, seed: int = 0, val_fraction: float = 0.15) -> dict[str, list[Path]]:
+    """Fixed split of the facade images: {"train", "val", "test"} lists of image paths."""
+    images = sorted((root / "images").glob("*.jpg"), key=facade_number)
+    test = [p for p in images if is_real_test(p)]
+    rest = [p for p in images if not is_real_test(p)]
+    order = np.random.default_rng(seed).permutation(len(rest))
+    n_val = round(val_fraction * len(rest))
+    val = sorted((rest[i] for i in order[:n_val]), key=facade_number)
+    train = sorted((rest[i] for i in order[n_val:]), key=facade_number)
+    return {"train": train, "val": val, "test": test}
+
+
+def load_sample(image_path: Path, label_path: Path, class_map: dict[int, int], max_side_px: int) -> Sample:
+    """Read an image and its labels, downscaled so that its long side is at most `max_side_px`."""
+    image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ValueError(f"cannot read image {image_path}")
+    h, w = image.shape[:2]
+    boxes, classes = read_yolo_labels(label_path, w, h, class_map)
+    scale = min(1.0, max_side_px / max(h, w))
+    if scale < 1.0:
+        image = cv2.resize(image, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+        boxes = boxes * scale
+    return Sample(image_path.stem, image, boxes, classes)
+
+
+def facade_label_path(image_path: Path) -> Path:
+    return image_path.parent.parent / "labels" / (image_path.stem + ".txt")
+
+
+def _affine(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator,
+            scale_range: tuple[float, float], rotation_prob: float) -> np.ndarray:
+    """Forward 2x3 map source pixels -> output pixels: letterbox fit x random scale, rotation, shift, flip."""
+    h, w = sample.image_bgr.shape[:2]
+    w_out, h_out = out_wh
+    fit = min(w_out / w, h_out / h)
+    s = fit * float(np.exp(rng.uniform(np.log(scale_range[0]), np.log(scale_range[1]))))
+    theta = np.deg2rad(rng.choice(ROTATIONS_DEG)) if rng.random() < rotation_prob else 0.0
+    c, si = np.cos(theta) * s, np.sin(theta) * s
+    flip = -1.0 if rng.random() < 0.5 else 1.0
+    A = np.array([[c * flip, -si], [si * flip, c]])  # eq. (1) R_z(theta), scaled, after an optional mirror
+    # Where the image centre lands: anywhere that keeps some of the image in view.
+    span_x, span_y = max(0.0, (w * s - w_out) / 2), max(0.0, (h * s - h_out) / 2)
+    t_out = np.array([w_out / 2 + rng.uniform(-span_x - 0.15 * w_out, span_x + 0.15 * w_out),
+                      h_out / 2 + rng.uniform(-span_y - 0.15 * h_out, span_y + 0.15 * h_out)])
+    t = t_out - A @ np.array([w / 2, h / 2])
+    return np.hstack([A, t[:, None]])
+
+
+def _photometric(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    hsv = cv2.cvtColor(image, cv2.COLOR_BGR2HSV).astype(np.float32)
+    hsv[..., 0] = (hsv[..., 0] + rng.uniform(-6, 6)) % 180
+    hsv[..., 1] *= rng.uniform(0.5, 1.4)
+    hsv[..., 2] = hsv[..., 2] * rng.uniform(0.55, 1.45) + rng.uniform(-20, 20)
+    out = cv2.cvtColor(np.clip(hsv, 0, 255).astype(np.uint8), cv2.COLOR_HSV2BGR)
+    if rng.random() < 0.2:  # the right camera of a real rig is often grey
+        out = cv2.cvtColor(cv2.cvtColor(out, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+    if rng.random() < 0.2:
+        out = cv2.GaussianBlur(out, (3, 3), rng.uniform(0.3, 1.2))
+    if rng.random() < 0.3:
+        noise = rng.normal(0, rng.uniform(2, 8), out.shape)
+        out = np.clip(out.astype(np.float32) + noise, 0, 255).astype(np.uint8)
+    return out
+
+
+def augment(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator,
+            scale_range: tuple[float, float] = (0.6, 2.5), rotation_prob: float = 0.6,
+            min_visible: float = 0.45) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One augmented training image (H,W,3 uint8) with its boxes (K,4, output pixels) and classes (K,).
+
+    The geometric part is one affine map applied by inverse warping (every output pixel samples the
+    source at M^-1 p, so no holes: paper §2.2.1); box corners go through the forward map and are bounded.
+    """
+    M = _affine(sample, out_wh, rng, scale_range, rotation_prob)
+    M_inv = cv2.invertAffineTransform(M)
+    image = cv2.warpAffine(sample.image_bgr, M_inv, out_wh, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=(PAD_VALUE,) * 3)
+    boxes, classes = transform_boxes(sample.boxes_xyxy, sample.classes, M, out_wh, min_visible)
+    return _photometric(image, rng), boxes, classes
+
+
+def transform_boxes(boxes_xyxy: np.ndarray, classes: np.ndarray, M: np.ndarray, out_wh: tuple[int, int],
+                    min_visible: float) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes through a 2x3 affine map: bounds of the mapped corners, clipped; mostly hidden ones dropped."""
+    if len(boxes_xyxy) == 0:
+        return boxes_xyxy.reshape(0, 4), classes[:0]
+    x0, y0, x1, y1 = boxes_xyxy.T
+    corners = np.stack([np.stack([x0, y0], -1), np.stack([x1, y0], -1),
+                        np.stack([x1, y1], -1), np.stack([x0, y1], -1)], 1)  # (K, 4, 2)
+    mapped = corners @ M[:, :2].T + M[:, 2]
+    full = np.concatenate([mapped.min(1), mapped.max(1)], 1)
+    clipped = full.copy()
+    clipped[:, [0, 2]] = np.clip(full[:, [0, 2]], 0, out_wh[0])
+    clipped[:, [1, 3]] = np.clip(full[:, [1, 3]], 0, out_wh[1])
+    area = lambda b: np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)  # noqa: E731
+    keep = (area(clipped) >= min_visible * np.maximum(area(full), 1e-9)) & \
+           (clipped[:, 2] - clipped[:, 0] >= 3) & (clipped[:, 3] - clipped[:, 1] >= 3)
+    return clipped[keep], classes[keep]

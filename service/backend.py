@@ -1,0 +1,232 @@
+"""The service's localization backend: wire events in, `graph.localizer.Estimate` out, map snapshots.
+
+`LocalizerBackend` feeds the pose-graph localizer (`graph.localizer.Localizer`): odometry poses are buffered by
+stamp; a set of sightings (ObservedFeatures in the body, left-camera or odometry frame, or sightings made by
+the perception pipeline from a stereo frame) becomes a keyframe at the odometry pose of its stamp; any other
+odometry sample only moves the last estimate (`track`). The IMU's mean specific force gives "up" in the body
+frame.
+
+Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cam_left, cad. Metres.
+
+Restarting from a saved map (`MapSnapshot`): `RestoredRegistrar` first checks the saved T_cad_map against the
+first sightings (the vehicle's odometry usually outlives a service restart), then falls back to the landmarks
+the previous run linked to the model (`StoredMapRegistrar`), then to the whole model.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from graph.features import BuildingModel
+from graph.landmarks import feature_frame_cad
+from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting
+from graph.posegraph import PoseGraph
+from graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
+from graph.relocalize import Alignment, KnownRect, ObservedRect
+from service.inputs import ImuIn, Observation, ObservationsIn, OdometryIn
+from service.recording import matrix_from_pose, pose_from_matrix, vector3
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+log = logging.getLogger(__name__)
+
+STATUS_TO_WIRE = {"exploring": pb.PoseEstimate.EXPLORING, "localized": pb.PoseEstimate.LOCALIZED,
+                  "ambiguous": pb.PoseEstimate.AMBIGUOUS, "degraded": pb.PoseEstimate.DEGRADED,
+                  "lost": pb.PoseEstimate.LOST}
+WIRE_TO_STATUS = {v: k for k, v in STATUS_TO_WIRE.items()}
+ODOMETRY_MATCH_NS = 60_000_000  # sightings use the odometry sample within 60 ms of their stamp
+
+
+class RestoredRegistrar:
+    """Re-localization after a restart: saved T_cad_map, then the saved CAD-linked landmarks, then the model."""
+
+    min_landmarks = 1
+
+    def __init__(self, model: BuildingModel, T_cad_map_saved: np.ndarray | None, linked: list[KnownRect],
+                 fallback: Registrar, agree_m: float = 0.4) -> None:
+        self.T_cad_map_saved = T_cad_map_saved
+        self.stored = StoredMapRegistrar(linked) if linked else None
+        self.fallback = fallback
+        self.agree_m = agree_m
+        self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
+                       if f.orientation == "vertical"]
+        self._known_xyz = np.array([k.T_cad_rect[:3, 3] for k in self._known]).reshape(-1, 3)
+
+    def __call__(self, landmarks: list[ObservedRect], corners_map: list[np.ndarray | None]) -> Alignment:
+        if self.T_cad_map_saved is not None:
+            matches = self._agreeing(landmarks)
+            if len(matches) >= max(1, int(np.ceil(0.6 * len(landmarks)))):
+                return Alignment("localized", self.T_cad_map_saved, matches, len(matches))
+        if self.stored is not None and len(landmarks) >= self.stored.min_landmarks:
+            found = self.stored(landmarks, corners_map)
+            if found.status == "localized":
+                return found
+        if len(landmarks) >= self.fallback.min_landmarks:
+            return self.fallback(landmarks, corners_map)
+        return Alignment("not_localized", None)
+
+    def _agreeing(self, landmarks: list[ObservedRect]) -> list[tuple[int, str]]:
+        assert self.T_cad_map_saved is not None
+        matches = []
+        for lm in landmarks:
+            xyz_cad = (self.T_cad_map_saved @ lm.T_map_rect)[:3, 3]
+            d = np.linalg.norm(self._known_xyz - xyz_cad, axis=1)
+            for k in np.argsort(d)[:3]:
+                if d[k] < self.agree_m and self._known[k].type == lm.type:
+                    matches.append((lm.key, self._known[k].id))
+                    break
+        return matches
+
+
+@dataclass
+class BackendParams:
+    keyframe_period_s: float = 1.0  # an odometry-only keyframe at least this often (keeps the graph connected)
+    localizer: LocalizerParams | None = None
+
+
+class LocalizerBackend:
+    """Turns input events into localizer calls; one thread only (the service's worker)."""
+
+    def __init__(self, model: BuildingModel, registrar: Registrar, params: BackendParams | None = None,
+                 T_body_cam: np.ndarray | None = None) -> None:
+        self.model = model
+        self.params = params or BackendParams()
+        self.localizer = Localizer(model, PoseGraph(), registrar, self.params.localizer, T_body_cam)
+        self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
+        self._odometry: OrderedDict[int, np.ndarray] = OrderedDict()  # stamp_ns -> T_odom_body
+        self._pending: list[ObservationsIn] = []  # sightings that arrived before the odometry of their stamp
+        self.unmatched = 0  # sightings dropped: no odometry near their stamp
+        self._up_body: np.ndarray | None = None
+        self._last_keyframe_ns: int | None = None
+        self.last: Estimate | None = None
+
+    @classmethod
+    def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None, method: str = "robust",
+                          params: BackendParams | None = None) -> LocalizerBackend:
+        fallback = ModelRegistrar(model, method=method)
+        if snapshot is None:
+            return cls(model, fallback, params)
+        features = {f.id: f for f in model.features}
+        linked = [KnownRect(lm.id, features[lm.id].type, feature_frame_cad(features[lm.id]))
+                  for lm in snapshot.landmarks_map if lm.id in features and features[lm.id].orientation == "vertical"]
+        saved_T = matrix_from_pose(snapshot.T_cad_map) if snapshot.status == pb.PoseEstimate.LOCALIZED else None
+        log.info("restoring a saved map: %d linked landmarks, T_cad_map %s", len(linked),
+                 "saved" if saved_T is not None else "absent")
+        return cls(model, RestoredRegistrar(model, saved_T, linked, fallback), params)
+
+    # --- inputs -------------------------------------------------------------------------------------------------
+
+    def imu(self, ev: ImuIn) -> None:
+        """Low-passed specific force: up in the body frame (a hovering or slowly moving vehicle)."""
+        norm = float(np.linalg.norm(ev.accel_mps2))
+        if 5.0 < norm < 15.0:
+            up = ev.accel_mps2 / norm
+            self._up_body = up if self._up_body is None else 0.98 * self._up_body + 0.02 * up
+
+    def odometry(self, ev: OdometryIn) -> Estimate:
+        self._odometry[ev.stamp_ns] = ev.T_map_body
+        while len(self._odometry) > 512:
+            self._odometry.popitem(last=False)
+        if self._pending:  # sightings waiting for this odometry (keys arrive through separate channels)
+            pending, self._pending = self._pending, []
+            for obs in pending:
+                if self.observations(obs) is None and obs.stamp_ns < ev.stamp_ns - ODOMETRY_MATCH_NS:
+                    self._pending.remove(obs)
+                    self.unmatched += 1
+        due = self._last_keyframe_ns is None or \
+            (ev.stamp_ns - self._last_keyframe_ns) * 1e-9 >= self.params.keyframe_period_s
+        return self._keyframe(ev.stamp_ns, ev.T_map_body, []) if due else self._track(ev.stamp_ns, ev.T_map_body)
+
+    def observations(self, ev: ObservationsIn) -> Estimate | None:
+        """A keyframe with these sightings at the odometry pose of their stamp; None (kept pending until the
+        odometry of that stamp arrives, else counted in `unmatched`) without such a pose."""
+        T_odom_body = self.odometry_at(ev.stamp_ns)
+        if T_odom_body is None:
+            self._pending.append(ev)
+            if len(self._pending) > 64:
+                self._pending.pop(0)
+                self.unmatched += 1
+            return None
+        return self.sightings(ev.stamp_ns, T_odom_body, [self._to_body(o, ev.frame_id, T_odom_body)
+                                                         for o in ev.features if o.corners is not None])
+
+    def sightings(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
+        if not sightings:
+            return self._track(stamp_ns, T_odom_body)
+        return self._keyframe(stamp_ns, T_odom_body, sightings)
+
+    def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
+        """The buffered odometry pose nearest in time to stamp_ns (within 60 ms), else None."""
+        if stamp_ns in self._odometry:
+            return self._odometry[stamp_ns]
+        if not self._odometry or stamp_ns > next(reversed(self._odometry)):
+            return None  # newer than all odometry: wait for it
+        stamps = np.fromiter(self._odometry.keys(), np.int64)
+        k = int(np.argmin(np.abs(stamps - stamp_ns)))
+        return self._odometry[int(stamps[k])] if abs(int(stamps[k]) - stamp_ns) <= ODOMETRY_MATCH_NS else None
+
+    # --- steps --------------------------------------------------------------------------------------------------
+
+    def _to_body(self, obs: Observation, frame_id: str, T_odom_body: np.ndarray) -> Sighting:
+        assert obs.corners is not None
+        T_body_x = {"body": np.eye(4), "cam_left": self.T_body_cam, "map": np.linalg.inv(T_odom_body)}[frame_id]
+        corners_body = obs.corners @ T_body_x[:3, :3].T + T_body_x[:3, 3]
+        return Sighting(obs.type, corners_body, obs.id or None)
+
+    def _keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
+        self._last_keyframe_ns = stamp_ns
+        self.last = self.localizer.add_keyframe(stamp_ns, T_odom_body, sightings, self._up_body)
+        return self.last
+
+    def _track(self, stamp_ns: int, T_odom_body: np.ndarray) -> Estimate:
+        if self.localizer.graph.n_keyframes == 0:
+            return self._keyframe(stamp_ns, T_odom_body, [])
+        self.last = self.localizer.track(stamp_ns, T_odom_body)
+        return self.last
+
+    # --- outputs ------------------------------------------------------------------------------------------------
+
+    @property
+    def status(self) -> str:
+        return self.localizer.status
+
+    def snapshot(self, building: str, sha256: str) -> pb.MapSnapshot:
+        """The map as saved and served: landmarks (odom frame) with their CAD links, T_cad_map, last pose."""
+        loc = self.localizer
+        snap = pb.MapSnapshot(building=building, building_sha256=sha256, status=STATUS_TO_WIRE[loc.status],
+                              keyframes=loc.graph.n_keyframes)
+        snap.header.frame_id = "map"
+        T_cad_map = loc.graph.T_cad_map()
+        if T_cad_map is not None:
+            snap.T_cad_map.CopyFrom(pose_from_matrix(T_cad_map))
+        if self.last is not None:
+            snap.header.stamp_ns = self.last.stamp_ns
+            snap.T_map_body.CopyFrom(pose_from_matrix(self.last.T_map_body))
+            snap.storey = _storey_of(self.model, self.last.matches)
+        for j, lm in loc.landmarks.items():
+            f = snap.landmarks_map.add(type=lm.type, id=loc.links.get(j, ""))
+            f.corners.extend(vector3(c) for c in lm.corners_map)
+        return snap
+
+
+def _storey_of(model: BuildingModel, matches: dict[int, str]) -> str:
+    storeys = {f.id: f.storey for f in model.features}
+    names = [storeys.get(fid) for fid in matches.values() if storeys.get(fid)]
+    return max(set(names), key=names.count) if names else ""  # type: ignore[arg-type]
+
+
+def pose_message(est: Estimate, storey: str = "") -> pb.PoseEstimate:
+    """A PoseEstimate (frame cad; before localization T_cad_body is absent and status EXPLORING)."""
+    msg = pb.PoseEstimate(status=STATUS_TO_WIRE[est.status], storey=storey, inliers=est.inliers)
+    msg.header.stamp_ns = est.stamp_ns
+    msg.header.frame_id = "cad"
+    if est.T_cad_body is not None:
+        msg.T_cad_body.CopyFrom(pose_from_matrix(est.T_cad_body))
+    if est.T_cad_map is not None:
+        msg.T_cad_map.CopyFrom(pose_from_matrix(est.T_cad_map))
+    if est.covariance is not None:
+        msg.covariance.extend(np.asarray(est.covariance, float).ravel().tolist())
+    return msg

@@ -1,0 +1,34 @@
+"""`macroloc dump-config [--config FILE]`: the resolved configuration (defaults < file < environment)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("dump-config")
+    def dump_config(
+        config: Path = typer.Option(None, "--config", "-c", help="Config file (JSON or TOML) to resolve."),
+        toml_out: bool = typer.Option(False, "--toml", help="Print TOML-like sections instead of JSON."),
+    ) -> None:
+        """Print the resolved configuration as JSON (or TOML): every key with its value, a start for a config file.
+
+        Environment variables override the file: MACROLOC_<SECTION>__<KEY>, e.g. MACROLOC_ZENOH__MODE=client.
+        """
+        import json
+        import sys
+
+        from service.config import load_config
+
+        doc = load_config(config).model_dump(mode="json")
+        if not toml_out:
+            sys.stdout.write(json.dumps(doc, indent=2) + "\n")
+            return
+        for section, values in doc.items():
+            sys.stdout.write(f"[{section}]\n")
+            for key, value in values.items():
+                if value is not None:
+                    sys.stdout.write(f"{key} = {json.dumps(value)}\n")
+            sys.stdout.write("\n")

@@ -1,0 +1,357 @@
+"""The long-running localization service on Zenoh: sensor streams in, pose and waypoints out.
+
+Threads: one intake thread per input key reads its subscriber's ring channel, parses and checks the payload
+(`service.inputs`) and hands a typed event to the worker through `WorkQueue` (bounded: stereo frames, the
+heavy work, beyond `queue_size` push out the oldest frame); the worker is the only thread that touches the
+localizer; a queryable thread answers map and plan queries; the caller's thread publishes status and
+diagnostics and saves the map periodically. `run()` returns after `stop` is set: intake stops, the worker
+drains what was queued, the map is saved, and every publisher, subscriber, queryable and the liveliness
+token is undeclared before the caller closes the session.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+import zenoh
+
+from graph.localizer import Estimate, Sighting
+from service.backend import STATUS_TO_WIRE, LocalizerBackend, pose_message
+from service.health import DropCounter, LatencyWindow, RateMeter
+from service.inputs import GoalIn, ImuIn, InputParser, ObservationsIn, OdometryIn, StereoIn
+from service.planning import GoalSpec, Planner, PlanningError
+from service.state import MapStore
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from service.zenoh_io import PROTOBUF, Keys, declare_publisher
+
+log = logging.getLogger(__name__)
+
+VERSION = "0.1.0"
+
+
+class FramePipeline(Protocol):
+    """Stereo frame -> sightings (doors/windows, corners in the body frame). Perception plugs in here."""
+
+    def __call__(self, frame: pb.StereoFrame) -> list[Sighting]: ...
+
+
+class DecodeOnlyPipeline:
+    """Decodes both images (the frame's real cost on the wire) and sees nothing: perception not plugged in."""
+
+    def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
+        from service.recording import decode_image
+
+        decode_image(frame.left)
+        decode_image(frame.right)
+        return []
+
+
+class WorkQueue:
+    """Events for the worker. Light events (odometry, IMU, observations, goals) keep their order; stereo
+    frames are bounded: beyond `heavy_max` the oldest frame is dropped (counted)."""
+
+    def __init__(self, heavy_max: int, light_max: int = 2048) -> None:
+        self._items: deque[tuple[bool, Any]] = deque()
+        self._heavy = 0
+        self.heavy_max = heavy_max
+        self.light_max = light_max
+        self._cv = threading.Condition()
+        self.dropped = 0
+
+    def put(self, item: Any, heavy: bool) -> None:
+        with self._cv:
+            if heavy and self._heavy >= self.heavy_max:
+                for k, (h, _) in enumerate(self._items):
+                    if h:
+                        del self._items[k]
+                        self._heavy -= 1
+                        self.dropped += 1
+                        break
+            elif not heavy and len(self._items) >= self.light_max:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.append((heavy, item))
+            self._heavy += heavy
+            self._cv.notify()
+
+    def get(self, timeout_s: float) -> Any | None:
+        with self._cv:
+            if not self._items and not self._cv.wait_for(lambda: bool(self._items), timeout_s):
+                return None
+            heavy, item = self._items.popleft()
+            self._heavy -= heavy
+            return item
+
+    def __len__(self) -> int:
+        with self._cv:
+            return len(self._items)
+
+
+@dataclass
+class ServiceParams:
+    vehicle: str
+    building: str
+    building_sha256: str
+    cameras: list[str] = field(default_factory=lambda: ["front"])
+    ring_size: int = 2
+    queue_size: int = 4
+    status_period_s: float = 1.0
+    save_period_s: float = 5.0
+    replan_period_s: float = 2.0
+
+
+class LocalizationService:
+    """One vehicle's service on an open Zenoh session (see module doc)."""
+
+    def __init__(self, session: zenoh.Session, backend: LocalizerBackend, planner: Planner, store: MapStore,
+                 params: ServiceParams, pipeline: FramePipeline | None = None) -> None:
+        self.session = session
+        self.backend = backend
+        self.planner = planner
+        self.store = store
+        self.params = params
+        self.pipeline = pipeline or DecodeOnlyPipeline()
+        self.keys = Keys(params.vehicle)
+        self.drops = DropCounter()
+        self.parser = InputParser(params.cameras, self.drops)
+        self.queue = WorkQueue(params.queue_size)
+        self.rates = {name: RateMeter() for name in ("stereo", "imu", "odometry", "observations", "goal", "pose")}
+        self.latency = {name: LatencyWindow() for name in ("frame_to_pose", "odometry_to_pose", "keyframe")}
+        self.ready = threading.Event()  # everything declared: inputs are being taken
+        self._lock = threading.Lock()  # the backend and planner are used by the worker and the queryables
+        self._goal: GoalIn | None = None
+        self._last_plan_s = 0.0
+        self._pubs: dict[str, zenoh.Publisher] = {}
+        self._worker_done = threading.Event()
+        self._last_pose_ns = -1
+
+    # --- the process --------------------------------------------------------------------------------------------
+
+    def run(self, stop: threading.Event) -> None:
+        """Serve until `stop` is set, then drain, save and undeclare (the session stays open)."""
+        k = self.keys
+        self._pubs = {name: declare_publisher(self.session, getattr(k, name))
+                      for name in ("pose", "waypoints", "features", "diagnostics", "status")}
+        token = self.session.liveliness().declare_token(k.alive)
+        queryables = [self.session.declare_queryable(k.map, self._answer_map),
+                      self.session.declare_queryable(k.plan, self._answer_plan)]
+        intakes = {
+            k.stereo: (lambda s: self.parser.stereo(s, time.monotonic_ns()), "stereo", True, self.params.ring_size),
+            k.odometry: (lambda s: self.parser.odometry(s), "odometry", False, 256),
+            k.imu: (lambda s: self.parser.imu(s), "imu", False, 1024),
+            k.observations: (lambda s: self.parser.observations(s), "observations", False, 64),
+            k.goal: (lambda s: self.parser.goal(s), "goal", False, 8),
+        }
+        subs, threads = [], []
+        for key, (parse, name, heavy, ring) in intakes.items():
+            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(ring))
+            subs.append(sub)
+            threads.append(threading.Thread(target=self._intake, args=(sub, parse, name, heavy),
+                                            name=f"intake-{name}", daemon=True))
+        worker = threading.Thread(target=self._work, args=(stop,), name="worker", daemon=True)
+        for t in [*threads, worker]:
+            t.start()
+        log.info("serving vehicle %s on macroloc/%s/** (building %s)", self.params.vehicle, self.params.vehicle,
+                 self.params.building)
+        self.ready.set()
+        last_save = time.monotonic()
+        try:
+            while not stop.wait(self.params.status_period_s):
+                self._publish_status()
+                if time.monotonic() - last_save >= self.params.save_period_s:
+                    self._save()
+                    last_save = time.monotonic()
+        finally:
+            log.info("stopping: draining %d queued events", len(self.queue))
+            for sub in subs:
+                sub.undeclare()  # ends the intake threads' iterations
+            for t in threads:
+                t.join(timeout=5.0)
+            self._worker_done.wait(timeout=30.0)
+            worker.join(timeout=5.0)
+            self._save()
+            self._publish_status()
+            for q in queryables:
+                q.undeclare()
+            for pub in self._pubs.values():
+                pub.undeclare()
+            token.undeclare()
+            log.info("stopped; map saved to %s", self.store.path)
+
+    def _intake(self, sub: zenoh.Subscriber, parse: Callable[[bytes], Any], name: str, heavy: bool) -> None:
+        for sample in sub:
+            try:
+                event = parse(sample.payload.to_bytes())
+            except Exception:  # a parser bug must not kill the intake: count it, keep going
+                log.exception("parsing %s failed", name)
+                self.drops.drop(f"{name}/parse_error")
+                continue
+            if event is not None:
+                self.rates[name].tick()
+                self.queue.put(event, heavy)
+
+    def _work(self, stop: threading.Event) -> None:
+        """Handle events until stopped and the queue is empty (the drain)."""
+        handlers: dict[type, Callable[[Any], None]] = {
+            OdometryIn: self._on_odometry, ObservationsIn: self._on_observations, StereoIn: self._on_stereo,
+            ImuIn: self._on_imu, GoalIn: self._on_goal}
+        while True:
+            event = self.queue.get(timeout_s=0.1)
+            if event is None:
+                if stop.is_set() and not len(self.queue):
+                    break
+                continue
+            try:
+                handlers[type(event)](event)
+            except Exception:  # one bad event must not kill the service
+                log.exception("handling %s failed", type(event).__name__)
+                self.drops.drop(f"{type(event).__name__}/handler_error")
+        self._worker_done.set()
+
+    # --- events -------------------------------------------------------------------------------------------------
+
+    def _on_imu(self, ev: ImuIn) -> None:
+        with self._lock:
+            self.backend.imu(ev)
+
+    def _on_odometry(self, ev: OdometryIn) -> None:
+        start = time.perf_counter()
+        with self._lock:
+            est = self.backend.odometry(ev)
+        self._publish_pose(est)
+        self.latency["odometry_to_pose"].add_ms((time.perf_counter() - start) * 1e3)
+        self._maybe_replan(est)
+
+    def _on_observations(self, ev: ObservationsIn) -> None:
+        start = time.perf_counter()
+        with self._lock:
+            est = self.backend.observations(ev)
+        if est is None:
+            return  # waiting for the odometry of its stamp (or counted as unmatched by the backend)
+        self.latency["keyframe"].add_ms((time.perf_counter() - start) * 1e3)
+        self._publish_pose(est)
+        self._maybe_replan(est)
+
+    def _on_stereo(self, ev: StereoIn) -> None:
+        sightings = self.pipeline(ev.frame)
+        with self._lock:
+            T_odom_body = self.backend.odometry_at(ev.stamp_ns)
+            if T_odom_body is None:
+                T_odom_body = self.backend.last.T_map_body if self.backend.last is not None else None
+            est = None if T_odom_body is None else self.backend.sightings(ev.stamp_ns, T_odom_body, sightings)
+        if est is None:
+            est = Estimate(ev.stamp_ns, self.backend.status, np.eye(4))
+        self._publish_pose(est)
+        self.latency["frame_to_pose"].add_ms((time.monotonic_ns() - ev.received_ns) * 1e-6)
+
+    def _on_goal(self, ev: GoalIn) -> None:
+        self._goal = ev
+        self._last_plan_s = 0.0
+        log.info("new goal: %s", ev.goal)
+        if ev.start_cad is not None:
+            self._plan_and_publish(ev.start_cad)
+        elif self.backend.last is not None:
+            self._maybe_replan(self.backend.last)
+
+    # --- outputs ------------------------------------------------------------------------------------------------
+
+    def _publish_pose(self, est: Estimate) -> None:
+        """Publish the estimate unless a newer one already went out (keys arrive through separate channels)."""
+        if est.stamp_ns < self._last_pose_ns:
+            return
+        self._last_pose_ns = est.stamp_ns
+        msg = pose_message(est)
+        msg.header.seq = self.rates["pose"].total
+        self._pubs["pose"].put(msg.SerializeToString())
+        self.rates["pose"].tick()
+
+    def _maybe_replan(self, est: Estimate) -> None:
+        if self._goal is None or est.T_cad_body is None or est.status not in ("localized", "degraded"):
+            return
+        if time.monotonic() - self._last_plan_s < self.params.replan_period_s:
+            return
+        self._plan_and_publish(est.T_cad_body[:3, 3])
+
+    def _plan_and_publish(self, start_cad: np.ndarray) -> None:
+        assert self._goal is not None
+        self._last_plan_s = time.monotonic()
+        msg = self._plan(self._goal.goal, start_cad)
+        self._pubs["waypoints"].put(msg.SerializeToString())
+
+    def _plan(self, goal: GoalSpec, start_cad: np.ndarray) -> pb.Waypoints:
+        msg = pb.Waypoints()
+        msg.header.frame_id = "cad"
+        msg.header.stamp_ns = time.time_ns()
+        try:
+            with self._lock:
+                plan = self.planner.plan(start_cad, goal)
+        except PlanningError as exc:
+            msg.error = str(exc)
+            log.warning("no plan: %s", exc)
+            return msg
+        msg.points_cad.extend(pb.Vector3(x=p[0], y=p[1], z=p[2]) for p in plan.points_cad)
+        msg.path_length_m = plan.length_m
+        msg.goal_description = plan.description
+        return msg
+
+    def _answer_map(self, query: zenoh.Query) -> None:
+        with self._lock:
+            snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
+        query.reply(query.key_expr, snap.SerializeToString(), encoding=PROTOBUF)
+
+    def _answer_plan(self, query: zenoh.Query) -> None:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        goal = self.parser.goal(payload) if payload else None
+        if goal is None:
+            msg = pb.Waypoints(error="the query's payload must be a macroloc.v1.Goal")
+        else:
+            start = goal.start_cad
+            if start is None and self.backend.last is not None and self.backend.last.T_cad_body is not None:
+                start = self.backend.last.T_cad_body[:3, 3]
+            msg = self._plan(goal.goal, start) if start is not None else \
+                pb.Waypoints(error="not localized yet: give Goal.start_cad")
+        query.reply(query.key_expr, msg.SerializeToString(), encoding=PROTOBUF)
+
+    def diagnostics(self) -> pb.Diagnostics:
+        msg = pb.Diagnostics(state=self.backend.status)
+        msg.header.stamp_ns = time.time_ns()
+        for name, meter in self.rates.items():
+            msg.rates_hz[name] = meter.rate_hz()
+            msg.counts[name] = meter.total
+        for name, window in self.latency.items():
+            for stat, value in window.percentiles().items():
+                msg.latencies_ms[f"{name}_{stat}"] = value
+        for kind, n in self.drops.counts().items():
+            msg.dropped[kind] = n
+        msg.dropped["queue_overrun"] = self.queue.dropped
+        msg.dropped["observations/no_odometry"] = self.backend.unmatched
+        msg.counts["queued"] = len(self.queue)
+        return msg
+
+    def _publish_status(self) -> None:
+        diag = self.diagnostics()
+        with self._lock:
+            loc = self.backend.localizer
+            status = pb.ServiceStatus(version=VERSION, vehicle=self.params.vehicle, building=self.params.building,
+                                      status=STATUS_TO_WIRE[loc.status], keyframes=loc.graph.n_keyframes,
+                                      landmarks=len(loc.landmarks))
+        status.header.stamp_ns = diag.header.stamp_ns
+        self._pubs["diagnostics"].put(diag.SerializeToString())
+        self._pubs["status"].put(status.SerializeToString())
+        log.info("status %s: rates %s, latencies %s, dropped %s", loc.status,
+                 {k: round(v, 1) for k, v in diag.rates_hz.items()},
+                 {k: round(v, 2) for k, v in diag.latencies_ms.items()}, dict(diag.dropped),
+                 extra={"data": {"status": loc.status, "rates_hz": dict(diag.rates_hz),
+                                 "latencies_ms": dict(diag.latencies_ms), "dropped": dict(diag.dropped)}})
+
+    def _save(self) -> None:
+        with self._lock:
+            snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
+        self.store.save(snap)

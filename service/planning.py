@@ -1,0 +1,222 @@
+"""Path planning to a goal in the building model (paper §3.3): occupancy grid, A*, waypoints in the CAD frame.
+
+`Planner.plan(start_cad, goal)` picks the storey under the start, cuts the model at flight height
+(`planning_grid`), adds the obstacles seen in depth, inflates by the vehicle's radius, runs A* on the
+8-connected grid and returns waypoints at cell centres, simplified where the line of sight is free, ending
+exactly at the goal. Goals are CAD coordinates, a door/window GlobalId, or an IfcSpace's name.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from graph.errors import UserInputError
+from graph.features import BuildingModel
+from service.planning_grid import BuildingSolids, ObstacleLayer, OccupancyGrid, Space, inflate, section_grid
+
+log = logging.getLogger(__name__)
+
+SQRT2 = math.sqrt(2.0)
+NEIGHBOURS_8 = ((-1, -1, SQRT2), (-1, 0, 1.0), (-1, 1, SQRT2), (0, -1, 1.0), (0, 1, 1.0),
+                (1, -1, SQRT2), (1, 0, 1.0), (1, 1, SQRT2))
+
+
+class PlanningError(UserInputError):
+    """No plan: unknown goal, or no free path between start and goal."""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Waypoints (N, 3) in the CAD frame, metres, from the start to the goal; their polyline length, m."""
+
+    points_cad: np.ndarray
+    length_m: float
+    description: str
+
+
+def astar(free: np.ndarray, start_rc: tuple[int, int], goal_rc: tuple[int, int]) -> list[tuple[int, int]]:
+    """A* on an 8-connected grid (free: (H, W) bool), octile heuristic, no corner cutting; [] if unreachable."""
+    h, w = free.shape
+    goal_r, goal_c = goal_rc
+
+    def heuristic(r: int, c: int) -> float:  # octile distance: admissible and consistent on this grid
+        dr, dc = abs(r - goal_r), abs(c - goal_c)
+        return (SQRT2 - 1.0) * min(dr, dc) + max(dr, dc)
+
+    cost = {start_rc: 0.0}
+    parent: dict[tuple[int, int], tuple[int, int]] = {}
+    heap = [(heuristic(*start_rc), 0.0, start_rc)]
+    closed: set[tuple[int, int]] = set()
+    while heap:
+        _, g, cell = heapq.heappop(heap)
+        if cell == goal_rc:
+            path = [cell]
+            while cell in parent:
+                cell = parent[cell]
+                path.append(cell)
+            return path[::-1]
+        if cell in closed:
+            continue
+        closed.add(cell)
+        r, c = cell
+        for dr, dc, step in NEIGHBOURS_8:
+            nr, nc = r + dr, c + dc
+            if not (0 <= nr < h and 0 <= nc < w) or not free[nr, nc]:
+                continue
+            if dr and dc and not (free[r, nc] and free[nr, c]):
+                continue  # no squeezing diagonally between two occupied cells
+            ng = g + step
+            if ng < cost.get((nr, nc), math.inf):
+                cost[(nr, nc)] = ng
+                parent[(nr, nc)] = cell
+                heapq.heappush(heap, (ng + heuristic(nr, nc), ng, (nr, nc)))
+    return []
+
+
+def line_of_sight(free: np.ndarray, a_rc: tuple[int, int], b_rc: tuple[int, int]) -> bool:
+    """True when every cell the segment between two cell centres touches is free (sampled at 1/4 cell)."""
+    a, b = np.asarray(a_rc, float), np.asarray(b_rc, float)
+    n = max(2, int(np.ceil(np.abs(b - a).max() * 4)) + 1)
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    pts = a + t * (b - a)
+    cells = np.unique(np.concatenate([np.floor(pts + 0.5 + d) for d in (-0.2, 0.2)]).astype(int), axis=0)
+    cells = np.clip(cells, 0, np.array(free.shape) - 1)
+    return bool(free[cells[:, 0], cells[:, 1]].all())
+
+
+def simplify(path_rc: list[tuple[int, int]], free: np.ndarray) -> list[tuple[int, int]]:
+    """Greedy string pulling: from each kept cell, jump to the farthest later cell still in line of sight."""
+    if len(path_rc) <= 2:
+        return list(path_rc)
+    kept, i = [path_rc[0]], 0
+    while i < len(path_rc) - 1:
+        j = len(path_rc) - 1
+        while j > i + 1 and not line_of_sight(free, path_rc[i], path_rc[j]):
+            j -= 1
+        kept.append(path_rc[j])
+        i = j
+    return kept
+
+
+def nearest_free(free: np.ndarray, cell_rc: tuple[int, int]) -> tuple[int, int] | None:
+    """The free cell nearest to cell_rc (itself when free); None when the grid has no free cell."""
+    if free[cell_rc]:
+        return cell_rc
+    rows, cols = np.nonzero(free)
+    if not len(rows):
+        return None
+    k = int(np.argmin((rows - cell_rc[0]) ** 2 + (cols - cell_rc[1]) ** 2))
+    return int(rows[k]), int(cols[k])
+
+
+class GoalResolver:
+    """Turns a goal (CAD point, feature GlobalId, or space name) into a CAD point, metres."""
+
+    def __init__(self, model: BuildingModel, spaces: list[Space]) -> None:
+        self._features = {f.id: f for f in model.features}
+        for f in model.features:
+            for dup in f.duplicates:
+                self._features.setdefault(dup, f)
+        self._spaces = spaces
+
+    def feature(self, feature_id: str) -> np.ndarray:
+        if feature_id not in self._features:
+            raise PlanningError(f"unknown feature id {feature_id!r}")
+        return np.asarray(self._features[feature_id].centroid_cad, float)
+
+    def space(self, name: str, near_xy_cad: np.ndarray) -> np.ndarray:
+        """An IfcSpace by Name, else by LongName (case-insensitive); of several, the one nearest near_xy_cad."""
+        key = name.strip().casefold()
+        found = [s for s in self._spaces if s.name.casefold() == key] or \
+                [s for s in self._spaces if s.long_name.casefold() == key]
+        if not found:
+            raise PlanningError(f"no space named {name!r} in the building")
+        best = min(found, key=lambda s: float(np.hypot(*(np.array(s.centroid_xy_cad) - near_xy_cad[:2]))))
+        return np.array([*best.centroid_xy_cad, best.floor_z_cad], float)
+
+
+class Planner:
+    """Plans on the storey under the start; grids are built once per storey and kept with their obstacles."""
+
+    def __init__(self, model: BuildingModel, solids: BuildingSolids, cell_m: float, vehicle_radius_m: float,
+                 flight_height_m: float) -> None:
+        self.model = model
+        self.solids = solids
+        self.cell_m = cell_m
+        self.vehicle_radius_m = vehicle_radius_m
+        self.flight_height_m = flight_height_m
+        self.goals = GoalResolver(model, solids.spaces)
+        self._grids: dict[float, tuple[OccupancyGrid, ObstacleLayer]] = {}
+
+    @classmethod
+    def for_building(cls, path: Path, cell_m: float, vehicle_radius_m: float, flight_height_m: float) -> Planner:
+        from graph.bim import load_building
+        from service.planning_grid import load_solids
+
+        return cls(load_building(path), load_solids(Path(path)), cell_m, vehicle_radius_m, flight_height_m)
+
+    def floor_z(self, z_cad: float) -> float:
+        """Elevation (CAD z, m) of the storey the point at height z_cad is in (the highest floor below it)."""
+        below = [e for e in self.model.storey_elevations_m.values() if e <= z_cad + 0.3]
+        return max(below) if below else min(self.model.storey_elevations_m.values(), default=0.0)
+
+    def grid(self, z_cad: float) -> tuple[OccupancyGrid, ObstacleLayer]:
+        """The grid (and its seen-obstacle layer) of the storey at height z_cad, cut at flight height."""
+        floor = self.floor_z(z_cad)
+        if floor not in self._grids:
+            grid = section_grid(self.solids, floor + self.flight_height_m, self.cell_m)
+            self._grids[floor] = (grid, ObstacleLayer(grid.shape))
+        return self._grids[floor]
+
+    def add_obstacle_points(self, points_cad: np.ndarray, z_cad: float) -> int:
+        """Depth points (N, 3) in the CAD frame seen from height z_cad: obstacles the model may lack."""
+        grid, layer = self.grid(z_cad)
+        return layer.add_points(grid, points_cad)
+
+    def free_cells(self, z_cad: float) -> tuple[OccupancyGrid, np.ndarray]:
+        grid, layer = self.grid(z_cad)
+        return grid, inflate(grid.occupied | layer.occupied(), self.vehicle_radius_m, self.cell_m)
+
+    def resolve(self, goal: GoalSpec, start_cad: np.ndarray) -> tuple[np.ndarray, str]:
+        """The goal's CAD point and a description of it."""
+        if goal.feature_id is not None:
+            return self.goals.feature(goal.feature_id), f"feature {goal.feature_id}"
+        if goal.space_name is not None:
+            return self.goals.space(goal.space_name, start_cad), f"space {goal.space_name}"
+        if goal.position_cad is None or not np.isfinite(goal.position_cad).all():
+            raise PlanningError("goal has no finite position, feature id or space name")
+        return np.asarray(goal.position_cad, float), "position"
+
+    def plan(self, start_cad: np.ndarray, goal: GoalSpec) -> Plan:
+        """Waypoints from start_cad (3,) to the goal, at flight height over the start's storey, CAD frame."""
+        start_cad = np.asarray(start_cad, float)
+        target_cad, description = self.resolve(goal, start_cad)
+        grid, free = self.free_cells(start_cad[2])
+        start_rc = nearest_free(free, grid.cell_of(start_cad))
+        goal_rc = nearest_free(free, grid.cell_of(target_cad))
+        if start_rc is None or goal_rc is None:
+            raise PlanningError("no free cell on this storey")
+        cells = astar(free, start_rc, goal_rc)
+        if not cells:
+            raise PlanningError(f"no free path to {description}")
+        points = grid.centre_cad(np.array(simplify(cells, free)))
+        if grid.cell_of(target_cad) == goal_rc:  # the goal itself is free: end exactly there
+            points[-1, :2] = target_cad[:2]
+        points[0, :2] = start_cad[:2] if grid.cell_of(start_cad) == start_rc else points[0, :2]
+        length = float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
+        return Plan(points, length, description)
+
+
+@dataclass(frozen=True)
+class GoalSpec:
+    """One of: a CAD position (3,) in metres, a feature GlobalId, or an IfcSpace name."""
+
+    position_cad: np.ndarray | None = None
+    feature_id: str | None = None
+    space_name: str | None = None

@@ -1,0 +1,180 @@
+"""The 2D occupancy grid of paper §3.3: the building model's cross-section at flight height, plus what was seen.
+
+Grid convention: cell (row, col) covers x in [x0 + col·cell, x0 + (col+1)·cell), y in [y0 + row·cell, ...)
+of the CAD frame (metres, z up); its centre is `cell_centre_cad`. Everything here is in the CAD frame.
+
+The static layer comes from the building's solids (walls, slabs, stairs, railings, furniture, …) cut by the
+horizontal plane z = storey elevation + flight height. Doors, windows, openings and spaces are left out, and
+ifcopenshell subtracts the openings from the walls, so doorways are gaps in the section: a drone passes.
+The dynamic layer counts depth points (CAD frame) inside a height band around the flight height: a 2D
+projection of a voxel grid, which is all a 2D planner consumes (measured cheaper than an OctoMap here).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from graph.bim import cache_dir, file_sha256
+
+log = logging.getLogger(__name__)
+
+NOT_OBSTACLES = ("IfcDoor", "IfcWindow", "IfcOpeningElement", "IfcSpace", "IfcAnnotation", "IfcVirtualElement")
+MESH_CACHE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Space:
+    """An IfcSpace: its Name (often the room number), LongName, and footprint centroid (CAD, metres)."""
+
+    name: str
+    long_name: str
+    centroid_xy_cad: tuple[float, float]
+    floor_z_cad: float
+
+
+@dataclass
+class BuildingSolids:
+    """Triangles of every obstacle element (CAD frame, metres) and the building's spaces."""
+
+    vertices_cad: np.ndarray  # (V, 3) float64
+    faces: np.ndarray  # (F, 3) int64
+    spaces: list[Space] = field(default_factory=list)
+
+
+def load_solids(ifc_path: Path) -> BuildingSolids:
+    """Obstacle triangles and spaces of an IFC file, cached by its SHA-256 (the geometry takes seconds)."""
+    sha = file_sha256(ifc_path)
+    cached = cache_dir() / f"solids-v{MESH_CACHE_VERSION}-{sha[:32]}.npz"
+    if cached.exists():
+        with np.load(cached) as npz:
+            spaces = [Space(**s) for s in json.loads(str(npz["spaces_json"]))]
+            return BuildingSolids(npz["vertices"], npz["faces"], spaces)
+    solids = _read_solids(ifc_path)
+    tmp = cached.with_name(f"{cached.stem}.tmp{os.getpid()}.npz")
+    np.savez_compressed(tmp, vertices=solids.vertices_cad, faces=solids.faces,
+                        spaces_json=json.dumps([s.__dict__ for s in solids.spaces]))
+    os.replace(tmp, cached)
+    return solids
+
+
+def _iterate_shapes(ifc_file, **filters):  # noqa: ANN001, ANN202 - ifcopenshell types
+    import ifcopenshell.geom
+
+    settings = ifcopenshell.geom.settings()
+    settings.set("use-world-coords", True)  # vertices in the CAD (model) frame
+    it = ifcopenshell.geom.iterator(settings, ifc_file, max(1, min(2, os.cpu_count() or 1)), **filters)
+    if not it.initialize():
+        return
+    while True:
+        shape = it.get()
+        geometry = shape.geometry
+        yield ifc_file.by_id(shape.id), np.array(geometry.verts).reshape(-1, 3), np.array(geometry.faces).reshape(-1, 3)
+        if not it.next():
+            break
+
+
+def _read_solids(ifc_path: Path) -> BuildingSolids:
+    import ifcopenshell
+
+    ifc_file = ifcopenshell.open(str(ifc_path))
+    vertices, faces, offset = [], [], 0
+    for _, verts, tris in _iterate_shapes(ifc_file, exclude=list(NOT_OBSTACLES)):
+        vertices.append(verts)
+        faces.append(tris + offset)
+        offset += len(verts)
+    spaces = []
+    if ifc_file.by_type("IfcSpace"):
+        for element, verts, _ in _iterate_shapes(ifc_file, include=["IfcSpace"]):
+            if len(verts):
+                centre = verts[:, :2].mean(axis=0)
+                spaces.append(Space(str(element.Name or ""), str(element.LongName or ""),
+                                    (float(centre[0]), float(centre[1])), float(verts[:, 2].min())))
+    log.info("%s: %d obstacle triangles, %d spaces", ifc_path.name, offset and sum(len(f) for f in faces),
+             len(spaces))
+    if not vertices:
+        return BuildingSolids(np.zeros((0, 3)), np.zeros((0, 3), np.int64), spaces)
+    return BuildingSolids(np.vstack(vertices), np.vstack(faces).astype(np.int64), spaces)
+
+
+@dataclass
+class OccupancyGrid:
+    """A horizontal occupancy grid at height z_cad. occupied: (H, W) bool, True = an obstacle in that cell."""
+
+    occupied: np.ndarray
+    origin_xy_cad: np.ndarray  # (2,) x, y of the corner of cell (0, 0), metres
+    cell_m: float
+    z_cad: float
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.occupied.shape  # type: ignore[return-value]
+
+    def cell_of(self, xy_cad: np.ndarray) -> tuple[int, int]:
+        """The (row, col) holding the CAD point (x, y), clipped into the grid."""
+        col, row = np.floor((np.asarray(xy_cad, float)[:2] - self.origin_xy_cad) / self.cell_m).astype(int)
+        h, w = self.shape
+        return int(np.clip(row, 0, h - 1)), int(np.clip(col, 0, w - 1))
+
+    def centre_cad(self, cells_rc: np.ndarray) -> np.ndarray:
+        """(N, 2) rows/cols -> (N, 3) CAD points at cell centres, z = z_cad."""
+        rc = np.asarray(cells_rc, float).reshape(-1, 2)
+        xy = self.origin_xy_cad + (rc[:, ::-1] + 0.5) * self.cell_m
+        return np.column_stack([xy, np.full(len(xy), self.z_cad)])
+
+
+def section_grid(solids: BuildingSolids, z_cad: float, cell_m: float, margin_m: float = 1.0) -> OccupancyGrid:
+    """The cross-section of the solids by the plane z = z_cad, rasterised into cells of cell_m metres."""
+    import cv2
+    import trimesh.intersections
+
+    v = solids.vertices_cad
+    lo = v[:, :2].min(axis=0) - margin_m
+    hi = v[:, :2].max(axis=0) + margin_m
+    w, h = (np.ceil((hi - lo) / cell_m).astype(int) + 1).tolist()
+    occupied = np.zeros((h, w), np.uint8)
+    tri_z = v[solids.faces][:, :, 2]
+    crossing = solids.faces[(tri_z.min(axis=1) <= z_cad) & (tri_z.max(axis=1) >= z_cad)]
+    if len(crossing):
+        segments = trimesh.intersections.mesh_plane(
+            trimesh.Trimesh(v, crossing, process=False), plane_normal=[0, 0, 1], plane_origin=[0, 0, z_cad])
+        # pixel coordinates with 4 fractional bits: x -> col, y -> row
+        pts = np.round((segments[:, :, :2] - lo) / cell_m * 16 - 8).astype(np.int32)
+        for a, b in pts:
+            cv2.line(occupied, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), 1, 1, cv2.LINE_8, 4)
+    return OccupancyGrid(occupied.astype(bool), lo, cell_m, z_cad)
+
+
+class ObstacleLayer:
+    """Obstacles seen in depth that the model lacks: hits per cell of points within a band around z_cad."""
+
+    def __init__(self, shape: tuple[int, int], min_hits: int = 3, band_m: float = 0.5) -> None:
+        self.hits = np.zeros(shape, np.int32)
+        self.min_hits = min_hits
+        self.band_m = band_m
+
+    def add_points(self, grid: OccupancyGrid, points_cad: np.ndarray) -> int:
+        """Count (N, 3) CAD points within ±band_m of the grid's height; returns how many were counted."""
+        p = np.asarray(points_cad, float).reshape(-1, 3)
+        p = p[np.isfinite(p).all(axis=1) & (np.abs(p[:, 2] - grid.z_cad) <= self.band_m)]
+        rc = np.floor((p[:, :2] - grid.origin_xy_cad) / grid.cell_m).astype(int)[:, ::-1]
+        inside = (rc >= 0).all(axis=1) & (rc[:, 0] < self.hits.shape[0]) & (rc[:, 1] < self.hits.shape[1])
+        np.add.at(self.hits, (rc[inside, 0], rc[inside, 1]), 1)
+        return int(inside.sum())
+
+    def occupied(self) -> np.ndarray:
+        return self.hits >= self.min_hits
+
+
+def inflate(occupied: np.ndarray, radius_m: float, cell_m: float) -> np.ndarray:
+    """Free cells (True) whose centre is farther than radius_m from every occupied cell's centre."""
+    from scipy.ndimage import distance_transform_edt
+
+    if not occupied.any():
+        return np.ones_like(occupied, bool)
+    return distance_transform_edt(~occupied) * cell_m > radius_m

@@ -1,0 +1,202 @@
+"""Offline replay of a recorded flight through the localizer, as fast as it runs, scored against truth.
+
+`replay()` reads the MCAP recording, turns each frame into inputs (an `ObservationSource`: ground truth with
+realistic errors, or the perception chain), selects keyframes, runs the `Localizer`, and scores the poses in
+the CAD frame against ground truth without alignment (evo's APE/RPE, translation part). The frames go through
+`FrameSink`s (a null one by default): the seam where `--over-zenoh` publishes instead of running in-process.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from graph.features import BuildingModel
+from graph.localizer import Estimate, Localizer, LocalizerParams
+from graph.mapstore import StoredMap
+from graph.posegraph import PoseGraph
+from graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
+from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
+from service.replay_sources import FrameInput, ObservationSource, TruthSource
+
+log = logging.getLogger(__name__)
+
+WRONG_TRANS_M = 1.0  # a localization whose pose is further off than this (or WRONG_ROT_DEG) is wrong
+WRONG_ROT_DEG = 10.0
+
+
+@dataclass(frozen=True)
+class KeyframePolicy:
+    """A new keyframe after this much motion or time since the last one."""
+
+    min_translation_m: float = 0.25
+    min_rotation_rad: float = 0.15
+    max_interval_s: float = 0.34
+
+    def is_keyframe(self, T_last: np.ndarray | None, T_now: np.ndarray, dt_s: float) -> bool:
+        if T_last is None:
+            return True
+        d = np.linalg.inv(T_last) @ T_now
+        angle = np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1))
+        return bool(np.linalg.norm(d[:3, 3]) > self.min_translation_m or angle > self.min_rotation_rad
+                    or dt_s >= self.max_interval_s)
+
+
+class FrameSink(Protocol):
+    def __call__(self, estimate: Estimate) -> None: ...
+
+
+def null_sink(estimate: Estimate) -> None:
+    """Receives every estimate and does nothing (a publisher can take its place)."""
+
+
+@dataclass
+class ReplayTrace:
+    """Per-frame record: stamps (s from the first frame), truth and estimates (NaN before localization)."""
+
+    t_s: list[float] = field(default_factory=list)
+    status: list[str] = field(default_factory=list)
+    T_true: list[np.ndarray] = field(default_factory=list)
+    T_est: list[np.ndarray | None] = field(default_factory=list)
+    keyframe: list[bool] = field(default_factory=list)
+    update_ms: list[float] = field(default_factory=list)
+    n_sightings: list[int] = field(default_factory=list)
+
+
+@dataclass
+class ReplayResult:
+    frames: int
+    processing_fps: float
+    localized: bool
+    time_to_localize_s: float | None
+    processing_to_localize_s: float | None
+    ape: ErrorStats
+    rpe_1s: ErrorStats
+    wrong_localizations: int
+    status_final: str
+    keyframes: int
+    landmarks: int
+    cad_links: int
+    wrong_links: int
+    isam_update_ms_mean: float
+    trace: ReplayTrace
+    localizer: Localizer
+
+    def to_json(self) -> dict:
+        return {"frames": self.frames, "processing_fps": round(self.processing_fps, 1), "localized": self.localized,
+                "time_to_localize_s": _round(self.time_to_localize_s),
+                "processing_to_localize_s": _round(self.processing_to_localize_s),
+                "ape_rmse_m": _round(self.ape.rmse), "ape_max_m": _round(self.ape.max),
+                "rpe_1s_rmse_m": _round(self.rpe_1s.rmse), "wrong_localizations": self.wrong_localizations,
+                "status_final": self.status_final, "keyframes": self.keyframes, "landmarks": self.landmarks,
+                "cad_links": self.cad_links, "wrong_links": self.wrong_links,
+                "isam_update_ms_mean": round(self.isam_update_ms_mean, 3)}
+
+
+def _round(v: float | None, nd: int = 4) -> float | None:
+    return None if v is None or not np.isfinite(v) else round(float(v), nd)
+
+
+def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey_hint: str | None = None,
+                   T_body_cam: np.ndarray | None = None, params: LocalizerParams | None = None) -> Localizer:
+    """The factory: registration against a stored map when one is given, else against the whole model."""
+    registrar: Registrar = (StoredMapRegistrar(stored.known_rects(model)) if stored is not None
+                            else ModelRegistrar(model, storey_hint=storey_hint))
+    return Localizer(model, PoseGraph(), registrar, params, T_body_cam=T_body_cam)
+
+
+def replay(flight: Path, model: BuildingModel, source: ObservationSource | None = None,
+           stored: StoredMap | None = None, storey_hint: str | None = None, policy: KeyframePolicy | None = None,
+           sink: FrameSink = null_sink) -> ReplayResult:
+    """Run `flight` (MCAP) through a new localizer in `model`; see module doc."""
+    from service.recording import matrix_from_pose, read_flight
+
+    source = source or TruthSource()
+    policy = policy or KeyframePolicy()
+    trace = ReplayTrace()
+    localizer: Localizer | None = None
+    T_kf: np.ndarray | None = None
+    t_kf = t0 = None
+    busy_s = 0.0
+    busy_at_localized: float | None = None
+    for frame in read_flight(flight):
+        start = time.perf_counter()
+        inputs: FrameInput = source(frame)
+        if localizer is None:
+            localizer = make_localizer(model, stored, storey_hint, inputs.T_body_cam)
+        t0 = frame.stamp_ns if t0 is None else t0
+        t_s = (frame.stamp_ns - t0) * 1e-9
+        is_kf = policy.is_keyframe(T_kf, inputs.T_odom_body, t_s - (t_kf if t_kf is not None else -1e9))
+        if is_kf:
+            est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body)
+            T_kf, t_kf = inputs.T_odom_body, t_s
+        else:
+            est = localizer.track(inputs.stamp_ns, inputs.T_odom_body)
+        busy_s += time.perf_counter() - start
+        if busy_at_localized is None and est.status == "localized":
+            busy_at_localized = busy_s
+        sink(est)
+        _record(trace, t_s, est, matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None,
+                is_kf, len(inputs.sightings))
+    if localizer is None:
+        from graph.errors import UserInputError
+
+        raise UserInputError(f"recording {flight} holds no stereo frames")
+    return _score(trace, localizer, busy_s, busy_at_localized)
+
+
+def _record(trace: ReplayTrace, t_s: float, est: Estimate, T_true: np.ndarray | None, is_kf: bool,
+            n_sightings: int) -> None:
+    trace.t_s.append(t_s)
+    trace.status.append(est.status)
+    trace.T_true.append(T_true if T_true is not None else np.full((4, 4), np.nan))
+    trace.T_est.append(est.T_cad_body)
+    trace.keyframe.append(is_kf)
+    trace.update_ms.append(est.update_ms if is_kf else 0.0)
+    trace.n_sightings.append(n_sightings)
+
+
+def _score(trace: ReplayTrace, localizer: Localizer, busy_s: float, busy_at_localized: float | None) -> ReplayResult:
+    t = np.array(trace.t_s)
+    localized_mask = np.array([s in ("localized", "degraded", "lost") and T is not None
+                               for s, T in zip(trace.status, trace.T_est, strict=True)])
+    first = int(np.argmax(localized_mask)) if localized_mask.any() else None
+    idx = np.flatnonzero(localized_mask)
+    P_true = np.array([trace.T_true[k] for k in idx]).reshape(-1, 4, 4)
+    P_est = np.array([trace.T_est[k] for k in idx]).reshape(-1, 4, 4)
+    ape = ErrorStats.of(ape_translation(P_true, P_est)) if len(idx) else ErrorStats.of(np.zeros(0))
+    rate = max(1, int(round(1.0 / np.median(np.diff(t))))) if len(t) > 1 else 1
+    rpe = ErrorStats.of(rpe_translation(P_true, P_est, delta=rate)) if len(idx) else ErrorStats.of(np.zeros(0))
+    kf_ms = [m for m, k in zip(trace.update_ms, trace.keyframe, strict=True) if k]
+    links = localizer.links
+    truth_of = _truth_ids(localizer)
+    return ReplayResult(
+        frames=len(t), processing_fps=len(t) / max(busy_s, 1e-9), localized=first is not None,
+        time_to_localize_s=None if first is None else float(t[first]),
+        processing_to_localize_s=busy_at_localized, ape=ape, rpe_1s=rpe,
+        wrong_localizations=_wrong_localizations(trace), status_final=trace.status[-1],
+        keyframes=localizer.graph.n_keyframes, landmarks=len(localizer.landmarks), cad_links=len(links),
+        wrong_links=sum(1 for j, fid in links.items() if truth_of.get(j) not in (None, fid)),
+        isam_update_ms_mean=float(np.mean(kf_ms)) if kf_ms else 0.0, trace=trace, localizer=localizer)
+
+
+def _truth_ids(localizer: Localizer) -> dict[int, str]:
+    """Ground-truth id of each landmark (from the sighting that created it), when known."""
+    return {j: lm.truth_id for j, lm in localizer.landmarks.items() if lm.truth_id is not None}
+
+
+def _wrong_localizations(trace: ReplayTrace) -> int:
+    """Times the status entered 'localized' with a pose more than WRONG_TRANS_M / WRONG_ROT_DEG off."""
+    wrong, before = 0, "exploring"
+    for status, T_est, T_true in zip(trace.status, trace.T_est, trace.T_true, strict=True):
+        if status == "localized" and before != "localized" and T_est is not None and np.isfinite(T_true).all():
+            d = np.linalg.inv(T_true) @ T_est
+            angle = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
+            wrong += int(np.linalg.norm(d[:3, 3]) > WRONG_TRANS_M or angle > WRONG_ROT_DEG)
+        before = status
+    return wrong

@@ -1,0 +1,67 @@
+"""The composition root of `macroloc serve`: config -> model, saved map, backend, planner, session, service."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+from graph.errors import UserInputError
+from service.config import MacrolocConfig
+from service.node import DecodeOnlyPipeline, FramePipeline, LocalizationService, ServiceParams
+from service.state import MapStore
+
+log = logging.getLogger(__name__)
+
+
+def make_pipeline(cfg: MacrolocConfig) -> FramePipeline:
+    """The stereo-frame pipeline: perception when it is installed, else decoding only (logged)."""
+    try:
+        from perception.pipeline import make_frame_pipeline  # type: ignore[import-not-found]
+    except ImportError:
+        log.warning("perception.pipeline unavailable: stereo frames are decoded but not yet perceived")
+        return DecodeOnlyPipeline()
+    return make_frame_pipeline(cfg.camera)  # type: ignore[no-any-return]
+
+
+def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -> LocalizationService:  # noqa: ANN001
+    """Everything `serve` runs, on an open session (tests pass their own session and store)."""
+    from graph.bim import load_building
+    from service.backend import BackendParams, LocalizerBackend
+    from service.planning import Planner
+
+    if cfg.service.building is None:
+        raise UserInputError("no building model: set service.building in the config or pass --building")
+    building = Path(cfg.service.building)
+    model = load_building(building)
+    store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
+    snapshot = store.load(model.sha256)
+    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, BackendParams())
+    p = cfg.planning
+    planner = Planner.for_building(building, p.cell_m, p.vehicle_radius_m, p.flight_height_m)
+    for elevation in sorted(model.storey_elevations_m.values())[:1]:
+        planner.grid(elevation + p.flight_height_m)  # the ground floor's grid ready before the first goal
+    s = cfg.service
+    params = ServiceParams(vehicle=s.vehicle, building=building.name, building_sha256=model.sha256,
+                           cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
+                           status_period_s=s.status_period_s, save_period_s=s.save_period_s,
+                           replan_period_s=p.replan_period_s)
+    return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg))
+
+
+def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,
+          on_ready: Callable[[LocalizationService], None] | None = None) -> None:
+    """Run the service until SIGTERM/SIGINT (or `stop`); the map is saved on the way out."""
+    from service.zenoh_io import open_session
+
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda signum, frame: stop.set())
+    with open_session(cfg.zenoh) as session:
+        service = build_service(cfg, session)
+        if on_ready is not None:
+            threading.Thread(target=lambda: service.ready.wait() and on_ready(service), daemon=True).start()
+        service.run(stop)

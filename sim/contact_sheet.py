@@ -1,0 +1,46 @@
+"""A contact sheet: sampled left frames in a grid with their ground-truth boxes and visible corners drawn."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim.groundtruth import FeatureInView
+
+COLOURS_BGR = {"door": (40, 200, 40), "window": (230, 140, 30)}
+
+
+def annotate(image_bgr: np.ndarray, features: list[FeatureInView], label: str = "") -> np.ndarray:
+    """A copy of the image with each feature's box (green door, blue window), id prefix and corners
+    (filled = visible, hollow = occluded or outside)."""
+    import cv2
+
+    out = image_bgr.copy()
+    for f in features:
+        colour = COLOURS_BGR.get(f.type, (0, 0, 255))
+        x0, y0, x1, y1 = (int(round(v)) for v in f.box_xyxy)
+        cv2.rectangle(out, (x0, y0), (x1 - 1, y1 - 1), colour, 2)
+        cv2.putText(out, f"{f.type} {f.id[:6]}", (x0 + 3, max(12, y0 + 14)), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                    colour, 1, cv2.LINE_AA)
+        for (u, v), vis in zip(f.corners_px, f.corner_visible, strict=True):
+            if np.isfinite(u) and np.isfinite(v) and abs(u) < 1e5 and abs(v) < 1e5:
+                cv2.circle(out, (int(round(u)), int(round(v))), 5, (0, 0, 255), -1 if vis else 1)
+    if label:
+        cv2.putText(out, label, (6, out.shape[0] - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def contact_sheet(tiles_bgr: list[np.ndarray], columns: int = 4, tile_width: int = 320) -> np.ndarray:
+    """(rows * h, columns * tile_width, 3) uint8 grid of the tiles, each resized to `tile_width`."""
+    import cv2
+
+    if not tiles_bgr:
+        return np.zeros((10, 10, 3), np.uint8)
+    h0, w0 = tiles_bgr[0].shape[:2]
+    th = int(round(h0 * tile_width / w0))
+    rows = (len(tiles_bgr) + columns - 1) // columns
+    sheet = np.zeros((rows * th, columns * tile_width, 3), np.uint8)
+    for i, tile in enumerate(tiles_bgr):
+        r, c = divmod(i, columns)
+        sheet[r * th:(r + 1) * th, c * tile_width:(c + 1) * tile_width] = cv2.resize(
+            tile, (tile_width, th), interpolation=cv2.INTER_AREA)
+    return sheet

@@ -1,0 +1,140 @@
+"""Dressing a building for one flight: per-triangle textures, colours, door/window styles (seeded), and the
+renderer's vertex array.
+
+Every door and window that is a macro-feature of the model gets an instance id (its index in the feature
+list + 1; duplicates exported twice share it) and, per vertex, its position (u, v) in [0, 1] across its opening
+rectangle, from which the shader draws frames, panels, handles and muntins.
+"""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+
+from graph.features import MacroFeature
+from sim import textures as tx
+from sim.render import KIND_DOOR, KIND_GLASS, KIND_PLAIN, KIND_WINDOW_FRAME, VERTEX_FLOATS
+from sim.scene import COVERING, DOOR, FURNITURE, SLAB, STAIR, WALL, WINDOW, SceneGeometry
+
+WALL_TINTS = ((0.95, 0.94, 0.9), (0.9, 0.92, 0.95), (0.96, 0.9, 0.8), (0.85, 0.9, 0.85), (0.8, 0.8, 0.82),
+              (0.95, 0.85, 0.85), (0.75, 0.8, 0.9))
+DOOR_TINTS = ((0.9, 0.75, 0.55), (0.6, 0.4, 0.25), (0.95, 0.95, 0.93), (0.55, 0.57, 0.6), (0.55, 0.2, 0.15),
+              (0.2, 0.3, 0.5), (0.3, 0.45, 0.3), (0.4, 0.28, 0.18))
+FRAME_TINTS = ((0.95, 0.95, 0.95), (0.25, 0.27, 0.3), (0.45, 0.3, 0.2), (0.7, 0.7, 0.72))
+GROUND_HALF_SIZE_M = 150.0
+
+
+def _element_rng(seed: int, key: str) -> np.random.Generator:
+    return np.random.default_rng([seed, zlib.crc32(key.encode())])
+
+
+def feature_instance_map(features: list[MacroFeature]) -> dict[str, int]:
+    """{element id: instance id} (feature index + 1), duplicates included."""
+    out: dict[str, int] = {}
+    for k, f in enumerate(features):
+        for gid in (f.id, *f.duplicates):
+            out.setdefault(gid, k + 1)
+    return out
+
+
+def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
+                ground_z_m: float | None = None, open_doors: set[int] | frozenset[int] = frozenset()) -> np.ndarray:
+    """(3T' + 6, VERTEX_FLOATS) float32 vertex array of the scene plus a ground plane (at `ground_z_m`,
+    default the lowest geometry) for the renderer, CAD frame, metres. Doors whose feature index is in
+    `open_doors` are drawn without their leaf (frame only): open, so the flight can pass."""
+    T = len(scene.triangles_cad)
+    normals = scene.normals_cad().astype(np.float32)
+    layer = np.full(T, tx.PLASTER, np.float32)
+    tint = np.clip(0.5 * scene.tri_colour + 0.5, 0, 1).astype(np.float32)
+    inst = np.zeros(T, np.float32)
+    fuv = np.full((T, 3, 2), -1.0, np.float32)
+    kind = np.full(T, KIND_PLAIN, np.float32)
+    style = np.zeros(T, np.float32)
+    rng = np.random.default_rng(seed)
+    frame_tint = np.array(FRAME_TINTS[rng.integers(len(FRAME_TINTS))], np.float32)
+    floor_layer = tx.FLOOR_LAYERS[rng.integers(len(tx.FLOOR_LAYERS))]
+    instances = feature_instance_map(features)
+    by_element = np.argsort(scene.tri_element, kind="stable")
+    bounds = np.searchsorted(scene.tri_element[by_element], np.arange(len(scene.element_ids) + 1))
+    for e, gid in enumerate(scene.element_ids):
+        idx = by_element[bounds[e]:bounds[e + 1]]
+        if len(idx) == 0:
+            continue
+        cls = int(scene.tri_class[idx[0]])
+        er = _element_rng(seed, gid)
+        if cls == WALL:
+            layer[idx] = tx.WALL_LAYERS[er.integers(len(tx.WALL_LAYERS))]
+            tint[idx] = WALL_TINTS[er.integers(len(WALL_TINTS))]
+        elif cls in (SLAB, COVERING):
+            nz = normals[idx, 2]
+            layer[idx] = np.where(nz > 0.7, floor_layer, np.where(nz < -0.7, tx.CEILING, tx.PLASTER))
+            tint[idx] = 0.9 + 0.1 * er.random(3)
+        elif cls == DOOR:
+            layer[idx] = tx.DOOR_LAYERS[er.integers(len(tx.DOOR_LAYERS))]
+            tint[idx] = DOOR_TINTS[er.integers(len(DOOR_TINTS))]
+            kind[idx] = KIND_DOOR
+            style[idx] = er.integers(8)
+        elif cls == WINDOW:
+            layer[idx] = tx.PAINTED
+            tint[idx] = frame_tint
+            kind[idx] = KIND_WINDOW_FRAME
+            style[idx] = er.integers(3)
+        elif cls == STAIR:
+            layer[idx] = tx.METAL if er.random() < 0.5 else tx.WOOD_GRAIN
+        elif cls == FURNITURE:
+            layer[idx] = (tx.WOOD_GRAIN, tx.PAINTED, tx.CARPET)[er.integers(3)]
+            tint[idx] = 0.4 + 0.6 * er.random(3)
+        k = instances.get(gid, 0)
+        if k and cls in (DOOR, WINDOW):
+            inst[idx] = k
+            fuv[idx] = _opening_uv(scene.triangles_cad[idx], features[k - 1])
+    glass = scene.tri_glass
+    kind[glass] = KIND_GLASS
+    tint[glass] = (0.55, 0.65, 0.65)
+    verts = np.zeros((T, 3, VERTEX_FLOATS), np.float32)
+    verts[:, :, 0:3] = scene.triangles_cad
+    verts[:, :, 3:6] = normals[:, None, :]
+    verts[:, :, 6:9] = tint[:, None, :]
+    verts[:, :, 9] = layer[:, None]
+    verts[:, :, 10] = inst[:, None]
+    verts[:, :, 11:13] = fuv
+    verts[:, :, 13] = kind[:, None]
+    verts[:, :, 14] = style[:, None]
+    keep = ~_leaf_of(inst, fuv, kind, open_doors)
+    z0 = float(scene.bounds_cad[0, 2]) if ground_z_m is None else ground_z_m
+    return np.concatenate([verts[keep].reshape(-1, VERTEX_FLOATS), _ground(scene, z0 - 0.01, rng)])
+
+
+def _leaf_of(inst: np.ndarray, fuv: np.ndarray, kind: np.ndarray, open_doors: set[int] | frozenset[int]) -> np.ndarray:
+    """(T,) triangles of the leaves of the open doors: inside the opening, clear of the frame band."""
+    if not open_doors:
+        return np.zeros(len(inst), bool)
+    is_open = np.isin(inst, np.array(sorted(open_doors)) + 1) & (kind == KIND_DOOR)
+    u, v = fuv[:, :, 0], fuv[:, :, 1]
+    inner = ((u > 0.07) & (u < 0.93) & (v < 0.95)).all(axis=1)
+    return is_open & inner
+
+
+def _opening_uv(triangles: np.ndarray, f: MacroFeature) -> np.ndarray:
+    """(n, 3, 2) position of each vertex across the feature's opening rectangle: u along corner 0->1, v 0->3."""
+    c0 = f.corners_cad[0]
+    ax_u, ax_v = f.corners_cad[1] - c0, f.corners_cad[3] - c0
+    rel = triangles.astype(np.float64) - c0
+    u = rel @ ax_u / max(float(ax_u @ ax_u), 1e-9)
+    v = rel @ ax_v / max(float(ax_v @ ax_v), 1e-9)
+    return np.stack([u, v], axis=-1).astype(np.float32)
+
+
+def _ground(scene: SceneGeometry, z: float, rng: np.random.Generator) -> np.ndarray:
+    """Two triangles of grass or asphalt around the building, so windows show an outside."""
+    cx, cy = scene.bounds_cad.mean(axis=0)[:2]
+    h = GROUND_HALF_SIZE_M
+    quad = np.array([[cx - h, cy - h, z], [cx + h, cy - h, z], [cx + h, cy + h, z], [cx - h, cy + h, z]])
+    out = np.zeros((6, VERTEX_FLOATS), np.float32)
+    out[:, 0:3] = quad[[0, 1, 2, 0, 2, 3]]
+    out[:, 3:6] = (0, 0, 1)
+    out[:, 6:9] = 1.0
+    out[:, 9] = tx.GRASS if rng.random() < 0.6 else tx.ASPHALT
+    out[:, 11:13] = -1.0
+    return out

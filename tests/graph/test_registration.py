@@ -1,0 +1,139 @@
+"""Registration: the paper's method and the default, on real buildings and synthetic scenarios."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from graph.evaluation import ScenarioParams, make_scenario, score
+from graph.features import BuildingModel
+from graph.observations import Observation, ObservationSet
+from graph.registration import hypothesis_count, register
+from graph.rigid import apply, invert, rotation_angle_deg
+from graph.registration import _coplanar  # the private eq. (10) kernel, tested directly
+from tests.graph.helpers import random_building, random_T
+
+
+def observe(model: BuildingModel, T_map_cad: np.ndarray, features=None, gravity: bool = True,
+            corners: bool = True) -> ObservationSet:
+    feats = model.features if features is None else features
+    obs = [Observation(f.type, apply(T_map_cad, f.centroid_cad),
+                       apply(T_map_cad, f.corners_cad[[2, 0, 3, 1]]) if corners else None) for f in feats]
+    g = T_map_cad[:3, :3] @ np.array([0.0, 0.0, -1.0]) if gravity else None
+    return ObservationSet(obs, g)
+
+
+def test_eq_9_hypothesis_count() -> None:
+    assert hypothesis_count(0.99, 0.5) == pytest.approx(np.log(0.01) / np.log(1 - 0.5**4))
+    assert hypothesis_count(0.99, 1.0) == 1.0
+    assert hypothesis_count(0.99, 0.0) == np.inf
+
+
+def test_eq_10_coplanarity() -> None:
+    flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.001]], dtype=float)
+    tetra = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float)
+    assert _coplanar(flat, 0.01) and not _coplanar(tetra, 0.01)
+
+
+@pytest.mark.parametrize("variant", ["gravity", "full", "nogravity"])
+def test_robust_localizes_office_scenarios(office_model, variant: str) -> None:
+    outcomes = []
+    for i in range(12):
+        s = make_scenario(office_model, i, 11, ScenarioParams(variant=variant))
+        r = register(office_model, s.obs)
+        outcomes.append(score(s, r, False).outcome)
+    assert "wrong" not in outcomes and "imprecise" not in outcomes
+    assert outcomes.count("success") >= 10
+
+
+@given(st.integers(0, 2**32 - 1))
+@settings(max_examples=10, deadline=None)
+def test_robust_recovers_any_rigid_motion_of_a_storey(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    model = BuildingModel("synthetic", f"synthetic-{seed}", random_building(rng))
+    T_map_cad = random_T(rng, 30.0)
+    chosen = [model.features[i] for i in rng.choice(len(model.features), 8, replace=False)]
+    r = register(model, observe(model, T_map_cad, chosen, gravity=bool(seed % 2)))
+    assert r.status == "localized"
+    assert np.allclose(r.T_cad_map, invert(T_map_cad), atol=1e-6)
+    assert {fid for _, fid in r.matches} == {f.id for f in chosen}
+
+
+def test_duplex_is_ambiguous_not_guessed(duplex_model) -> None:
+    rng = np.random.default_rng(5)
+    level2 = [f for f in duplex_model.features if f.storey == "Level 2"]
+    for _ in range(3):
+        r = register(duplex_model, observe(duplex_model, random_T(rng, yaw_only=True), level2))
+        assert r.status == "ambiguous"
+        assert len(r.alternatives) == 1
+        assert rotation_angle_deg(r.alternatives[0][:3, :3] @ r.T_cad_map[:3, :3].T) == pytest.approx(180, abs=1)
+
+
+def test_observing_a_whole_storey_localizes_and_names_it(office_model) -> None:
+    T = random_T(np.random.default_rng(6), yaw_only=True)
+    level2 = [f for f in office_model.features if f.storey == "Level 2"]
+    r = register(office_model, observe(office_model, T, level2))
+    assert r.status == "localized" and r.storey == "Level 2"
+    assert np.allclose(r.T_cad_map, invert(T), atol=1e-6)
+
+
+def test_centroid_only_observations_are_verified_but_need_a_rectangle(office_model) -> None:
+    T = random_T(np.random.default_rng(7), yaw_only=True)
+    feats = [f for f in office_model.features if f.storey == "Level 1"][:10]
+    none = register(office_model, observe(office_model, T, feats, corners=False))
+    assert none.status == "not_localized"
+    mixed = observe(office_model, T, feats)
+    mixed = ObservationSet([o if i % 2 == 0 else Observation(o.type, o.centroid_map) for i, o in
+                            enumerate(mixed.observations)], mixed.gravity_map)
+    r = register(office_model, mixed)
+    assert r.status == "localized" and len(r.matches) == 10
+
+
+def test_storey_hint_restricts_the_search(office_model) -> None:
+    from graph.errors import UserInputError
+
+    T = random_T(np.random.default_rng(8), yaw_only=True)
+    level1 = [f for f in office_model.features if f.storey == "Level 1"][:12]
+    obs = observe(office_model, T, level1)
+    hinted = register(office_model, ObservationSet(obs.observations, obs.gravity_map, "Level 1"))
+    assert hinted.status == "localized" and hinted.storey == "Level 1"
+    wrong_storey = register(office_model, ObservationSet(obs.observations, obs.gravity_map, "Level 2"))
+    assert wrong_storey.status != "localized" or wrong_storey.storey == "Level 2"
+    with pytest.raises(UserInputError):
+        register(office_model, ObservationSet(obs.observations, obs.gravity_map, "Level 9"))
+
+
+def test_identical_storeys_are_ambiguous_until_a_hint_settles_them() -> None:
+    from dataclasses import replace
+
+    rng = np.random.default_rng(9)
+    base = random_building(rng, 25)
+    upper = [replace(f, id=f.id + "-up", storey="L2", centroid_cad=f.centroid_cad + [0, 0, 3.5],
+                     corners_cad=f.corners_cad + [0, 0, 3.5]) for f in base]
+    model = BuildingModel("twin", "twin-storeys", base + upper)
+    T = random_T(rng, yaw_only=True)
+    obs = observe(model, T, base[:10])
+    assert register(model, obs).status == "ambiguous"
+    hinted = register(model, ObservationSet(obs.observations, obs.gravity_map, "L1"))
+    assert hinted.status == "localized" and hinted.storey == "L1"
+    assert np.allclose(hinted.T_cad_map, invert(T), atol=1e-6)
+
+
+def test_paper_method_recovers_a_pose_from_a_fully_observed_asymmetric_storey() -> None:
+    rng = np.random.default_rng(10)
+    model = BuildingModel("synthetic", "synthetic-paper", random_building(rng, 30))
+    T = random_T(rng)
+    r = register(model, observe(model, T), method="paper")
+    assert r.status == "localized"
+    assert np.allclose(r.T_cad_map, invert(T), atol=1e-6)
+
+
+def test_default_beats_the_paper_on_the_same_scenarios(office_model) -> None:
+    wins = {"paper": 0, "robust": 0}
+    for i in range(10):
+        s = make_scenario(office_model, i, 12, ScenarioParams())
+        for m in wins:
+            wins[m] += score(s, register(office_model, s.obs, method=m), False).outcome == "success"
+    assert wins["robust"] >= 9 and wins["robust"] > wins["paper"]

@@ -1,0 +1,71 @@
+"""Property tests for the rigid-transform kernels (paper eqs. 11–17)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from graph.rigid import apply, invert, rotation_aligning, rotation_angle_deg, weighted_rigid_fit, yaw_rigid_fit
+from tests.graph.helpers import random_T
+
+seeds = st.integers(0, 2**32 - 1)
+
+
+@given(seeds)
+@settings(max_examples=60, deadline=None)
+def test_weighted_fit_recovers_a_random_rigid_motion(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    T = random_T(rng)
+    src = rng.uniform(-10, 10, (int(rng.integers(3, 30)), 3))
+    w = rng.uniform(0.1, 2.0, len(src))
+    T_est = weighted_rigid_fit(src, apply(T, src), w)
+    assert np.allclose(T_est, T, atol=1e-8)
+
+
+@given(seeds)
+@settings(max_examples=30, deadline=None)
+def test_weighted_fit_never_returns_a_reflection(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    src = rng.uniform(-5, 5, (6, 3))
+    mirrored = src * np.array([1.0, 1.0, -1.0])  # best orthogonal map is a reflection
+    T = weighted_rigid_fit(src, mirrored)
+    assert np.isclose(np.linalg.det(T[:3, :3]), 1.0)
+
+
+def test_weights_pull_the_fit_towards_heavy_points() -> None:
+    rng = np.random.default_rng(3)
+    src = rng.uniform(-5, 5, (10, 3))
+    dst = src.copy()
+    dst[0] += [3.0, 0, 0]  # one outlier
+    light = weighted_rigid_fit(src, dst, np.r_[1e-6, np.ones(9)])
+    assert np.allclose(apply(light, src[1:]), dst[1:], atol=1e-4)
+
+
+@given(seeds)
+@settings(max_examples=40, deadline=None)
+def test_yaw_fit_recovers_yaw_and_translation(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    T = random_T(rng, yaw_only=True)
+    src = rng.uniform(-10, 10, (8, 3))
+    assert np.allclose(yaw_rigid_fit(src, apply(T, src)), T, atol=1e-8)
+
+
+@given(seeds)
+@settings(max_examples=40, deadline=None)
+def test_inverse_and_composition(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    A, B = random_T(rng), random_T(rng)
+    p = rng.normal(size=(5, 3))
+    assert np.allclose(apply(A @ B, p), apply(A, apply(B, p)))
+    assert np.allclose(apply(invert(A), apply(A, p)), p)
+
+
+@given(st.lists(st.floats(-1, 1), min_size=6, max_size=6))
+def test_rotation_aligning_maps_a_onto_b(v: list[float]) -> None:
+    a, b = np.array(v[:3]), np.array(v[3:])
+    if np.linalg.norm(a) < 1e-3 or np.linalg.norm(b) < 1e-3:
+        return
+    R = rotation_aligning(a, b)
+    assert np.allclose(R @ (a / np.linalg.norm(a)), b / np.linalg.norm(b), atol=1e-9)
+    assert np.isclose(np.linalg.det(R), 1.0) and rotation_angle_deg(R @ R.T) < 1e-5

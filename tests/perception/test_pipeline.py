@@ -1,0 +1,37 @@
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from perception.detector import Detection
+from perception.pipeline import Perception, StereoPair
+from tests.perception.helpers import RIG, door_pair
+
+
+@pytest.mark.parametrize("depth_m", [2.5, 5.0])
+def test_chain_after_the_detector_recovers_a_door_on_a_wall(depth_m):
+    left, right, corners, box = door_pair(depth_m)
+    chain = Perception.create()
+    result = chain.process_boxes(StereoPair(left, right, RIG), [Detection("door", 0.9, box)])
+    assert not result.rejected, result.rejected
+    (f,) = result.features
+    assert f.sides_from_lines == (True, True)
+    tol = 0.02 * depth_m + 0.03
+    assert np.abs(f.corners_cam - corners).max() < tol
+    assert f.width_m == pytest.approx(0.9, abs=tol) and f.height_m == pytest.approx(2.0, abs=tol)
+    assert set(result.timings_ms) == {"stereo", "lines", "reconstruct"}
+
+
+def test_implausible_shapes_are_rejected_with_a_reason():
+    left, right, _, box = door_pair(3.0, door_wh_m=(0.9, 0.8))  # far too short for a door
+    result = Perception.create().process_boxes(StereoPair(left, right, RIG), [Detection("door", 0.9, box)])
+    assert not result.features and "height" in result.rejected[0].reason
+
+
+def test_runtime_needs_neither_torch_nor_the_service():
+    code = ("import sys, perception.pipeline, perception.detector, perception.calib, perception.evaluate, "
+            "perception.train, perception.trainset, perception.draw; "
+            "bad = [m for m in ('torch', 'zenoh', 'service', 'typer') if m in sys.modules]; "
+            "assert not bad, bad")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,0 +1,105 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from perception.lines import Sides
+from perception.reconstruct import (
+    Reconstruction,
+    check_plausible,
+    closest_point_to_ray,
+    fit_line_robust,
+    measure,
+    reconstruct_sides,
+)
+from perception.stereo import back_project
+from tests.perception.helpers import RIG
+
+unit = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(lambda v: np.linalg.norm(v) > 0.2)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.tuples(st.floats(-3, 3), st.floats(-3, 3), st.floats(1, 8)), unit, st.integers(0, 2**31 - 1))
+def test_line_fit_recovers_a_line_through_noise_and_outliers(point, direction, seed):
+    rng = np.random.default_rng(seed)
+    d = np.asarray(direction) / np.linalg.norm(direction)
+    t = rng.uniform(-1.0, 1.0, 40)
+    pts = np.asarray(point) + t[:, None] * d + rng.normal(0, 0.005, (40, 3))
+    bad = rng.choice(40, 8, replace=False)  # 20 % gross outliers, 0.3-1 m off the line
+    off = rng.normal(size=(8, 3))
+    off -= np.outer(off @ d, d)
+    pts[bad] += off / np.linalg.norm(off, axis=1, keepdims=True) * rng.uniform(0.3, 1.0, (8, 1))
+    line = fit_line_robust(pts)
+    assert line is not None
+    assert abs(line.direction @ d) > np.cos(np.radians(1.5))
+    assert not line.inliers[bad].any()
+    assert line.distances_m(np.asarray(point)[None])[0] < 0.02
+
+
+def test_closest_point_to_ray():
+    from perception.reconstruct import Line3D
+
+    line = Line3D(np.array([1.0, 0.0, 5.0]), np.array([0.0, 1.0, 0.0]), np.ones(1, bool))
+    ray = np.array([1.0, -1.0, 5.0]) / np.linalg.norm([1.0, -1.0, 5.0])
+    assert np.allclose(closest_point_to_ray(line, ray), [1.0, -1.0, 5.0])
+
+
+def _depth_of_plane(n_cam: np.ndarray, offset_m: float) -> np.ndarray:
+    """Depth image (m) of the plane n . X = offset seen by the rig."""
+    v, u = np.mgrid[0:RIG.height_px, 0:RIG.width_px].astype(np.float64)
+    rays = np.stack([(u - RIG.cx_px) / RIG.fx_px, (v - RIG.cy_px) / RIG.fy_px, np.ones_like(u)], -1)
+    return (offset_m / (rays @ n_cam)).astype(np.float32)
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 35.0])
+def test_corners_of_a_door_on_a_wall(yaw_deg):
+    yaw = np.radians(yaw_deg)
+    normal = np.array([np.sin(yaw), 0.0, -np.cos(yaw)])  # wall facing the camera, turned about the vertical
+    centre = np.array([0.2, 0.1, 4.0])
+    depth = _depth_of_plane(normal, normal @ centre)
+    along = np.array([np.cos(yaw), 0.0, np.sin(yaw)])
+    up = np.array([0.0, -1.0, 0.0])
+    corners = np.stack([centre - 0.45 * along + 1.0 * up, centre + 0.45 * along + 1.0 * up,
+                        centre + 0.45 * along - 1.0 * up, centre - 0.45 * along - 1.0 * up])  # TL TR BR BL
+    px = corners[:, :2] / corners[:, 2:] * RIG.fx_px + [RIG.cx_px, RIG.cy_px]
+    depth[RIG.height_px // 2, :] = np.nan  # a row without stereo
+    sides = Sides(np.stack([px[0], px[3]]), np.stack([px[1], px[2]]), (True, True))
+    result = reconstruct_sides(sides, depth, RIG)
+    assert not isinstance(result, str), result
+    corners_cam, _ = result
+    assert np.abs(corners_cam - corners).max() < 0.03
+    rec = measure(corners_cam, None)
+    assert rec.width_m == pytest.approx(0.9, abs=0.03) and rec.height_m == pytest.approx(2.0, abs=0.03)
+    assert rec.tilt_deg < 1.0
+
+
+def _rec(width, height, tilt_deg=0.0, z=4.0):
+    t = np.radians(tilt_deg)
+    down = np.array([np.sin(t), np.cos(t), 0.0]) * height
+    tl, tr = np.array([0, 0, z]), np.array([width, 0, z])
+    return measure(np.stack([tl, tr, tr + down, tl + down]).astype(float), None)
+
+
+def test_plausibility_checks():
+    assert check_plausible("door", _rec(0.9, 2.1), (np.array([0, 1, 0]),) * 2, False) is None
+    assert "width" in check_plausible("door", _rec(3.5, 2.1), (np.array([0, 1, 0]),) * 2, False)
+    assert "height" in check_plausible("door", _rec(0.9, 0.6), (np.array([0, 1, 0]),) * 2, False)
+    assert "depth" in check_plausible("door", _rec(0.9, 2.1, z=20.0), (np.array([0, 1, 0]),) * 2, False)
+    assert "vertical" in check_plausible("window", _rec(1.0, 1.0, tilt_deg=40), (np.array([0, 1, 0]),) * 2, False)
+    rec: Reconstruction = _rec(0.9, 2.1, tilt_deg=20)
+    assert check_plausible("door", rec, (np.array([0, 1, 0]),) * 2, gravity_known=False) is None
+    assert "vertical" in check_plausible("door", rec, (np.array([0, 1, 0]),) * 2, gravity_known=True)
+    skew = (np.array([0.0, 1.0, 0.0]), np.array([0.0, 1.0, 0.5]))
+    assert "parallel" in check_plausible("door", _rec(0.9, 2.1), skew, False)
+
+
+def test_missing_depth_is_reported_not_guessed():
+    depth = np.full((RIG.height_px, RIG.width_px), np.nan, np.float32)
+    sides = Sides(np.array([[100.0, 100], [100, 300]]), np.array([[200.0, 100], [200, 300]]), (True, True))
+    assert "too few points" in reconstruct_sides(sides, depth, RIG)
+
+
+def test_back_projected_side_points_lie_on_the_fitted_line():
+    pts = back_project(np.array([[100.0, 50 + 5 * i] for i in range(20)]), np.full(20, 3.0), RIG)
+    line = fit_line_robust(pts)
+    assert line is not None and np.allclose(line.distances_m(pts), 0, atol=1e-9)

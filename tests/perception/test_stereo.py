@@ -1,0 +1,47 @@
+import numpy as np
+import pytest
+
+from perception.stereo import SgbmMatcher, back_project, depth_from_disparity, ray_cam, sample_depth_m
+from tests.perception.helpers import RIG, fronto_parallel_pair
+
+
+def test_back_projection_is_eq2():
+    uv = np.array([[RIG.cx_px, RIG.cy_px], [RIG.cx_px + 48.0, RIG.cy_px - 96.0]])
+    pts = back_project(uv, np.array([2.0, 5.0]), RIG)
+    assert np.allclose(pts[0], [0, 0, 2.0])
+    assert np.allclose(pts[1], [5.0 * 48 / 480, -5.0 * 96 / 480, 5.0])  # d * ((u - cx)/fx, (v - cy)/fy, 1)
+
+
+def test_rays_are_unit_and_pass_through_the_pixels():
+    uv = np.array([[10.0, 20.0], [600.0, 400.0]])
+    rays = ray_cam(uv, RIG)
+    assert np.allclose(np.linalg.norm(rays, axis=1), 1.0)
+    proj = rays[:, :2] / rays[:, 2:] * RIG.fx_px + [RIG.cx_px, RIG.cy_px]
+    assert np.allclose(proj, uv)
+
+
+def test_depth_from_disparity_and_unknowns():
+    disp = np.array([[RIG.fx_px * RIG.baseline_m / 4.0, np.nan, 0.0, -1.0]], np.float32)
+    depth = depth_from_disparity(disp, RIG)
+    assert depth[0, 0] == pytest.approx(4.0, rel=1e-5)
+    assert np.all(np.isnan(depth[0, 1:]))
+
+
+@pytest.mark.parametrize("depth_m", [2.0, 4.5])
+def test_sgbm_recovers_a_textured_plane(depth_m: float):
+    left, right = fronto_parallel_pair(depth_m)
+    disparity = SgbmMatcher().disparity_px(left, right)
+    truth = RIG.fx_px * RIG.baseline_m / depth_m
+    inner = disparity[20:-20, 20:-20]
+    assert np.isfinite(inner).mean() > 0.9
+    assert np.nanmedian(np.abs(inner - truth)) < 0.25
+    # the left padding keeps the first columns (SGBM's blind band) usable where the match is in view
+    assert np.isfinite(disparity[20:-20, 30:60]).mean() > 0.8
+
+
+def test_sample_depth_takes_the_median_of_valid_neighbours():
+    depth = np.full((5, 10), np.nan, np.float32)
+    depth[2, 3:6] = [1.0, 2.0, 9.0]
+    out = sample_depth_m(depth, np.array([[4.0, 2.0], [4.0, 0.0], [50.0, 2.0]]))
+    assert out[0] == pytest.approx(2.0)
+    assert np.isnan(out[1]) and np.isnan(out[2])

@@ -1,0 +1,84 @@
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from perception.detector import PAD_VALUE
+from perception.trainset import (
+    ROTATIONS_DEG,
+    Sample,
+    _affine,
+    augment,
+    is_real_test,
+    read_yolo_labels,
+    split_facades,
+    transform_boxes,
+)
+from tests.conftest import shared_data
+
+
+def test_split_keeps_the_real_test_part_out_and_is_fixed():
+    root = shared_data("images/facades")
+    a, b = split_facades(root, seed=0), split_facades(root, seed=0)
+    assert a == b
+    assert all(is_real_test(p) for p in a["test"]) and len(a["test"]) > 100
+    assert not any(is_real_test(p) for p in a["train"] + a["val"])
+    assert not set(a["train"]) & set(a["val"])
+
+
+def test_yolo_labels_map_to_door_window_neither(tmp_path: Path):
+    label = tmp_path / "x.txt"
+    label.write_text("5 0.5 0.5 0.2 0.4\n0 0.25 0.25 0.1 0.1\n4 0.1 0.1 0.1 0.1\n3 0.7 0.7 0.2 0.2\n9 0.5 0.5 0.1 0.1\n")
+    from perception.trainset import FACADE_CLASS_MAP
+
+    boxes, classes = read_yolo_labels(label, 200, 100, FACADE_CLASS_MAP)
+    assert classes.tolist() == [0, 1, 1, 2]
+    assert np.allclose(boxes[0], [80, 30, 120, 70])
+
+
+def _sample() -> Sample:
+    img = np.zeros((120, 160, 3), np.uint8)
+    img[40:80, 60:100] = 255
+    return Sample("s", img, np.array([[60.0, 40.0, 100.0, 80.0]]), np.array([0]))
+
+
+def test_augmented_boxes_enclose_the_object():
+    rng = np.random.default_rng(3)
+    for _ in range(30):
+        image, boxes, _ = augment(_sample(), (320, 240), rng, rotation_prob=1.0)
+        assert image.shape == (240, 320, 3)
+        for x0, y0, x1, y1 in boxes.astype(int):
+            inside = image[max(0, y0 + 2):y1 - 2, max(0, x0 + 2):x1 - 2].astype(int).sum(axis=2)
+            assert inside.size == 0 or inside.max() > 300  # the white object is within its box
+
+
+def test_rotations_are_the_papers_and_inverse_warping_leaves_no_holes():
+    assert ROTATIONS_DEG == (-20, -15, -10, -5, 0, 5, 10, 15, 20)
+    rng = np.random.default_rng(0)
+    img = np.full((240, 320, 3), 7, np.uint8)
+    s = Sample("flat", img, np.zeros((0, 4)), np.zeros(0, np.int64))
+    angles = set()
+    for _ in range(40):
+        M = _affine(s, (320, 240), rng, (2.0, 2.0), rotation_prob=1.0)
+        angles.add(round(float(np.degrees(np.arctan2(M[1, 0], abs(M[0, 0])))) ))
+        import cv2
+
+        out = cv2.warpAffine(img, cv2.invertAffineTransform(M), (320, 240),
+                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=(PAD_VALUE,) * 3)
+        centre = out[100:140, 140:180]
+        assert np.all(centre == 7)  # every output pixel painted from the source: no holes
+    assert angles <= {abs(a) * s for a in ROTATIONS_DEG for s in (-1, 1)} and len(angles) >= 5
+
+
+def test_mostly_hidden_boxes_are_dropped():
+    M = np.array([[1.0, 0.0, -90.0], [0.0, 1.0, 0.0]])
+    boxes, classes = transform_boxes(np.array([[60.0, 0, 100, 50], [0, 0, 40, 40]]), np.array([1, 2]), M,
+                                     (320, 240), 0.45)
+    assert classes.tolist() == []
+    boxes, classes = transform_boxes(np.array([[100.0, 0, 200, 50]]), np.array([1]), M, (320, 240), 0.45)
+    assert classes.tolist() == [1] and np.allclose(boxes, [[10, 0, 110, 50]])
+
+
+@pytest.mark.parametrize("n", [0, 5, 10, 105])
+def test_test_split_rule(n: int):
+    assert is_real_test(Path(f"img_{n}.jpg"))

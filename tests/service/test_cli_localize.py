@@ -1,0 +1,102 @@
+"""The command-line contract of `features`, `localize` and `eval` (DESIGN.md), in-process and as a subprocess."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.cli import main
+from tests.graph.helpers import random_T
+
+
+def run(args: list[str], capsys) -> tuple[int, str, str]:
+    rc = main(args)
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def obs_doc(model, T_map_cad: np.ndarray, storey: str, n: int = 12) -> dict:
+    feats = [f for f in model.features if f.storey == storey][:n]
+    R, t = T_map_cad[:3, :3], T_map_cad[:3, 3]
+    return {"frame": "map", "gravity": (R @ [0, 0, -1.0]).tolist(),
+            "features": [{"type": f.type, "corners": (f.corners_cad[::-1] @ R.T + t).tolist()} for f in feats]}
+
+
+def test_features_json_contract(capsys, fzk_path: Path) -> None:
+    rc, out, _ = run(["features", str(fzk_path), "--json"], capsys)
+    doc = json.loads(out)
+    assert rc == 0 and doc["unit"] == "m" and len(doc["features"]) == 16
+    f = doc["features"][0]
+    assert set(f) >= {"id", "type", "storey", "centroid", "corners", "normal"}
+    assert np.array(f["corners"]).shape == (4, 3)
+
+
+def test_localize_end_to_end_on_a_real_ifc(tmp_path: Path, capsys, office_path: Path, office_model) -> None:
+    T = random_T(np.random.default_rng(1), yaw_only=True)
+    obs = tmp_path / "OBS.json"
+    obs.write_text(json.dumps(obs_doc(office_model, T, "Level 2")))
+    for method in ("robust", "paper"):
+        rc, out, err = run(["localize", str(office_path), "--observations", str(obs), "--json", "--method", method],
+                           capsys)
+        doc = json.loads(out)
+        assert rc == 0 and err == ""
+        assert set(doc) >= {"status", "T_cad_map", "matches", "inliers", "storey", "elapsed_ms"}
+        if method == "robust":
+            assert doc["status"] == "localized" and doc["storey"] == "Level 2"
+            assert np.allclose(np.array(doc["T_cad_map"]) @ T, np.eye(4), atol=1e-4)
+
+
+BAD_INPUTS = {
+    "missing file": None,
+    "not JSON": "{not json",
+    "three corners": {"frame": "map", "features": [{"type": "door", "corners": [[0, 0, 0], [1, 0, 0], [1, 0, 2]]}]},
+    "NaN corner": '{"frame": "map", "features": [{"type": "door", "corners": [[NaN,0,0],[1,0,0],[1,0,2],[0,0,2]]}]}',
+    "unknown type": {"frame": "map", "features": [{"type": "stairs", "centroid": [0, 0, 0]}]},
+    "features not a list": {"frame": "map", "features": 3},
+    "bad gravity": {"frame": "map", "gravity": [0, 0], "features": []},
+    "unknown storey hint": {"frame": "map", "hints": {"storey": "Level 99"},
+                            "features": [{"type": "door", "centroid": [0, 0, 0]}]},
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_observations_exit_2_with_one_line(case: str, tmp_path: Path, capsys, office_path: Path) -> None:
+    path = tmp_path / "OBS.json"
+    content = BAD_INPUTS[case]
+    if content is not None:
+        path.write_text(content if isinstance(content, str) else json.dumps(content))
+    rc, out, err = run(["localize", str(office_path), "--observations", str(path), "--json"], capsys)
+    assert rc == 2 and out == ""
+    assert len(err.strip().splitlines()) == 1 and err.startswith("macroloc: error:")
+
+
+@pytest.mark.parametrize("args", [["localize", "nope.ifc", "--observations", "x.json"],
+                                  ["features", "README.md"], ["features"], ["localize", "--method"],
+                                  ["eval", "data/buildings/duplex.ifc", "--variant", "upside-down"]])
+def test_bad_arguments_exit_2_with_one_line(args: list[str], capsys) -> None:
+    rc, _, err = run(args, capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+
+
+def test_unknown_method_is_a_user_error(tmp_path: Path, capsys, office_path: Path, office_model) -> None:
+    obs = tmp_path / "OBS.json"
+    obs.write_text(json.dumps(obs_doc(office_model, np.eye(4), "Level 1", 4)))
+    rc, _, err = run(["localize", str(office_path), "--observations", str(obs), "--method", "magic"], capsys)
+    assert rc == 2 and "unknown method" in err
+
+
+def test_eval_compares_both_methods(capsys, fzk_path: Path) -> None:
+    rc, out, _ = run(["eval", str(fzk_path), "--n", "4", "--variant", "gravity", "--json"], capsys)
+    doc = json.loads(out)["variants"]["gravity"]
+    assert rc == 0 and set(doc) >= {"paper", "robust", "table1_paper"}
+    assert doc["robust"]["n"] == 4 and len(doc["table1_paper"]) == 4
+
+
+def test_the_installed_command_runs_as_a_process(tmp_path: Path) -> None:
+    p = subprocess.run([sys.executable, "-m", "service.cli", "localize", "--help"], capture_output=True, text=True)
+    assert p.returncode == 0 and "ambiguous" in p.stdout

@@ -1,0 +1,113 @@
+"""Planning (paper §3.3): A* against a graph-search oracle, line of sight, and plans in a real building."""
+
+from __future__ import annotations
+
+import networkx as nx
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from service.planning import GoalSpec, Planner, PlanningError, astar, line_of_sight, simplify
+
+
+def _grid_graph(free: np.ndarray) -> nx.Graph:
+    g = nx.Graph()
+    h, w = free.shape
+    for r in range(h):
+        for c in range(w):
+            if not free[r, c]:
+                continue
+            for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+                nr, nc = r + dr, c + dc
+                if 0 <= nr < h and 0 <= nc < w and free[nr, nc] and (not (dr and dc) or
+                                                                     (free[r, nc] and free[nr, c])):
+                    g.add_edge((r, c), (nr, nc), weight=float(np.hypot(dr, dc)))
+    return g
+
+
+def _length(path: list[tuple[int, int]]) -> float:
+    return float(sum(np.hypot(a[0] - b[0], a[1] - b[1]) for a, b in zip(path, path[1:], strict=False)))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000))
+def test_astar_finds_the_shortest_path_that_dijkstra_finds(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    free = rng.random((14, 17)) > 0.3
+    free[0, 0] = free[-1, -1] = True
+    path = astar(free, (0, 0), (13, 16))
+    g = _grid_graph(free)
+    try:
+        best = nx.dijkstra_path_length(g, (0, 0), (13, 16))
+    except (nx.NetworkXNoPath, nx.NodeNotFound):
+        assert path == []
+        return
+    assert path[0] == (0, 0) and path[-1] == (13, 16)
+    assert all(free[r, c] for r, c in path)
+    assert _length(path) == pytest.approx(best)
+    for a, b in zip(simplify(path, free), simplify(path, free)[1:], strict=False):
+        assert line_of_sight(free, a, b)
+
+
+def test_line_of_sight_is_blocked_by_a_wall() -> None:
+    free = np.ones((10, 10), bool)
+    free[:, 5] = False
+    assert not line_of_sight(free, (2, 1), (2, 8))
+    assert line_of_sight(free, (1, 1), (8, 4))
+
+
+@pytest.fixture(scope="module")
+def planner(office_path) -> Planner:
+    return Planner.for_building(office_path, cell_m=0.2, vehicle_radius_m=0.35, flight_height_m=1.4)
+
+
+def _start(planner: Planner, space: str) -> np.ndarray:
+    return planner.goals.space(space, np.zeros(2)) + np.array([0.0, 0.0, 1.4])
+
+
+def test_plan_between_rooms_passes_doors_and_stays_free(planner: Planner) -> None:
+    start = _start(planner, "111")
+    plan = planner.plan(start, GoalSpec(space_name="MENS RR"))
+    grid, free = planner.free_cells(start[2])
+    assert len(plan.points_cad) >= 2 and plan.length_m > 3.0
+    assert np.allclose(plan.points_cad[:, 2], grid.z_cad)
+    cells = [grid.cell_of(p) for p in plan.points_cad]
+    for a, b in zip(cells, cells[1:], strict=False):
+        assert line_of_sight(free, a, b), "a waypoint segment crosses an obstacle"
+
+
+def test_goal_by_feature_id_and_by_position(planner: Planner) -> None:
+    start = _start(planner, "121")
+    door = next(f for f in planner.model.features if f.type == "door" and f.storey == "Level 1")
+    by_id = planner.plan(start, GoalSpec(feature_id=door.id))
+    assert np.linalg.norm(by_id.points_cad[-1, :2] - door.centroid_cad[:2]) < 0.5
+    target = by_id.points_cad[-1]
+    by_xyz = planner.plan(start, GoalSpec(position_cad=target))
+    assert np.allclose(by_xyz.points_cad[-1, :2], target[:2])
+
+
+def test_unknown_goals_are_refused(planner: Planner) -> None:
+    start = _start(planner, "121")
+    with pytest.raises(PlanningError):
+        planner.plan(start, GoalSpec(space_name="no such room"))
+    with pytest.raises(PlanningError):
+        planner.plan(start, GoalSpec(feature_id="nonexistent"))
+
+
+def test_seen_obstacles_change_the_plan(office_path) -> None:
+    planner = Planner.for_building(office_path, cell_m=0.2, vehicle_radius_m=0.35, flight_height_m=1.4)
+    start = _start(planner, "121")
+    goal = GoalSpec(space_name="MENS RR")
+    before = planner.plan(start, goal)
+    # a wall of points across the first leg of the path, at flight height (an obstacle the model lacks)
+    a, b = before.points_cad[0], before.points_cad[1]
+    mid = a + 0.5 * (b - a)
+    normal = np.array([-(b - a)[1], (b - a)[0], 0.0]) / np.linalg.norm((b - a)[:2])
+    wall = mid + np.linspace(-1.5, 1.5, 200)[:, None] * normal
+    assert planner.add_obstacle_points(np.repeat(wall, 5, axis=0), start[2]) == 1000
+    grid, free = planner.free_cells(start[2])
+    assert not free[grid.cell_of(mid)]
+    after = planner.plan(start, goal)
+    cells = [grid.cell_of(p) for p in after.points_cad]
+    assert all(line_of_sight(free, p, q) for p, q in zip(cells, cells[1:], strict=False))

@@ -1,0 +1,182 @@
+"""The service over real Zenoh sessions on loopback: poses, queries, liveliness, bad input, restart, router."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from tests.service.helpers import (
+    FakeFlight,
+    client,
+    free_port,
+    loopback,
+    running_service,
+    service_config,
+    wait_for,
+    yaw_T,
+)
+
+
+@pytest.fixture(scope="module")
+def start_pose(office_model) -> np.ndarray:
+    door = [f for f in office_model.features if f.type == "door" and f.storey == "Level 1"][10]
+    return yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])
+
+
+class Collector:
+    """Messages of one type received on a key, kept in order."""
+
+    def __init__(self, session: zenoh.Session, key: str, cls: type) -> None:
+        self.items: list = []
+        self._sub = session.declare_subscriber(key, lambda s: self.items.append(cls.FromString(s.payload.to_bytes())))
+
+    def last(self):  # noqa: ANN201
+        return self.items[-1] if self.items else None
+
+
+def fly(session: zenoh.Session, flight: FakeFlight, T_cad_body: np.ndarray, steps: int, first_stamp_ns: int = 0,
+        vehicle: str = "t1", observe_every: int = 5) -> np.ndarray:
+    """Publish odometry (and sightings every few steps) along a straight line; returns the final T_cad_body."""
+    T = T_cad_body.copy()
+    for k in range(steps):
+        stamp = first_stamp_ns + (k + 1) * 33_000_000
+        session.put(f"macroloc/{vehicle}/odometry", flight.odometry(stamp, T).SerializeToString())
+        if k % observe_every == 0:
+            session.put(f"macroloc/{vehicle}/observations", flight.observations(stamp, T).SerializeToString())
+        if k < steps - 1:
+            T = T @ yaw_T(0.0, np.array([0.02, 0.0, 0.0]))
+    return T
+
+
+def _localized_at(poses: Collector, T: np.ndarray, tol_m: float = 0.3):  # noqa: ANN202
+    p = poses.last()
+    if p is None or p.status != pb.PoseEstimate.LOCALIZED:
+        return False
+    xyz = np.array([p.T_cad_body.position.x, p.T_cad_body.position.y, p.T_cad_body.position.z])
+    return np.linalg.norm(xyz - T[:3, 3]) < tol_m
+
+
+def _query(session: zenoh.Session, key: str, cls: type, payload: bytes | None = None):  # noqa: ANN202
+    replies = list(session.get(key, payload=payload, timeout=20.0))
+    assert replies and replies[0].ok is not None, f"no reply on {key}"
+    return cls.FromString(replies[0].ok.payload.to_bytes())
+
+
+def test_localizes_answers_queries_and_holds_a_token(office_path, office_model, start_pose, tmp_path) -> None:
+    port = free_port()
+    with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
+        alive = list(s.liveliness().get("macroloc/t1/alive", timeout=10.0))
+        assert [str(r.ok.key_expr) for r in alive if r.ok] == ["macroloc/t1/alive"]
+        poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        waypoints = Collector(s, "macroloc/t1/waypoints", pb.Waypoints)
+        status = Collector(s, "macroloc/t1/status", pb.ServiceStatus)
+        flight = FakeFlight(office_model, yaw_T(0.7, np.array([3.0, -2.0, 0.1])))
+        T = fly(s, flight, start_pose, 30)
+        wait_for(lambda: _localized_at(poses, T), what="a localized pose near the truth")
+        snap = _query(s, "macroloc/t1/map", pb.MapSnapshot)
+        assert snap.status == pb.PoseEstimate.LOCALIZED and len(snap.landmarks_map) >= 4
+        assert any(lm.id for lm in snap.landmarks_map)  # landmarks linked to CAD features
+        plan = _query(s, "macroloc/t1/plan", pb.Waypoints, pb.Goal(space_name="121").SerializeToString())
+        assert not plan.error and len(plan.points_cad) >= 2 and plan.path_length_m > 0
+        s.put("macroloc/t1/goal", pb.Goal(space_name="MENS RR").SerializeToString())
+        fly(s, flight, T, 3, first_stamp_ns=10**9)
+        wait_for(lambda: waypoints.last() is not None and len(waypoints.last().points_cad) >= 2, what="waypoints")
+        wait_for(lambda: status.last() is not None and status.last().status == pb.PoseEstimate.LOCALIZED,
+                 what="a status message")
+
+
+def _bad_inputs() -> dict[str, list[bytes]]:
+    nan_odo = pb.Odometry()
+    nan_odo.header.stamp_ns = 5
+    nan_odo.T_map_body.position.x = float("nan")
+    nan_odo.T_map_body.qw = 1.0
+    stereo = pb.StereoFrame(camera_id="mystery")
+    stereo.header.stamp_ns = 1
+    wrong_size = pb.StereoFrame(camera_id="front")
+    wrong_size.header.stamp_ns = 2
+    wrong_size.left.CopyFrom(pb.Image(width=640, height=480, encoding=pb.Image.RAW_MONO8, data=b"x" * 100))
+    wrong_size.right.CopyFrom(wrong_size.left)
+    obs = pb.ObservedFeatures()
+    obs.header.frame_id = "body"
+    obs.features.add(type="door").corners.add(x=1.0)  # one corner, not four
+    return {
+        "odometry": [b"\xff\xff\xff not protobuf", nan_odo.SerializeToString()],
+        "stereo": [b"\x00\x01garbage", stereo.SerializeToString(), wrong_size.SerializeToString()],
+        "imu": [b"\xffjunk"],
+        "observations": [obs.SerializeToString(), b"\xfe\xfe"],
+        "goal": [pb.Goal().SerializeToString()],
+    }
+
+
+def test_malformed_input_is_counted_and_dropped(office_path, office_model, start_pose, tmp_path) -> None:
+    port = free_port()
+    with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
+        diagnostics = Collector(s, "macroloc/t1/diagnostics", pb.Diagnostics)
+        poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        flight = FakeFlight(office_model, np.eye(4))
+        T = fly(s, flight, start_pose, 3, first_stamp_ns=10**9)
+        for key, payloads in _bad_inputs().items():
+            for payload in payloads:
+                s.put(f"macroloc/t1/{key}", payload)
+        s.put("macroloc/t1/odometry", flight.odometry(10, T).SerializeToString())  # a stamp from the past
+        expected = {"odometry/not_protobuf", "odometry/nan", "odometry/out_of_order", "stereo/not_protobuf",
+                    "stereo/unknown_camera", "stereo/bad_image", "imu/not_protobuf", "observations/bad_shape",
+                    "observations/not_protobuf", "goal/empty"}
+        wait_for(lambda: diagnostics.last() is not None and expected <= {k for k, v in diagnostics.last().dropped.items()
+                                                                         if v > 0}, what="every drop counted")
+        n = len(poses.items)
+        fly(s, flight, T, 2, first_stamp_ns=2 * 10**9)  # still serving
+        wait_for(lambda: len(poses.items) >= n + 2, what="poses after the bad input")
+
+
+def test_restart_from_the_saved_map_relocalizes_at_once(office_path, office_model, start_pose, tmp_path) -> None:
+    flight = FakeFlight(office_model, yaw_T(-1.1, np.array([-4.0, 7.0, 0.0])))
+    port = free_port()
+    with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
+        poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        T = fly(s, flight, start_pose, 30)
+        wait_for(lambda: _localized_at(poses, T), what="localized before the restart")
+    assert (tmp_path / "t1" / "map.pb").exists()
+    # the restarted service sees a single door: far too little to register against the whole building
+    port = free_port()
+    flight.range_m = 2.5
+    with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
+        poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        T = fly(s, flight, T, 3, first_stamp_ns=5 * 10**9, observe_every=1)
+        assert len(flight.observations(0, T).features) <= 2
+        wait_for(lambda: _localized_at(poses, T), what="re-localized from the saved map")
+
+
+def test_through_a_router(office_path, office_model, start_pose, tmp_path) -> None:
+    """Service and vehicle both connect to a router (a Python session in router mode), never to each other."""
+    from service.zenoh_io import session_config
+
+    router_port = free_port()
+    router_conf = session_config(loopback(mode="router", listen=[f"tcp/127.0.0.1:{router_port}"]))
+    with zenoh.open(router_conf):
+        cfg = service_config(office_path, tmp_path, free_port())
+        cfg.zenoh = loopback(mode="peer", listen=[], connect=[f"tcp/127.0.0.1:{router_port}"])
+        with running_service(cfg), client(router_port, mode="client") as s:
+            poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+            flight = FakeFlight(office_model, np.eye(4))
+            wait_for(lambda: list(s.liveliness().get("macroloc/t1/alive", timeout=2.0)), what="token via router")
+            T = fly(s, flight, start_pose, 20)
+            wait_for(lambda: _localized_at(poses, T), what="poses through the router")
+
+
+def test_stop_event_drains_and_saves(office_path, office_model, start_pose, tmp_path) -> None:
+    """Stopping (what SIGTERM does) handles every queued input before the map is written."""
+    port = free_port()
+    cfg = service_config(office_path, tmp_path, port)
+    with running_service(cfg) as service, client(port) as s:
+        fly(s, FakeFlight(office_model, np.eye(4)), start_pose, 30)
+        wait_for(lambda: service.rates["odometry"].total == 30, what="all odometry taken in")  # type: ignore
+    snap = pb.MapSnapshot.FromString((tmp_path / "t1" / "map.pb").read_bytes())
+    assert snap.status == pb.PoseEstimate.LOCALIZED
+    assert snap.header.stamp_ns == 30 * 33_000_000  # the last odometry was handled before saving
+    assert threading.active_count() < 50
