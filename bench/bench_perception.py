@@ -70,7 +70,8 @@ def main(argv: list[str] | None = None) -> None:
         "source": source, "frames": args.frames, "detections": len(result.detections),
         "features": len(result.features),
         "stage_median_ms": {k: round(float(np.median(v)), 2) for k, v in laps.items()},
-        "total_median_ms": round(float(np.median(totals)), 2), "total_p90_ms": round(float(np.percentile(totals, 90)), 2),
+        "total_median_ms": round(float(np.median(totals)), 2),
+        "total_p90_ms": round(float(np.percentile(totals, 90)), 2),
         "detect_and_stereo_overlapped_median_ms": round(float(np.median(overlapped)), 2),
         "budget_ms_at_30fps": round(BUDGET_MS, 2),
     }

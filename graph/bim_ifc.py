@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -50,7 +51,7 @@ def element_vertices(ifc, elements: list, settings) -> dict[int, np.ndarray]:
     if not iterator.initialize():
         return shapes
     while True:
-        shape = iterator.get()
+        shape: Any = iterator.get()
         verts = np.asarray(shape.geometry.verts, dtype=float).reshape(-1, 3)
         if len(verts):
             shapes[shape.id] = verts
@@ -92,7 +93,7 @@ def _opening_normal(element, settings) -> np.ndarray | None:
 
     for rel in getattr(element, "FillsVoids", None) or []:
         try:
-            shape = ifcopenshell.geom.create_shape(settings, rel.RelatingOpeningElement)
+            shape: Any = ifcopenshell.geom.create_shape(settings, rel.RelatingOpeningElement)
         except RuntimeError:
             continue
         verts = np.asarray(shape.geometry.verts, dtype=float).reshape(-1, 3)

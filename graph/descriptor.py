@@ -150,20 +150,63 @@ def describe(centroids: np.ndarray, types: list[str] | np.ndarray, tables: Descr
 
 def hamming(codes_a: np.ndarray, codes_b: np.ndarray) -> np.ndarray:
     """(Na, Nb) Hamming distances by XOR + popcount; pairs of different type (top bit) score 64."""
-    a = np.asarray(codes_a, dtype=np.uint64)[:, None]
-    b = np.asarray(codes_b, dtype=np.uint64)[None, :]
-    x = a ^ b
-    d = np.bitwise_count(x).astype(np.int32)
-    d[(x >> np.uint64(63)) != 0] = 64
-    return d
+    x = np.asarray(codes_a, dtype=np.uint64)[:, None] ^ np.asarray(codes_b, dtype=np.uint64)[None, :]
+    d = np.bitwise_count(x)  # uint8
+    np.putmask(d, x >= np.uint64(1 << 63), 64)  # top bit differs: different types
+    return d.astype(np.int32)
+
+
+FAISS_MIN_WORK = 2_000_000  # below this many code pairs numpy's XOR + popcount is faster than faiss' set-up
 
 
 def match_top_k(codes_obs: np.ndarray, codes_model: np.ndarray, k: int = 1,
                 chunk: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """For each observed code the k model codes of least Hamming distance: (indices (No, k), distances (No, k)).
 
-    Chunked over the observations so 1000 x 100,000 stays within a few tens of MB.
+    Small problems (the paper's 25 x 106): numpy XOR + popcount, chunked over the observations. Large ones
+    (1000 x 100,000): faiss' binary flat index, one per feature type (different types score 64 by
+    definition, so they never compete), when faiss is installed.
     """
+    if len(codes_obs) * len(codes_model) >= FAISS_MIN_WORK:
+        try:
+            return _match_top_k_faiss(np.asarray(codes_obs, np.uint64), np.asarray(codes_model, np.uint64), k)
+        except ImportError:
+            pass
+    if k == 1 and len(codes_obs) <= chunk:  # the common small case, without partition/sort overhead
+        d = hamming(codes_obs, codes_model)
+        j = d.argmin(axis=1)
+        return j[:, None], d[np.arange(len(d)), j][:, None]
+    return _match_top_k_numpy(codes_obs, codes_model, k, chunk)
+
+
+def _as_bytes(codes: np.ndarray) -> np.ndarray:
+    """uint64 codes as (N, 8) uint8 rows, most significant byte first (faiss' binary vector layout)."""
+    return np.ascontiguousarray(codes.astype(">u8").view(np.uint8).reshape(-1, 8))
+
+
+def _match_top_k_faiss(codes_obs: np.ndarray, codes_model: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    import faiss
+
+    k = min(k, len(codes_model))
+    idx = np.zeros((len(codes_obs), k), dtype=np.int64)
+    dist = np.full((len(codes_obs), k), 64, dtype=np.int32)
+    top = np.uint64(63)
+    for bit in (0, 1):
+        model_sel = np.flatnonzero((codes_model >> top) == bit)
+        obs_sel = np.flatnonzero((codes_obs >> top) == bit)
+        if len(model_sel) == 0 or len(obs_sel) == 0:
+            continue
+        index = faiss.IndexBinaryFlat(64)
+        index.add(_as_bytes(codes_model[model_sel]))
+        kk = min(k, len(model_sel))
+        d, i = index.search(_as_bytes(codes_obs[obs_sel]), kk)
+        idx[obs_sel, :kk] = model_sel[i]
+        dist[obs_sel, :kk] = d
+    return idx, dist
+
+
+def _match_top_k_numpy(codes_obs: np.ndarray, codes_model: np.ndarray, k: int,
+                       chunk: int) -> tuple[np.ndarray, np.ndarray]:
     no, nm = len(codes_obs), len(codes_model)
     k = min(k, nm)
     idx = np.zeros((no, k), dtype=np.int64)

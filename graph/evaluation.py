@@ -121,7 +121,7 @@ class Outcome:
 
 
 def score(s: Scenario, r: RegistrationResult, genuinely_ambiguous: bool) -> Outcome:
-    correct = sum(1 for i, fid in r.matches if s.truth_ids[i] is not None and fid in s.truth_ids[i])
+    correct = sum(1 for i, fid in r.matches if fid in (s.truth_ids[i] or []))
     out = Outcome(r.status, r.status, correct, len(r.matches) - correct, len(s.truth_ids), r.elapsed_ms,
                   genuinely_ambiguous)
     if r.status == "localized" and r.T_cad_map is not None:

@@ -2,8 +2,9 @@
 
 The rectangle frame `rect` has its origin at the opening's centroid and the axes (as columns of its
 rotation) u (along the wall, horizontal), n (the wall normal, horizontal) and z (up, along gravity),
-u = z x n. A vertical rectangle fixes this frame up to the sign of n: a door seen from its other side is
-the same frame turned by 180 degrees about z (`flip_about_up`). Observed landmarks take n pointing towards
+u = n x z, so that (u, n, z) is right-handed (u x n = z; a reflection would be no rotation at all).
+A vertical rectangle fixes this frame up to the sign of n: a door seen from its other side is the same
+frame turned by 180 degrees about z (`FLIP_ABOUT_UP`). Observed landmarks take n pointing towards
 the camera that first saw them; CAD features take the model's outward normal, and a link between the two
 picks whichever of the two CAD frames agrees with the prediction.
 
@@ -23,12 +24,12 @@ FLIP_ABOUT_UP = np.diag([-1.0, -1.0, 1.0, 1.0])  # rotation by pi about the rect
 def frame_from_normal(centroid: np.ndarray, normal: np.ndarray, up: np.ndarray = Z_UP) -> np.ndarray:
     """4x4 T_x_rect of a vertical rectangle at `centroid` (3,) with wall normal `normal` (3,) in frame x.
 
-    The normal is made orthogonal to `up` (unit, frame x) before use; u = up x n.
+    The normal is made orthogonal to `up` (unit, frame x) before use; u = n x up (right-handed).
     """
     up = np.asarray(up, float) / np.linalg.norm(up)
     n = np.asarray(normal, float) - float(np.dot(normal, up)) * up
     n /= max(float(np.linalg.norm(n)), 1e-12)
-    u = np.cross(up, n)
+    u = np.cross(n, up)
     T = np.eye(4)
     T[:3, :3] = np.column_stack([u, n, up])
     T[:3, 3] = centroid

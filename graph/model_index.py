@@ -14,6 +14,19 @@ from scipy.spatial import cKDTree
 from graph.descriptor import DescriptorTables, build_tables, describe
 from graph.features import FEATURE_TYPES, BuildingModel, MacroFeature
 
+TYPE_SEPARATION_M = 1.0e4  # the type axis of the lifted k-d tree: farther than any real distance
+
+
+@dataclass(frozen=True)
+class FeaturePairs:
+    """Ordered CAD feature pairs: indices, vector j - i (CAD, metres), its horizontal length and height change."""
+
+    i: np.ndarray
+    j: np.ndarray
+    v: np.ndarray
+    d_xy: np.ndarray
+    dz: np.ndarray
+
 
 @dataclass
 class ModelIndex:
@@ -21,16 +34,20 @@ class ModelIndex:
     centroids: np.ndarray  # (N, 3) CAD
     corners: np.ndarray  # (N, 4, 3) CAD
     types: np.ndarray  # (N,) str
+    type_codes: np.ndarray  # (N,) int8 index into FEATURE_TYPES
     storeys: np.ndarray  # (N,) str
     edge_u: np.ndarray  # (N, 3) unit: corner1 - corner0 direction
     edge_v: np.ndarray  # (N, 3) unit: corner3 - corner0 direction
     len_u: np.ndarray  # (N,) metres
     len_v: np.ndarray  # (N,)
     trees: dict[str, cKDTree]  # per type, over the indices in type_indices
+    tree_all: cKDTree  # all features, x y z
+    tree_typed: cKDTree  # all features in (x, y, z, type code x 1e4 m): a same-type nearest neighbour in one query
     type_indices: dict[str, np.ndarray]
     tables: DescriptorTables
     codes: np.ndarray  # (N,) uint64 paper descriptors
     _by_storey: dict[str, ModelIndex] = field(default_factory=dict, repr=False)
+    _pairs: dict[float, FeaturePairs] = field(default_factory=dict, repr=False)
 
     @classmethod
     def build(cls, features: list[MacroFeature], tables: DescriptorTables | None = None) -> ModelIndex:
@@ -40,14 +57,27 @@ class ModelIndex:
         eu = corners[:, 1] - corners[:, 0]
         ev = corners[:, 3] - corners[:, 0]
         lu, lv = np.linalg.norm(eu, axis=1), np.linalg.norm(ev, axis=1)
-        type_indices = {t: np.flatnonzero(types == t) for t in FEATURE_TYPES}
+        type_indices: dict[str, np.ndarray] = {t: np.flatnonzero(types == t) for t in FEATURE_TYPES}
         trees = {t: cKDTree(centroids[idx]) for t, idx in type_indices.items() if len(idx)}
         tables = build_tables(centroids) if tables is None else tables
+        lifted = TYPE_SEPARATION_M * np.array([FEATURE_TYPES.index(t) for t in types], dtype=float).reshape(-1, 1)
         return cls(features=features, centroids=centroids, corners=corners, types=types,
+                   type_codes=np.array([FEATURE_TYPES.index(t) for t in types], dtype=np.int8),
                    storeys=np.array([str(f.storey) for f in features]),
                    edge_u=eu / np.maximum(lu, 1e-9)[:, None], edge_v=ev / np.maximum(lv, 1e-9)[:, None],
-                   len_u=lu, len_v=lv, trees=trees, type_indices=type_indices, tables=tables,
-                   codes=describe(centroids, list(types), tables))
+                   len_u=lu, len_v=lv, trees=trees, tree_all=cKDTree(centroids),
+                   tree_typed=cKDTree(np.concatenate([centroids, lifted], axis=1)),
+                   type_indices=type_indices, tables=tables, codes=describe(centroids, list(types), tables))
+
+    def pairs_within(self, max_m: float) -> FeaturePairs:
+        """Ordered pairs (i, j), i != j, with horizontal distance <= max_m (memoised per distance)."""
+        if max_m not in self._pairs:
+            pairs = self.tree_all.query_pairs(max_m, output_type="ndarray")
+            i = np.concatenate([pairs[:, 0], pairs[:, 1]]) if len(pairs) else np.zeros(0, dtype=np.int64)
+            j = np.concatenate([pairs[:, 1], pairs[:, 0]]) if len(pairs) else np.zeros(0, dtype=np.int64)
+            v = self.centroids[j] - self.centroids[i]
+            self._pairs[max_m] = FeaturePairs(i, j, v, np.linalg.norm(v[:, :2], axis=1), v[:, 2])
+        return self._pairs[max_m]
 
     def for_storey(self, storey: str | None) -> ModelIndex:
         """The index restricted to one storey (memoised); the whole building for None."""

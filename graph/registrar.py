@@ -10,6 +10,7 @@ model are candidates, so a couple of sightings settle it.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
@@ -27,18 +28,19 @@ class Registrar(Protocol):
 
     min_landmarks: int
 
-    def __call__(self, landmarks: list[ObservedRect], corners_map: list[np.ndarray | None]) -> Alignment: ...
+    def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment: ...
 
 
 class ModelRegistrar:
     """Registration against the whole building model (see module doc)."""
 
     def __init__(self, model: BuildingModel, method: str = "robust", storey_hint: str | None = None,
-                 min_landmarks: int = 4) -> None:
+                 min_landmarks: int = 3, **register_params: float) -> None:
         self.model = model
         self.method = method
         self.storey_hint = storey_hint
         self.min_landmarks = min_landmarks
+        self.register_params = register_params
         self._ids = [f.id for f in model.features]
         self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
                        if f.orientation == "vertical" and (storey_hint is None or f.storey == storey_hint)]
@@ -49,8 +51,11 @@ class ModelRegistrar:
             self._register = None
         else:
             self._register = registration.register
+            from graph.model_index import index_for
 
-    def __call__(self, landmarks: list[ObservedRect], corners_map: list[np.ndarray | None]) -> Alignment:
+            index_for(model)  # the per-building preprocessing (cached): done here, before the first frame
+
+    def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
         if self._register is None:
             return align_rectangles(landmarks, self._known, min_inliers=self.min_landmarks)
         from graph.observations import Observation, ObservationSet
@@ -58,7 +63,8 @@ class ModelRegistrar:
         obs = [Observation(type=lm.type, centroid_map=lm.T_map_rect[:3, 3], corners_map=c)
                for lm, c in zip(landmarks, corners_map, strict=True)]
         gravity_map = np.array([0.0, 0.0, -1.0])  # the map frame's z is up
-        result = self._register(self.model, ObservationSet(obs, gravity_map, self.storey_hint), method=self.method)
+        result = self._register(self.model, ObservationSet(obs, gravity_map, self.storey_hint), method=self.method,
+                                **self.register_params)
         matches = [(landmarks[i].key, fid) for i, fid in result.matches]
         return Alignment(result.status, result.T_cad_map, matches, int(result.inliers))
 
@@ -70,5 +76,25 @@ class StoredMapRegistrar:
         self.known = known
         self.min_landmarks = min_landmarks
 
-    def __call__(self, landmarks: list[ObservedRect], corners_map: list[np.ndarray | None]) -> Alignment:
+    def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
         return align_rectangles(landmarks, self.known, min_inliers=self.min_landmarks)
+
+
+class FirstOfRegistrar:
+    """Tries each registrar in turn (when the map holds enough landmarks for it); the first answer that is
+    not `not_localized` wins. A stored map first, the whole model after: re-localization falls back to a
+    fresh localization when the new flight starts outside the stored map."""
+
+    def __init__(self, registrars: list[Registrar]) -> None:
+        self.registrars = registrars
+        self.min_landmarks = min(r.min_landmarks for r in registrars)
+
+    def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
+        result = Alignment("not_localized", None)
+        for registrar in self.registrars:
+            if len(landmarks) < registrar.min_landmarks:
+                continue
+            result = registrar(landmarks, corners_map)
+            if result.status != "not_localized":
+                return result
+        return result

@@ -101,10 +101,10 @@ def corner_correspondences(T: np.ndarray, obs: list[Observation], pairs: list[tu
     feature under T (corners come unordered); centroids for centroid-only observations."""
     with_c = [(i, j) for i, j in pairs if obs[i].corners_map is not None]
     without = [(i, j) for i, j in pairs if obs[i].corners_map is None]
-    src = [np.array([obs[i].centroid_map for i, _ in without]).reshape(-1, 3)]
+    src = [np.array([obs[i].centroid_map for i, _ in without], dtype=float).reshape(-1, 3)]
     dst = [index.centroids[[j for _, j in without]].reshape(-1, 3)]
     if with_c:
-        oc = np.stack([obs[i].corners_map for i, _ in with_c])  # (P, 4, 3) map
+        oc = np.stack([np.asarray(obs[i].corners_map) for i, _ in with_c])  # (P, 4, 3) map
         cc = index.corners[[j for _, j in with_c]]  # (P, 4, 3) CAD
         moved = oc @ T[:3, :3].T + T[:3, 3]
         nearest = np.argmin(np.linalg.norm(moved[:, :, None, :] - cc[:, None, :, :], axis=3), axis=2)
@@ -181,7 +181,7 @@ def register_paper(index: ModelIndex, obs: list[Observation], params: PaperParam
     if best_T is None or best_inl.sum() < params.min_inliers:
         return RegistrationResult("not_localized", None, [], int(best_inl.sum()), None,
                                   diagnostics={"hypotheses": drawn})
-    pairs = [(i, int(match[i])) for i in np.flatnonzero(best_inl)]
+    pairs = [(int(i), int(match[i])) for i in np.flatnonzero(best_inl)]
     src, dst = corner_correspondences(best_T, obs, pairs, index)
     T = weighted_rigid_fit(src, dst)  # final refinement with all the corners
     return RegistrationResult(

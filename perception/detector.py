@@ -23,6 +23,7 @@ DEFAULT_MODEL = MODELS_DIR / "detector.onnx"
 CLASS_NAMES = ("door", "window", "neither")
 REPORTED_TYPES = ("door", "window")
 PAD_VALUE = 114
+MAX_DETECTIONS = 32  # per image, best first: bounds the per-box work downstream
 
 
 @dataclass(frozen=True)
@@ -189,4 +190,4 @@ def postprocess(raw: np.ndarray, box: Letterbox, spec: DetectorSpec, threshold: 
             if x1 - x0 >= 2 and y1 - y0 >= 2:
                 out.append(Detection(name, float(s[i]), (x0, y0, x1, y1)))
     out.sort(key=lambda d: -d.score)
-    return out
+    return out[:MAX_DETECTIONS]

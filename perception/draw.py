@@ -39,7 +39,8 @@ def draw_features(image: np.ndarray, features: Sequence, rejected: Sequence = ()
         for side, from_lines in zip(f.sides_px, f.sides_from_lines, strict=True):
             p0, p1 = (tuple(int(round(v)) for v in p) for p in side)
             cv2.line(out, p0, p1, (0, 255, 0) if from_lines else (0, 0, 255), 3)
-        text = f"{f.type} {f.width_m:.2f} x {f.height_m:.2f} m, tilt {f.tilt_deg:.1f} deg, z {f.corners_cam[:, 2].mean():.2f} m"
+        z_m = float(f.corners_cam[:, 2].mean())
+        text = f"{f.type} {f.width_m:.2f} x {f.height_m:.2f} m, tilt {f.tilt_deg:.1f} deg, z {z_m:.2f} m"
         cv2.putText(out, text, (x0, max(12, y0 - 6)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
         cv2.putText(out, text, (x0, max(12, y0 - 6)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
     return out

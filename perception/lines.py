@@ -30,12 +30,13 @@ class LineConfig:
     side_band: float = 0.30  # a side candidate lies within this fraction of the box width from that edge
     min_length: float = 0.35  # ... and is at least this fraction of the box height long
     near_length: float = 0.6  # among candidates at least this fraction of the longest, the nearest wins
+    snap: float = 0.04  # a side's end this close (fraction of box height) to the box's top/bottom goes onto it
 
 
 @dataclass(frozen=True)
 class Sides:
-    """The feature's two vertical sides in image pixels, each (2,2) top end first, extended to the box's
-    top and bottom rows; `from_lines[i]` says whether side i came from LSD (else the box edge)."""
+    """The feature's two vertical sides in image pixels, each (2,2) top end first; `from_lines[i]` says whether
+    side i came from LSD (else from the strongest edge column, spanning the box's rows)."""
 
     left_px: np.ndarray
     right_px: np.ndarray
@@ -110,6 +111,16 @@ def _extend_to_rows(seg: np.ndarray, v_top: float, v_bottom: float) -> np.ndarra
     return np.array([[u0 + slope * (v_top - v0), v_top], [u0 + slope * (v_bottom - v0), v_bottom]])
 
 
+def _snap_ends(seg: np.ndarray, v_top: float, v_bottom: float, snap: float) -> np.ndarray:
+    """A side's ends are its segment's ends (paper §2.2.2); an end within `snap` x box height of the box's top or
+    bottom row is moved along the line onto that row (LSD tends to stop a few px short of a corner). Ends farther
+    away stay: in an oblique view the far side of a door really is shorter than the box."""
+    tol = snap * (v_bottom - v_top)
+    top = v_top if abs(seg[0, 1] - v_top) <= tol else seg[0, 1]
+    bottom = v_bottom if abs(seg[1, 1] - v_bottom) <= tol else seg[1, 1]
+    return _extend_to_rows(seg, top, bottom)
+
+
 def _pick_side(cands: list[np.ndarray], edge_u: float, cfg: LineConfig) -> np.ndarray | None:
     if not cands:
         return None
@@ -138,8 +149,8 @@ def refine_box(image: np.ndarray, box_xyxy: tuple[float, float, float, float], c
     if left is not None and right is not None and right[:, 0].mean() - left[:, 0].mean() < 0.3 * bw:
         left, right = None, None  # both picked the same edge region: not a usable pair
     return Sides(
-        _extend_to_rows(left, y0, y1) if left is not None else _edge_column(gray, box_xyxy, x0, cfg),
-        _extend_to_rows(right, y0, y1) if right is not None else _edge_column(gray, box_xyxy, x1, cfg),
+        _snap_ends(left, y0, y1, cfg.snap) if left is not None else _edge_column(gray, box_xyxy, x0, cfg),
+        _snap_ends(right, y0, y1, cfg.snap) if right is not None else _edge_column(gray, box_xyxy, x1, cfg),
         (left is not None, right is not None),
     )
 

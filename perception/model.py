@@ -46,7 +46,9 @@ class TinyYolo(nn.Module):
         )
         self.head = nn.Conv2d(128 * w, n_anchors * (5 + n_classes), 1)
         with torch.no_grad():  # objectness prior ~1 % (a calm start: most slots hold nothing)
-            self.head.bias.view(n_anchors, 5 + n_classes)[:, 4] = -4.5
+            bias = self.head.bias
+            assert bias is not None
+            bias.view(n_anchors, 5 + n_classes)[:, 4] = -4.5
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.head(self.features(x))

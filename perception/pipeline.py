@@ -102,10 +102,14 @@ class Perception:
         clock.lap("stereo")
         sides = [refine_box(pair.left, d.box_xyxy, self.lines) for d in detections]
         clock.lap("lines")
-        features, rejected = [], []
+        features: list[ObservedFeature] = []
+        rejected: list[Rejected] = []
         for det, side in zip(detections, sides, strict=True):
             result = self._reconstruct(det, side, depth_m, pair)
-            (features if isinstance(result, ObservedFeature) else rejected).append(result)
+            if isinstance(result, ObservedFeature):
+                features.append(result)
+            else:
+                rejected.append(result)
         clock.lap("reconstruct")
         for r in rejected:
             log.debug("rejected %s %.2f at %s: %s", r.detection.type, r.detection.score, r.detection.box_xyxy, r.reason)

@@ -90,13 +90,13 @@ def ray_cam(uv_px: np.ndarray, rig: StereoRig) -> np.ndarray:
 def sample_depth_m(depth_m: np.ndarray, uv_px: np.ndarray, half_width_px: int = 2) -> np.ndarray:
     """Depth at pixels (N,2): median of the valid depths in a (2h+1)-wide horizontal window (NaN if none)."""
     h, w = depth_m.shape
-    out = np.full(len(uv_px), np.nan)
-    for i, (u, v) in enumerate(np.asarray(uv_px, np.float64).reshape(-1, 2)):
-        ui, vi = int(round(u)), int(round(v))
-        if not (0 <= vi < h):
-            continue
-        window = depth_m[vi, max(0, ui - half_width_px): min(w, ui + half_width_px + 1)]
-        window = window[np.isfinite(window)]
-        if window.size:
-            out[i] = float(np.median(window))
+    uv = np.rint(np.asarray(uv_px, np.float64).reshape(-1, 2)).astype(np.int64)
+    cols = uv[:, :1] + np.arange(-half_width_px, half_width_px + 1)[None]  # (N, 2h+1)
+    rows = np.broadcast_to(uv[:, 1:2], cols.shape)
+    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+    values = np.full(cols.shape, np.nan)
+    values[inside] = depth_m[rows[inside], cols[inside]]
+    out = np.full(len(uv), np.nan)
+    has = np.isfinite(values).any(axis=1)
+    out[has] = np.nanmedian(values[has], axis=1)
     return out

@@ -82,7 +82,7 @@ def build_targets(boxes: list[np.ndarray], classes: list[np.ndarray], anchors: n
 def yolo_loss(raw, targets, gt_boxes, anchors, stride):  # type: ignore[no-untyped-def]
     """Sum over the batch (divided by its size) of box, objectness (with YOLOv2's ignore rule) and class terms."""
     import torch
-    import torch.nn.functional as F
+    import torch.nn.functional as F  # noqa: N812
 
     n, _, h_g, w_g = raw.shape
     a = len(anchors)
@@ -225,7 +225,8 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
     threshold = best_f1_threshold(list(val.values()))
     test = evaluate_onnx(detector, data["test"])
     figures = {
-        split: {k: {"ap50": round(c.ap, 4), "n_truth": c.n_truth, "precision_at_threshold": round(c.at(threshold)[0], 4),
+        split: {k: {"ap50": round(c.ap, 4), "n_truth": c.n_truth,
+                    "precision_at_threshold": round(c.at(threshold)[0], 4),
                     "recall_at_threshold": round(c.at(threshold)[1], 4)} for k, c in curves.items()}
         for split, curves in (("val", val), ("test_real", test))
     }

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,7 +56,7 @@ class RestoredRegistrar:
                        if f.orientation == "vertical"]
         self._known_xyz = np.array([k.T_cad_rect[:3, 3] for k in self._known]).reshape(-1, 3)
 
-    def __call__(self, landmarks: list[ObservedRect], corners_map: list[np.ndarray | None]) -> Alignment:
+    def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
         if self.T_cad_map_saved is not None:
             matches = self._agreeing(landmarks)
             if len(matches) >= max(1, int(np.ceil(0.6 * len(landmarks)))):
@@ -83,7 +84,10 @@ class RestoredRegistrar:
 
 @dataclass
 class BackendParams:
-    keyframe_period_s: float = 1.0  # an odometry-only keyframe at least this often (keeps the graph connected)
+    odometry_keyframe_m: float = 1.0  # an odometry-only keyframe after this much motion without sightings
+    keyframe_min_translation_m: float = 0.25  # sightings make a keyframe after this much motion,
+    keyframe_min_rotation_rad: float = 0.15  # or this much turn,
+    keyframe_max_interval_s: float = 2.0  # or this long; else they are skipped (a hovering vehicle adds nothing)
     localizer: LocalizerParams | None = None
 
 
@@ -101,6 +105,7 @@ class LocalizerBackend:
         self.unmatched = 0  # sightings dropped: no odometry near their stamp
         self._up_body: np.ndarray | None = None
         self._last_keyframe_ns: int | None = None
+        self._T_last_keyframe: np.ndarray | None = None
         self.last: Estimate | None = None
 
     @classmethod
@@ -136,8 +141,8 @@ class LocalizerBackend:
                 if self.observations(obs) is None and obs.stamp_ns < ev.stamp_ns - ODOMETRY_MATCH_NS:
                     self._pending.remove(obs)
                     self.unmatched += 1
-        due = self._last_keyframe_ns is None or \
-            (ev.stamp_ns - self._last_keyframe_ns) * 1e-9 >= self.params.keyframe_period_s
+        due = self._T_last_keyframe is None or float(np.linalg.norm(
+            (np.linalg.inv(self._T_last_keyframe) @ ev.T_map_body)[:3, 3])) > self.params.odometry_keyframe_m
         return self._keyframe(ev.stamp_ns, ev.T_map_body, []) if due else self._track(ev.stamp_ns, ev.T_map_body)
 
     def observations(self, ev: ObservationsIn) -> Estimate | None:
@@ -154,9 +159,20 @@ class LocalizerBackend:
                                                          for o in ev.features if o.corners is not None])
 
     def sightings(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
-        if not sightings:
+        """A keyframe with the sightings when the vehicle moved or time passed enough (or it is still exploring),
+        else only the tracked pose: the graph grows with the flight, not with the time spent hovering."""
+        if not sightings or not self._keyframe_due(stamp_ns, T_odom_body):
             return self._track(stamp_ns, T_odom_body)
         return self._keyframe(stamp_ns, T_odom_body, sightings)
+
+    def _keyframe_due(self, stamp_ns: int, T_odom_body: np.ndarray) -> bool:
+        if self._last_keyframe_ns is None or self._T_last_keyframe is None or self.localizer.status != "localized":
+            return True
+        p = self.params
+        d = np.linalg.inv(self._T_last_keyframe) @ T_odom_body
+        angle = float(np.arccos(np.clip((np.trace(d[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+        return bool(np.linalg.norm(d[:3, 3]) > p.keyframe_min_translation_m or angle > p.keyframe_min_rotation_rad
+                    or (stamp_ns - self._last_keyframe_ns) * 1e-9 >= p.keyframe_max_interval_s)
 
     def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
         """The buffered odometry pose nearest in time to stamp_ns (within 60 ms), else None."""
@@ -178,6 +194,7 @@ class LocalizerBackend:
 
     def _keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
         self._last_keyframe_ns = stamp_ns
+        self._T_last_keyframe = T_odom_body
         self.last = self.localizer.add_keyframe(stamp_ns, T_odom_body, sightings, self._up_body)
         return self.last
 
@@ -214,8 +231,8 @@ class LocalizerBackend:
 
 def _storey_of(model: BuildingModel, matches: dict[int, str]) -> str:
     storeys = {f.id: f.storey for f in model.features}
-    names = [storeys.get(fid) for fid in matches.values() if storeys.get(fid)]
-    return max(set(names), key=names.count) if names else ""  # type: ignore[arg-type]
+    names = [str(storeys[fid]) for fid in matches.values() if storeys.get(fid)]
+    return max(set(names), key=names.count) if names else ""
 
 
 def pose_message(est: Estimate, storey: str = "") -> pb.PoseEstimate:

@@ -9,8 +9,12 @@ from __future__ import annotations
 import importlib
 import logging
 import sys
+from typing import TYPE_CHECKING
 
 import typer
+
+if TYPE_CHECKING:
+    from typer._click.exceptions import ClickException as ClickExceptionType
 
 from graph.errors import UserInputError
 
@@ -83,12 +87,12 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _usage_error() -> type[Exception]:
+def _usage_error() -> type[ClickExceptionType]:
     """The click exception base that this typer raises (vendored as typer._click since typer 0.20)."""
     try:
         from typer._click.exceptions import ClickException
     except ImportError:  # older typer on plain click
-        from click.exceptions import ClickException  # type: ignore[no-redef]
+        from click.exceptions import ClickException  # type: ignore[no-redef,assignment]
     return ClickException
 
 

@@ -64,6 +64,7 @@ class ServiceConfig(BaseModel):
     cameras: list[str] = Field(default_factory=lambda: ["front"], description="accepted StereoFrame camera ids")
     status_period_s: float = Field(1.0, description="period of status and diagnostics messages, s")
     save_period_s: float = Field(5.0, description="period of saving the map to state_dir, s (and at exit)")
+    perception: bool = Field(True, description="run the perception chain on stereo frames (else decode only)")
     log_json: bool = Field(False, description="structured logs: one JSON object per line on stderr")
 
 
@@ -92,12 +93,12 @@ class SimConfig(BaseModel):
 class MacrolocConfig(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="MACROLOC_", env_nested_delimiter="__", extra="forbid")
 
-    localize: LocalizeConfig = Field(default_factory=LocalizeConfig)
-    camera: CameraConfig = Field(default_factory=CameraConfig)
-    zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
-    service: ServiceConfig = Field(default_factory=ServiceConfig)
-    planning: PlanningConfig = Field(default_factory=PlanningConfig)
-    sim: SimConfig = Field(default_factory=SimConfig)
+    localize: LocalizeConfig = Field(default_factory=lambda: LocalizeConfig())
+    camera: CameraConfig = Field(default_factory=lambda: CameraConfig())
+    zenoh: ZenohConfig = Field(default_factory=lambda: ZenohConfig())
+    service: ServiceConfig = Field(default_factory=lambda: ServiceConfig())
+    planning: PlanningConfig = Field(default_factory=lambda: PlanningConfig())
+    sim: SimConfig = Field(default_factory=lambda: SimConfig())
 
     @classmethod
     def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,  # noqa: ANN001, ANN206

@@ -190,7 +190,7 @@ RAW_BYTES_PER_PIXEL = {pb.Image.RAW_MONO8: 1, pb.Image.RAW_BGR8: 3, pb.Image.RAW
 
 def _image_ok(image: pb.Image) -> bool:
     """Plausible sizes: positive and bounded; raw images carry exactly width x height x bytes-per-pixel."""
-    if not (0 < image.width and 0 < image.height and image.width * image.height <= MAX_IMAGE_PIXELS):
+    if not (image.width > 0 and image.height > 0 and image.width * image.height <= MAX_IMAGE_PIXELS):
         return False
     if image.encoding in RAW_BYTES_PER_PIXEL:
         return len(image.data) == image.width * image.height * RAW_BYTES_PER_PIXEL[image.encoding]

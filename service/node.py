@@ -25,7 +25,7 @@ import zenoh
 from graph.localizer import Estimate, Sighting
 from service.backend import STATUS_TO_WIRE, LocalizerBackend, pose_message
 from service.health import DropCounter, LatencyWindow, RateMeter
-from service.inputs import GoalIn, ImuIn, InputParser, ObservationsIn, OdometryIn, StereoIn
+from service.inputs import GoalIn, ImuIn, InputParser, Observation, ObservationsIn, OdometryIn, StereoIn
 from service.planning import GoalSpec, Planner, PlanningError
 from service.state import MapStore
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
@@ -42,14 +42,11 @@ class FramePipeline(Protocol):
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]: ...
 
 
-class DecodeOnlyPipeline:
-    """Decodes both images (the frame's real cost on the wire) and sees nothing: perception not plugged in."""
+class NullPipeline:
+    """Sees nothing in the frames (perception off or unavailable): a frame still gets its pose from odometry,
+    and sightings come on the observations key (e.g. from the vehicle's own detector)."""
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
-        from service.recording import decode_image
-
-        decode_image(frame.left)
-        decode_image(frame.right)
         return []
 
 
@@ -117,7 +114,7 @@ class LocalizationService:
         self.planner = planner
         self.store = store
         self.params = params
-        self.pipeline = pipeline or DecodeOnlyPipeline()
+        self.pipeline = pipeline or NullPipeline()
         self.keys = Keys(params.vehicle)
         self.drops = DropCounter()
         self.parser = InputParser(params.cameras, self.drops)
@@ -240,12 +237,19 @@ class LocalizationService:
         self._maybe_replan(est)
 
     def _on_stereo(self, ev: StereoIn) -> None:
+        """Perceive the frame; its sightings become a keyframe at the odometry pose of its stamp (kept pending
+        until that odometry arrives); the frame's pose goes out at once, from the latest odometry."""
         sightings = self.pipeline(ev.frame)
         with self._lock:
-            T_odom_body = self.backend.odometry_at(ev.stamp_ns)
-            if T_odom_body is None:
-                T_odom_body = self.backend.last.T_map_body if self.backend.last is not None else None
-            est = None if T_odom_body is None else self.backend.sightings(ev.stamp_ns, T_odom_body, sightings)
+            est = None
+            if sightings:
+                est = self.backend.observations(ObservationsIn(ev.stamp_ns, "body", [
+                    Observation(s.type, s.corners_body, s.corners_body.mean(axis=0)) for s in sightings]))
+            if est is None and self.backend.last is not None:
+                T_odom_body = self.backend.odometry_at(ev.stamp_ns)
+                if T_odom_body is None:
+                    T_odom_body = self.backend.last.T_map_body
+                est = self.backend.sightings(ev.stamp_ns, T_odom_body, [])
         if est is None:
             est = Estimate(ev.stamp_ns, self.backend.status, np.eye(4))
         self._publish_pose(est)

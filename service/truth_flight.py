@@ -152,8 +152,10 @@ def _clearance(p: np.ndarray, walls: np.ndarray) -> float:
     return float(np.min(np.linalg.norm(a + t[:, None] * (b - a) - p, axis=1))) if len(walls) else np.inf
 
 
-def random_walk(points: np.ndarray, walls: np.ndarray, length_m: float, rng: np.random.Generator) -> np.ndarray:
-    """A polyline (M, 2) over clear edges (< 10 m, 0.25 m either side free) of at least `length_m`."""
+def random_walk(points: np.ndarray, walls: np.ndarray, length_m: float, rng: np.random.Generator,
+                start_score: np.ndarray | None = None) -> np.ndarray:
+    """A polyline (M, 2) over clear edges (< 10 m, 0.25 m either side free) of at least `length_m`; it starts
+    at a random point, or at one of the three best by `start_score` (N,) when given."""
     n = len(points)
     ii, jj = np.triu_indices(n, 1)
     dist = np.linalg.norm(points[ii] - points[jj], axis=1)
@@ -171,6 +173,8 @@ def random_walk(points: np.ndarray, walls: np.ndarray, length_m: float, rng: np.
     starts = [k for k in _largest_component(adj) if len(adj[k]) >= 2]
     if not starts:
         raise ValueError("no clear path between waypoints on this storey")
+    if start_score is not None:
+        starts = sorted(starts, key=lambda k: -start_score[k])[:3]
     path = [int(rng.choice(starts))]
     travelled, visits = 0.0, np.zeros(n)
     while travelled < length_m:
@@ -204,21 +208,25 @@ def _largest_component(adj: dict[int, list[int]]) -> list[int]:
     return sorted(best)
 
 
-def smooth_trajectory(polyline: np.ndarray, speed_mps: float, rate_hz: float, duration_s: float) -> np.ndarray:
-    """(N, 2) positions at `rate_hz`: Chaikin-smoothed polyline walked at `speed_mps` (1 s ramp from rest)."""
+def smooth_trajectory(polyline: np.ndarray, speed_mps: float, rate_hz: float, duration_s: float,
+                      start_s: float = 0.0) -> np.ndarray:
+    """(N, 2) positions at `rate_hz`: Chaikin-smoothed polyline walked at `speed_mps` from `start_s` on
+    (1 s ramp from rest), hovering at its start before."""
     pts = polyline
     for _ in range(4):
         q, r = 0.75 * pts[:-1] + 0.25 * pts[1:], 0.25 * pts[:-1] + 0.75 * pts[1:]
         pts = np.vstack([pts[:1], np.column_stack([q, r]).reshape(-1, 2), pts[-1:]])
     arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))]
-    t = np.arange(int(duration_s * rate_hz)) / rate_hz
+    t = np.maximum(np.arange(int(duration_s * rate_hz)) / rate_hz - start_s, 0.0)
     s = speed_mps * np.where(t < 1.0, 0.5 * t * t, t - 0.5)  # accelerate over the first second
     s = np.minimum(s, arc[-1])
     return np.column_stack([np.interp(s, arc, pts[:, 0]), np.interp(s, arc, pts[:, 1])])
 
 
-def body_poses(xy: np.ndarray, z: float, rate_hz: float, rng: np.random.Generator) -> np.ndarray:
-    """(N, 4, 4) T_cad_body: level, yaw along the path (low-passed) plus a slow +-35 deg look-around."""
+def body_poses(xy: np.ndarray, z: float, rate_hz: float, rng: np.random.Generator, spin_s: float = 0.0) -> np.ndarray:
+    """(N, 4, 4) T_cad_body: level, yaw along the path (low-passed) plus a slow +-35 deg look-around; during the
+    first `spin_s` seconds (hovering) one full smooth turn on the spot, to look around before setting off."""
+    t = np.arange(len(xy)) / rate_hz
     v = np.gradient(xy, axis=0)
     heading = np.unwrap(np.arctan2(v[:, 1], v[:, 0]))
     moving = np.linalg.norm(v, axis=1) > 1e-4
@@ -228,8 +236,9 @@ def body_poses(xy: np.ndarray, z: float, rate_hz: float, rng: np.random.Generato
     kernel = np.ones(int(rate_hz)) / int(rate_hz)
     heading = np.convolve(np.pad(heading, len(kernel) // 2, mode="edge"), kernel, mode="same")[
         len(kernel) // 2: len(kernel) // 2 + len(xy)]
-    t = np.arange(len(xy)) / rate_hz
-    yaw = heading + np.radians(35.0) * np.sin(2 * np.pi * 0.1 * t + rng.uniform(0, 2 * np.pi))
+    look = np.radians(35.0) * np.sin(2 * np.pi * 0.1 * np.maximum(t - spin_s, 0.0))
+    u = np.clip(t / spin_s, 0.0, 1.0) if spin_s > 0 else np.ones_like(t)
+    yaw = heading + look + 2 * np.pi * u * u * (3 - 2 * u)  # smoothstep: the turn starts and ends at rest
     T = np.tile(np.eye(4), (len(xy), 1, 1))
     c, s = np.cos(yaw), np.sin(yaw)
     T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
@@ -259,11 +268,20 @@ def features_in_view(features: list[MacroFeature], T_cad_cam: np.ndarray, camera
         inside = (z > 0.3) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
         if not inside.any():
             continue
-        shrunk = f.centroid_cad[:2] + 0.9 * (f.corners_cad[:, :2] - f.centroid_cad[:2])
-        seen = inside & ~segments_blocked(np.repeat(eye[None], 4, 0), shrunk, walls, margin=0.2)
+        # the opening's corners sit mid-wall: the last 0.4 m of the line of sight may cross its own reveal
+        shrunk = f.centroid_cad[:2] + 0.8 * (f.corners_cad[:, :2] - f.centroid_cad[:2])
+        seen = inside & ~segments_blocked(np.repeat(eye[None], 4, 0), shrunk, walls, margin=0.4)
         if seen.any():
             out.append((f, corners_cam, seen))
     return out
+
+
+def _features_in_sight(p: np.ndarray, feats: list[MacroFeature], walls: np.ndarray) -> int:
+    """How many features lie within MAX_RANGE_M of the 2D point p with a clear line of sight."""
+    near = [f.centroid_cad[:2] for f in feats if np.linalg.norm(f.centroid_cad[:2] - p) < MAX_RANGE_M]
+    if not near:
+        return 0
+    return int((~segments_blocked(np.repeat(p[None], len(near), 0), np.array(near), walls, margin=0.2)).sum())
 
 
 # --- the recording --------------------------------------------------------------------------------------------
@@ -276,8 +294,12 @@ def default_storey(model: BuildingModel) -> str:
 
 
 def write_truth_flight(building: Path, out: Path, seed: int = 0, duration_s: float = 60.0,
-                       storey: str | None = None, speed_mps: float = 1.0, camera: Camera | None = None) -> Path:
-    """Plan a flight through `storey` of `building` (IFC) and record its ground truth as MCAP at `out`."""
+                       storey: str | None = None, speed_mps: float = 1.0, camera: Camera | None = None,
+                       spin_s: float = 4.0, start: str = "open") -> Path:
+    """Plan a flight through `storey` of `building` (IFC) and record its ground truth as MCAP at `out`: it
+    hovers and turns once on the spot for `spin_s` seconds, then flies at `speed_mps`. `start`: "random" (any
+    waypoint) or "open" (one of the three waypoints with the most features in line of sight: taking off in a
+    corridor or hall rather than in a closet)."""
     from graph.bim import load_building
     from service.recording import FlightMetadata, FlightWriter, pose_from_matrix, vector3
     from service.wire.macroloc.v1 import macroloc_pb2 as pb
@@ -287,10 +309,12 @@ def write_truth_flight(building: Path, out: Path, seed: int = 0, duration_s: flo
     storey = storey or default_storey(model)
     plan = floor_plan(Path(building), model, storey)
     rng = np.random.default_rng(seed)
-    polyline = random_walk(waypoints(model, plan, storey), plan.flight, speed_mps * duration_s + 5.0, rng)
-    xy = smooth_trajectory(polyline, speed_mps, camera.rate_hz, duration_s)
-    T_cad_body = body_poses(xy, plan.floor_z + FLIGHT_HEIGHT_M, camera.rate_hz, rng)
     feats = [f for f in model.features if f.storey == storey and f.orientation == "vertical"]
+    points = waypoints(model, plan, storey)
+    score = np.array([_features_in_sight(p, feats, plan.sight) for p in points]) if start == "open" else None
+    polyline = random_walk(points, plan.flight, speed_mps * duration_s + 5.0, rng, score)
+    xy = smooth_trajectory(polyline, speed_mps, camera.rate_hz, duration_s, start_s=spin_s)
+    T_cad_body = body_poses(xy, plan.floor_z + FLIGHT_HEIGHT_M, camera.rate_hz, rng, spin_s)
     info = pb.CameraInfo(width=camera.width, height=camera.height, fx=camera.fx, fy=camera.fy, cx=camera.cx,
                          cy=camera.cy, baseline_m=camera.baseline_m, T_body_cam=pose_from_matrix(T_BODY_CAM))
     dt = 1.0 / camera.rate_hz

@@ -26,6 +26,9 @@ from sim.scene import COVERING, DOOR, SLAB, WINDOW, SceneGeometry
 log = logging.getLogger(__name__)
 
 GRAVITY_MPS2 = 9.81
+HOVER_AT_START_S = 0.5
+MAX_YAW_RATE_RADPS = 0.9
+MAX_TILT_RAD = 0.25  # roll/pitch saturate smoothly here
 
 
 @dataclass
@@ -132,6 +135,8 @@ def _inside_mask(scene: SceneGeometry, floor_z: float, ceiling_z: float | None, 
     top = ceiling_z if ceiling_z is not None else floor_z + 8.0
     floor = _rasterise(tri[horizontal & (np.abs(zc - floor_z) < 0.6)], lo, cell, shape, fill=True)
     roof = _rasterise(tri[horizontal & (zc > floor_z + 2.2) & (zc < top + 0.6)], lo, cell, shape, fill=True)
+    if (floor & roof).sum() < 0.5 * floor.sum():  # a model without ceilings (meshes): the floor's footprint
+        return floor
     return floor & roof
 
 
@@ -249,23 +254,27 @@ def time_route(path_xy: np.ndarray, params: FlightParams, rng: np.random.Generat
     s = np.arange(len(path_xy)) * step
     v = _speed_profile(path_xy, step, params)
     dt_seg = 2 * step / np.maximum(v[1:] + v[:-1], 1e-3)
-    t_of_s = np.r_[0.0, np.cumsum(dt_seg)]
+    t_of_s = HOVER_AT_START_S + np.r_[0.0, np.cumsum(dt_seg)]  # hover a moment: the flight starts at rest
     duration = min(params.duration_s, float(t_of_s[-1]))
     dt = 1.0 / params.rate_hz
-    stamps = np.arange(0.0, duration + 0.5 * dt, dt)
-    s_t = gaussian_filter1d(np.interp(stamps, t_of_s, s), 0.1 * params.rate_hz, mode="nearest")  # smooth accel
+    pad = int(params.rate_hz)  # one second either side, so the smoothing sees the motion go on (or rest before)
+    stamps_ext = np.arange(-pad, int(round(duration * params.rate_hz)) + 1 + pad) * dt
+    s_t = gaussian_filter1d(np.interp(stamps_ext, t_of_s, s), 0.1 * params.rate_hz, mode="nearest")  # smooth accel
     xy = np.stack([np.interp(s_t, s, path_xy[:, 0]), np.interp(s_t, s, path_xy[:, 1])], axis=1)
-    z = floor_z_m + _height_profile(stamps, params, rng)
-    pos = np.column_stack([xy, z])
-    vel = np.gradient(pos, dt, axis=0)
-    acc = np.gradient(vel, dt, axis=0)
+    xy = gaussian_filter1d(xy, 0.1 * params.rate_hz, axis=0, mode="nearest")  # velocity continuous at corners
+    z = floor_z_m + _height_profile(np.maximum(stamps_ext, 0.0), params, rng)
+    pos_ext = np.column_stack([xy, z])
+    vel = np.gradient(pos_ext, dt, axis=0)
+    acc = gaussian_filter1d(np.gradient(vel, dt, axis=0), 0.05 * params.rate_hz, axis=0, mode="nearest")
+    inner = slice(pad, len(stamps_ext) - pad)
+    stamps, pos, vel, acc = stamps_ext[inner] - stamps_ext[pad], pos_ext[inner], vel[inner], acc[inner]
     yaw = _yaw_profile(stamps, vel, path_xy, params, rng)
     # a multirotor tilts its thrust toward its horizontal acceleration (in the yaw frame)
     c, sn = np.cos(yaw), np.sin(yaw)
     a_fwd = c * acc[:, 0] + sn * acc[:, 1]
     a_left = -sn * acc[:, 0] + c * acc[:, 1]
-    pitch = np.arctan2(a_fwd, GRAVITY_MPS2)  # + about body y (left): nose down to accelerate forward
-    roll = -np.arctan2(a_left, GRAVITY_MPS2)  # - about body x: lean left to accelerate left
+    pitch = MAX_TILT_RAD * np.tanh(np.arctan2(a_fwd, GRAVITY_MPS2) / MAX_TILT_RAD)  # + about y: nose down
+    roll = -MAX_TILT_RAD * np.tanh(np.arctan2(a_left, GRAVITY_MPS2) / MAX_TILT_RAD)  # - about x: lean left
     R = Rotation.from_euler("ZYX", np.column_stack([yaw, pitch, roll])).as_matrix()  # Rz(yaw) Ry(pitch) Rx(roll)
     return Trajectory(stamps, pos, R)
 
@@ -274,10 +283,13 @@ def _speed_profile(path_xy: np.ndarray, step: float, params: FlightParams) -> np
     n = len(path_xy)
     if n < 3:
         return np.full(n, 1e-3)
-    d1 = np.gradient(path_xy, step, axis=0)
-    d2 = np.gradient(d1, step, axis=0)
-    kappa = np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]) / np.maximum(np.linalg.norm(d1, axis=1) ** 3, 1e-9)
-    kappa = gaussian_filter1d(kappa, 5)
+    seg = np.diff(path_xy, axis=0)
+    heading = np.arctan2(seg[:, 1], seg[:, 0])
+    turn = np.abs(np.angle(np.exp(1j * np.diff(heading))))  # rad between successive segments (pi: a U-turn)
+    kappa = np.r_[0.0, turn / step, 0.0]  # curvature, 1/m (a cross-product formula misses reversals)
+    from scipy.ndimage import maximum_filter1d
+
+    kappa = gaussian_filter1d(maximum_filter1d(kappa, max(3, int(0.6 / step))), 3)  # keep the peaks of turns
     v = np.minimum(params.speed_mps, np.sqrt(params.lateral_accel_mps2 / np.maximum(kappa, 1e-6)))
     v[0] = v[-1] = 0.0
     for i in range(1, n):  # forward pass: accelerate at most accel_mps2
@@ -292,8 +304,14 @@ def _height_profile(t: np.ndarray, params: FlightParams, rng: np.random.Generato
     amp = 0.5 * (params.max_height_m - params.min_height_m)
     p1, p2 = rng.uniform(12, 25), rng.uniform(4, 8)
     f1, f2 = rng.uniform(0, 2 * np.pi, 2)
-    h = mid + amp * (0.7 * np.sin(2 * np.pi * t / p1 + f1) + 0.25 * np.sin(2 * np.pi * t / p2 + f2))
-    return np.clip(h, params.min_height_m, params.max_height_m)
+    wave = 1.1 * np.sin(2 * np.pi * t / p1 + f1) + 0.35 * np.sin(2 * np.pi * t / p2 + f2)
+    ramp = _smoothstep(t / 3.0)  # take off at the middle height, level: no vertical speed at t = 0
+    return mid + amp * np.tanh(ramp * wave)  # tanh: a smooth saturation, never a kink (velocity jump)
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * x * (x * (6 * x - 15) + 10)  # C2: zero first and second derivative at 0 and 1
 
 
 def _yaw_profile(t: np.ndarray, vel: np.ndarray, path_xy: np.ndarray, params: FlightParams,
@@ -309,7 +327,10 @@ def _yaw_profile(t: np.ndarray, vel: np.ndarray, path_xy: np.ndarray, params: Fl
         heading[i] = last
     heading = np.unwrap(heading)
     rate = params.rate_hz
-    heading = gaussian_filter1d(heading, 0.4 * rate, mode="nearest")
+    max_step = MAX_YAW_RATE_RADPS / rate
+    for i in range(1, len(heading)):  # turn no faster than a pilot would (U-turns take a few seconds)
+        heading[i] = heading[i - 1] + np.clip(heading[i] - heading[i - 1], -max_step, max_step)
+    heading = gaussian_filter1d(heading, 0.3 * rate, mode="nearest")
     p1, p2 = rng.uniform(6, 12), rng.uniform(2.5, 4.5)
     f1, f2 = rng.uniform(0, 2 * np.pi, 2)
     glance = params.yaw_glance_rad * (0.8 * np.sin(2 * np.pi * t / p1 + f1) + 0.2 * np.sin(2 * np.pi * t / p2 + f2))
@@ -352,14 +373,17 @@ def duck_under_doors(traj: Trajectory, features: list[MacroFeature], floor_z_m: 
         f = features[k]
         near = np.linalg.norm(traj.positions_cad[:, :2] - f.centroid_cad[:2], axis=1) < reach_m
         limit[near] = np.minimum(limit[near], float(f.corners_cad[:, 2].max()) - clearance_m)
-    floor_limit = floor_z_m + params.min_height_m
+    softness = 0.03  # m: soft minimum, so the descent has no kink (no velocity jump)
+    floor_limit = floor_z_m + params.min_height_m + softness
     limit = np.maximum(np.minimum(limit, traj.positions_cad[:, 2]), floor_limit)
     window = int(params.rate_hz)  # widen, then smooth: the descent starts about a second early
     from scipy.ndimage import minimum_filter1d
 
-    z = np.minimum(traj.positions_cad[:, 2], gaussian_filter1d(minimum_filter1d(limit, window), window / 4))
+    smooth_limit = gaussian_filter1d(minimum_filter1d(limit, window), window / 4)
+    z = traj.positions_cad[:, 2]
+    z = -softness * np.logaddexp(-z / softness, -smooth_limit / softness)  # soft min(z, limit)
     pos = traj.positions_cad.copy()
-    pos[:, 2] = np.maximum(z, floor_limit)
+    pos[:, 2] = np.maximum(z, floor_z_m + params.min_height_m)
     return Trajectory(traj.stamps_s, pos, traj.R_cad_body)
 
 

@@ -7,7 +7,8 @@ For each macro-feature whose instance covers at least `min_pixels` of the left i
   corner_visible: (4,) a corner is visible when it lies in front of the camera, inside the image, and the
     rendered depth around its pixel is not nearer than the corner by more than `occlusion_tol_m`;
   box_xyxy: the 2D box of the feature's 3D extent (opening rectangle thickened by the element's depth along
-    its normal) clipped to the near plane and the image, pixels: it encloses the feature's rendered mask;
+    its normal) clipped to the near plane and the image; pixels, OpenCV convention (pixel centres at integers),
+    covering whole pixels (the image spans [-0.5, W - 0.5]): it encloses the feature's rendered mask;
   visible_fraction: mask pixels / pixels of the projected opening rectangle (occlusion and image edges).
 """
 
@@ -94,9 +95,9 @@ def features_in_view(features: list[MacroFeature], half_depths: np.ndarray, T_ca
         x1, y1 = epx.max(axis=0) + 0.5
         if crosses:
             ys, xs = np.nonzero(instance == k + 1)
-            x0, y0 = min(x0, xs.min()), min(y0, ys.min())
-            x1, y1 = max(x1, xs.max() + 1.0), max(y1, ys.max() + 1.0)
-        box = np.array([max(x0, 0.0), max(y0, 0.0), min(x1, float(w)), min(y1, float(h))])
+            x0, y0 = min(x0, xs.min() - 0.5), min(y0, ys.min() - 0.5)
+            x1, y1 = max(x1, xs.max() + 0.5), max(y1, ys.max() + 0.5)
+        box = np.array([max(x0, -0.5), max(y0, -0.5), min(x1, w - 0.5), min(y1, h - 0.5)])
         area = _projected_area(px, z, camera)
         frac = float(min(1.0, counts[k + 1] / area)) if area > 0 else 1.0
         out.append(FeatureInView(int(k), f.id, f.type, cam, px, visible, box, int(counts[k + 1]), frac))

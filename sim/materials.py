@@ -39,10 +39,13 @@ def feature_instance_map(features: list[MacroFeature]) -> dict[str, int]:
 
 
 def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
-                ground_z_m: float | None = None, open_doors: set[int] | frozenset[int] = frozenset()) -> np.ndarray:
+                ground_z_m: float | None = None, open_doors: set[int] | frozenset[int] = frozenset(),
+                floor_levels_m: tuple[float, ...] = ()) -> np.ndarray:
     """(3T' + 6, VERTEX_FLOATS) float32 vertex array of the scene plus a ground plane (at `ground_z_m`,
     default the lowest geometry) for the renderer, CAD frame, metres. Doors whose feature index is in
-    `open_doors` are drawn without their leaf (frame only): open, so the flight can pass."""
+    `open_doors` are drawn without their leaf (frame only): open, so the flight can pass. The bottoms of the
+    IfcSpace volumes within 0.3 m of a level in `floor_levels_m` are drawn as floors, 4 mm up (many models have
+    no floor slab under their rooms)."""
     T = len(scene.triangles_cad)
     normals = scene.normals_cad().astype(np.float32)
     layer = np.full(T, tx.PLASTER, np.float32)
@@ -55,6 +58,7 @@ def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
     frame_tint = np.array(FRAME_TINTS[rng.integers(len(FRAME_TINTS))], np.float32)
     floor_layer = tx.FLOOR_LAYERS[rng.integers(len(tx.FLOOR_LAYERS))]
     instances = feature_instance_map(features)
+    scene_mid_z = float(scene.bounds_cad[:, 2].mean())
     by_element = np.argsort(scene.tri_element, kind="stable")
     bounds = np.searchsorted(scene.tri_element[by_element], np.arange(len(scene.element_ids) + 1))
     for e, gid in enumerate(scene.element_ids):
@@ -67,8 +71,9 @@ def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
             layer[idx] = tx.WALL_LAYERS[er.integers(len(tx.WALL_LAYERS))]
             tint[idx] = WALL_TINTS[er.integers(len(WALL_TINTS))]
         elif cls in (SLAB, COVERING):
-            nz = normals[idx, 2]
-            layer[idx] = np.where(nz > 0.7, floor_layer, np.where(nz < -0.7, tx.CEILING, tx.PLASTER))
+            up = _faces_up(scene.triangles_cad[idx], normals[idx], floor_levels_m, scene_mid_z)
+            flat = np.abs(normals[idx, 2]) > 0.7
+            layer[idx] = np.where(flat & up, floor_layer, np.where(flat, tx.CEILING, tx.PLASTER))
             tint[idx] = 0.9 + 0.1 * er.random(3)
         elif cls == DOOR:
             layer[idx] = tx.DOOR_LAYERS[er.integers(len(tx.DOOR_LAYERS))]
@@ -89,6 +94,12 @@ def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
         if k and cls in (DOOR, WINDOW):
             inst[idx] = k
             fuv[idx] = _opening_uv(scene.triangles_cad[idx], features[k - 1])
+        elif cls in (DOOR, WINDOW):  # a mesh group of many doors/windows: each triangle to the feature around it
+            owner = _owners(scene.triangles_cad[idx], features, "door" if cls == DOOR else "window")
+            for j in np.unique(owner[owner >= 0]):
+                sel = idx[owner == j]
+                inst[sel] = j + 1
+                fuv[sel] = _opening_uv(scene.triangles_cad[sel], features[j])
     glass = scene.tri_glass
     kind[glass] = KIND_GLASS
     tint[glass] = (0.55, 0.65, 0.65)
@@ -103,7 +114,26 @@ def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
     verts[:, :, 14] = style[:, None]
     keep = ~_leaf_of(inst, fuv, kind, open_doors)
     z0 = float(scene.bounds_cad[0, 2]) if ground_z_m is None else ground_z_m
-    return np.concatenate([verts[keep].reshape(-1, VERTEX_FLOATS), _ground(scene, z0 - 0.01, rng)])
+    floors = _space_floors(scene, floor_levels_m, floor_layer, rng)
+    return np.concatenate([verts[keep].reshape(-1, VERTEX_FLOATS), floors, _ground(scene, z0 - 0.01, rng)])
+
+
+def _space_floors(scene: SceneGeometry, levels_m: tuple[float, ...], layer: int,
+                  rng: np.random.Generator) -> np.ndarray:
+    spaces = scene.space_triangles_cad
+    if len(spaces) == 0 or not levels_m:
+        return np.zeros((0, VERTEX_FLOATS), np.float32)
+    zmin, zmax = spaces[:, :, 2].min(axis=1), spaces[:, :, 2].max(axis=1)
+    near_level = np.abs(zmin[:, None] - np.asarray(levels_m)[None, :]).min(axis=1) < 0.3
+    tri = spaces[(zmax - zmin < 0.02) & near_level].astype(np.float32).copy()
+    tri[:, :, 2] += 0.004
+    out = np.zeros((len(tri), 3, VERTEX_FLOATS), np.float32)
+    out[:, :, 0:3] = tri
+    out[:, :, 3:6] = (0, 0, 1)
+    out[:, :, 6:9] = 0.85 + 0.15 * rng.random(3)
+    out[:, :, 9] = layer
+    out[:, :, 11:13] = -1.0
+    return out.reshape(-1, VERTEX_FLOATS)
 
 
 def _leaf_of(inst: np.ndarray, fuv: np.ndarray, kind: np.ndarray, open_doors: set[int] | frozenset[int]) -> np.ndarray:
@@ -111,9 +141,44 @@ def _leaf_of(inst: np.ndarray, fuv: np.ndarray, kind: np.ndarray, open_doors: se
     if not open_doors:
         return np.zeros(len(inst), bool)
     is_open = np.isin(inst, np.array(sorted(open_doors)) + 1) & (kind == KIND_DOOR)
-    u, v = fuv[:, :, 0], fuv[:, :, 1]
-    inner = ((u > 0.07) & (u < 0.93) & (v < 0.95)).all(axis=1)
+    u, v = fuv[:, :, 0].mean(axis=1), fuv[:, :, 1].mean(axis=1)  # triangle centroids across the opening
+    inner = (u > 0.08) & (u < 0.92) & (v < 0.94)
     return is_open & inner
+
+
+def _owners(tri: np.ndarray, features: list[MacroFeature], kind: str, margin_m: float = 0.05) -> np.ndarray:
+    """(n,) index of the `kind` feature whose box (opening rectangle +- 0.3 m along its normal, + margin) holds
+    each triangle's centroid, -1 for none."""
+    owner = np.full(len(tri), -1)
+    centre = tri.mean(axis=1).astype(np.float64)
+    for j, f in enumerate(features):
+        if f.type != kind:
+            continue
+        c0 = f.corners_cad[0]
+        ax_u, ax_v = f.corners_cad[1] - c0, f.corners_cad[3] - c0
+        lu, lv = float(np.linalg.norm(ax_u)), float(np.linalg.norm(ax_v))
+        if lu < 1e-6 or lv < 1e-6:
+            continue
+        rel = centre - c0
+        u, v, n = rel @ ax_u / lu, rel @ ax_v / lv, rel @ f.normal_cad
+        inside = (u > -margin_m) & (u < lu + margin_m) & (v > -margin_m) & (v < lv + margin_m) & (np.abs(n) < 0.3)
+        owner[inside & (owner < 0)] = j
+    return owner
+
+
+def _faces_up(tri: np.ndarray, normals: np.ndarray, levels_m: tuple[float, ...], mid_z: float) -> np.ndarray:
+    """(n,) whether each horizontal face of one element is walked on (a floor) rather than looked up at.
+
+    The winding of IFC faces is not reliable, so: the top faces of a thick element are floors; a face of a
+    thin one (a single sheet) is a floor when it lies near a storey level (or, with no levels, low in the scene).
+    """
+    z = tri[:, :, 2].mean(axis=1)
+    lo, hi = float(tri[:, :, 2].min()), float(tri[:, :, 2].max())
+    if hi - lo > 0.01:
+        return z > 0.5 * (lo + hi)
+    if levels_m:
+        return np.abs(z[:, None] - np.asarray(levels_m)[None, :]).min(axis=1) < 0.3
+    return z < mid_z
 
 
 def _opening_uv(triangles: np.ndarray, f: MacroFeature) -> np.ndarray:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from importlib import resources
+from typing import Any
 
 import numpy as np
 
@@ -81,9 +82,10 @@ class ChunkIndex:
     count: np.ndarray
     box_min: np.ndarray
     box_max: np.ndarray
+    huge: np.ndarray  # (C,) bool: the cell of oversized triangles (the ground, long slabs), drawn last
 
     @classmethod
-    def build(cls, vertices: np.ndarray, cell_m: float = 3.0) -> ChunkIndex:
+    def build(cls, vertices: np.ndarray, cell_m: float = 5.0) -> ChunkIndex:
         tri = vertices.reshape(-1, 3, vertices.shape[1])
         centre = tri[:, :, :3].mean(axis=1)
         extent = np.ptp(tri[:, :, :3], axis=1).max(axis=1)
@@ -98,12 +100,16 @@ class ChunkIndex:
         pts = tri[:, :, :3]
         box_min = np.minimum.reduceat(pts.min(axis=1), starts, axis=0)
         box_max = np.maximum.reduceat(pts.max(axis=1), starts, axis=0)
-        return cls(np.ascontiguousarray(tri.reshape(-1, vertices.shape[1])), starts * 3, counts * 3, box_min, box_max)
+        huge = np.ptp(np.stack([box_min, box_max]), axis=0).max(axis=1) > 8 * cell_m
+        return cls(np.ascontiguousarray(tri.reshape(-1, vertices.shape[1])), starts * 3, counts * 3, box_min, box_max,
+                   huge)
 
-    def visible_front_to_back(self, T_cad_cam: np.ndarray, camera: CameraModel) -> list[tuple[int, int]]:
-        """(first vertex, vertex count) of the cells whose box meets the view frustum, nearest first."""
+    def visible_front_to_back(self, T_cad_cam: np.ndarray, camera: CameraModel,
+                              z_range_m: tuple[float, float] | None = None) -> np.ndarray:
+        """(K, 2) (first vertex, vertex count) of the cells whose box meets the view frustum (and the height
+        range `z_range_m`, when given: the storey flown), nearest first, the oversized cell last."""
         if len(self.first) == 0:
-            return []
+            return np.zeros((0, 2), np.int64)
         T_cam_cad = np.linalg.inv(T_cad_cam)
         corners = np.stack([np.where(np.array([(i >> k) & 1 for k in range(3)], bool), self.box_max, self.box_min)
                             for i in range(8)], axis=1)  # (C, 8, 3)
@@ -114,11 +120,13 @@ class ChunkIndex:
         ty0, ty1 = -(camera.cy + 0.5) / camera.fy, (camera.height - camera.cy - 0.5) / camera.fy
         out = ((z < camera.near_m).all(1) | (x < tx0 * z).all(1) | (x > tx1 * z).all(1)
                | (y < ty0 * z).all(1) | (y > ty1 * z).all(1))
+        if z_range_m is not None:
+            out |= ~self.huge & ((self.box_max[:, 2] < z_range_m[0]) | (self.box_min[:, 2] > z_range_m[1]))
         cam = T_cad_cam[:3, 3]
-        dist = np.linalg.norm(np.clip(cam, self.box_min, self.box_max) - cam, axis=1)
+        dist = np.linalg.norm(np.clip(cam, self.box_min, self.box_max) - cam, axis=1) + 1e6 * self.huge
         idx = np.flatnonzero(~out)
         idx = idx[np.argsort(dist[idx], kind="stable")]
-        return [(int(self.first[i]), int(self.count[i])) for i in idx]
+        return np.column_stack([self.first[idx], self.count[idx]])
 
 
 def _shader(name: str) -> str:
@@ -133,12 +141,20 @@ class StereoRenderer:
         import moderngl
 
         self.camera = camera
-        self.ctx = moderngl.create_standalone_context(backend="egl")
-        self.prog = self.ctx.program(vertex_shader=_shader("scene.vert.glsl"), fragment_shader=_shader("scene.frag.glsl"))
+        self.ctx = moderngl.create_standalone_context(backend="egl")  # type: ignore[arg-type]  # stubs lag
+        self.prog: Any = self.ctx.program(vertex_shader=_shader("scene.vert.glsl"),
+                                          fragment_shader=_shader("scene.frag.glsl"))
         verts = np.ascontiguousarray(vertices, dtype=np.float32)
         glass = verts[:, 13] == KIND_GLASS
         self.chunks = ChunkIndex.build(verts[~glass])
+        self._vbos: list[Any] = []
         self._vaos = [self._vao(self.chunks.vertices), self._vao(verts[glass])]
+        # depth pre-pass: positions only, no shading; the full shader then runs once per visible pixel
+        self.prog_depth: Any = self.ctx.program(vertex_shader=_shader("depth.vert.glsl"),
+                                           fragment_shader="#version 330\nvoid main() {}\n")
+        self._vao_depth = None
+        if self._vaos[0] is not None:
+            self._vao_depth = self.ctx.vertex_array(self.prog_depth, [(self._vbos[0], "3f 52x", "in_pos")])
         layers, size = texture_layers.shape[0], texture_layers.shape[1]
         self.texture = self.ctx.texture_array((size, size, layers), 3, np.ascontiguousarray(texture_layers).tobytes())
         self.texture.build_mipmaps()
@@ -152,19 +168,28 @@ class StereoRenderer:
         self.fbo_glass = self.ctx.framebuffer(color_attachments=[self.colour, self.glass_id],
                                               depth_attachment=self.depth)
         self.fbo_glass_id = self.ctx.framebuffer(color_attachments=[self.glass_id])  # clears the id target alone
+        self.fbo_depth = self.ctx.framebuffer(depth_attachment=self.depth)  # the depth pre-pass
+        self.fbo_colour = self.ctx.framebuffer(color_attachments=[self.colour])  # clears the colour alone (sky)
         n, f = camera.near_m, camera.far_m
-        self.prog["proj"].value = (2 * camera.fx / w, 2 * camera.fy / h, 2 * (camera.cx + 0.5) / w - 1,
-                                   2 * (camera.cy + 0.5) / h - 1)
-        self.prog["nearfar"].value = (n, f)
-        self.prog["tex"].value = 0
+        proj = (2 * camera.fx / w, 2 * camera.fy / h, 2 * (camera.cx + 0.5) / w - 1, 2 * (camera.cy + 0.5) / h - 1)
+        progs: list[Any] = [self.prog, self.prog_depth]
+        for prog in progs:
+            prog["proj"].value = proj
+            prog["nearfar"].value = (n, f)
+        progs[0]["tex"].value = 0  # the texture array on unit 0
+        self._indirect: Any = None
+        self.depth_prepass = True
+        self.z_range_m: tuple[float, float] | None = None  # heights drawn (the storey flown); None: all
 
     def _vao(self, verts: np.ndarray):  # noqa: ANN202 - moderngl.VertexArray | None
         if len(verts) == 0:
             return None
         vbo = self.ctx.buffer(verts.tobytes())
-        return self.ctx.vertex_array(self.prog, [(vbo, "3f 3f 3f 1f 1f 2f 1f 1f 1x4",
-                                                  "in_pos", "in_normal", "in_tint", "in_layer", "in_inst",
-                                                  "in_fuv", "in_kind", "in_style")])
+        vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 3f 3f 1f 1f 2f 1f 1f 1x4",
+                                                 "in_pos", "in_normal", "in_tint", "in_layer", "in_inst",
+                                                 "in_fuv", "in_kind", "in_style")])
+        self._vbos.append(vbo)  # kept for the depth pre-pass
+        return vao
 
     def render(self, T_cad_cam: np.ndarray, lighting: Lighting, frame_seed: float = 0.0,
                with_truth: bool = True) -> RenderOutput:
@@ -175,15 +200,22 @@ class StereoRenderer:
         self._set_uniforms(T_cam_cad, np.asarray(T_cad_cam)[:3, 3], lighting, frame_seed)
         sky = lighting.sky_rgb
         self.texture.use(0)
+        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)  # depth 0 and instance 0 where nothing is hit
+        self.fbo_colour.clear(sky[2] * lighting.exposure, sky[1] * lighting.exposure, sky[0] * lighting.exposure,
+                              1.0)  # BGR order, like the image
         self.fbo.use()
-        self.fbo.clear(sky[2] * lighting.exposure, sky[1] * lighting.exposure, sky[0] * lighting.exposure, 1.0,
-                       depth=1.0)  # BGR order, like the image
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
         self.prog["glass_pass"].value = 0
         if self._vaos[0] is not None:
-            for first, count in self.chunks.visible_front_to_back(T_cad_cam, self.camera):
-                self._vaos[0].render(moderngl.TRIANGLES, vertices=count, first=first)
+            ranges = self.chunks.visible_front_to_back(T_cad_cam, self.camera, self.z_range_m)
+            if self.depth_prepass and self._vao_depth is not None:
+                self.fbo_depth.use()
+                self._draw_indirect(ranges, self._vao_depth)
+                self.fbo.use()
+                self.ctx.depth_func = "<="
+            self._draw_indirect(ranges, self._vaos[0])
+            self.ctx.depth_func = "<"
         if self._vaos[1] is not None:
             self.fbo_glass.use()
             if with_truth:
@@ -191,10 +223,8 @@ class StereoRenderer:
                 self.fbo_glass.use()
             self.ctx.enable(moderngl.BLEND)
             self.ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
-            self.ctx.depth_mask = False
             self.prog["glass_pass"].value = 1
             self._vaos[1].render(moderngl.TRIANGLES)
-            self.ctx.depth_mask = True
             self.ctx.disable(moderngl.BLEND)
         w, h = self.camera.width, self.camera.height
         image = np.frombuffer(self.colour.read(alignment=1), np.uint8).reshape(h, w, 4)[:, :, :3]
@@ -207,6 +237,21 @@ class StereoRenderer:
             instance = np.where(glass > 0, glass, instance)
         return RenderOutput(image, aux[:, :, 0].copy(), instance)
 
+    def _draw_indirect(self, ranges: np.ndarray, vao) -> None:  # noqa: ANN001 - moderngl.VertexArray
+        """One glMultiDrawArraysIndirect call for the (first, count) vertex ranges, in their order."""
+        import moderngl
+
+        if len(ranges) == 0:
+            return
+        # moderngl strides indirect commands by 5 uint32 (the indexed layout) also for arrays:
+        # count, instance count, first, base instance, (unused)
+        cmds = np.zeros((len(ranges), 5), np.uint32)
+        cmds[:, 0], cmds[:, 1], cmds[:, 2] = ranges[:, 1], 1, ranges[:, 0]
+        if self._indirect is None or self._indirect.size < cmds.nbytes:
+            self._indirect = self.ctx.buffer(reserve=max(cmds.nbytes, 4096), dynamic=True)
+        self._indirect.write(cmds.tobytes())
+        vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=len(cmds))
+
     def render_stereo(self, T_cad_camleft: np.ndarray, lighting: Lighting,
                       frame_seed: float = 0.0) -> tuple[RenderOutput, np.ndarray]:
         """(left with depth and instances, right BGR image); right = left shifted by the baseline along +x."""
@@ -218,6 +263,7 @@ class StereoRenderer:
 
     def _set_uniforms(self, T_cam_cad: np.ndarray, cam_pos: np.ndarray, lighting: Lighting, seed: float) -> None:
         self.prog["T_cam_cad"].write(T_cam_cad.T.astype(np.float32).tobytes())  # GLSL matrices are column-major
+        self.prog_depth["T_cam_cad"].write(T_cam_cad.T.astype(np.float32).tobytes())
         self.prog["cam_pos"].value = tuple(float(v) for v in cam_pos)
         k = min(MAX_LIGHTS, len(lighting.positions_cad))
         pos = np.zeros((MAX_LIGHTS, 3), np.float32)

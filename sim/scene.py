@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -162,36 +164,47 @@ def _cat(parts: list, empty_shape: tuple, dtype) -> np.ndarray:  # noqa: ANN001
     return np.concatenate(parts).astype(dtype) if parts else np.zeros(empty_shape, dtype)
 
 
-MESH_NAME_CLASSES = (("door", DOOR), ("window", WINDOW), ("glass", WINDOW), ("wall", WALL), ("floor", SLAB),
-                     ("ceiling", COVERING), ("stair", STAIR), ("rail", STAIR))
+MESH_NAME_CLASSES = (("sign", OTHER), ("door", DOOR), ("window", WINDOW), ("glass", WINDOW), ("wall", WALL), ("floor", SLAB),
+                     ("ceiling", COVERING), ("stair", STAIR), ("rail", STAIR), ("elevator", WALL),
+                     ("curtain", FURNITURE), ("bed", FURNITURE), ("chair", FURNITURE), ("table", FURNITURE))
 
 
 def _read_mesh(path: Path, sha: str) -> SceneGeometry:
-    """A mesh through trimesh: one element per scene node, class from the node name (door, window, wall...).
+    """A mesh file (through graph.bim_mesh's reader: names, node transforms, declared unit) or a Gazebo
+    `.world` (its models placed at their poses): one element per node, class from the node's names."""
+    from graph.bim_mesh import model_mesh_file, world_includes
 
-    COLLADA files state their unit; trimesh applies it, so vertices come out in metres.
-    """
-    import trimesh
-
-    try:
-        loaded = trimesh.load(str(path), force="scene")
-    except Exception as exc:  # trimesh raises many types for unreadable files
-        raise BuildingError(f"cannot read mesh {path}: {exc}") from None
-    tris, classes, elements, colours, element_ids = [], [], [], [], []
-    for node in loaded.graph.nodes_geometry:
-        T, geom_name = loaded.graph[node]
-        mesh = loaded.geometry.get(geom_name)
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-            continue
-        verts = trimesh.transform_points(mesh.vertices, T).astype(np.float32)
-        lname = f"{node} {geom_name}".lower()
+    parts: list[tuple[str, list[str], np.ndarray, np.ndarray]] = []
+    if path.suffix.lower() == ".world":
+        for name, uri, T_cad_model in world_includes(path):
+            mesh_file = model_mesh_file(path.parent, uri)
+            if mesh_file is None:
+                continue
+            for nm, names, verts, faces in _mesh_nodes(mesh_file):
+                parts.append((f"{name}/{nm}", names, verts @ T_cad_model[:3, :3].T + T_cad_model[:3, 3], faces))
+    else:
+        parts = _mesh_nodes(path)
+    tris, classes, elements, colours = [], [], [], []
+    element_ids: list[str] = []
+    for name, names, verts, faces in parts:
+        lname = re.sub(r"floor[_ -]?\d+", "", " ".join(names).lower())  # "hospital_floor_01_stairs": a storey
         cls = next((c for key, c in MESH_NAME_CLASSES if key in lname), OTHER)
-        tris.append(verts[mesh.faces])
-        classes.append(np.full(len(mesh.faces), cls, np.int8))
-        elements.append(np.full(len(mesh.faces), len(element_ids), np.int32))
-        colours.append(np.full((len(mesh.faces), 3), 0.75, np.float32))
-        element_ids.append(str(node))
+        tris.append(verts.astype(np.float32)[faces])
+        classes.append(np.full(len(faces), cls, np.int8))
+        elements.append(np.full(len(faces), len(element_ids), np.int32))
+        colours.append(np.full((len(faces), 3), 0.75, np.float32))
+        element_ids.append(name)
     triangles = _cat(tris, (0, 3, 3), np.float32)
-    return SceneGeometry(str(path), sha, triangles, _cat(classes, (0,), np.int8), _cat(elements, (0,), np.int32),
+    tri_class = _cat(classes, (0,), np.int8)
+    return SceneGeometry(str(path), sha, triangles, tri_class, _cat(elements, (0,), np.int32),
                          _cat(colours, (0, 3), np.float32), np.zeros(len(triangles), bool), element_ids,
                          np.zeros((0, 3, 3), np.float32))
+
+
+def _mesh_nodes(path: Path) -> list[tuple[str, list[str], np.ndarray, np.ndarray]]:
+    """[(node name, its names, (N, 3) vertices in metres, (M, 3) faces)] of one mesh file."""
+    from graph.bim_mesh import read_nodes
+
+    nodes, unit_m, _ = read_nodes(path)
+    scale = unit_m if unit_m else 1.0  # metres per file unit (the hospital's DAE files: centimetres)
+    return [(n.name, n.names, n.vertices * scale, n.faces) for n in nodes]

@@ -113,8 +113,10 @@ class Simulator:
         self._exposure_phase = rng.uniform(0, 2 * np.pi, 2)
         self.open_doors = doors_crossed(self.trajectory, self.features)
         vertices = dress_scene(self.scene, self.features, params.seed, ground_z_m=self._ground_z(),
-                               open_doors=self.open_doors)
+                               open_doors=self.open_doors,
+                               floor_levels_m=tuple(self.model.storey_elevations_m.values()))
         self.renderer = StereoRenderer(vertices, make_texture_layers(params.seed), params.camera)
+        self.renderer.z_range_m = (self.floor_z_m - 1.0, self.ceiling_z_m + 1.0)  # other storeys are hidden
         self.half_depths = feature_half_depths(self.scene, self.features)
 
     def _ground_z(self) -> float:

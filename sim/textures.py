@@ -49,7 +49,7 @@ def make_texture_layers(seed: int, size: int = TEXTURE_SIZE_PX) -> np.ndarray:
     rng = np.random.default_rng(seed)
     s = size
     yy, xx = np.mgrid[0:s, 0:s].astype(np.float32) / s
-    layers = []
+    layers: list[np.ndarray] = []
     # plaster: soft blotches + fine speckle
     layers.append(_rgb(0.82 + 0.10 * fractal_noise(rng, s, 3) + 0.05 * rng.standard_normal((s, s)), (1, 1, 1)))
     # concrete: stronger blotches and pores
@@ -89,4 +89,7 @@ def make_texture_layers(seed: int, size: int = TEXTURE_SIZE_PX) -> np.ndarray:
     # grass and asphalt outside
     layers.append(np.clip((0.55 + 0.25 * fractal_noise(rng, s, 8))[..., None] * np.array([0.35, 0.55, 0.25]), 0, 1))
     layers.append(_rgb(0.4 + 0.1 * fractal_noise(rng, s, 16) + 0.06 * rng.standard_normal((s, s)), (1, 1, 1)))
-    return (np.stack(layers) * 255).astype(np.uint8)
+    # surface grain on every layer: centimetre-scale detail that stereo matching and odometry can hold on to
+    grains = [1.0 + 0.12 * value_noise(rng, s, 32) + 0.10 * value_noise(rng, s, 96) for _ in layers]
+    out = np.stack([np.clip(layer * g[..., None], 0, 1) for layer, g in zip(layers, grains, strict=True)])
+    return (out * 255).astype(np.uint8)

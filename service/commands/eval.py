@@ -54,7 +54,7 @@ def register(app: typer.Typer) -> None:
             for i in range(min(5, n)):
                 s = make_scenario(model, i, seed, params)
                 found = descriptor_matches(index_for(model), s.obs.observations)
-                ok = sum(1 for j, fid in found if s.truth_ids[j] and fid in s.truth_ids[j])
+                ok = sum(1 for j, fid in found if fid in (s.truth_ids[j] or []))
                 table1.append((i + 1, len(s.obs.observations), ok, len(found) - ok))
             report["variants"][v]["table1_paper"] = table1
         if json_out:

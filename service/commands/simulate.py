@@ -32,6 +32,9 @@ def register(app: typer.Typer) -> None:
         speed: float | None = typer.Option(None, "--speed", help="Cruise speed, m/s (config sim.speed_mps)."),
         contact_sheet: Path | None = typer.Option(None, "--contact-sheet",
                                                   help="Contact sheet PNG (default: beside --out, .png)."),
+        yolo: Path | None = typer.Option(None, "--yolo", help="Also export detector training data (left images "
+                                         "+ YOLO labels, 0 door 1 window) into this folder (may be shared)."),
+        yolo_every: int = typer.Option(10, "--yolo-every", help="Export every N-th frame.", min=1),
         config: Path | None = typer.Option(None, "--config", help="A macroloc config file (JSON or TOML)."),
         json_out: bool = typer.Option(False, "--json", help="Print {frames, duration_s, render_fps, channels}."),
     ) -> None:
@@ -56,7 +59,8 @@ def register(app: typer.Typer) -> None:
         sim_overrides = {k: v for k, v in (("duration_s", duration), ("speed_mps", speed)) if v is not None}
         cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update=sim_overrides)})
         sheet = contact_sheet if contact_sheet is not None else out.with_suffix(".png")
-        summary = simulate_to_mcap(building, out, cfg, seed=seed, storey=storey, contact_sheet=sheet)
+        summary = simulate_to_mcap(building, out, cfg, seed=seed, storey=storey, contact_sheet=sheet,
+                                   yolo_dir=yolo, yolo_every=yolo_every)
         if json_out:
             print_json(summary)
         else:
@@ -78,8 +82,13 @@ def simulation_params(cfg: MacrolocConfig, seed: int, storey: str | None):  # no
 
 
 def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int = 0, storey: str | None = None,
-                     contact_sheet: Path | None = None) -> dict[str, Any]:
-    """Simulate and record one flight; returns {"frames", "duration_s", "render_fps", "channels", "storey", ...}."""
+                     contact_sheet: Path | None = None, yolo_dir: Path | None = None,
+                     yolo_every: int = 10) -> dict[str, Any]:
+    """Simulate and record one flight; returns {"frames", "duration_s", "render_fps", "channels", "storey", ...}.
+
+    contact_sheet: a PNG of sampled frames with their ground truth drawn; yolo_dir: also export every
+    `yolo_every`-th left image with YOLO labels there.
+    """
     import cv2
 
     from service.recording import FlightMetadata, FlightWriter
@@ -89,6 +98,11 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
 
     t_start = time.perf_counter()
     sim = Simulator(building, simulation_params(cfg, seed, storey))
+    exporter = None
+    if yolo_dir is not None:
+        from sim.export import YoloExporter
+
+        exporter = YoloExporter(yolo_dir, f"{building.stem}_s{seed}_{_slug(sim.storey)}", every_n=yolo_every)
     imu = sim.imu()
     times = sim.frame_times_s
     sample_at = set(np.linspace(0, len(times) - 1, min(CONTACT_SHEET_TILES, len(times))).round().astype(int).tolist())
@@ -112,6 +126,8 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
                 stereo, truth, instances = frame_messages(frame, sim, cfg)
                 writer.write_stereo(stereo)
                 writer.write_ground_truth(truth, instances)
+                if exporter is not None:
+                    exporter.add(i, frame.left_bgr, frame.features)
                 if i in sample_at:
                     tiles.append(annotate(frame.left_bgr, frame.features, f"{frame.stamp_ns / 1e9:.1f} s"))
             while k_imu < len(imu_ns):
@@ -127,7 +143,12 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
             "render_fps": round(len(times) / render_s, 2) if render_s > 0 else None,
             "channels": channels, "storey": sim.storey, "out": str(out),
             "contact_sheet": str(contact_sheet) if contact_sheet is not None else None,
+            "yolo": dict(exporter.counts, dir=str(yolo_dir)) if exporter is not None else None,
             "wall_s": round(time.perf_counter() - t_start, 2)}
+
+
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in text)
 
 
 def imu_message(imu, k: int, stamp_ns: int):  # noqa: ANN001, ANN201 - (ImuSamples, index) -> pb.Imu

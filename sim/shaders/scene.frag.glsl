@@ -24,7 +24,13 @@ flat in float v_style;
 layout(location = 0) out vec4 out_colour;
 layout(location = 1) out vec4 out_aux;
 
-float hash(vec2 p) { return fract(sin(dot(p, vec2(12.9898, 78.233)) + frame_seed * 7.13) * 43758.5453); }
+float hash(vec2 p) {  // integer hash of the pixel and the frame: cheaper than sin() on llvmpipe
+    uvec2 q = uvec2(p);
+    uint h = q.x * 1973u + q.y * 9277u + uint(frame_seed * 64.0) * 26699u;
+    h = (h ^ (h >> 13u)) * 1274126177u;
+    h ^= h >> 16u;
+    return float(h & 65535u) / 65535.0;
+}
 
 float box(vec2 uv, vec4 r) { return float(uv.x > r.x && uv.x < r.z && uv.y > r.y && uv.y < r.w); }
 
@@ -91,10 +97,13 @@ void main() {
         float r2 = dot(d, d);
         vec3 l = d * inversesqrt(r2);
         float att = 1.0 / (1.0 + 0.08 * r2);
-        light += light_col[i] * att * (max(dot(n, l), 0.0) + shine * pow(max(dot(reflect(-l, n), view), 0.0), 20.0));
+        float diffuse = max(dot(n, l), 0.0);
+        if (shine > 0.0) diffuse += shine * pow(max(dot(reflect(-l, n), view), 0.0), 20.0);
+        light += light_col[i] * att * diffuse;
     }
     vec3 c = (glass_pass == 1) ? base * (0.6 + 0.4 * light) : base * light;
-    c = 1.0 - exp(-c * exposure * 1.4);  // tone curve: saturates softly under strong light
+    c *= exposure * 1.4;
+    c = c * (1.0 + 0.25 * c) / (1.0 + c);  // tone curve: ~linear in the shadows, saturates softly
     float nz = 2.0 * hash(gl_FragCoord.xy) - 1.0;  // uniform in [-1, 1]
     c += noise_sigma * 1.7 * nz;
     out_colour = vec4(c.bgr, alpha);

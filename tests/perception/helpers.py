@@ -9,14 +9,14 @@ from perception.calib import StereoRig
 RIG = StereoRig(fx_px=480.0, fy_px=480.0, cx_px=320.0, cy_px=240.0, baseline_m=0.12, width_px=640, height_px=480)
 
 
-def texture(height: int, width: int, seed: int = 0) -> np.ndarray:
+def texture(height: int, width: int, seed: int = 0, blob_px: int = 4, fine_sigma: float = 12.0) -> np.ndarray:
     """Random blotchy grey texture (uint8) that block matching can lock onto."""
     import cv2
 
     rng = np.random.default_rng(seed)
-    noise = rng.uniform(0, 255, (height // 4 + 1, width // 4 + 1)).astype(np.float32)
+    noise = rng.uniform(0, 255, (height // blob_px + 1, width // blob_px + 1)).astype(np.float32)
     big = cv2.resize(noise, (width, height), interpolation=cv2.INTER_CUBIC)
-    fine = rng.normal(0, 12, (height, width))
+    fine = rng.normal(0, fine_sigma, (height, width))
     return np.clip(big + fine, 0, 255).astype(np.uint8)
 
 
@@ -57,10 +57,10 @@ def door_pair(depth_m: float, door_wh_m: tuple[float, float] = (0.9, 2.0), seed:
     u = corners[:, 0] / depth_m * RIG.fx_px + RIG.cx_px
     v = corners[:, 1] / depth_m * RIG.fy_px + RIG.cy_px
     disparity_px = RIG.fx_px * RIG.baseline_m / depth_m
-    wide = texture(RIG.height_px, RIG.width_px + 64, seed).astype(np.float32)
+    wide = texture(RIG.height_px, RIG.width_px + 64, seed, blob_px=6, fine_sigma=3.0).astype(np.float32)
     door = np.zeros_like(wide, bool)
     door[int(round(v[0])):int(round(v[2])), int(round(u[0])):int(round(u[1]))] = True
-    wide[door] = wide[door] * 0.35 + 20  # a dark leaf that keeps some texture
+    wide = np.where(door, 10 + 0.35 * wide, 110 + 0.55 * wide)  # a dark leaf on a light wall, both textured
     wide = wide.astype(np.uint8)
     M = np.array([[1.0, 0.0, disparity_px], [0.0, 1.0, 0.0]])  # right(u) = left(u + d)
     right = cv2.warpAffine(wide, M, (wide.shape[1], wide.shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)

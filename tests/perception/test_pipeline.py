@@ -16,8 +16,10 @@ def test_chain_after_the_detector_recovers_a_door_on_a_wall(depth_m):
     result = chain.process_boxes(StereoPair(left, right, RIG), [Detection("door", 0.9, box)])
     assert not result.rejected, result.rejected
     (f,) = result.features
-    assert f.sides_from_lines == (True, True)
-    tol = 0.02 * depth_m + 0.03
+    u_true = corners[:, 0] / depth_m * RIG.fx_px + RIG.cx_px
+    assert abs(f.sides_px[0][:, 0].mean() - u_true[0]) < 1.5 and abs(f.sides_px[1][:, 0].mean() - u_true[1]) < 1.5
+    # SGBM's sub-pixel disparity is biased towards whole pixels by up to ~0.4 px on this texture: dz = z^2/(f b) dd
+    tol = 0.02 + 0.4 * depth_m**2 / (RIG.fx_px * RIG.baseline_m)
     assert np.abs(f.corners_cam - corners).max() < tol
     assert f.width_m == pytest.approx(0.9, abs=tol) and f.height_m == pytest.approx(2.0, abs=tol)
     assert set(result.timings_ms) == {"stereo", "lines", "reconstruct"}

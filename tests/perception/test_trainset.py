@@ -28,7 +28,8 @@ def test_split_keeps_the_real_test_part_out_and_is_fixed():
 
 def test_yolo_labels_map_to_door_window_neither(tmp_path: Path):
     label = tmp_path / "x.txt"
-    label.write_text("5 0.5 0.5 0.2 0.4\n0 0.25 0.25 0.1 0.1\n4 0.1 0.1 0.1 0.1\n3 0.7 0.7 0.2 0.2\n9 0.5 0.5 0.1 0.1\n")
+    label.write_text("5 0.5 0.5 0.2 0.4\n0 0.25 0.25 0.1 0.1\n4 0.1 0.1 0.1 0.1\n"
+                     "3 0.7 0.7 0.2 0.2\n9 0.5 0.5 0.1 0.1\n")
     from perception.trainset import FACADE_CLASS_MAP
 
     boxes, classes = read_yolo_labels(label, 200, 100, FACADE_CLASS_MAP)

@@ -66,6 +66,14 @@ class FakeFlight:
         msg.header.frame_id = "map"
         return msg
 
+    def imu(self, stamp_ns: int, T_cad_body: np.ndarray) -> pb.Imu:
+        """A hovering vehicle's specific force (gravity reaction, +z up in the CAD frame) in the body frame."""
+        accel_body = T_cad_body[:3, :3].T @ np.array([0.0, 0.0, 9.81])
+        msg = pb.Imu(accel_mps2=vector3(accel_body), gyro_radps=pb.Vector3())
+        msg.header.stamp_ns = stamp_ns
+        msg.header.frame_id = "body"
+        return msg
+
     def observations(self, stamp_ns: int, T_cad_body: np.ndarray) -> pb.ObservedFeatures:
         """Every vertical door/window within range_m on the body's storey (|dz| < 2 m), corners in the body frame."""
         msg = pb.ObservedFeatures()

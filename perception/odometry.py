@@ -1,0 +1,143 @@
+"""Stereo visual odometry: ORB features, sparse stereo depth, PnP-RANSAC against the last keyframe.
+
+Each frame: ORB on the left and right images; left-right matches along the same row (rectified pair) give
+3D points by eq. 2 (z = fx * baseline / disparity); the left features are matched to the reference keyframe's
+3D points and `cv2.solvePnPRansac` gives the camera's motion since that keyframe. The reference is replaced
+when tracking thins out or the camera has moved far from it. Chosen over dense RGB-D odometry (Open3D) for
+cost: no dense disparity is needed, and it does not import open3d (which needs libusb here).
+
+Frames: `odom` = the first frame's left camera (optical: x right, y down, z forward); `T_odom_cam` 4x4, metres.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from perception.calib import StereoRig
+from perception.stereo import to_gray
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    n_features: int = 2000
+    fast_threshold: int = 7  # rendered walls are low in contrast: a lower FAST threshold keeps features
+    min_disparity_px: float = 1.0
+    max_disparity_px: float = 128.0
+    row_tolerance_px: float = 1.5  # rectified: a left-right match lies on the same row
+    max_depth_m: float = 15.0
+    ratio: float = 0.8  # Lowe's ratio test for frame-to-keyframe matches
+    ransac_reprojection_px: float = 2.0
+    min_inliers: int = 15  # fewer: tracking lost for this frame
+    rekey_inliers: int = 80  # fewer: the current frame becomes the reference keyframe
+    rekey_translation_m: float = 0.6
+    rekey_rotation_rad: float = 0.35
+
+
+@dataclass
+class OdometryResult:
+    T_odom_cam: np.ndarray  # 4x4
+    inliers: int
+    tracked: bool  # False: PnP failed, the pose is the last one moved at constant velocity
+
+
+@dataclass
+class _Keyframe:
+    T_odom_cam: np.ndarray
+    descriptors: np.ndarray  # (N, 32) uint8
+    points_cam: np.ndarray  # (N, 3) metres, in this keyframe's camera frame
+
+
+class StereoOdometry:
+    """Frame-to-keyframe stereo odometry (see module doc). Feed frames in time order."""
+
+    def __init__(self, rig: StereoRig, config: OdometryConfig | None = None) -> None:
+        self.rig = rig
+        self.config = config or OdometryConfig()
+        self.orb = cv2.ORB_create(  # type: ignore[attr-defined]
+            nfeatures=self.config.n_features, fastThreshold=self.config.fast_threshold)
+        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self.K = rig.K
+        self._ref: _Keyframe | None = None
+        self._T_last = np.eye(4)
+        self._T_prev = np.eye(4)
+
+    def track(self, left: np.ndarray, right: np.ndarray) -> OdometryResult:
+        """The left camera's pose in the odometry frame after this stereo pair (uint8 grey or BGR)."""
+        kp, desc, points = self._stereo_points(to_gray(left), to_gray(right))
+        if self._ref is None:
+            self._ref = _Keyframe(np.eye(4), desc[points[:, 2] > 0], points[points[:, 2] > 0])
+            return OdometryResult(np.eye(4), len(self._ref.points_cam), True)
+        T_ref_cam, inliers = self._pnp(kp, desc)
+        if T_ref_cam is None:
+            T = self._T_last @ (np.linalg.inv(self._T_prev) @ self._T_last)  # constant velocity
+            self._advance(T)
+            self._ref = _Keyframe(T, desc[points[:, 2] > 0], points[points[:, 2] > 0])
+            return OdometryResult(T, inliers, False)
+        T = self._ref.T_odom_cam @ T_ref_cam
+        self._advance(T)
+        if self._should_rekey(T_ref_cam, inliers):
+            valid = points[:, 2] > 0
+            self._ref = _Keyframe(T, desc[valid], points[valid])
+        return OdometryResult(T, inliers, True)
+
+    def _advance(self, T: np.ndarray) -> None:
+        self._T_prev, self._T_last = self._T_last, T
+
+    def _stereo_points(self, left: np.ndarray, right: np.ndarray) -> tuple[list, np.ndarray, np.ndarray]:
+        """Left keypoints, their descriptors (N, 32) and 3D points (N, 3) in the camera frame (z = 0: no depth)."""
+        c = self.config
+        kp_l, d_l = self.orb.detectAndCompute(left, None)
+        kp_r, d_r = self.orb.detectAndCompute(right, None)
+        points = np.zeros((len(kp_l), 3))
+        if d_l is None or d_r is None:
+            return list(kp_l), np.zeros((0, 32), np.uint8) if d_l is None else d_l, points
+        uv_l = np.array([k.pt for k in kp_l])
+        uv_r = np.array([k.pt for k in kp_r])
+        for m in self.matcher.match(d_l, d_r):
+            (ul, vl), (ur, vr) = uv_l[m.queryIdx], uv_r[m.trainIdx]
+            disparity = ul - ur
+            if abs(vl - vr) > c.row_tolerance_px or not c.min_disparity_px < disparity < c.max_disparity_px:
+                continue
+            if kp_l[m.queryIdx].octave != kp_r[m.trainIdx].octave:  # same scale, or the disparity is biased
+                continue
+            z = self.rig.fx_px * self.rig.baseline_m / disparity  # eq. 2
+            if z < c.max_depth_m:
+                points[m.queryIdx] = ((ul - self.rig.cx_px) * z / self.rig.fx_px,
+                                      (vl - self.rig.cy_px) * z / self.rig.fy_px, z)
+        return list(kp_l), d_l, points
+
+    def _pnp(self, kp: list, desc: np.ndarray) -> tuple[np.ndarray | None, int]:
+        """T_ref_cam from matches of this frame's keypoints to the reference's 3D points, and the inlier count."""
+        ref = self._ref
+        assert ref is not None
+        if len(desc) < 2 or len(ref.descriptors) < 2:
+            return None, 0
+        pairs = [m for m, n in (p for p in self.matcher.knnMatch(desc, ref.descriptors, k=2) if len(p) == 2)
+                 if m.distance < self.config.ratio * n.distance]
+        if len(pairs) < self.config.min_inliers:
+            return None, len(pairs)
+        obj = np.array([ref.points_cam[m.trainIdx] for m in pairs], np.float64)
+        img = np.array([kp[m.queryIdx].pt for m in pairs], np.float64)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, self.K, None, iterationsCount=200,
+                                                 reprojectionError=self.config.ransac_reprojection_px,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inl is None or len(inl) < self.config.min_inliers:
+            return None, 0 if inl is None else len(inl)
+        idx = inl[:, 0]
+        rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], self.K, None, rvec, tvec)
+        T_cam_ref = np.eye(4)
+        T_cam_ref[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T_cam_ref[:3, 3] = tvec.ravel()
+        return np.linalg.inv(T_cam_ref), len(idx)
+
+    def _should_rekey(self, T_ref_cam: np.ndarray, inliers: int) -> bool:
+        c = self.config
+        angle = np.arccos(np.clip((np.trace(T_ref_cam[:3, :3]) - 1) / 2, -1, 1))
+        return bool(inliers < c.rekey_inliers or np.linalg.norm(T_ref_cam[:3, 3]) > c.rekey_translation_m
+                    or angle > c.rekey_rotation_rad)

@@ -1,0 +1,278 @@
+"""The reference onboard vehicle agent: subscribes to its poses and waypoints, flies, publishes its sensors.
+
+`VehicleAgent` is what runs on a drone beside the service: it takes the latest `PoseEstimate` (CAD frame) and
+`Waypoints` from Zenoh, steers towards the next waypoint using the *estimated* pose (as a real vehicle must),
+and publishes IMU, odometry and what its cameras see. In simulation the vehicle is `sim.vehicle.KinematicDrone`
+with a `DriftingOdometry`; the sensor is pluggable (`Sensor`): `TruthSensor` publishes the doors and windows in
+view from the model's ground truth, with noise and drop-outs, in the body frame (the stand-in for the
+rendering + perception chain, always labelled as such in the demo's output).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import zenoh
+
+from graph.features import BuildingModel
+from service.planning_grid import OccupancyGrid
+from service.recording import matrix_from_pose, pose_from_matrix, vector3
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from service.zenoh_io import Keys, declare_publisher
+from sim.vehicle import DriftingOdometry, KinematicDrone, yaw_of
+
+log = logging.getLogger(__name__)
+
+GRAVITY_MPS2 = 9.81
+
+
+class Sensor(Protocol):
+    """What the vehicle's sensor produces at its true pose: messages and the input key (leaf) each goes on."""
+
+    label: str
+
+    def measure(self, stamp_ns: int, T_cad_body: np.ndarray) -> list[tuple[str, Any]]: ...
+
+    def close(self) -> None: ...
+
+
+class TruthSensor:
+    """Doors/windows in the camera's field of view, in range and in line of sight through the model's walls,
+    from ground truth: corners in the body frame with noise sigma = a + b x range (m); a fraction dropped."""
+
+    label = "ground-truth observations with noise (rendering + perception not in the loop)"
+
+    def __init__(self, model: BuildingModel, grid: OccupancyGrid, seed: int, range_m: float = 7.0,
+                 half_fov_rad: float = np.radians(33.0), noise_m: tuple[float, float] = (0.02, 0.005),
+                 drop_fraction: float = 0.1) -> None:
+        self.features = [f for f in model.features if f.orientation == "vertical"]
+        self.centroids = np.array([f.centroid_cad for f in self.features])
+        self.grid = grid
+        self.rng = np.random.default_rng([seed, 0x5E4])
+        self.range_m = range_m
+        self.half_fov_rad = half_fov_rad
+        self.noise_m = noise_m
+        self.drop_fraction = drop_fraction
+
+    def visible(self, T_cad_body: np.ndarray) -> list[int]:
+        """Indices of features in range, in the forward field of view, same storey, with a free line of sight."""
+        eye = T_cad_body[:3, 3]
+        d = self.centroids - eye
+        dist = np.linalg.norm(d[:, :2], axis=1)
+        bearing = np.arctan2(d[:, 1], d[:, 0]) - yaw_of(T_cad_body)
+        bearing = np.abs((bearing + np.pi) % (2 * np.pi) - np.pi)
+        near = np.nonzero((dist < self.range_m) & (dist > 0.5) & (bearing < self.half_fov_rad)
+                          & (np.abs(d[:, 2]) < 1.5))[0]
+        free = ~self.grid.occupied
+        out = []
+        for k in near:
+            end = self.centroids[k] - 0.3 * d[k] / max(float(np.linalg.norm(d[k])), 1e-9)  # stop short of its wall
+            if ray_free(free, self.grid.cell_of(eye), self.grid.cell_of(end)):
+                out.append(int(k))
+        return out
+
+    def measure(self, stamp_ns: int, T_cad_body: np.ndarray) -> list[tuple[str, Any]]:
+        return [("observations", self.observe(stamp_ns, T_cad_body))]
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def observe(self, stamp_ns: int, T_cad_body: np.ndarray) -> pb.ObservedFeatures:
+        msg = pb.ObservedFeatures()
+        msg.header.stamp_ns = stamp_ns
+        msg.header.frame_id = "body"
+        T_body_cad = np.linalg.inv(T_cad_body)
+        for k in self.visible(T_cad_body):
+            if self.rng.random() < self.drop_fraction:
+                continue
+            f = self.features[k]
+            rng_m = float(np.linalg.norm(f.centroid_cad - T_cad_body[:3, 3]))
+            corners = f.corners_cad @ T_body_cad[:3, :3].T + T_body_cad[:3, 3]
+            corners = corners + self.rng.normal(0.0, self.noise_m[0] + self.noise_m[1] * rng_m, corners.shape)
+            msg.features.add(type=f.type, id=f.id, score=1.0).corners.extend(vector3(c) for c in corners)
+        return msg
+
+
+class RenderedStereoCamera:
+    """The simulator's stereo camera (sim/): renders the building at the true pose and publishes the frames;
+    the service's perception chain finds the doors and windows in them."""
+
+    label = "rendered stereo frames -> the service's perception chain"
+
+    def __init__(self, building: Path, seed: int) -> None:
+        from sim.simulator import SimulationParams, Simulator
+
+        self.sim = Simulator(building, SimulationParams(seed=seed))
+        cam = self.sim.params.camera
+        self.info = pb.CameraInfo(width=cam.width, height=cam.height, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy,
+                                  baseline_m=cam.baseline_m, T_body_cam=pose_from_matrix(self.sim.T_body_cam))
+        self._k = 0
+
+    def measure(self, stamp_ns: int, T_cad_body: np.ndarray) -> list[tuple[str, Any]]:
+        from service.recording import encode_image
+
+        self._k += 1
+        left, right = self.sim.renderer.render_stereo(T_cad_body @ self.sim.T_body_cam, self.sim.lighting,
+                                                      frame_seed=float(self._k))
+        frame = pb.StereoFrame(camera_id="front", left=encode_image(left.image_bgr), right=encode_image(right),
+                               info=self.info)
+        frame.header.stamp_ns = stamp_ns
+        frame.header.frame_id = "cam_left"
+        return [("stereo", frame)]
+
+    def close(self) -> None:
+        self.sim.close()
+
+
+def ray_free(free: np.ndarray, a_rc: tuple[int, int], b_rc: tuple[int, int]) -> bool:
+    """True when the thin segment between two cell centres crosses only free cells (sampled at 1/4 cell)."""
+    a, b = np.asarray(a_rc, float), np.asarray(b_rc, float)
+    n = max(2, int(np.ceil(np.abs(b - a).max() * 4)) + 1)
+    cells = np.unique(np.floor(a + np.linspace(0.0, 1.0, n)[:, None] * (b - a) + 0.5).astype(int), axis=0)
+    return bool(free[cells[:, 0], cells[:, 1]].all())
+
+
+@dataclass(frozen=True)
+class FollowerParams:
+    cruise_mps: float = 1.0
+    reach_m: float = 0.25  # an intermediate waypoint counts as reached within this
+    slow_radius_m: float = 1.0  # decelerate linearly within this of the final waypoint
+    yaw_gain: float = 1.5
+    explore_yaw_rate_radps: float = 0.7
+
+
+class WaypointFollower:
+    """Body-frame velocity and yaw-rate commands from the estimated pose toward the next waypoint (CAD)."""
+
+    def __init__(self, params: FollowerParams | None = None) -> None:
+        self.params = params or FollowerParams()
+        self.waypoints_cad = np.zeros((0, 3))
+        self.index = 0
+
+    def set_waypoints(self, points_cad: np.ndarray) -> None:
+        """New plan (from the current pose): follow it from its first point beyond reach."""
+        self.waypoints_cad = np.asarray(points_cad, float).reshape(-1, 3)
+        self.index = min(1, len(self.waypoints_cad) - 1) if len(self.waypoints_cad) else 0
+
+    def final_cad(self) -> np.ndarray | None:
+        return self.waypoints_cad[-1] if len(self.waypoints_cad) else None
+
+    def command(self, T_cad_body_est: np.ndarray) -> tuple[np.ndarray, float]:
+        """(velocity_body (3,), yaw rate) to fly toward the current waypoint; hover with no waypoints."""
+        p = self.params
+        if not len(self.waypoints_cad):
+            return np.zeros(3), 0.0
+        position = T_cad_body_est[:3, 3]
+        while self.index < len(self.waypoints_cad) - 1 and \
+                np.linalg.norm((self.waypoints_cad[self.index] - position)[:2]) < p.reach_m:
+            self.index += 1
+        target = self.waypoints_cad[self.index]
+        delta = target - position
+        dist = float(np.linalg.norm(delta))
+        last = self.index == len(self.waypoints_cad) - 1
+        speed = p.cruise_mps * (min(1.0, dist / p.slow_radius_m) if last else 1.0)
+        v_cad = delta / max(dist, 1e-9) * speed
+        heading_error = np.arctan2(delta[1], delta[0]) - yaw_of(T_cad_body_est)
+        heading_error = (heading_error + np.pi) % (2 * np.pi) - np.pi
+        yaw_rate = p.yaw_gain * heading_error if dist > 0.3 else 0.0
+        return T_cad_body_est[:3, :3].T @ v_cad, float(yaw_rate)
+
+    def explore(self) -> tuple[np.ndarray, float]:
+        """Before localization: turn on the spot to look around."""
+        return np.zeros(3), self.params.explore_yaw_rate_radps
+
+
+class VehicleAgent:
+    """The onboard side of the loop (see module doc). `tick(dt)` advances the vehicle by one control step."""
+
+    def __init__(self, session: zenoh.Session, vehicle: str, drone: KinematicDrone, odometry: DriftingOdometry,
+                 sensor: Sensor, follower: WaypointFollower | None = None, sensor_period_s: float = 0.1,
+                 lockstep_timeout_s: float = 0.0) -> None:
+        self.keys = Keys(vehicle)
+        self.drone = drone
+        self.odometry = odometry
+        self.sensor = sensor
+        self.follower = follower or WaypointFollower()
+        self.sensor_period_s = sensor_period_s
+        self.lockstep_timeout_s = lockstep_timeout_s  # > 0: after a measurement, wait for its pose (slow sensors)
+        self.stamp_ns = 0
+        self._next_sensor_ns = 0
+        self._lock = threading.Lock()
+        self.pose: pb.PoseEstimate | None = None
+        self.plans = 0
+        self._pubs = {name: declare_publisher(session, getattr(self.keys, name))
+                      for name in ("imu", "odometry", "observations", "stereo", "goal")}
+        self._subs = [session.declare_subscriber(self.keys.pose, self._on_pose),
+                      session.declare_subscriber(self.keys.waypoints, self._on_waypoints)]
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        msg = pb.PoseEstimate.FromString(sample.payload.to_bytes())
+        with self._lock:
+            self.pose = msg
+
+    def _on_waypoints(self, sample: zenoh.Sample) -> None:
+        msg = pb.Waypoints.FromString(sample.payload.to_bytes())
+        if msg.error or not msg.points_cad:
+            log.warning("no waypoints: %s", msg.error)
+            return
+        with self._lock:
+            self.follower.set_waypoints(np.array([[p.x, p.y, p.z] for p in msg.points_cad]))
+            self.plans += 1
+
+    def localized_pose(self) -> np.ndarray | None:
+        """The latest estimated T_cad_body when the service says LOCALIZED (or DEGRADED), else None."""
+        with self._lock:
+            pose = self.pose
+        if pose is None or pose.status not in (pb.PoseEstimate.LOCALIZED, pb.PoseEstimate.DEGRADED) \
+                or not pose.HasField("T_cad_body"):
+            return None
+        return matrix_from_pose(pose.T_cad_body)
+
+    def send_goal(self, goal: pb.Goal) -> None:
+        goal.header.stamp_ns = self.stamp_ns
+        self._pubs["goal"].put(goal.SerializeToString())
+
+    def tick(self, dt_s: float) -> None:
+        """Control from the estimate, move the true vehicle, publish IMU, odometry and (periodically) sightings."""
+        T_est = self.localized_pose()
+        with self._lock:
+            v_body, yaw_rate = self.follower.explore() if T_est is None else self.follower.command(T_est)
+        self.drone.step(dt_s, v_body, yaw_rate)
+        self.stamp_ns += int(round(dt_s * 1e9))
+        T_true = self.drone.T_cad_body
+        imu = pb.Imu(accel_mps2=vector3(T_true[:3, :3].T @ np.array([0.0, 0.0, GRAVITY_MPS2])),
+                     gyro_radps=pb.Vector3(z=yaw_rate))
+        imu.header.stamp_ns = self.stamp_ns
+        imu.header.frame_id = "body"
+        self._pubs["imu"].put(imu.SerializeToString())
+        odo = pb.Odometry(T_map_body=pose_from_matrix(self.odometry.update(T_true)))
+        odo.header.stamp_ns = self.stamp_ns
+        odo.header.frame_id = "map"
+        self._pubs["odometry"].put(odo.SerializeToString())
+        if self.stamp_ns >= self._next_sensor_ns:
+            self._next_sensor_ns = self.stamp_ns + int(self.sensor_period_s * 1e9)
+            for key, message in self.sensor.measure(self.stamp_ns, T_true):
+                self._pubs[key].put(message.SerializeToString())
+            if self.lockstep_timeout_s > 0:
+                self._wait_for_pose(self.stamp_ns, self.lockstep_timeout_s)
+
+    def _wait_for_pose(self, stamp_ns: int, timeout_s: float) -> None:
+        """Simulated time waits for the service to answer this measurement (a sensor slower than real time)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                if self.pose is not None and self.pose.header.stamp_ns >= stamp_ns:
+                    return
+            time.sleep(0.002)
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+        for pub in self._pubs.values():
+            pub.undeclare()

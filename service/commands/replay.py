@@ -1,0 +1,73 @@
+"""`macroloc replay FLIGHT.mcap --building BUILDING --json [--report DIR] [--observations truth|perception]
+[--map STORED] [--save-map OUT]`: the whole chain offline, as fast as it runs, scored against ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def replay(
+        flight: Path = typer.Argument(..., help="Recorded flight (MCAP: /stereo, /imu, /ground_truth)."),
+        building: Path = typer.Option(..., "--building", "-b", help="IFC file (or mesh) of the building flown in."),
+        observations: str = typer.Option("truth", "--observations", help="truth: ground-truth doors/windows and "
+                                         "odometry with realistic noise and drift (the graph alone); perception: "
+                                         "the perception chain and visual odometry on the recorded images."),
+        stored_map: Path | None = typer.Option(None, "--map", help="A stored map (from --save-map) of this "
+                                               "building to re-localize into from the first frames."),
+        save_map: Path | None = typer.Option(None, "--save-map", help="Write this flight's map here at the end."),
+        report: Path | None = typer.Option(None, "--report", help="Write a top-down picture, per-frame figures "
+                                           "and result.json into this folder."),
+        storey: str | None = typer.Option(None, "--storey", help="Restrict registration to this storey."),
+        seed: int = typer.Option(0, "--seed", help="Seed of the noise added to truth observations."),
+        json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
+        over_zenoh: bool = typer.Option(False, "--over-zenoh", help="Publish the recording to a running `macroloc "
+                                        "serve` on its Zenoh keys and score the poses it sends back."),
+        connect: list[str] = typer.Option(None, "--connect", help="With --over-zenoh: the service's Zenoh "
+                                          "endpoint (repeatable; default tcp/127.0.0.1:7447)."),
+        vehicle: str = typer.Option("drone1", "--vehicle", help="With --over-zenoh: the service's vehicle name."),
+        speed: float = typer.Option(1.0, "--speed", help="With --over-zenoh: 1 = real time, 2 = twice as fast, "
+                                    "0 = as fast as possible."),
+    ) -> None:
+        """Replay a recorded flight through the localizer and score it against ground truth.
+
+        Prints frames, processing_fps, localized, time_to_localize_s (flight time of the first `localized`),
+        ape_rmse_m / ape_max_m (CAD frame, no alignment, frames after localization), rpe_1s_rmse_m,
+        wrong_localizations (entries into `localized` more than 1 m or 10 deg off) and status_final.
+        """
+        from graph.bim import load_building
+        from graph.errors import UserInputError
+        from graph.mapstore import StoredMap
+        from service.commands._io import existing_file, print_json
+        from service.replay import replay as run_replay
+        from service.replay_sources import ObservationSource, PerceptionSource, TruthSource
+
+        existing_file(flight, "recording")
+        if observations not in ("truth", "perception"):
+            raise UserInputError(f"--observations must be truth or perception, not {observations!r}")
+        if over_zenoh:  # the service perceives the frames itself unless truth observations are sent along
+            from service.replay_zenoh import replay_command
+
+            replay_command(flight, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
+                           vehicle, speed, json_out)
+            return
+        model = load_building(building)
+        stored = StoredMap.load(stored_map, model) if stored_map is not None else None
+        source: ObservationSource = TruthSource(seed=seed) if observations == "truth" else PerceptionSource()
+        result = run_replay(flight, model, source, stored=stored, storey_hint=storey)
+        if save_map is not None:
+            result.localizer.stored_map().save(save_map)
+        if report is not None:
+            from service.replay_report import write_report
+
+            write_report(result, model, report)
+        doc = result.to_json()
+        if json_out:
+            print_json(doc)
+            return
+        from rich.console import Console
+
+        Console().print(doc)

@@ -1,0 +1,245 @@
+"""`macroloc demo`: the service and a simulated vehicle in a bundled real building, the loop closed over Zenoh.
+
+The service runs on one Zenoh session, the vehicle agent on another, connected over loopback TCP: the agent
+takes off at a seeded room of the ground floor, turns on the spot to look around until the service says
+LOCALIZED, sends a goal (an IfcSpace by name), follows the service's waypoints using the service's pose, and
+hovers at the goal. Reported, as in the paper's Table 2: localization time (simulated seconds from take-off to
+the first LOCALIZED pose), error at the goal (true position vs the goal point, m) and that error as a
+percentage of the flown path's length. A picture of the flight is written.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from graph.errors import UserInputError
+from service.config import MacrolocConfig, load_config
+from service.planning import GoalSpec, Planner, PlanningError
+from service.planning_grid import Space
+
+log = logging.getLogger(__name__)
+
+DEFAULT_BUILDING = Path(__file__).resolve().parents[1] / "data" / "buildings" / "office_a.ifc"
+
+
+@dataclass(frozen=True)
+class DemoParams:
+    seed: int = 0
+    rate_hz: float = 30.0  # control, IMU and odometry rate (simulated)
+    speedup: float = 1.0  # simulated seconds per wall-clock second
+    timeout_s: float = 150.0  # simulated
+    min_goal_distance_m: float = 10.0
+    max_goal_distance_m: float = 25.0
+    observations: str = "truth"  # truth: noisy ground truth; perception: rendered frames -> perception chain
+    camera_rate_hz: float = 5.0  # perception mode: frames per simulated second (the loop waits for each pose)
+
+
+@dataclass
+class DemoResult:
+    seed: int
+    localized: bool
+    reached: bool
+    localization_time_s: float
+    goal_error_m: float
+    path_length_m: float
+    goal_error_pct: float
+    start: str
+    goal: str
+    observations: str
+    wall_time_s: float
+    true_xy: list[list[float]] = field(default_factory=list, repr=False)
+    estimated_xy: list[list[float]] = field(default_factory=list, repr=False)
+    waypoints_xy: list[list[float]] = field(default_factory=list, repr=False)
+    goal_xyz: list[float] = field(default_factory=list, repr=False)
+
+    def table_row(self) -> dict[str, float]:
+        return {"localization_time_s": self.localization_time_s, "goal_error_m": self.goal_error_m,
+                "path_length_m": self.path_length_m, "goal_error_pct": self.goal_error_pct}
+
+
+def choose_route(planner: Planner, seed: int, params: DemoParams) -> tuple[str, Space, np.ndarray]:
+    """A seeded take-off point in front of a door of the lowest storey, from where a turn on the spot shows
+    several doors and windows, and a goal room 10-25 m away that the planner connects to it."""
+    from service.agent import TruthSensor
+    from sim.vehicle import level_pose
+
+    rng = np.random.default_rng(seed)
+    floor = min(planner.model.storey_elevations_m.values(), default=0.0)
+    z = floor + planner.flight_height_m
+    grid, free = planner.free_cells(z)
+    sensor = TruthSensor(planner.model, grid, seed, drop_fraction=0.0)
+    doors = [f for f in planner.model.features if f.type == "door" and abs(f.centroid_cad[2] - floor) < 2.5]
+    spaces = [s for s in planner.solids.spaces if abs(s.floor_z_cad - floor) < 0.5 and s.name]
+    for k in rng.permutation(len(doors))[:150]:
+        door = doors[k]
+        xyz = np.r_[door.centroid_cad[:2] + rng.choice([-1.2, 1.2]) * door.normal_cad[:2], z]
+        if not free[grid.cell_of(xyz)]:
+            continue
+        seen = set().union(*(sensor.visible(level_pose(xyz, yaw)) for yaw in np.linspace(-np.pi, np.pi, 12)))
+        if len(seen) < 5:
+            continue
+        for j in rng.permutation(len(spaces)):
+            goal = spaces[j]
+            d = float(np.hypot(*(np.subtract(goal.centroid_xy_cad, xyz[:2]))))
+            if not params.min_goal_distance_m <= d <= params.max_goal_distance_m:
+                continue
+            try:
+                planner.plan(xyz, GoalSpec(space_name=goal.name))
+            except PlanningError:
+                continue
+            return f"in front of door {door.id}", goal, xyz
+    raise UserInputError("no take-off point with a view and a connected goal room found in this building")
+
+
+def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None,
+             cfg: MacrolocConfig | None = None) -> DemoResult:
+    """One closed-loop flight; the service and the agent each on their own Zenoh session (loopback)."""
+    import zenoh
+
+    from service.agent import RenderedStereoCamera, Sensor, TruthSensor, VehicleAgent
+    from service.serve import build_service
+    from service.state import NullMapStore
+    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from service.zenoh_io import session_config
+    from sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
+
+    params = params or DemoParams()
+    wall_start = time.monotonic()
+    port = _free_port()
+    perceive = params.observations == "perception"
+    cfg = cfg or load_config(None, service={"building": building, "vehicle": "demo", "status_period_s": 1.0,
+                                            "perception": perceive},
+                             zenoh={"listen": [f"tcp/127.0.0.1:{port}"]})
+    rng = np.random.default_rng([params.seed, 0xDE40])
+    stop = threading.Event()
+    with zenoh.open(session_config(cfg.zenoh)) as service_session:
+        service = build_service(cfg, service_session, NullMapStore())
+        start, goal, start_xyz = choose_route(service.planner, params.seed, params)
+        thread = threading.Thread(target=service.run, args=(stop,), name="service", daemon=True)
+        thread.start()
+        service.ready.wait(60.0)
+        agent_cfg = cfg.zenoh.model_copy(update={"listen": [], "connect": [f"tcp/127.0.0.1:{port}"]})
+        try:
+            with zenoh.open(session_config(agent_cfg)) as agent_session:
+                T0 = level_pose(start_xyz, rng.uniform(-np.pi, np.pi))
+                T_cad_odom = level_pose(np.r_[rng.uniform(-20, 20, 2), 0.0], rng.uniform(-np.pi, np.pi))
+                grid, _ = service.planner.grid(start_xyz[2])
+                sensor: Sensor = RenderedStereoCamera(building, params.seed) if perceive else \
+                    TruthSensor(service.planner.model, grid, params.seed)
+                agent = VehicleAgent(agent_session, "demo", KinematicDrone(T0),
+                                     DriftingOdometry(T_cad_odom, T0, params.seed), sensor,
+                                     sensor_period_s=1.0 / params.camera_rate_hz if perceive else 0.1,
+                                     lockstep_timeout_s=5.0 if perceive else 0.0)
+                result = _fly(agent, goal, params, pb)
+                agent.close()
+                sensor.close()
+        finally:
+            stop.set()
+            thread.join(timeout=30.0)
+    result.seed, result.start, result.goal = params.seed, start, f"space {goal.name} ({goal.long_name})"
+    result.observations = sensor.label
+    result.wall_time_s = time.monotonic() - wall_start
+    return result
+
+
+def _fly(agent, goal, params: DemoParams, pb) -> DemoResult:  # noqa: ANN001 - agent, Space, module
+    dt = 1.0 / params.rate_hz
+    t_sim, t_loc, goal_sent, settled = 0.0, None, False, 0
+    true_xy, est_xy = [], []
+    wall0 = time.monotonic()
+    while t_sim < params.timeout_s:
+        agent.tick(dt)
+        t_sim += dt
+        T_est = agent.localized_pose()
+        true_xy.append(agent.drone.T_cad_body[:2, 3].tolist())
+        if T_est is not None:
+            est_xy.append(T_est[:2, 3].tolist())
+            if t_loc is None:
+                t_loc = t_sim
+                log.info("localized after %.2f s", t_loc)
+            if not goal_sent:
+                agent.send_goal(pb.Goal(space_name=goal.name))
+                goal_sent = True
+            final = agent.follower.final_cad()
+            near = final is not None and np.linalg.norm(final - T_est[:3, 3]) < 0.05 and \
+                np.linalg.norm(agent.drone.velocity_cad) < 0.05
+            settled = settled + 1 if near else 0
+            if settled >= int(0.5 * params.rate_hz):
+                break
+        delay = wall0 + t_sim / params.speedup - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)  # real-time pacing of the simulated vehicle
+    final = agent.follower.final_cad()
+    reached = settled > 0 and final is not None
+    err = float(np.linalg.norm(agent.drone.T_cad_body[:3, 3] - final)) if final is not None else float("nan")
+    length = agent.drone.distance_m
+    return DemoResult(0, t_loc is not None, reached, t_loc if t_loc is not None else float("nan"), err, length,
+                      100.0 * err / length if length > 0 else float("nan"), "", "", "", 0.0, true_xy, est_xy,
+                      agent.follower.waypoints_cad[:, :2].tolist(), [] if final is None else final.tolist())
+
+
+def plot_flight(result: DemoResult, planner: Planner, path: Path) -> Path:
+    """Top view: the model's cross-section at flight height, true and estimated tracks, waypoints, goal."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    z = (result.goal_xyz[2] if result.goal_xyz else planner.flight_height_m)
+    grid, _ = planner.grid(z)
+    h, w = grid.shape
+    x0, y0 = grid.origin_xy_cad
+    fig, ax = plt.subplots(figsize=(10, 8))
+    ax.imshow(grid.occupied, origin="lower", cmap="Greys", extent=(x0, x0 + w * grid.cell_m, y0, y0 + h * grid.cell_m))
+    true_xy, est_xy = np.array(result.true_xy).reshape(-1, 2), np.array(result.estimated_xy).reshape(-1, 2)
+    ax.plot(true_xy[:, 0], true_xy[:, 1], "-", color="tab:blue", lw=1.5, label="true flight")
+    if len(est_xy):
+        ax.plot(est_xy[:, 0], est_xy[:, 1], "--", color="tab:orange", lw=1.0, label="service's estimate")
+    wp = np.array(result.waypoints_xy).reshape(-1, 2)
+    if len(wp):
+        ax.plot(wp[:, 0], wp[:, 1], "o", color="tab:green", ms=4, label="waypoints (last plan)")
+    ax.plot(*true_xy[0], "s", color="tab:blue", ms=8, label=f"take-off ({result.start})")
+    if result.goal_xyz:
+        ax.plot(result.goal_xyz[0], result.goal_xyz[1], "*", color="tab:red", ms=14, label=f"goal ({result.goal})")
+    pad = 4.0
+    lo, hi = true_xy.min(axis=0) - pad, true_xy.max(axis=0) + pad
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m, CAD)")
+    ax.set_ylabel("y (m, CAD)")
+    ax.set_title(f"seed {result.seed}: localized after {result.localization_time_s:.2f} s, "
+                 f"error at goal {result.goal_error_m:.3f} m ({result.goal_error_pct:.2f} % of "
+                 f"{result.path_length_m:.1f} m)")
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def result_json(result: DemoResult) -> dict:
+    doc = asdict(result)
+    for key in ("true_xy", "estimated_xy", "waypoints_xy"):
+        doc.pop(key)
+    return doc
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def default_picture_path() -> Path:
+    return Path(tempfile.gettempdir()) / "macroloc-demo.png"

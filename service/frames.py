@@ -1,0 +1,58 @@
+"""Stereo frames to sightings inside the service: the perception chain behind the `FramePipeline` seam.
+
+`PerceptionPipeline` decodes a wire `StereoFrame`, runs `perception.pipeline.Perception` (detector -> LSD ->
+SGBM -> 3D corners) and returns the doors/windows with corners in the body frame, using the frame's own
+CameraInfo (intrinsics, baseline, T_body_cam). `make_pipeline` picks it when the detector's weights load, and
+the decode-only pipeline otherwise (logged).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from graph.localizer import Sighting
+from service.recording import decode_image, matrix_from_pose
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+log = logging.getLogger(__name__)
+
+
+class PerceptionPipeline:
+    """StereoFrame -> sightings (corners in the body frame, metres) through the perception chain."""
+
+    def __init__(self, perception, default_T_body_cam: np.ndarray) -> None:  # noqa: ANN001 - perception.Perception
+        self.perception = perception
+        self.default_T_body_cam = default_T_body_cam
+
+    def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
+        from perception.calib import StereoRig
+        from perception.pipeline import StereoPair
+
+        info = frame.info
+        left, right = decode_image(frame.left), decode_image(frame.right)
+        rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
+        T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam
+        result = self.perception.process(StereoPair(left, right, rig, stamp_ns=frame.header.stamp_ns))
+        return [Sighting(f.type, f.corners_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3])
+                for f in result.features]
+
+
+def forward_T_body_cam(forward_m: float = 0.10, left_m: float = 0.06) -> np.ndarray:
+    """A forward-looking optical frame in the body frame: cam z = body x, cam x = -body y, cam y = -body z."""
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
+    T[:3, 3] = (forward_m, left_m, 0.0)
+    return T
+
+
+def make_perception_pipeline(threads: int = 2) -> PerceptionPipeline | None:
+    """The perception chain with its shipped detector, or None when it cannot load (logged)."""
+    try:
+        from perception.pipeline import Perception
+
+        return PerceptionPipeline(Perception.create(threads=threads), forward_T_body_cam())
+    except Exception as exc:  # missing weights or runtime: the service still runs, without perception
+        log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)
+        return None

@@ -1,0 +1,76 @@
+"""Pictures of a replay: the top-down view (model, true and estimated trajectories, matched features) and
+the per-frame figures (error, status, sightings, iSAM2 update time), plus result.json."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from graph.features import BuildingModel
+from service.replay import ReplayResult
+
+STATUS_LEVEL = {"exploring": 0, "ambiguous": 1, "localized": 2, "degraded": 3, "lost": 4}
+
+
+def write_report(result: ReplayResult, model: BuildingModel, out_dir: Path) -> list[Path]:
+    """Write topdown.png, frames.png and result.json into `out_dir`; returns their paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = [_topdown(result, model, out_dir / "topdown.png"), _frames(result, out_dir / "frames.png")]
+    doc = out_dir / "result.json"
+    doc.write_text(json.dumps(result.to_json(), indent=2))
+    return [*paths, doc]
+
+
+def _topdown(result: ReplayResult, model: BuildingModel, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    tr = result.trace
+    true_xyz = np.array([T[:3, 3] for T in tr.T_true])
+    z = np.nanmedian(true_xyz[:, 2]) if np.isfinite(true_xyz).any() else 0.0
+    feats = [f for f in model.features if abs(f.centroid_cad[2] - z) < 2.5] or model.features
+    fig, ax = plt.subplots(figsize=(10, 8))
+    for kind, colour in (("door", "tab:red"), ("window", "tab:blue")):
+        xy = np.array([f.centroid_cad[:2] for f in feats if f.type == kind]).reshape(-1, 2)
+        ax.scatter(xy[:, 0], xy[:, 1], s=14, c=colour, marker="s" if kind == "window" else "o", label=kind)
+    matched = {f.id: f for f in model.features}
+    linked = np.array([matched[fid].centroid_cad[:2] for fid in result.localizer.links.values() if fid in matched])
+    if len(linked):
+        ax.scatter(linked[:, 0], linked[:, 1], s=90, facecolors="none", edgecolors="tab:green", label="matched")
+    ax.plot(true_xyz[:, 0], true_xyz[:, 1], "k-", lw=1.2, label="truth")
+    est = np.array([T[:3, 3] if T is not None else [np.nan] * 3 for T in tr.T_est])
+    ax.plot(est[:, 0], est[:, 1], "-", color="tab:orange", lw=1.0, label="estimate (CAD frame)")
+    ax.set_aspect("equal")
+    ax.legend(loc="best", fontsize=8)
+    j = result.to_json()
+    ax.set_title(f"localized after {j['time_to_localize_s']} s, APE RMSE {j['ape_rmse_m']} m")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _frames(result: ReplayResult, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    tr = result.trace
+    t = np.array(tr.t_s)
+    err = np.array([np.linalg.norm(E[:3, 3] - T[:3, 3]) if E is not None else np.nan
+                    for E, T in zip(tr.T_est, tr.T_true, strict=True)])
+    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True)
+    axes[0].plot(t, err)
+    axes[0].set_ylabel("position error (m)")
+    axes[1].step(t, [STATUS_LEVEL.get(s, -1) for s in tr.status], where="post")
+    axes[1].set_yticks(list(STATUS_LEVEL.values()), list(STATUS_LEVEL.keys()))
+    axes[2].plot(t, tr.n_sightings, ".", ms=2)
+    axes[2].set_ylabel("sightings")
+    kf = np.array(tr.keyframe)
+    axes[3].plot(t[kf], np.array(tr.update_ms)[kf], ".", ms=2)
+    axes[3].set_ylabel("iSAM2 update (ms)")
+    axes[3].set_xlabel("flight time (s)")
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -1,0 +1,161 @@
+"""`macroloc replay FLIGHT.mcap --over-zenoh`: play a recording into a running service, as a vehicle would.
+
+Each recorded frame goes out on the service's input keys at the recording's pace (times `speed`; 0 = as fast
+as possible): the IMU samples since the previous frame, the stereo frame, and, with an `ObservationSource`
+(ground truth with realistic errors: the service's perception is then not needed), the odometry and the
+doors/windows seen (body frame) with the frame's stamp. The service's poses are collected and scored against
+the recording's ground truth (CAD frame, no alignment), with the frame-in -> pose-out latency.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from graph.errors import UserInputError
+from service.config import ZenohConfig
+from service.recording import FlightFrame, matrix_from_pose, pose_from_matrix, read_flight, vector3
+from service.replay_sources import ObservationSource
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from service.zenoh_io import Keys, declare_publisher, session_config
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ZenohReplayResult:
+    frames: int = 0
+    poses: int = 0
+    duration_s: float = 0.0  # wall clock of the playback
+    localized: bool = False
+    time_to_localize_s: float | None = None  # recording time of the first LOCALIZED pose
+    ape_rmse_m: float | None = None  # localized poses vs ground truth, CAD frame, no alignment
+    latency_ms: dict[str, float] = field(default_factory=dict)  # frame published -> its pose received
+
+    def to_json(self) -> dict:
+        return {"frames": self.frames, "poses": self.poses, "duration_s": round(self.duration_s, 3),
+                "localized": self.localized, "time_to_localize_s": self.time_to_localize_s,
+                "ape_rmse_m": self.ape_rmse_m, "latency_ms": {k: round(v, 3) for k, v in self.latency_ms.items()}}
+
+
+class PoseCollector:
+    """The service's poses by stamp, with the wall time each arrived."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.poses: dict[int, tuple[pb.PoseEstimate, float]] = {}
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(key, self._on_pose)
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        msg = pb.PoseEstimate.FromString(sample.payload.to_bytes())
+        with self._lock:
+            self.poses[msg.header.stamp_ns] = (msg, time.perf_counter())
+
+    def has(self, stamp_ns: int) -> bool:
+        with self._lock:
+            return stamp_ns in self.poses
+
+
+def wait_for_service(session: zenoh.Session, keys: Keys, timeout_s: float) -> None:
+    """Block until the service's liveliness token is visible, or raise UserInputError."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if any(r.ok is not None for r in session.liveliness().get(keys.alive, timeout=1.0)):
+            return
+    raise UserInputError(f"no macroloc service answers on {keys.alive} (is `macroloc serve` running and "
+                         "reachable with these Zenoh settings?)")
+
+
+def _observations(stamp_ns: int, sightings: list) -> pb.ObservedFeatures:  # noqa: ANN001 - list[Sighting]
+    msg = pb.ObservedFeatures()
+    msg.header.stamp_ns = stamp_ns
+    msg.header.frame_id = "body"
+    for s in sightings:
+        msg.features.add(type=s.type).corners.extend(vector3(c) for c in s.corners_body)
+    return msg
+
+
+def replay_over_zenoh(flight: Path, zenoh_cfg: ZenohConfig, vehicle: str, source: ObservationSource | None,
+                      speed: float = 1.0, wait_s: float = 30.0) -> ZenohReplayResult:
+    """Publish the recording to the service of `vehicle` and score what it sends back (see module doc)."""
+    keys = Keys(vehicle)
+    result = ZenohReplayResult()
+    sent_at: dict[int, float] = {}
+    truth: dict[int, np.ndarray] = {}
+    with zenoh.open(session_config(zenoh_cfg)) as session:
+        wait_for_service(session, keys, wait_s)
+        pubs = {name: declare_publisher(session, getattr(keys, name), express=True)
+                for name in ("stereo", "imu", "odometry", "observations")}
+        poses = PoseCollector(session, keys.pose)
+        start_wall, first_stamp = time.perf_counter(), None
+        frame: FlightFrame
+        for frame in read_flight(flight):
+            first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
+            if speed > 0:
+                delay = start_wall + (frame.stamp_ns - first_stamp) * 1e-9 / speed - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)  # the recording's pace
+            for imu in frame.imu:
+                pubs["imu"].put(imu.SerializeToString())
+            if source is not None:
+                inputs = source(frame)
+                odo = pb.Odometry(T_map_body=pose_from_matrix(inputs.T_odom_body))
+                odo.header.stamp_ns, odo.header.frame_id = frame.stamp_ns, "map"
+                pubs["odometry"].put(odo.SerializeToString())
+                pubs["observations"].put(_observations(frame.stamp_ns, inputs.sightings).SerializeToString())
+            sent_at[frame.stamp_ns] = time.perf_counter()
+            pubs["stereo"].put(frame.stereo.SerializeToString())
+            if frame.ground_truth is not None:
+                truth[frame.stamp_ns] = matrix_from_pose(frame.ground_truth.T_cad_body)
+            result.frames += 1
+        last = max(sent_at, default=None)
+        deadline = time.monotonic() + 10.0
+        while last is not None and not poses.has(last) and time.monotonic() < deadline:
+            time.sleep(0.01)  # the last frame's pose, or give up after 10 s
+        result.duration_s = time.perf_counter() - start_wall
+        for pub in pubs.values():
+            pub.undeclare()
+    _score(result, poses.poses, sent_at, truth, first_stamp or 0)
+    return result
+
+
+def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, float]], sent_at: dict[int, float],
+           truth: dict[int, np.ndarray], first_stamp: int) -> None:
+    result.poses = len(poses)
+    latencies = [(arrived - sent_at[stamp]) * 1e3 for stamp, (_, arrived) in poses.items() if stamp in sent_at]
+    if latencies:
+        result.latency_ms = {"p50": float(np.percentile(latencies, 50)), "p99": float(np.percentile(latencies, 99)),
+                             "n": float(len(latencies))}
+    localized = sorted(s for s, (p, _) in poses.items() if p.status == pb.PoseEstimate.LOCALIZED)
+    result.localized = bool(localized)
+    if localized:
+        result.time_to_localize_s = round((localized[0] - first_stamp) * 1e-9, 3)
+        errors = [np.linalg.norm(matrix_from_pose(poses[s][0].T_cad_body)[:3, 3] - truth[s][:3, 3])
+                  for s in localized if s in truth]
+        if errors:
+            result.ape_rmse_m = round(float(np.sqrt(np.mean(np.square(errors)))), 4)
+
+
+def replay_command(flight: Path, source: ObservationSource | None, connect: list[str], vehicle: str, speed: float,
+                   json_out: bool) -> None:
+    """The CLI's `--over-zenoh` branch: a client-less peer connecting to the service's endpoint(s)."""
+    import json
+    import sys
+
+    if speed < 0:
+        raise UserInputError("--speed must be >= 0")
+    cfg = ZenohConfig(mode="peer", connect=connect or ["tcp/127.0.0.1:7447"], listen=[])
+    result = replay_over_zenoh(flight, cfg, vehicle, source, speed)
+    doc = result.to_json()
+    if json_out:
+        from service.commands._io import print_json
+
+        print_json(doc)
+    else:
+        sys.stdout.write(json.dumps(doc, indent=2) + "\n")

@@ -1,0 +1,75 @@
+"""Detector training data from simulated flights: left images and YOLO labels (classes 0 door, 1 window).
+
+Layout (the usual YOLO one; several flights, of several buildings, may share one folder):
+    OUT/images/<prefix>_<frame>.jpg
+    OUT/labels/<prefix>_<frame>.txt     one line per door/window: "class cx cy w h", normalised to [0, 1]
+    OUT/data.yaml                       names of the classes
+A feature gets a label when at least `min_visible_fraction` of its opening is visible (occlusion and image
+edges) and its box is at least `min_box_px` on each side.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sim.groundtruth import FeatureInView
+
+log = logging.getLogger(__name__)
+
+YOLO_CLASSES = {"door": 0, "window": 1}
+
+
+def yolo_lines(features: list[FeatureInView], width: int, height: int, min_visible_fraction: float = 0.25,
+               min_box_px: float = 6.0) -> list[str]:
+    """YOLO label lines of one image. Boxes are in pixels with pixel centres at integers (the image spans
+    [-0.5, W - 0.5]); YOLO's are normalised with the image spanning [0, 1]."""
+    lines = []
+    for f in features:
+        cls = YOLO_CLASSES.get(f.type)
+        if cls is None or f.visible_fraction < min_visible_fraction:
+            continue
+        x0, y0, x1, y1 = (float(v) for v in f.box_xyxy)
+        if x1 - x0 < min_box_px or y1 - y0 < min_box_px:
+            continue
+        cx, cy = ((x0 + x1) / 2 + 0.5) / width, ((y0 + y1) / 2 + 0.5) / height
+        lines.append(f"{cls} {cx:.6f} {cy:.6f} {(x1 - x0) / width:.6f} {(y1 - y0) / height:.6f}")
+    return lines
+
+
+@dataclass
+class YoloExporter:
+    """Writes every `every_n`-th frame given to `add` (see the module docstring)."""
+
+    out_dir: Path
+    prefix: str
+    every_n: int = 10
+    jpeg_quality: int = 92
+    min_visible_fraction: float = 0.25
+    counts: dict[str, int] = field(default_factory=lambda: {"images": 0, "door": 0, "window": 0})
+
+    def __post_init__(self) -> None:
+        (self.out_dir / "images").mkdir(parents=True, exist_ok=True)
+        (self.out_dir / "labels").mkdir(parents=True, exist_ok=True)
+        names = "\n".join(f"  {v}: {k}" for k, v in YOLO_CLASSES.items())
+        (self.out_dir / "data.yaml").write_text(f"path: .\ntrain: images\nval: images\nnames:\n{names}\n")
+
+    def add(self, index: int, left_bgr: np.ndarray, features: list[FeatureInView]) -> bool:
+        """Write frame `index` when it is one of every `every_n`; returns whether it was written."""
+        import cv2
+
+        if index % self.every_n:
+            return False
+        h, w = left_bgr.shape[:2]
+        name = f"{self.prefix}_{index:06d}"
+        lines = yolo_lines(features, w, h, self.min_visible_fraction)
+        cv2.imwrite(str(self.out_dir / "images" / f"{name}.jpg"), left_bgr,
+                    [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+        (self.out_dir / "labels" / f"{name}.txt").write_text("".join(line + "\n" for line in lines))
+        self.counts["images"] += 1
+        for line in lines:
+            self.counts["door" if line.startswith("0 ") else "window"] += 1
+        return True

@@ -1,0 +1,177 @@
+"""The pose graph and the localizer on a synthetic corridor: the oracle (incremental == batch), drift
+correction by the joint refinement, robustness to injected wrong matches, save -> load -> re-localize."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from graph.landmarks import feature_frame_cad
+from graph.localizer import Localizer, LocalizerParams
+from graph.mapstore import StoredMap
+from graph.posegraph import ANCHOR, IsamSettings, PoseGraph, X
+from graph.registrar import FirstOfRegistrar, StoredMapRegistrar
+from graph.relocalize import KnownRect
+from tests.graph.scenes import (
+    corridor_model,
+    drifting_odometry,
+    make_T,
+    rot_z,
+    sightings_from,
+    straight_flight,
+)
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def model_registrar(model, min_landmarks: int = 3) -> StoredMapRegistrar:
+    """Registration by rectangle alignment against every feature of the model (no ground truth used)."""
+    return StoredMapRegistrar([KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features], min_landmarks)
+
+
+def fly(model, poses, odometry, registrar=None, seed: int = 0, sigma_m: float = 0.0,
+        graph: PoseGraph | None = None) -> Localizer:
+    rng = np.random.default_rng(seed)
+    loc = Localizer(model, graph or PoseGraph(), registrar or model_registrar(model))
+    for k, (T_true, T_odom) in enumerate(zip(poses, odometry, strict=True)):
+        loc.add_keyframe(k * 100_000_000, T_odom, sightings_from(model, T_true, rng=rng, sigma_m=sigma_m), UP)
+    return loc
+
+
+def position_error(loc: Localizer, poses: list[np.ndarray], i: int) -> float:
+    T_cad_map = loc.graph.T_cad_map()
+    assert T_cad_map is not None
+    return float(np.linalg.norm((T_cad_map @ loc.graph.T_map_body(i))[:3, 3] - poses[i][:3, 3]))
+
+
+@pytest.fixture(scope="module")
+def corridor():
+    return corridor_model()
+
+
+def test_localizes_and_tracks_without_noise(corridor) -> None:
+    poses = straight_flight(40)
+    T_odom_cad = make_T(rot_z(0.7), np.array([3.0, -2.0, 0.0]))  # the odometry frame is anywhere
+    loc = fly(corridor, poses, [T_odom_cad @ T for T in poses])
+    assert loc.status == "localized"
+    assert all(position_error(loc, poses, i) < 1e-3 for i in range(10, 40))
+    truth = {lm.key: lm.truth_id for lm in loc.landmarks.values()}
+    assert loc.links and all(truth[j] == fid for j, fid in loc.links.items())
+
+
+def test_incremental_isam2_equals_batch_optimisation(corridor) -> None:
+    poses = straight_flight(50)
+    exact = PoseGraph(IsamSettings(relinearize_threshold=1e-5))  # relinearize every change: no approximation
+    loc = fly(corridor, poses, drifting_odometry(poses, 0.003, 1.01), seed=1, sigma_m=0.02, graph=exact)
+    loc.graph.update(extra_iterations=3)  # iSAM2 takes one Gauss-Newton step per update
+    factors, initial = loc.graph.batch_graph()
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-10)
+    batch = gtsam.LevenbergMarquardtOptimizer(factors, initial, params).optimize()
+    incremental = loc.graph.estimate()
+    for i in range(loc.graph.n_keyframes):
+        a, b = incremental.atPose3(X(i)), batch.atPose3(X(i))
+        assert np.linalg.norm(a.translation() - b.translation()) < 2e-3
+        assert np.linalg.norm(gtsam.Rot3.Logmap(a.rotation().between(b.rotation()))) < 5e-4
+    assert np.allclose(incremental.atPose3(ANCHOR).matrix(), batch.atPose3(ANCHOR).matrix(), atol=2e-3)
+
+
+def test_known_drift_is_corrected_along_the_whole_flight(corridor) -> None:
+    poses = straight_flight(70)
+    odometry = drifting_odometry(poses, yaw_per_step=0.002, scale=1.02)  # 8 deg and 2 % by the end
+    odometry_error = np.linalg.norm(odometry[-1][:3, 3] - poses[-1][:3, 3])
+    loc = fly(corridor, poses, odometry, sigma_m=0.01)
+    errors = [position_error(loc, poses, i) for i in range(70)]
+    assert odometry_error > 1.0
+    assert max(errors) < 0.2 and float(np.mean(errors)) < 0.1, errors  # the first metres: odometry only
+    # not one rigid transform: the early keyframes were moved differently from the late ones
+    T_cad_map = loc.graph.T_cad_map()
+    rigid = [np.linalg.norm((T_cad_map @ odometry[i])[:3, 3] - poses[i][:3, 3]) for i in range(70)]
+    assert max(rigid) > 3 * max(errors)
+
+
+def _wrong_links(loc: Localizer, corridor, n: int, rng: np.random.Generator) -> list[tuple[int, np.ndarray]]:
+    feats = {f.id: f for f in corridor.features}
+    keys = sorted(loc.links)[:n]
+    out = []
+    for j in keys:
+        wrong = [f for f in corridor.features if f.id != loc.links[j] and f.type == feats[loc.links[j]].type]
+        out.append((j, feature_frame_cad(wrong[int(rng.integers(len(wrong)))])))
+    return out
+
+
+def test_injected_wrong_matches_do_not_drag_the_estimate(corridor) -> None:
+    poses = straight_flight(60)
+    loc = fly(corridor, poses, drifting_odometry(poses, 0.002, 1.01), sigma_m=0.01)
+    before = [loc.graph.T_map_body(i) for i in range(60)]
+    T_cad_map_before = loc.graph.T_cad_map()
+    rng = np.random.default_rng(3)
+    for j, T_cad_rect in _wrong_links(loc, corridor, 3, rng):  # 3 wrong among ~10 correct
+        loc.graph.add_cad_link(j, T_cad_rect)
+    loc.graph.update(extra_iterations=3)
+    moved = max(np.linalg.norm((loc.graph.T_cad_map() @ loc.graph.T_map_body(i))[:3, 3]
+                               - (T_cad_map_before @ before[i])[:3, 3]) for i in range(60))
+    assert moved < 0.05
+    assert max(position_error(loc, poses, i) for i in range(60)) < 0.15
+
+
+def test_without_the_robust_loss_wrong_matches_would_drag_it(corridor, monkeypatch) -> None:
+    import graph.posegraph as pg
+
+    monkeypatch.setattr(pg, "robust", lambda sigmas, cauchy_k=2.0: pg.diagonal(sigmas))
+    poses = straight_flight(60)
+    loc = fly(corridor, poses, drifting_odometry(poses, 0.002, 1.01), sigma_m=0.01)
+    for j, T_cad_rect in _wrong_links(loc, corridor, 3, np.random.default_rng(3)):
+        loc.graph.add_cad_link(j, T_cad_rect)
+    loc.graph.update(extra_iterations=3)
+    assert max(position_error(loc, poses, i) for i in range(60)) > 0.3
+
+
+def test_save_load_relocalize_round_trip(corridor, tmp_path) -> None:
+    poses = straight_flight(40)
+    first = fly(corridor, poses, poses, sigma_m=0.01)
+    path = first.stored_map().save(tmp_path / "map.json")
+    stored = StoredMap.load(path, corridor)
+    assert len(stored.known_rects(corridor)) == len(first.links) > 3
+    # a new flight over the same place, its odometry frame somewhere else
+    T_odom_cad = make_T(rot_z(-1.2), np.array([-4.0, 7.0, 0.0]))
+    registrar = FirstOfRegistrar([StoredMapRegistrar(stored.known_rects(corridor), min_landmarks=2),
+                                  model_registrar(corridor)])
+    loc = Localizer(corridor, PoseGraph(), registrar, LocalizerParams())
+    rng = np.random.default_rng(5)
+    for k, T in enumerate(poses[:6]):
+        est = loc.add_keyframe(k, T_odom_cad @ T, sightings_from(corridor, T, rng=rng, sigma_m=0.01), UP)
+        if est.status == "localized":
+            break
+    assert est.status == "localized" and k <= 3
+    assert est.T_cad_body is not None
+    assert np.linalg.norm(est.T_cad_body[:3, 3] - poses[k][:3, 3]) < 0.1
+
+
+def test_a_map_from_another_building_is_refused(corridor, tmp_path) -> None:
+    from graph.errors import UserInputError
+
+    path = StoredMap("another-sha", None).save(tmp_path / "map.json")
+    with pytest.raises(UserInputError):
+        StoredMap.load(path, corridor)
+
+
+def test_covariance_is_a_6x6_positive_definite_matrix(corridor) -> None:
+    poses = straight_flight(30)
+    loc = fly(corridor, poses, poses, sigma_m=0.01)
+    cov = loc.graph.covariance_cad_body(loc.graph.n_keyframes - 1)
+    assert cov.shape == (6, 6)
+    assert np.all(np.linalg.eigvalsh((cov + cov.T) / 2) > 0)
+    assert np.sqrt(cov[3:, 3:].diagonal()).max() < 0.2  # metres
+
+
+def test_status_degrades_when_support_falls_away(corridor) -> None:
+    poses = straight_flight(30)
+    loc = fly(corridor, poses, poses)
+    assert loc.status == "localized"
+    stamp = 30 * 100_000_000
+    for k in range(1, 30):  # on along the x axis, beyond the corridor's last door: nothing in view
+        T = make_T(np.eye(3), np.array([60.0 + k, 0.0, 1.4]))
+        est = loc.add_keyframe(stamp + k * 1_000_000_000, T, [], UP)
+    assert est.status in ("degraded", "lost")

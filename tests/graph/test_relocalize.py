@@ -1,0 +1,48 @@
+"""Rectangle alignment: recovers a known gravity-aligned transform; a symmetric layout is ambiguous."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from graph.landmarks import FLIP_ABOUT_UP, feature_frame_cad
+from graph.relocalize import KnownRect, ObservedRect, align_rectangles
+from tests.graph.scenes import corridor_model, door, make_T, rot_z
+
+
+@given(yaw=st.floats(-3.1, 3.1), tx=st.floats(-30, 30), ty=st.floats(-30, 30), seed=st.integers(0, 100))
+@settings(max_examples=25, deadline=None)
+def test_recovers_a_known_transform_or_says_ambiguous(yaw: float, tx: float, ty: float, seed: int) -> None:
+    """A corridor of regularly spaced doors can be genuinely ambiguous: never a wrong `localized`."""
+    model = corridor_model(seed=seed % 5)
+    known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features]
+    T_cad_map = make_T(rot_z(yaw), np.array([tx, ty, 0.3]))
+    rng = np.random.default_rng(seed)
+    seen = rng.choice(len(known), 5, replace=False)
+    observed = []
+    for key, k in enumerate(seen):
+        T = np.linalg.inv(T_cad_map) @ known[k].T_cad_rect @ (FLIP_ABOUT_UP if rng.random() < 0.5 else np.eye(4))
+        T[:3, 3] += rng.normal(0, 0.03, 3)
+        observed.append(ObservedRect(key, known[k].type, T))
+    result = align_rectangles(observed, known)
+    assert result.status in ("localized", "ambiguous")
+    if result.status == "ambiguous":
+        return
+    assert result.T_cad_map is not None
+    assert np.linalg.norm(result.T_cad_map[:3, 3] - T_cad_map[:3, 3]) < 0.2 + 0.01 * np.hypot(tx, ty)
+    assert sorted(fid for _, fid in result.matches) == sorted(known[k].id for k in seen)
+
+
+def test_a_point_symmetric_layout_is_ambiguous() -> None:
+    feats = [door("A", (5.0, 0.0), (1.0, 0.0)), door("B", (-5.0, 0.0), (-1.0, 0.0)),
+             door("C", (0.0, 3.0), (0.0, 1.0)), door("D", (0.0, -3.0), (0.0, -1.0))]
+    known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in feats]
+    observed = [ObservedRect(i, k.type, k.T_cad_rect) for i, k in enumerate(known[:3])]
+    assert align_rectangles(observed, known).status == "ambiguous"
+
+
+def test_too_few_landmarks_are_not_localized() -> None:
+    model = corridor_model()
+    known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features]
+    assert align_rectangles([ObservedRect(0, known[0].type, known[0].T_cad_rect)], known).status == "not_localized"

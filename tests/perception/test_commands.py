@@ -1,0 +1,73 @@
+"""`macroloc detect` and `macroloc perceive`: the contract's JSON, and one clean line + exit 2 for bad input."""
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from service.cli import main
+from tests.conftest import shared_data
+
+
+def _run(capsys, argv):
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_detect_json_and_plot(capsys, tmp_path: Path):
+    image = shared_data("images/facades/images/img_10.jpg")
+    code, out, _ = _run(capsys, ["detect", str(image), str(image), "--json", "--plot", str(tmp_path)])
+    assert code == 0
+    doc = json.loads(out)
+    assert [im["path"] for im in doc["images"]] == [str(image)] * 2
+    h, w = cv2.imread(str(image)).shape[:2]
+    for d in doc["images"][0]["detections"]:
+        assert set(d) == {"type", "score", "box_xyxy"} and d["type"] in ("door", "window")
+        x0, y0, x1, y1 = d["box_xyxy"]
+        assert 0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h
+    assert (tmp_path / "img_10_detect.jpg").exists()
+
+
+@pytest.mark.parametrize("make", ["missing", "not_an_image"])
+def test_detect_bad_input_is_one_line_and_exit_2(capsys, tmp_path: Path, make: str):
+    path = tmp_path / "x.jpg"
+    if make == "not_an_image":
+        path.write_text("hello")
+    code, out, err = _run(capsys, ["detect", str(path), "--json"])
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1
+
+
+def _pair_args(folder: Path, frame: str = "50"):
+    return ["perceive", "--left", str(folder / "left" / f"{frame}.jpg"),
+            "--right", str(folder / "right" / f"{frame}.jpg"),
+            "--calib-left", str(folder / "stereo_left.yaml"), "--calib-right", str(folder / "stereo_right.yaml")]
+
+
+def test_perceive_json_contract_on_the_real_pair(capsys, tmp_path: Path):
+    folder = shared_data("stereo/rtabmap_stereo_rect")
+    code, out, _ = _run(capsys, [*_pair_args(folder), "--json", "--plot", str(tmp_path / "p.png")])
+    assert code == 0
+    doc = json.loads(out)
+    for f in doc["features"]:
+        assert {"type", "score", "box_xyxy", "corners_cam"} <= set(f)
+        assert np.asarray(f["corners_cam"]).shape == (4, 3) and np.all(np.asarray(f["corners_cam"])[:, 2] > 0)
+    assert (tmp_path / "p.png").exists()
+
+
+@pytest.mark.parametrize("problem", ["missing_calib", "bad_gravity", "size_mismatch"])
+def test_perceive_bad_input_is_one_line_and_exit_2(capsys, tmp_path: Path, problem: str):
+    folder = shared_data("stereo/rtabmap_stereo_rect")
+    args = _pair_args(folder)
+    if problem == "missing_calib":
+        args[args.index("--calib-left") + 1] = str(tmp_path / "none.yaml")
+    elif problem == "bad_gravity":
+        args += ["--gravity", "0,nan,1"]
+    else:
+        small = tmp_path / "small.png"
+        cv2.imwrite(str(small), np.zeros((10, 10), np.uint8))
+        args[args.index("--left") + 1] = str(small)
+    code, out, err = _run(capsys, [*args, "--json"])
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1, err

@@ -1,0 +1,125 @@
+"""The service's commands as a user runs them: dump-config, serve under SIGTERM, the demo (slow)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from tests.service.helpers import free_port, loopback, wait_for
+
+MACROLOC = str(Path(sys.executable).parent / "macroloc")
+
+
+def test_dump_config_prints_every_section_and_honours_the_environment(tmp_path: Path) -> None:
+    cfg = tmp_path / "c.json"
+    cfg.write_text(json.dumps({"service": {"vehicle": "from-file"}, "zenoh": {"mode": "client"}}))
+    env = dict(os.environ, MACROLOC_ZENOH__MODE="router")
+    done = subprocess.run([MACROLOC, "dump-config", "--config", str(cfg)], capture_output=True, text=True, env=env,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    doc = json.loads(done.stdout)
+    assert {"localize", "camera", "zenoh", "service", "planning"} <= set(doc)
+    assert doc["service"]["vehicle"] == "from-file" and doc["zenoh"]["mode"] == "router"
+
+
+def test_serve_refuses_bad_input_with_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    for args in (["serve", "--config", str(bad)], ["serve", "--building", str(tmp_path / "missing.ifc")]):
+        done = subprocess.run([MACROLOC, *args], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2
+        assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+
+
+def test_serve_stops_cleanly_on_sigterm_and_saves_the_map(office_path: Path, tmp_path: Path) -> None:
+    port = free_port()
+    proc = subprocess.Popen([MACROLOC, "serve", "--building", str(office_path), "--vehicle", "cli",
+                             "--listen", f"tcp/127.0.0.1:{port}", "--state-dir", str(tmp_path), "--log-json"],
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        from service.zenoh_io import session_config
+
+        with zenoh.open(session_config(loopback(connect=[f"tcp/127.0.0.1:{port}"]))) as s:
+            wait_for(lambda: any(r.ok for r in s.liveliness().get("macroloc/cli/alive", timeout=1.0)), 90.0,
+                     "the service's liveliness token")
+            s.put("macroloc/cli/odometry", b"garbage")  # must not kill it
+            odo = pb.Odometry()
+            odo.header.stamp_ns = 1
+            odo.T_map_body.qw = 1.0
+            s.put("macroloc/cli/odometry", odo.SerializeToString())
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, stderr[-2000:]
+    assert (tmp_path / "cli" / "map.pb").exists()
+    lines = [json.loads(line) for line in stderr.splitlines() if line.startswith("{")]
+    assert any("stopped" in line["msg"] for line in lines), "structured log of the clean stop"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_demo_localizes_and_reaches_the_goal(seed: int, tmp_path: Path) -> None:
+    from service.demo import DemoParams, plot_flight, run_demo
+    from service.planning import Planner
+
+    result = run_demo(params=DemoParams(seed=seed, speedup=3.0))
+    assert result.localized and result.reached
+    assert result.goal_error_m < 0.3 and result.path_length_m > 5.0
+    planner = Planner.for_building(Path(__file__).resolve().parents[2] / "data/buildings/office_a.ifc", 0.2, 0.35, 1.4)
+    assert plot_flight(result, planner, tmp_path / "flight.png").stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_killed_mid_flight_restarts_and_relocalizes(office_path: Path, office_model, tmp_path: Path) -> None:
+    """SIGKILL (no chance to save at exit): the periodically saved map is intact and the restart re-localizes
+    from a couple of doors, with the vehicle's odometry going on as if nothing happened."""
+    import numpy as np
+
+    from tests.service.helpers import FakeFlight, yaw_T
+    from tests.service.test_service import Collector, fly
+
+    port = free_port()
+    env = dict(os.environ, MACROLOC_SERVICE__SAVE_PERIOD_S="0.3", MACROLOC_SERVICE__PERCEPTION="false")
+    args = [MACROLOC, "serve", "--building", str(office_path), "--vehicle", "t1", "--listen",
+            f"tcp/127.0.0.1:{port}", "--state-dir", str(tmp_path)]
+    door = [f for f in office_model.features if f.type == "door" and f.storey == "Level 1"][10]
+    T = yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])
+    flight = FakeFlight(office_model, yaw_T(2.0, np.array([5.0, -3.0, 0.0])))
+    from service.zenoh_io import session_config
+
+    def localized(poses: Collector) -> bool:
+        last = poses.last()
+        return last is not None and last.status == pb.PoseEstimate.LOCALIZED
+
+    proc = subprocess.Popen(args, env=env, stderr=subprocess.DEVNULL)
+    try:
+        with zenoh.open(session_config(loopback(connect=[f"tcp/127.0.0.1:{port}"]))) as s:
+            wait_for(lambda: any(r.ok for r in s.liveliness().get("macroloc/t1/alive", timeout=1.0)), 90.0, "up")
+            poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+            T = fly(s, flight, T, 30)
+            wait_for(lambda: localized(poses), 30.0, "localized before the kill")
+            saved = tmp_path / "t1" / "map.pb"
+            wait_for(lambda: saved.exists() and pb.MapSnapshot.FromString(saved.read_bytes()).status
+                     == pb.PoseEstimate.LOCALIZED, 30.0, "a saved localized map")
+        proc.kill()
+        proc.wait(30)
+        proc = subprocess.Popen(args, env=env, stderr=subprocess.DEVNULL)
+        flight.range_m = 2.5
+        with zenoh.open(session_config(loopback(connect=[f"tcp/127.0.0.1:{port}"]))) as s:
+            wait_for(lambda: any(r.ok for r in s.liveliness().get("macroloc/t1/alive", timeout=1.0)), 90.0, "up")
+            poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+            fly(s, flight, T, 4, first_stamp_ns=10**10, observe_every=1)
+            wait_for(lambda: localized(poses), 30.0, "re-localized after the restart")
+    finally:
+        proc.kill()
+        proc.wait(30)

@@ -1,0 +1,86 @@
+"""`macroloc replay` on a ground-truth flight through the bundled FZK-Haus: the JSON contract, the report,
+save -> load -> re-localize, and clean errors for bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.cli import main
+
+KEYS = {"frames", "processing_fps", "localized", "time_to_localize_s", "ape_rmse_m", "ape_max_m",
+        "wrong_localizations", "status_final"}
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory: pytest.TempPathFactory, fzk_path: Path) -> Path:
+    from service.truth_flight import write_truth_flight
+
+    return write_truth_flight(fzk_path, tmp_path_factory.mktemp("flight") / "fzk.mcap", seed=0, duration_s=14.0)
+
+
+def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, dict | None, str]:
+    rc = main(argv)
+    out, err = capsys.readouterr()
+    return rc, (json.loads(out) if rc == 0 and out.strip() else None), err
+
+
+def test_the_truth_flight_holds_what_the_contract_says(flight: Path) -> None:
+    from service.recording import matrix_from_pose, read_flight, read_metadata
+
+    frames = list(read_flight(flight))
+    assert len(frames) == 14 * 30
+    assert read_metadata(flight).storey
+    seen = [f for f in frames if f.ground_truth.features_cam]
+    assert seen
+    gt = seen[0].ground_truth
+    assert len(gt.corner_visible) == 4 * len(gt.features_cam)
+    assert all(len(f.corners) == 4 and f.id for f in gt.features_cam)
+    assert all(c.z > 0 for f in gt.features_cam for c, v in zip(f.corners, gt.corner_visible, strict=False) if v)
+    T = matrix_from_pose(gt.T_cad_body)
+    assert np.isclose(np.linalg.det(T[:3, :3]), 1.0)
+
+
+def test_replay_prints_the_contract_writes_a_report_and_a_map(flight: Path, fzk_path: Path, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    rc, doc, err = run(["replay", str(flight), "--building", str(fzk_path), "--json", "--report",
+                        str(tmp_path / "report"), "--save-map", str(tmp_path / "map.json")], capsys)
+    assert rc == 0, err
+    assert doc is not None and set(doc) >= KEYS
+    assert doc["frames"] == 14 * 30
+    assert doc["localized"] and doc["wrong_localizations"] == 0
+    assert doc["ape_rmse_m"] < 0.15
+    for name in ("topdown.png", "frames.png", "result.json"):
+        assert (tmp_path / "report" / name).stat().st_size > 0
+    stored = json.loads((tmp_path / "map.json").read_text())
+    assert any(lm["feature"] for lm in stored["landmarks"])
+
+
+def test_a_second_flight_relocalizes_into_the_stored_map(flight: Path, fzk_path: Path, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    map_path = tmp_path / "map.json"
+    assert run(["replay", str(flight), "--building", str(fzk_path), "--json", "--save-map", str(map_path)],
+               capsys)[0] == 0
+    rc, doc, err = run(["replay", str(flight), "--building", str(fzk_path), "--json", "--map", str(map_path),
+                        "--seed", "7"], capsys)
+    assert rc == 0, err
+    assert doc is not None and doc["localized"] and doc["wrong_localizations"] == 0
+
+
+@pytest.mark.parametrize("argv_tail, message", [
+    (["--observations", "sonar"], "--observations"),
+    (["--map", "/nonexistent/map.json"], "stored map not found"),
+])
+def test_bad_input_is_one_line_and_exit_2(flight: Path, fzk_path: Path, argv_tail: list[str], message: str,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    rc, _, err = run(["replay", str(flight), "--building", str(fzk_path), "--json", *argv_tail], capsys)
+    assert rc == 2
+    assert len(err.strip().splitlines()) == 1 and message in err
+
+
+def test_a_missing_recording_is_exit_2(fzk_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc, _, err = run(["replay", str(tmp_path / "none.mcap"), "--building", str(fzk_path), "--json"], capsys)
+    assert rc == 2 and "recording not found" in err

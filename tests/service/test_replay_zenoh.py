@@ -1,0 +1,55 @@
+"""`replay --over-zenoh`: a recorded flight played into a running service over loopback, and scored."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from service.frames import forward_T_body_cam
+from service.recording import FlightWriter, pose_from_matrix, vector3
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from tests.service.helpers import free_port, loopback, running_service, service_config, yaw_T
+
+
+def write_fake_flight(path: Path, model, start: np.ndarray, frames: int = 45) -> Path:  # noqa: ANN001
+    """A recording without images worth perceiving: tiny frames, ground truth of every door/window in range."""
+    T_body_cam = forward_T_body_cam()
+    image = pb.Image(width=8, height=6, encoding=pb.Image.RAW_MONO8, data=bytes(48))
+    with FlightWriter(path) as writer:
+        for k in range(frames):
+            stamp = (k + 1) * 33_333_333
+            T_cad_body = start @ yaw_T(0.05 * k, np.array([0.01 * k, 0.0, 0.0]))
+            frame = pb.StereoFrame(camera_id="front", left=image, right=image)
+            frame.header.stamp_ns = stamp
+            truth = pb.GroundTruth(T_cad_body=pose_from_matrix(T_cad_body), T_body_cam=pose_from_matrix(T_body_cam))
+            truth.header.stamp_ns = stamp
+            T_cam_cad = np.linalg.inv(T_cad_body @ T_body_cam)
+            for f in model.features:
+                d = f.centroid_cad - T_cad_body[:3, 3]
+                if f.orientation != "vertical" or np.linalg.norm(d[:2]) > 8.0 or abs(d[2]) > 2.0:
+                    continue
+                corners_cam = f.corners_cad @ T_cam_cad[:3, :3].T + T_cam_cad[:3, 3]
+                truth.features_cam.add(type=f.type, id=f.id).corners.extend(vector3(c) for c in corners_cam)
+                truth.corner_visible.extend([True] * 4)
+            writer.write_stereo(frame)
+            writer.write_ground_truth(truth)
+    return path
+
+
+def test_replay_over_zenoh_localizes_and_scores(office_path, office_model, tmp_path) -> None:
+    from service.replay_sources import TruthSource
+    from service.replay_zenoh import replay_over_zenoh
+
+    door = [f for f in office_model.features if f.type == "door" and f.storey == "Level 1"][10]
+    start = yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])
+    flight = write_fake_flight(tmp_path / "flight.mcap", office_model, start)
+    port = free_port()
+    cfg = service_config(office_path, tmp_path, port)
+    cfg.service.perception = False
+    with running_service(cfg):
+        result = replay_over_zenoh(flight, loopback(connect=[f"tcp/127.0.0.1:{port}"]), "t1", TruthSource(seed=1),
+                                   speed=0.0)
+    assert result.frames == 45 and result.poses > 0
+    assert result.localized and result.ape_rmse_m is not None and result.ape_rmse_m < 0.3
+    assert result.latency_ms["n"] > 0
