@@ -46,8 +46,9 @@ class LocalizerParams:
     sighting_sigma_m: tuple[float, float] = (0.03, 0.004)  # sigma = a + b * range^2 (stereo) of a sighting's position
     sighting_sigma_rad: tuple[float, float] = (0.03, 0.012)  # same for its orientation (plane of noisy corners)
     max_range_m: float = 7.0  # sightings further away are ignored
-    degraded_after_s: float = 5.0  # localized but no CAD-linked sighting for this long
-    lost_after_s: float = 20.0
+    min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
+    degraded_after_s: float = 10.0  # localized but no CAD-linked sighting for this long
+    lost_after_s: float = 30.0
 
 
 @dataclass
@@ -183,14 +184,19 @@ class Localizer:
                 best, best_d = j, d
         return best
 
+    def _confirmed(self) -> list[int]:
+        """Landmarks seen often enough to take part in a registration."""
+        return [j for j, lm in sorted(self.landmarks.items())
+                if lm.n_sightings >= self.params.min_sightings_to_register]
+
     def _should_register(self) -> bool:
-        n = len(self.landmarks)
+        n = len(self._confirmed())
         return (self.status in ("exploring", "ambiguous") and n >= self.registrar.min_landmarks
                 and n > self._registered_with)
 
     def _register(self, stamp_ns: int) -> None:
         """Register the map's landmarks to the model; on success anchor the graph to the CAD frame."""
-        keys = sorted(self.landmarks)
+        keys = self._confirmed()
         observed = [ObservedRect(j, self.landmarks[j].type, self.graph.T_map_rect(j)) for j in keys]
         corners = [self.landmarks[j].corners_map for j in keys]
         result = self.registrar(observed, corners)

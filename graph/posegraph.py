@@ -10,7 +10,8 @@ Factors (all built-in, so the real-time path never calls Python):
   BetweenFactorPose3(X(i-1), X(i), T_prev_curr) odometry
   PriorFactorPose3(X(i)), roll/pitch only     gravity (yaw and translation free)
   BetweenFactorPose3(X(i), L(j), T_body_rect)  a sighting of landmark j from keyframe i
-  BetweenFactorPose3(A(0), L(j), T_cad_feature) robust: landmark j is the CAD feature
+  PriorFactorPose3(A(0)), weak                 keeps the anchor determined whatever its links
+  BetweenFactorPose3(A(0), L(j), T_cad_feature) robust (Cauchy): landmark j is the CAD feature
       (between(T_map_cad, T_map_rect) = T_cad_map T_map_rect = T_cad_rect, so the anchor is stored as
        T_map_cad and no inverse-direction trap arises)
 
@@ -79,6 +80,7 @@ class PoseGraph:
         self.landmarks: set[int] = set()
         self.has_anchor = False
         self.last_update_ms = 0.0
+        self.last_update_cpu_ms = 0.0  # process CPU time of the update: immune to a busy machine's scheduling
 
     # --- adding variables and factors (buffered until update) -----------------------------------------------
 
@@ -132,13 +134,14 @@ class PoseGraph:
 
     def update(self, extra_iterations: int = 0) -> float:
         """Pass only the new factors and values to iSAM2; returns the update time in ms."""
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         self.isam.update(self._new_factors, self._new_values)
         for _ in range(extra_iterations):
             self.isam.update()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self.last_update_ms = (time.perf_counter() - start) * 1e3
+        self.last_update_cpu_ms = (time.process_time() - start_cpu) * 1e3
         return self.last_update_ms
 
     def batch_graph(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:

@@ -41,7 +41,6 @@ class ModelRegistrar:
         self.storey_hint = storey_hint
         self.min_landmarks = min_landmarks
         self.register_params = register_params
-        self._ids = [f.id for f in model.features]
         self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
                        if f.orientation == "vertical" and (storey_hint is None or f.storey == storey_hint)]
         try:

@@ -111,13 +111,51 @@ def _extend_to_rows(seg: np.ndarray, v_top: float, v_bottom: float) -> np.ndarra
     return np.array([[u0 + slope * (v_top - v0), v_top], [u0 + slope * (v_bottom - v0), v_bottom]])
 
 
-def _snap_ends(seg: np.ndarray, v_top: float, v_bottom: float, snap: float) -> np.ndarray:
-    """A side's ends are its segment's ends (paper §2.2.2); an end within `snap` x box height of the box's top or
-    bottom row is moved along the line onto that row (LSD tends to stop a few px short of a corner). Ends farther
-    away stay: in an oblique view the far side of a door really is shorter than the box."""
-    tol = snap * (v_bottom - v_top)
-    top = v_top if abs(seg[0, 1] - v_top) <= tol else seg[0, 1]
-    bottom = v_bottom if abs(seg[1, 1] - v_bottom) <= tol else seg[1, 1]
+def _edge_extent(gray: np.ndarray, seg: np.ndarray, v_top: float, v_bottom: float,
+                 gap_px: float) -> tuple[float, float]:
+    """Rows over which the side's edge is really there: walking along the side's line within the box's rows, the
+    run of rows with a horizontal contrast of at least half the one under the LSD segment, through gaps of at most
+    `gap_px` (the paper's joining distance). LSD breaks a long edge; this recovers the edge's true ends, which in
+    an oblique view differ from the box's rows (the far side of a door is shorter)."""
+    h, w = gray.shape
+    full = _extend_to_rows(seg, v_top, v_bottom)
+    rows = np.arange(int(np.ceil(max(0.0, v_top))), int(np.floor(min(h - 1.0, v_bottom))) + 1)
+    if rows.size < 3:
+        return float(seg[0, 1]), float(seg[1, 1])
+    u = np.rint(full[0, 0] + (full[1, 0] - full[0, 0]) * (rows - v_top) / max(v_bottom - v_top, 1e-9)).astype(int)
+    img = gray.astype(np.float32)
+    contrast = np.zeros(rows.size)
+    for du in (-1, 0, 1):  # best of three columns: the edge may sit a pixel off the fitted line
+        lo, hi = np.clip(u + du - 2, 0, w - 1), np.clip(u + du + 2, 0, w - 1)
+        contrast = np.maximum(contrast, np.abs(img[rows, hi] - img[rows, lo]))
+    on_seg = (rows >= seg[0, 1]) & (rows <= seg[1, 1])
+    strong = contrast >= 0.5 * (np.median(contrast[on_seg]) if on_seg.any() else contrast.max())
+    top_i, bottom_i = int(np.searchsorted(rows, seg[0, 1])), int(np.searchsorted(rows, seg[1, 1])) - 1
+    top_i, bottom_i = min(max(top_i, 0), rows.size - 1), min(max(bottom_i, 0), rows.size - 1)
+    gap = 0
+    for i in range(top_i - 1, -1, -1):  # grow upwards through short gaps
+        gap = 0 if strong[i] else gap + 1
+        if gap > gap_px:
+            break
+        if strong[i]:
+            top_i = i
+    gap = 0
+    for i in range(bottom_i + 1, rows.size):  # and downwards
+        gap = 0 if strong[i] else gap + 1
+        if gap > gap_px:
+            break
+        if strong[i]:
+            bottom_i = i
+    return float(min(rows[top_i], seg[0, 1])), float(max(rows[bottom_i], seg[1, 1]))
+
+
+def _side_ends(gray: np.ndarray, seg: np.ndarray, v_top: float, v_bottom: float, cfg: LineConfig) -> np.ndarray:
+    """The side's segment, extended along its line to the edge's true ends; an end within `snap` x box height of
+    the box's top or bottom row goes onto that row (edges fade into a corner's shading)."""
+    top, bottom = _edge_extent(gray, seg, v_top, v_bottom, cfg.join_gap_px)
+    tol = cfg.snap * (v_bottom - v_top)
+    top = v_top if abs(top - v_top) <= tol else top
+    bottom = v_bottom if abs(bottom - v_bottom) <= tol else bottom
     return _extend_to_rows(seg, top, bottom)
 
 
@@ -149,8 +187,8 @@ def refine_box(image: np.ndarray, box_xyxy: tuple[float, float, float, float], c
     if left is not None and right is not None and right[:, 0].mean() - left[:, 0].mean() < 0.3 * bw:
         left, right = None, None  # both picked the same edge region: not a usable pair
     return Sides(
-        _snap_ends(left, y0, y1, cfg.snap) if left is not None else _edge_column(gray, box_xyxy, x0, cfg),
-        _snap_ends(right, y0, y1, cfg.snap) if right is not None else _edge_column(gray, box_xyxy, x1, cfg),
+        _side_ends(gray, left, y0, y1, cfg) if left is not None else _edge_column(gray, box_xyxy, x0, cfg),
+        _side_ends(gray, right, y0, y1, cfg) if right is not None else _edge_column(gray, box_xyxy, x1, cfg),
         (left is not None, right is not None),
     )
 

@@ -37,6 +37,8 @@ class OdometryConfig:
     rekey_inliers: int = 80  # fewer: the current frame becomes the reference keyframe
     rekey_translation_m: float = 0.6
     rekey_rotation_rad: float = 0.35
+    max_step_m: float = 0.15  # a frame-to-frame jump beyond this (4.5 m/s at 30 Hz) is a wrong PnP solution
+    max_step_rad: float = 0.25
 
 
 @dataclass
@@ -80,11 +82,22 @@ class StereoOdometry:
             self._ref = _Keyframe(T, desc[points[:, 2] > 0], points[points[:, 2] > 0])
             return OdometryResult(T, inliers, False)
         T = self._ref.T_odom_cam @ T_ref_cam
+        if not self._plausible(T):
+            T = self._T_last @ (np.linalg.inv(self._T_prev) @ self._T_last)  # constant velocity
+            self._advance(T)
+            self._ref = _Keyframe(T, desc[points[:, 2] > 0], points[points[:, 2] > 0])
+            return OdometryResult(T, inliers, False)
         self._advance(T)
         if self._should_rekey(T_ref_cam, inliers):
             valid = points[:, 2] > 0
             self._ref = _Keyframe(T, desc[valid], points[valid])
         return OdometryResult(T, inliers, True)
+
+    def _plausible(self, T: np.ndarray) -> bool:
+        """Is the motion since the last frame one a drone can make?"""
+        step = np.linalg.inv(self._T_last) @ T
+        angle = np.arccos(np.clip((np.trace(step[:3, :3]) - 1) / 2, -1, 1))
+        return bool(np.linalg.norm(step[:3, 3]) <= self.config.max_step_m and angle <= self.config.max_step_rad)
 
     def _advance(self, T: np.ndarray) -> None:
         self._T_prev, self._T_last = self._T_last, T

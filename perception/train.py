@@ -2,7 +2,9 @@
 
 Data: the real facade photos (`../shared/data/images/facades`, fixed split: test = img_n with n % 5 == 0,
 never trained on; validation = a seeded 15 % of the rest, which sets the score threshold from its PR curve),
-plus optional rendered frames (`--sim DIR`, YOLO labels with classes 0 door, 1 window).
+plus rendered frames of the simulator (`--sim DIR`, YOLO labels 0 door, 1 window; by default `out/sim_yolo`,
+rendered by `python -m bench.sim_trainset` on first use from the duplex and FZK-Haus; Office_A is held out).
+Each batch is half real photos, half rendered frames.
 Writes `perception/models/detector.onnx`, its JSON sidecar (classes, input size, anchors, threshold,
 figures) and `detector_pr.png`; the detailed figures go to `out/detector/`.
 Needs the `train` extra (torch); runs on the CPU with 2 threads by default.
@@ -14,6 +16,8 @@ import argparse
 import json
 import logging
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -38,6 +42,7 @@ SHARED_DATA = Path(os.environ.get("MACROLOC_SHARED_DATA", ROOT.parent / "shared"
 INPUT_WH = (320, 240)
 N_ANCHORS = 5
 SIM_CLASS_MAP = {0: 0, 1: 1}
+DEFAULT_SIM_DIR = ROOT / "out" / "sim_yolo"
 
 
 def kmeans_anchors(wh: np.ndarray, k: int, rng: np.random.Generator, iters: int = 60) -> np.ndarray:
@@ -143,6 +148,29 @@ def load_sim(dirs: list[Path]) -> list[Sample]:
     return out
 
 
+class _Shuffled:
+    """Endless epochs over a list of samples, reshuffled each time (seeded)."""
+
+    def __init__(self, samples: list[Sample], rng: np.random.Generator) -> None:
+        self.samples, self.rng, self.order = samples, rng, []  # type: ignore[var-annotated]
+
+    def take(self, n: int) -> list[Sample]:
+        while len(self.order) < n:
+            self.order += self.rng.permutation(len(self.samples)).tolist()
+        idx, self.order = self.order[:n], self.order[n:]
+        return [self.samples[i] for i in idx]
+
+
+def ensure_sim_frames(dirs: list[Path]) -> list[Path]:
+    """The default rendered-frames folder is made on first use by `python -m bench.sim_trainset` (a separate
+    process: perception does not import the simulator)."""
+    for d in dirs:
+        if d == DEFAULT_SIM_DIR and not (d / "images").exists():
+            log.info("rendering training frames into %s (python -m bench.sim_trainset)", d)
+            subprocess.run([sys.executable, "-m", "bench.sim_trainset", "--out", str(d)], cwd=ROOT, check=True)
+    return dirs
+
+
 def evaluate_onnx(detector: Detector, samples: list[Sample]) -> dict[str, PRCurve]:
     """PR curves (door, window) of the exported model on in-memory samples (threshold 0.01)."""
     dets: list[list[Detection]] = []
@@ -164,10 +192,10 @@ def train(args: argparse.Namespace) -> None:
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     data = load_facades(args.facades, args.seed)
-    sim = load_sim(args.sim)
-    train_set = data["train"] + sim
-    log.info("train %d (%d rendered), val %d, test %d", len(train_set), len(sim), len(data["val"]), len(data["test"]))
-    wh = np.concatenate([b[:, 2:] - b[:, :2] for _ in range(2) for s in train_set
+    sim = load_sim(ensure_sim_frames(args.sim))
+    real = data["train"]
+    log.info("train: %d real, %d rendered; val %d, test %d", len(real), len(sim), len(data["val"]), len(data["test"]))
+    wh = np.concatenate([b[:, 2:] - b[:, :2] for _ in range(2) for s in real + sim
                          for b in [augment(s, INPUT_WH, rng)[1]] if len(b)])
     anchors = kmeans_anchors(wh, N_ANCHORS, rng)
     log.info("anchors (px): %s", np.round(anchors, 1).tolist())
@@ -178,13 +206,12 @@ def train(args: argparse.Namespace) -> None:
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=5e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=args.lr, total_steps=args.steps, pct_start=0.05)
     grid_hw = (INPUT_WH[1] // STRIDE_PX, INPUT_WH[0] // STRIDE_PX)
-    order: list[int] = []
+    pools = [_Shuffled(real, rng), _Shuffled(sim, rng)] if sim else [_Shuffled(real, rng)]
+    n_sim = round(args.sim_fraction * args.batch) if sim else 0
     t0 = time.time()
     for step in range(args.steps):
-        if len(order) < args.batch:
-            order += rng.permutation(len(train_set)).tolist()
-        idx, order = order[: args.batch], order[args.batch:]
-        batch = [augment(train_set[i], INPUT_WH, rng) for i in idx]
+        picked = pools[0].take(args.batch - n_sim) + (pools[1].take(n_sim) if n_sim else [])
+        batch = [augment(s, INPUT_WH, rng) for s in picked]
         x = torch.from_numpy(np.stack([b[0] for b in batch]).astype(np.float32) / 255.0).permute(0, 3, 1, 2)
         targets = build_targets([b[1] for b in batch], [b[2] for b in batch], anchors, grid_hw, STRIDE_PX)
         model.train()
@@ -235,6 +262,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
         "trained_on": {"real_facade_photos": len(data["train"]), "rendered_frames": n_sim},
         "split": "facades: test = img_n with n % 5 == 0 (never trained on); val = seeded 15 % of the rest",
         "training": {"steps": args.steps, "batch": args.batch, "lr": args.lr, "seed": args.seed,
+                     "sim_fraction": args.sim_fraction, "rendered_buildings": "duplex, fzk_haus (office_a held out)",
                      "seconds": round(train_s)},
         "figures": figures,
         "reproduce": "python -m perception.train",
@@ -252,7 +280,9 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="python -m perception.train", description=__doc__.splitlines()[0])
     ap.add_argument("--facades", type=Path, default=SHARED_DATA / "images" / "facades")
-    ap.add_argument("--sim", type=Path, action="append", default=[], help="exported rendered frames (repeatable)")
+    ap.add_argument("--sim", type=Path, nargs="*", default=[DEFAULT_SIM_DIR],
+                    help="folders of rendered frames with YOLO labels (default: made by bench.sim_trainset)")
+    ap.add_argument("--sim-fraction", type=float, default=0.5, help="share of each batch drawn from rendered frames")
     ap.add_argument("--steps", type=int, default=3600)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--lr", type=float, default=2e-3)

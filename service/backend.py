@@ -174,6 +174,13 @@ class LocalizerBackend:
         return bool(np.linalg.norm(d[:3, 3]) > p.keyframe_min_translation_m or angle > p.keyframe_min_rotation_rad
                     or (stamp_ns - self._last_keyframe_ns) * 1e-9 >= p.keyframe_max_interval_s)
 
+    def latest(self) -> Estimate | None:
+        """The pose at the newest odometry sample (after a late keyframe changed the map), or None."""
+        if not self._odometry:
+            return None
+        stamp_ns = next(reversed(self._odometry))
+        return self._track(stamp_ns, self._odometry[stamp_ns])
+
     def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
         """The buffered odometry pose nearest in time to stamp_ns (within 60 ms), else None."""
         if stamp_ns in self._odometry:
@@ -195,14 +202,18 @@ class LocalizerBackend:
     def _keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
         self._last_keyframe_ns = stamp_ns
         self._T_last_keyframe = T_odom_body
-        self.last = self.localizer.add_keyframe(stamp_ns, T_odom_body, sightings, self._up_body)
-        return self.last
+        return self._remember(self.localizer.add_keyframe(stamp_ns, T_odom_body, sightings, self._up_body))
 
     def _track(self, stamp_ns: int, T_odom_body: np.ndarray) -> Estimate:
         if self.localizer.graph.n_keyframes == 0:
             return self._keyframe(stamp_ns, T_odom_body, [])
-        self.last = self.localizer.track(stamp_ns, T_odom_body)
-        return self.last
+        return self._remember(self.localizer.track(stamp_ns, T_odom_body))
+
+    def _remember(self, est: Estimate) -> Estimate:
+        """Keep the newest estimate (a late keyframe for an older stamp does not replace a newer pose)."""
+        if self.last is None or est.stamp_ns >= self.last.stamp_ns:
+            self.last = est
+        return est
 
     # --- outputs ------------------------------------------------------------------------------------------------
 

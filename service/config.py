@@ -23,10 +23,16 @@ class LocalizeConfig(BaseModel):
 
     method: Literal["robust", "paper"] = Field("robust", description="'paper' = the paper's algorithm exactly")
     inlier_threshold_m: float = Field(0.30, description="centroid residual under which a match is an inlier, m")
-    candidates_per_observation: int = Field(8, description="descriptor candidates kept per observed feature")
-    ambiguity_ratio: float = Field(0.8, description="second-best / best support above which the answer is 'ambiguous'")
-    min_inliers: int = Field(4, description="fewer inliers than this: not_localized")
-    seed: int = Field(0, description="RANSAC random seed (deterministic answers)")
+    ambiguity_loglik_margin: float = Field(
+        5.0, description="a different pose within this log-likelihood of the best makes the answer 'ambiguous'")
+    min_inliers: int = Field(3, description="fewer explained observations than this (4 without gravity): "
+                                            "not_localized")
+    seed: int = Field(0, description="random seed of the hypothesis order (deterministic answers)")
+
+    def robust_params(self) -> dict:
+        """Keyword arguments for graph.registration.register(method='robust')."""
+        return dict(inlier_threshold_m=self.inlier_threshold_m, ambiguity_loglik_margin=self.ambiguity_loglik_margin,
+                    min_inliers=self.min_inliers, seed=self.seed)
 
 
 class CameraConfig(BaseModel):
@@ -47,7 +53,8 @@ class ZenohConfig(BaseModel):
 
     mode: Literal["peer", "client", "router"] = "peer"
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to, e.g. tcp/10.0.0.2:7447")
-    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"], description="endpoints to listen on")
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"],
+                              description="endpoints to listen on (the service's default: loopback, Zenoh's port)")
     config_file: Path | None = Field(None, description="a zenoh JSON5 config file, applied before the keys above")
     multicast_scouting: bool = False
     gossip_scouting: bool = Field(False, description="off for fixed endpoints; on when peers meet through a router")
@@ -88,6 +95,23 @@ class SimConfig(BaseModel):
     image_encoding: Literal["png", "jpeg", "raw"] = Field("jpeg", description="stereo images in the recording "
                                                           "(jpeg: quality 92, ~100 KB; png of a noisy image: ~450 KB)")
     depth: bool = Field(True, description="record the ground-truth depth (RAW_DEPTH_F32, m, 1 mm steps) per frame")
+    facade_photos: Path | None = Field(None, description="folder of facade photos with YOLO labels (images/, "
+                                       "labels/) to texture half the doors/windows with real crops; only photos "
+                                       "numbered n % 5 != 0 are used (the rest is the detector's test split)")
+
+
+class GraphConfig(BaseModel):
+    """The pose graph and the localizer (graph/posegraph, graph/localizer): keyframes, association, status."""
+
+    keyframe_translation_m: float = Field(0.25, description="a new keyframe after this much motion, m")
+    keyframe_rotation_rad: float = Field(0.15, description="... or this much rotation, rad")
+    keyframe_interval_s: float = Field(0.34, description="... or this much time, s")
+    associate_m: float = Field(0.6, description="a sighting this close to a same-type landmark re-observes it, m")
+    cad_link_m: float = Field(0.5, description="once localized, a landmark this close to a CAD feature is linked, m")
+    degraded_after_s: float = Field(10.0, description="localized, but no sighting of a CAD-linked landmark "
+                                    "for this long: degraded")
+    lost_after_s: float = Field(30.0, description="... for this long: lost")
+    relinearize_threshold: float = Field(0.01, description="iSAM2 relinearization threshold")
 
 
 class MacrolocConfig(BaseSettings):
@@ -99,6 +123,7 @@ class MacrolocConfig(BaseSettings):
     service: ServiceConfig = Field(default_factory=lambda: ServiceConfig())
     planning: PlanningConfig = Field(default_factory=lambda: PlanningConfig())
     sim: SimConfig = Field(default_factory=lambda: SimConfig())
+    graph: GraphConfig = Field(default_factory=lambda: GraphConfig())
 
     @classmethod
     def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,  # noqa: ANN001, ANN206

@@ -9,6 +9,7 @@ the decode-only pipeline otherwise (logged).
 from __future__ import annotations
 
 import logging
+from typing import Protocol
 
 import numpy as np
 
@@ -17,6 +18,20 @@ from service.recording import decode_image, matrix_from_pose
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
+
+
+class FramePipeline(Protocol):
+    """Stereo frame -> sightings (doors/windows, corners in the body frame). Perception plugs in here."""
+
+    def __call__(self, frame: pb.StereoFrame) -> list[Sighting]: ...
+
+
+class NullPipeline:
+    """Sees nothing in the frames (perception off or unavailable): a frame still gets its pose from odometry,
+    and sightings come on the observations key (e.g. from the vehicle's own detector)."""
+
+    def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
+        return []
 
 
 class PerceptionPipeline:
@@ -56,3 +71,17 @@ def make_perception_pipeline(threads: int = 2) -> PerceptionPipeline | None:
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception
         log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)
         return None
+
+
+def depth_points_body(frame: pb.StereoFrame, stride_px: int = 8, max_range_m: float = 6.0) -> np.ndarray:
+    """(N, 3) body-frame points from the frame's optional depth image (every stride_px-th pixel, 0 < z <= max)."""
+    if not frame.HasField("depth") or frame.depth.encoding != pb.Image.RAW_DEPTH_F32:
+        return np.zeros((0, 3))
+    info = frame.info
+    depth_m = decode_image(frame.depth)[::stride_px, ::stride_px]
+    v, u = np.mgrid[0:frame.depth.height:stride_px, 0:frame.depth.width:stride_px]
+    ok = np.isfinite(depth_m) & (depth_m > 0) & (depth_m <= max_range_m)
+    z = depth_m[ok]
+    points_cam = np.column_stack([(u[ok] - info.cx) / info.fx * z, (v[ok] - info.cy) / info.fy * z, z])  # pinhole
+    T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_T_body_cam()
+    return points_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3]

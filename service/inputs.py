@@ -158,6 +158,9 @@ class InputParser:
             self.drops.drop("stereo/bad_image", f"{msg.left.width}x{msg.left.height} / "
                                                 f"{msg.right.width}x{msg.right.height}")
             return None
+        if msg.HasField("depth") and (msg.depth.encoding != pb.Image.RAW_DEPTH_F32 or not _image_ok(msg.depth)):
+            self.drops.drop("stereo/bad_depth", f"{msg.depth.width}x{msg.depth.height} encoding {msg.depth.encoding}")
+            return None
         if not self._in_order(f"stereo/{msg.camera_id}", msg.header.stamp_ns):
             return None
         return StereoIn(msg.header.stamp_ns, msg, received_ns)

@@ -14,81 +14,28 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import zenoh
 
-from graph.localizer import Estimate, Sighting
+from graph.localizer import Estimate
 from service.backend import STATUS_TO_WIRE, LocalizerBackend, pose_message
+from service.frames import FramePipeline, NullPipeline
 from service.health import DropCounter, LatencyWindow, RateMeter
 from service.inputs import GoalIn, ImuIn, InputParser, Observation, ObservationsIn, OdometryIn, StereoIn
 from service.planning import GoalSpec, Planner, PlanningError
+from service.recording import matrix_from_pose
 from service.state import MapStore
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from service.workqueue import WorkQueue
 from service.zenoh_io import PROTOBUF, Keys, declare_publisher
 
 log = logging.getLogger(__name__)
 
 VERSION = "0.1.0"
-
-
-class FramePipeline(Protocol):
-    """Stereo frame -> sightings (doors/windows, corners in the body frame). Perception plugs in here."""
-
-    def __call__(self, frame: pb.StereoFrame) -> list[Sighting]: ...
-
-
-class NullPipeline:
-    """Sees nothing in the frames (perception off or unavailable): a frame still gets its pose from odometry,
-    and sightings come on the observations key (e.g. from the vehicle's own detector)."""
-
-    def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
-        return []
-
-
-class WorkQueue:
-    """Events for the worker. Light events (odometry, IMU, observations, goals) keep their order; stereo
-    frames are bounded: beyond `heavy_max` the oldest frame is dropped (counted)."""
-
-    def __init__(self, heavy_max: int, light_max: int = 2048) -> None:
-        self._items: deque[tuple[bool, Any]] = deque()
-        self._heavy = 0
-        self.heavy_max = heavy_max
-        self.light_max = light_max
-        self._cv = threading.Condition()
-        self.dropped = 0
-
-    def put(self, item: Any, heavy: bool) -> None:
-        with self._cv:
-            if heavy and self._heavy >= self.heavy_max:
-                for k, (h, _) in enumerate(self._items):
-                    if h:
-                        del self._items[k]
-                        self._heavy -= 1
-                        self.dropped += 1
-                        break
-            elif not heavy and len(self._items) >= self.light_max:
-                self._items.popleft()
-                self.dropped += 1
-            self._items.append((heavy, item))
-            self._heavy += heavy
-            self._cv.notify()
-
-    def get(self, timeout_s: float) -> Any | None:
-        with self._cv:
-            if not self._items and not self._cv.wait_for(lambda: bool(self._items), timeout_s):
-                return None
-            heavy, item = self._items.popleft()
-            self._heavy -= heavy
-            return item
-
-    def __len__(self) -> int:
-        with self._cv:
-            return len(self._items)
 
 
 @dataclass
@@ -162,6 +109,7 @@ class LocalizationService:
         try:
             while not stop.wait(self.params.status_period_s):
                 self._publish_status()
+                self._publish_features()
                 if time.monotonic() - last_save >= self.params.save_period_s:
                     self._save()
                     last_save = time.monotonic()
@@ -233,6 +181,9 @@ class LocalizationService:
         if est is None:
             return  # waiting for the odometry of its stamp (or counted as unmatched by the backend)
         self.latency["keyframe"].add_ms((time.perf_counter() - start) * 1e3)
+        if est.stamp_ns < self._last_pose_ns:  # a late keyframe: publish what it changed at the newest odometry
+            with self._lock:
+                est = self.backend.latest() or est
         self._publish_pose(est)
         self._maybe_replan(est)
 
@@ -254,6 +205,18 @@ class LocalizationService:
             est = Estimate(ev.stamp_ns, self.backend.status, np.eye(4))
         self._publish_pose(est)
         self.latency["frame_to_pose"].add_ms((time.monotonic_ns() - ev.received_ns) * 1e-6)
+        if est.T_cad_body is not None and ev.frame.HasField("depth"):
+            self._add_obstacles(ev.frame, est.T_cad_body)
+
+    def _add_obstacles(self, frame: pb.StereoFrame, T_cad_body: np.ndarray) -> None:
+        """Depth seen by the vehicle (CAD frame) into the planner's obstacle layer of the current storey."""
+        from service.frames import depth_points_body
+
+        points_body = depth_points_body(frame)
+        if len(points_body):
+            with self._lock:
+                self.planner.add_obstacle_points(points_body @ T_cad_body[:3, :3].T + T_cad_body[:3, 3],
+                                                 float(T_cad_body[2, 3]))
 
     def _on_goal(self, ev: GoalIn) -> None:
         self._goal = ev
@@ -354,6 +317,21 @@ class LocalizationService:
                  {k: round(v, 2) for k, v in diag.latencies_ms.items()}, dict(diag.dropped),
                  extra={"data": {"status": loc.status, "rates_hz": dict(diag.rates_hz),
                                  "latencies_ms": dict(diag.latencies_ms), "dropped": dict(diag.dropped)}})
+
+    def _publish_features(self) -> None:
+        """The reconstructed doors/windows: CAD frame once localized (id = the linked model feature), else map."""
+        with self._lock:
+            snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
+        msg = pb.ObservedFeatures()
+        msg.header.stamp_ns = snap.header.stamp_ns
+        localized = snap.status == pb.PoseEstimate.LOCALIZED and snap.HasField("T_cad_map")
+        msg.header.frame_id = "cad" if localized else "map"
+        T = matrix_from_pose(snap.T_cad_map) if localized else np.eye(4)
+        for lm in snap.landmarks_map:
+            corners = np.array([[c.x, c.y, c.z] for c in lm.corners]).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+            msg.features.add(type=lm.type, id=lm.id).corners.extend(
+                pb.Vector3(x=c[0], y=c[1], z=c[2]) for c in corners)
+        self._pubs["features"].put(msg.SerializeToString())
 
     def _save(self) -> None:
         with self._lock:

@@ -12,17 +12,20 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from graph.features import BuildingModel
 from graph.localizer import Estimate, Localizer, LocalizerParams
 from graph.mapstore import StoredMap
-from graph.posegraph import PoseGraph
+from graph.posegraph import IsamSettings, PoseGraph
 from graph.registrar import FirstOfRegistrar, ModelRegistrar, Registrar, StoredMapRegistrar
 from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from service.replay_sources import FrameInput, ObservationSource, TruthSource
+
+if TYPE_CHECKING:
+    from service.config import GraphConfig
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +87,7 @@ class ReplayResult:
     cad_links: int
     wrong_links: int
     isam_update_ms_mean: float
+    position_sigma_final_m: float | None  # sqrt of the largest translation variance of the last keyframe (marginals)
     trace: ReplayTrace
     localizer: Localizer
 
@@ -95,25 +99,36 @@ class ReplayResult:
                 "rpe_1s_rmse_m": _round(self.rpe_1s.rmse), "wrong_localizations": self.wrong_localizations,
                 "status_final": self.status_final, "keyframes": self.keyframes, "landmarks": self.landmarks,
                 "cad_links": self.cad_links, "wrong_links": self.wrong_links,
-                "isam_update_ms_mean": round(self.isam_update_ms_mean, 3)}
+                "isam_update_ms_mean": round(self.isam_update_ms_mean, 3),
+                "position_sigma_final_m": _round(self.position_sigma_final_m)}
 
 
 def _round(v: float | None, nd: int = 4) -> float | None:
     return None if v is None or not np.isfinite(v) else round(float(v), nd)
 
 
+def settings_from_config(graph: GraphConfig) -> tuple[LocalizerParams, KeyframePolicy, IsamSettings]:
+    """The factory's half that reads the config: typed constructor arguments for the components."""
+    params = LocalizerParams(associate_m=graph.associate_m, cad_link_m=graph.cad_link_m,
+                             degraded_after_s=graph.degraded_after_s, lost_after_s=graph.lost_after_s)
+    policy = KeyframePolicy(graph.keyframe_translation_m, graph.keyframe_rotation_rad, graph.keyframe_interval_s)
+    return params, policy, IsamSettings(relinearize_threshold=graph.relinearize_threshold)
+
+
 def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey_hint: str | None = None,
-                   T_body_cam: np.ndarray | None = None, params: LocalizerParams | None = None) -> Localizer:
+                   T_body_cam: np.ndarray | None = None, params: LocalizerParams | None = None,
+                   isam: IsamSettings | None = None) -> Localizer:
     """The factory: registration against a stored map when one is given, else against the whole model."""
     registrar: Registrar = ModelRegistrar(model, storey_hint=storey_hint)
     if stored is not None:
         registrar = FirstOfRegistrar([StoredMapRegistrar(stored.known_rects(model), min_landmarks=2), registrar])
-    return Localizer(model, PoseGraph(), registrar, params, T_body_cam=T_body_cam)
+    return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam)
 
 
 def replay(flight: Path, model: BuildingModel, source: ObservationSource | None = None,
            stored: StoredMap | None = None, storey_hint: str | None = None, policy: KeyframePolicy | None = None,
-           sink: FrameSink = null_sink) -> ReplayResult:
+           sink: FrameSink = null_sink, params: LocalizerParams | None = None,
+           isam: IsamSettings | None = None) -> ReplayResult:
     """Run `flight` (MCAP) through a new localizer in `model`; see module doc."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
@@ -131,7 +146,7 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
         start = time.perf_counter()
         inputs: FrameInput = source(frame)
         if localizer is None:
-            localizer = make_localizer(model, stored, storey_hint, inputs.T_body_cam)
+            localizer = make_localizer(model, stored, storey_hint, inputs.T_body_cam, params, isam)
         t0 = frame.stamp_ns if t0 is None else t0
         t_s = (frame.stamp_ns - t0) * 1e-9
         is_kf = policy.is_keyframe(T_kf, inputs.T_odom_body, t_s - (t_kf if t_kf is not None else -1e9))
@@ -185,7 +200,16 @@ def _score(trace: ReplayTrace, localizer: Localizer, busy_s: float, busy_at_loca
         wrong_localizations=_wrong_localizations(trace), status_final=trace.status[-1],
         keyframes=localizer.graph.n_keyframes, landmarks=len(localizer.landmarks), cad_links=len(links),
         wrong_links=sum(1 for j, fid in links.items() if truth_of.get(j) not in (None, fid)),
-        isam_update_ms_mean=float(np.mean(kf_ms)) if kf_ms else 0.0, trace=trace, localizer=localizer)
+        isam_update_ms_mean=float(np.mean(kf_ms)) if kf_ms else 0.0,
+        position_sigma_final_m=_position_sigma(localizer), trace=trace, localizer=localizer)
+
+
+def _position_sigma(localizer: Localizer) -> float | None:
+    """Largest position standard deviation (m) of the last keyframe's T_cad_body, from the marginals."""
+    if not localizer.graph.has_anchor:
+        return None
+    cov = localizer.graph.covariance_cad_body(localizer.graph.n_keyframes - 1)
+    return float(np.sqrt(np.max(np.linalg.eigvalsh(cov[3:, 3:]))))  # [rot; trans]: the lower right 3x3
 
 
 def _truth_ids(localizer: Localizer) -> dict[int, str]:

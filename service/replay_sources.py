@@ -116,6 +116,49 @@ def _rot_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+class VisualOdometry:
+    """T_odom_body from the stereo visual odometry on the recorded images; the odometry frame is the first
+    body frame levelled by the IMU's gravity."""
+
+    def __init__(self) -> None:
+        self._odometry: StereoOdometry | None = None
+        self._T_odom_cam0: np.ndarray | None = None
+
+    def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray,
+                 up_body: np.ndarray | None) -> np.ndarray:
+        from perception.calib import StereoRig
+        from perception.odometry import StereoOdometry
+
+        info = frame.stereo.info
+        T_body_cam = matrix_from_pose(info.T_body_cam)
+        if self._odometry is None:
+            rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
+            self._odometry = StereoOdometry(rig)
+            T_odom_body0 = np.eye(4)
+            if up_body is not None:
+                T_odom_body0[:3, :3] = _rotation_aligning(up_body, np.array([0.0, 0.0, 1.0]))
+            self._T_odom_cam0 = T_odom_body0 @ T_body_cam
+        assert self._T_odom_cam0 is not None
+        return self._T_odom_cam0 @ self._odometry.track(left, right).T_odom_cam @ np.linalg.inv(T_body_cam)
+
+
+class TruthFeaturesWithVisualOdometry:
+    """`--observations truth-vo`: ground-truth sightings (with TruthSource's noise) but the odometry of the
+    real stereo visual odometry on the recorded images: the graph against a real front end's drift."""
+
+    def __init__(self, noise: TruthNoise | None = None, seed: int = 0) -> None:
+        self.truth = TruthSource(noise, seed)
+        self.odometry = VisualOdometry()
+
+    def __call__(self, frame: FlightFrame) -> FrameInput:
+        from service.recording import decode_image
+
+        inputs = self.truth(frame)
+        up_body = _up_from_imu(frame)
+        T_odom_body = self.odometry(frame, decode_image(frame.stereo.left), decode_image(frame.stereo.right), up_body)
+        return FrameInput(inputs.stamp_ns, T_odom_body, inputs.sightings, up_body, inputs.T_body_cam)
+
+
 class PerceptionSource:
     """The perception chain (doors and windows in 3D) and the stereo visual odometry on recorded images.
 
@@ -132,31 +175,22 @@ class PerceptionSource:
                                  "is not available; use --observations truth") from None
         self.perception = Perception.create()
         self.detect_every = detect_every
-        self._odometry: StereoOdometry | None = None
-        self._T_odom_cam0: np.ndarray | None = None
+        self.odometry = VisualOdometry()
         self._n = 0
 
     def __call__(self, frame: FlightFrame) -> FrameInput:
         from perception.calib import StereoRig
-        from perception.odometry import StereoOdometry
         from perception.pipeline import StereoPair
         from service.recording import decode_image
 
         info = frame.stereo.info
-        rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
         T_body_cam = matrix_from_pose(info.T_body_cam)
         left, right = decode_image(frame.stereo.left), decode_image(frame.stereo.right)
         up_body = _up_from_imu(frame)
-        if self._odometry is None:
-            self._odometry = StereoOdometry(rig)
-            T_odom_body0 = np.eye(4)
-            if up_body is not None:
-                T_odom_body0[:3, :3] = _rotation_aligning(up_body, np.array([0.0, 0.0, 1.0]))
-            self._T_odom_cam0 = T_odom_body0 @ T_body_cam
-        assert self._T_odom_cam0 is not None
-        T_odom_body = self._T_odom_cam0 @ self._odometry.track(left, right).T_odom_cam @ np.linalg.inv(T_body_cam)
+        T_odom_body = self.odometry(frame, left, right, up_body)
         sightings: list[Sighting] = []
         if self._n % self.detect_every == 0:
+            rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
             gravity_cam = None if up_body is None else -(T_body_cam[:3, :3].T @ up_body)
             result = self.perception.process(StereoPair(left, right, rig, gravity_cam, frame.stamp_ns))
             truth = _truth_centroids_cam(frame)

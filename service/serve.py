@@ -10,7 +10,8 @@ from pathlib import Path
 
 from graph.errors import UserInputError
 from service.config import MacrolocConfig
-from service.node import NullPipeline, FramePipeline, LocalizationService, ServiceParams
+from service.frames import FramePipeline, NullPipeline
+from service.node import LocalizationService, ServiceParams
 from service.state import MapStore
 
 log = logging.getLogger(__name__)
@@ -62,6 +63,9 @@ def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda signum, frame: stop.set())
+    run_dir = Path(cfg.service.state_dir).expanduser() / cfg.service.vehicle
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.resolved.json").write_text(cfg.model_dump_json(indent=2))  # beside the saved map
     with open_session(cfg.zenoh) as session:
         service = build_service(cfg, session)
         if on_ready is not None:

@@ -123,11 +123,17 @@ def _rasterise(triangles: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[
 def _inside_mask(scene: SceneGeometry, floor_z: float, ceiling_z: float | None, lo: np.ndarray, cell: float,
                  shape: tuple[int, int]) -> np.ndarray:
     spaces = scene.space_triangles_cad
+    in_spaces = np.zeros(shape, bool)
     if len(spaces):  # the bottom faces of the storey's IfcSpace volumes
         zmin, zmax = spaces[:, :, 2].min(axis=1), spaces[:, :, 2].max(axis=1)
         bottoms = spaces[(zmax - zmin < 0.05) & (np.abs(zmin - floor_z) < 0.5)]
-        if len(bottoms):
-            return _rasterise(bottoms, lo, cell, shape, fill=True)
+        in_spaces = _rasterise(bottoms, lo, cell, shape, fill=True)
+    return in_spaces | _covered(scene, floor_z, ceiling_z, lo, cell, shape)
+
+
+def _covered(scene: SceneGeometry, floor_z: float, ceiling_z: float | None, lo: np.ndarray, cell: float,
+             shape: tuple[int, int]) -> np.ndarray:
+    """Cells with a floor below and a ceiling above (models whose spaces are missing or partial)."""
     tri, normals = scene.triangles_cad, scene.normals_cad()
     horizontal = np.isin(scene.tri_class, (SLAB, COVERING)) | (np.abs(normals[:, 2]) > 0.9)
     horizontal &= ~np.isin(scene.tri_class, (DOOR, WINDOW))
@@ -135,9 +141,22 @@ def _inside_mask(scene: SceneGeometry, floor_z: float, ceiling_z: float | None, 
     top = ceiling_z if ceiling_z is not None else floor_z + 8.0
     floor = _rasterise(tri[horizontal & (np.abs(zc - floor_z) < 0.6)], lo, cell, shape, fill=True)
     roof = _rasterise(tri[horizontal & (zc > floor_z + 2.2) & (zc < top + 0.6)], lo, cell, shape, fill=True)
+    hull = _hull_mask(tri[:, :, :2].reshape(-1, 2), lo, cell, shape)
+    if floor.sum() < 0.3 * hull.sum():  # walls only (a mesh of one floor plan): inside their convex hull
+        return hull
     if (floor & roof).sum() < 0.5 * floor.sum():  # a model without ceilings (meshes): the floor's footprint
         return floor
     return floor & roof
+
+
+def _hull_mask(points_xy: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    img = np.zeros(shape, np.uint8)
+    if len(points_xy) >= 3:
+        pts = np.round((points_xy - lo) / cell).astype(np.int32)
+        cv2.fillConvexPoly(img, cv2.convexHull(pts), 1)
+    return img.astype(bool)
 
 
 # --- routes ------------------------------------------------------------------------------------------------
@@ -156,7 +175,8 @@ def plan_route(space: FreeSpace, length_m: float, rng: np.random.Generator) -> n
     total = 0.0
     for _ in range(64):
         dist, pred = dijkstra(graph, indices=start, return_predecessors=True)
-        reachable = np.isfinite(dist) & (dist > 3.0)
+        finite = np.isfinite(dist)
+        reachable = finite & (dist > min(3.0, 0.5 * float(dist[finite].max())))  # small spaces: shorter hops
         if not reachable.any():
             break
         weight = np.where(reachable, np.sqrt(np.maximum(dist, 0)) * clear, 0.0)

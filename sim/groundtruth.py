@@ -4,8 +4,9 @@ For each macro-feature whose instance covers at least `min_pixels` of the left i
   corners_cam: (4, 3) its opening rectangle's corners in the LEFT camera optical frame (x right, y down,
     z forward), metres, in the feature's own corner order;
   corners_px: (4, 2) their projections (pixels; meaningless for a corner behind the camera);
-  corner_visible: (4,) a corner is visible when it lies in front of the camera, inside the image, and the
-    rendered depth around its pixel is not nearer than the corner by more than `occlusion_tol_m`;
+  corner_visible: (4,) a corner is visible when it lies in front of the camera, inside the image, and some
+    rendered depth within 3 px of its pixel is not nearer than the corner by more than `occlusion_tol_m`
+    (the frame around an opening stands a little proud of its rectangle);
   box_xyxy: the 2D box of the feature's 3D extent (opening rectangle thickened by the element's depth along
     its normal) clipped to the near plane and the image; pixels, OpenCV convention (pixel centres at integers),
     covering whole pixels (the image spans [-0.5, W - 0.5]): it encloses the feature's rendered mask;

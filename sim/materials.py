@@ -14,8 +14,8 @@ import numpy as np
 
 from graph.features import MacroFeature
 from sim import textures as tx
-from sim.render import KIND_DOOR, KIND_GLASS, KIND_PLAIN, KIND_WINDOW_FRAME, VERTEX_FLOATS
-from sim.scene import COVERING, DOOR, FURNITURE, SLAB, STAIR, WALL, WINDOW, SceneGeometry
+from sim.render import DETAIL_COLUMN, KIND_DOOR, KIND_GLASS, KIND_PLAIN, KIND_WINDOW_FRAME, VERTEX_FLOATS
+from sim.scene import COVERING, DOOR, FURNITURE, OTHER, SLAB, STAIR, WALL, WINDOW, SceneGeometry
 
 WALL_TINTS = ((0.95, 0.94, 0.9), (0.9, 0.92, 0.95), (0.96, 0.9, 0.8), (0.85, 0.9, 0.85), (0.8, 0.8, 0.82),
               (0.95, 0.85, 0.85), (0.75, 0.8, 0.9))
@@ -23,6 +23,8 @@ DOOR_TINTS = ((0.9, 0.75, 0.55), (0.6, 0.4, 0.25), (0.95, 0.95, 0.93), (0.55, 0.
               (0.2, 0.3, 0.5), (0.3, 0.45, 0.3), (0.4, 0.28, 0.18))
 FRAME_TINTS = ((0.95, 0.95, 0.95), (0.25, 0.27, 0.3), (0.45, 0.3, 0.2), (0.7, 0.7, 0.72))
 GROUND_HALF_SIZE_M = 150.0
+PHOTO_SHARE = 0.5  # doors/windows textured with a real photo, when photos are given
+PHOTO_STYLE = 16.0
 
 
 def _element_rng(seed: int, key: str) -> np.random.Generator:
@@ -40,12 +42,17 @@ def feature_instance_map(features: list[MacroFeature]) -> dict[str, int]:
 
 def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
                 ground_z_m: float | None = None, open_doors: set[int] | frozenset[int] = frozenset(),
-                floor_levels_m: tuple[float, ...] = ()) -> np.ndarray:
+                floor_levels_m: tuple[float, ...] = (), photo_door_layers: tuple[int, ...] = (),
+                photo_window_layers: tuple[int, ...] = (),
+                storey_z_m: tuple[float, float] | None = None) -> np.ndarray:
     """(3T' + 6, VERTEX_FLOATS) float32 vertex array of the scene plus a ground plane (at `ground_z_m`,
     default the lowest geometry) for the renderer, CAD frame, metres. Doors whose feature index is in
     `open_doors` are drawn without their leaf (frame only): open, so the flight can pass. The bottoms of the
     IfcSpace volumes within 0.3 m of a level in `floor_levels_m` are drawn as floors, 4 mm up (many models have
-    no floor slab under their rooms)."""
+    no floor slab under their rooms). Doors and windows get, one in two, a photo texture from the given
+    texture layers (`photo_*_layers`; style 16 + k tells the shader to stretch it across the opening).
+    `storey_z_m` (floor, ceiling): when the model has no ceiling over that floor (meshes of walls and floors),
+    its floor is copied up as a ceiling, so the drone flies indoors rather than under the sky."""
     T = len(scene.triangles_cad)
     normals = scene.normals_cad().astype(np.float32)
     layer = np.full(T, tx.PLASTER, np.float32)
@@ -59,6 +66,7 @@ def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
     floor_layer = tx.FLOOR_LAYERS[rng.integers(len(tx.FLOOR_LAYERS))]
     instances = feature_instance_map(features)
     scene_mid_z = float(scene.bounds_cad[:, 2].mean())
+    photo_windows = np.full(T, -1, np.int64)
     by_element = np.argsort(scene.tri_element, kind="stable")
     bounds = np.searchsorted(scene.tri_element[by_element], np.arange(len(scene.element_ids) + 1))
     for e, gid in enumerate(scene.element_ids):
@@ -80,11 +88,19 @@ def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
             tint[idx] = DOOR_TINTS[er.integers(len(DOOR_TINTS))]
             kind[idx] = KIND_DOOR
             style[idx] = er.integers(8)
+            if photo_door_layers and er.random() < PHOTO_SHARE:
+                layer[idx] = photo_door_layers[er.integers(len(photo_door_layers))]
+                tint[idx] = 0.9 + 0.2 * er.random()
+                style[idx] = PHOTO_STYLE
         elif cls == WINDOW:
             layer[idx] = tx.PAINTED
             tint[idx] = frame_tint
             kind[idx] = KIND_WINDOW_FRAME
             style[idx] = er.integers(3)
+            if photo_window_layers and er.random() < PHOTO_SHARE:
+                glass_idx = idx[scene.tri_glass[idx]]
+                if len(glass_idx):  # the photo goes on the panes; the model's frame stays
+                    photo_windows[glass_idx] = photo_window_layers[er.integers(len(photo_window_layers))]
         elif cls == STAIR:
             layer[idx] = tx.METAL if er.random() < 0.5 else tx.WOOD_GRAIN
         elif cls == FURNITURE:
@@ -103,6 +119,10 @@ def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
     glass = scene.tri_glass
     kind[glass] = KIND_GLASS
     tint[glass] = (0.55, 0.65, 0.65)
+    photo_glass = glass & (photo_windows >= 0)
+    layer[photo_glass] = photo_windows[photo_glass]
+    tint[photo_glass] = 1.0
+    style[photo_glass] = PHOTO_STYLE
     verts = np.zeros((T, 3, VERTEX_FLOATS), np.float32)
     verts[:, :, 0:3] = scene.triangles_cad
     verts[:, :, 3:6] = normals[:, None, :]
@@ -112,10 +132,37 @@ def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
     verts[:, :, 11:13] = fuv
     verts[:, :, 13] = kind[:, None]
     verts[:, :, 14] = style[:, None]
+    detail = np.isin(scene.tri_class, (FURNITURE, OTHER)) | ((scene.tri_class == STAIR) & (inst == 0))
+    verts[:, :, DETAIL_COLUMN] = detail[:, None]
     keep = ~_leaf_of(inst, fuv, kind, open_doors)
     z0 = float(scene.bounds_cad[0, 2]) if ground_z_m is None else ground_z_m
     floors = _space_floors(scene, floor_levels_m, floor_layer, rng)
-    return np.concatenate([verts[keep].reshape(-1, VERTEX_FLOATS), floors, _ground(scene, z0 - 0.01, rng)])
+    ceiling = _missing_ceiling(scene, normals, storey_z_m, rng) if storey_z_m is not None else floors[:0]
+    return np.concatenate([verts[keep].reshape(-1, VERTEX_FLOATS), floors, ceiling,
+                           _ground(scene, z0 - 0.01, rng)])
+
+
+def _missing_ceiling(scene: SceneGeometry, normals: np.ndarray, storey_z_m: tuple[float, float],
+                     rng: np.random.Generator) -> np.ndarray:
+    """Vertices of a ceiling copied from the storey's floor when horizontal faces above cover under half of it."""
+    floor_z, ceiling_z = storey_z_m
+    tri = scene.triangles_cad
+    flat = np.abs(normals[:, 2]) > 0.9
+    zc = tri[:, :, 2].mean(axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    floor = flat & (np.abs(zc - floor_z) < 0.3)
+    above = flat & (zc > floor_z + 2.2) & (zc < ceiling_z + 0.6)
+    if area[floor].sum() == 0 or area[above].sum() >= 0.5 * area[floor].sum():
+        return np.zeros((0, VERTEX_FLOATS), np.float32)
+    top = tri[floor].astype(np.float32).copy()
+    top[:, :, 2] = ceiling_z - 0.01
+    out = np.zeros((len(top), 3, VERTEX_FLOATS), np.float32)
+    out[:, :, 0:3] = top
+    out[:, :, 3:6] = (0, 0, -1)
+    out[:, :, 6:9] = 0.9 + 0.1 * rng.random(3)
+    out[:, :, 9] = tx.CEILING
+    out[:, :, 11:13] = -1.0
+    return out.reshape(-1, VERTEX_FLOATS)
 
 
 def _space_floors(scene: SceneGeometry, levels_m: tuple[float, ...], layer: int,

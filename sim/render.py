@@ -20,7 +20,9 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-VERTEX_FLOATS = 16  # pos 3, normal 3, tint 3, layer 1, instance 1, feature uv 2, kind 1, style 1, spare 1
+VERTEX_FLOATS = 16  # pos 3, normal 3, tint 3, layer 1, instance 1, feature uv 2, kind 1, style 1, detail 1
+DETAIL_COLUMN = 15  # 1.0: a small detailed object (furniture, fittings, railings), drawn only within DETAIL_RANGE_M
+DETAIL_RANGE_M = 12.0
 KIND_PLAIN, KIND_DOOR, KIND_WINDOW_FRAME, KIND_GLASS = 0.0, 1.0, 2.0, 3.0
 MAX_LIGHTS = 4
 
@@ -83,14 +85,16 @@ class ChunkIndex:
     box_min: np.ndarray
     box_max: np.ndarray
     huge: np.ndarray  # (C,) bool: the cell of oversized triangles (the ground, long slabs), drawn last
+    detail: np.ndarray  # (C,) bool: cells of small detailed objects, drawn only within DETAIL_RANGE_M
 
     @classmethod
     def build(cls, vertices: np.ndarray, cell_m: float = 5.0) -> ChunkIndex:
         tri = vertices.reshape(-1, 3, vertices.shape[1])
         centre = tri[:, :, :3].mean(axis=1)
         extent = np.ptp(tri[:, :, :3], axis=1).max(axis=1)
-        cell = np.floor(centre / cell_m).astype(np.int64)
-        cell[extent > 4 * cell_m] = np.iinfo(np.int32).max  # huge triangles (ground, long slabs): one cell of their own
+        detail = tri[:, 0, DETAIL_COLUMN] > 0.5
+        cell = np.column_stack([np.floor(centre / cell_m).astype(np.int64), detail])
+        cell[extent > 4 * cell_m, :3] = np.iinfo(np.int32).max  # huge triangles (ground, long slabs): own cell
         _, key = np.unique(cell, axis=0, return_inverse=True)
         key = key.reshape(-1)
         order = np.argsort(key, kind="stable")
@@ -102,7 +106,7 @@ class ChunkIndex:
         box_max = np.maximum.reduceat(pts.max(axis=1), starts, axis=0)
         huge = np.ptp(np.stack([box_min, box_max]), axis=0).max(axis=1) > 8 * cell_m
         return cls(np.ascontiguousarray(tri.reshape(-1, vertices.shape[1])), starts * 3, counts * 3, box_min, box_max,
-                   huge)
+                   huge, tri[starts, 0, DETAIL_COLUMN] > 0.5)
 
     def visible_front_to_back(self, T_cad_cam: np.ndarray, camera: CameraModel,
                               z_range_m: tuple[float, float] | None = None) -> np.ndarray:
@@ -123,7 +127,9 @@ class ChunkIndex:
         if z_range_m is not None:
             out |= ~self.huge & ((self.box_max[:, 2] < z_range_m[0]) | (self.box_min[:, 2] > z_range_m[1]))
         cam = T_cad_cam[:3, 3]
-        dist = np.linalg.norm(np.clip(cam, self.box_min, self.box_max) - cam, axis=1) + 1e6 * self.huge
+        dist = np.linalg.norm(np.clip(cam, self.box_min, self.box_max) - cam, axis=1)
+        out |= self.detail & (dist > DETAIL_RANGE_M)  # a few pixels each at that range: not worth their vertices
+        dist = dist + 1e6 * self.huge
         idx = np.flatnonzero(~out)
         idx = idx[np.argsort(dist[idx], kind="stable")]
         return np.column_stack([self.first[idx], self.count[idx]])
@@ -176,7 +182,7 @@ class StereoRenderer:
         for prog in progs:
             prog["proj"].value = proj
             prog["nearfar"].value = (n, f)
-        progs[0]["tex"].value = 0  # the texture array on unit 0
+        self._set("tex", 0)  # the texture array on unit 0
         self._indirect: Any = None
         self.depth_prepass = True
         self.z_range_m: tuple[float, float] | None = None  # heights drawn (the storey flown); None: all
@@ -185,7 +191,7 @@ class StereoRenderer:
         if len(verts) == 0:
             return None
         vbo = self.ctx.buffer(verts.tobytes())
-        vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 3f 3f 1f 1f 2f 1f 1f 1x4",
+        vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 3f 3f 1f 1f 2f 1f 1f 4x",
                                                  "in_pos", "in_normal", "in_tint", "in_layer", "in_inst",
                                                  "in_fuv", "in_kind", "in_style")])
         self._vbos.append(vbo)  # kept for the depth pre-pass
@@ -262,23 +268,32 @@ class StereoRenderer:
         return left, right.image_bgr
 
     def _set_uniforms(self, T_cam_cad: np.ndarray, cam_pos: np.ndarray, lighting: Lighting, seed: float) -> None:
-        self.prog["T_cam_cad"].write(T_cam_cad.T.astype(np.float32).tobytes())  # GLSL matrices are column-major
+        self._write("T_cam_cad", T_cam_cad.T.astype(np.float32).tobytes())  # GLSL matrices are column-major
         self.prog_depth["T_cam_cad"].write(T_cam_cad.T.astype(np.float32).tobytes())
-        self.prog["cam_pos"].value = tuple(float(v) for v in cam_pos)
+        self._set("cam_pos", tuple(float(v) for v in cam_pos))
         k = min(MAX_LIGHTS, len(lighting.positions_cad))
         pos = np.zeros((MAX_LIGHTS, 3), np.float32)
         col = np.zeros((MAX_LIGHTS, 3), np.float32)
         if k:
             order = np.argsort(np.linalg.norm(lighting.positions_cad - cam_pos, axis=1))[:k]
             pos[:k], col[:k] = lighting.positions_cad[order], lighting.colours[order]
-        self.prog["light_pos"].write(pos.tobytes())
-        self.prog["light_col"].write(col.tobytes())
-        self.prog["n_lights"].value = k
-        self.prog["ambient"].value = tuple(float(v) for v in lighting.ambient)
-        self.prog["exposure"].value = float(lighting.exposure)
-        self.prog["noise_sigma"].value = float(lighting.noise_sigma)
-        self.prog["sky_rgb"].value = tuple(float(v) for v in lighting.sky_rgb)
-        self.prog["frame_seed"].value = float(seed % 1000.0)
+        self._write("light_pos", pos.tobytes())
+        self._write("light_col", col.tobytes())
+        self._set("n_lights", k)
+        self._set("ambient", tuple(float(v) for v in lighting.ambient))
+        self._set("exposure", float(lighting.exposure))
+        self._set("noise_sigma", float(lighting.noise_sigma))
+        self._set("sky_rgb", tuple(float(v) for v in lighting.sky_rgb))
+        self._set("frame_seed", float(seed % 1000.0))
+
+    def _set(self, name: str, value: object) -> None:
+        """Set a uniform of the scene shader; one the GLSL compiler optimised away is skipped."""
+        if name in self.prog:
+            self.prog[name].value = value
+
+    def _write(self, name: str, data: bytes) -> None:
+        if name in self.prog:
+            self.prog[name].write(data)
 
     def release(self) -> None:
         self.ctx.release()

@@ -15,7 +15,6 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -164,7 +163,8 @@ def _cat(parts: list, empty_shape: tuple, dtype) -> np.ndarray:  # noqa: ANN001
     return np.concatenate(parts).astype(dtype) if parts else np.zeros(empty_shape, dtype)
 
 
-MESH_NAME_CLASSES = (("sign", OTHER), ("door", DOOR), ("window", WINDOW), ("glass", WINDOW), ("wall", WALL), ("floor", SLAB),
+MESH_NAME_CLASSES = (("sign", OTHER), ("door", DOOR), ("window", WINDOW), ("glass", WINDOW), ("wall", WALL),
+                     ("floor", SLAB),
                      ("ceiling", COVERING), ("stair", STAIR), ("rail", STAIR), ("elevator", WALL),
                      ("curtain", FURNITURE), ("bed", FURNITURE), ("chair", FURNITURE), ("table", FURNITURE))
 

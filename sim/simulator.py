@@ -29,7 +29,7 @@ from sim.imu import ImuNoise, ImuSamples, simulate_imu
 from sim.materials import dress_scene
 from sim.render import CameraModel, Lighting, StereoRenderer
 from sim.scene import load_scene
-from sim.textures import make_texture_layers
+from sim.textures import facade_crops, make_texture_layers
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,7 @@ class SimulationParams:
     camera_rate_hz: float = 30.0
     flight: FlightParams = field(default_factory=FlightParams)
     imu_noise: ImuNoise = field(default_factory=ImuNoise)
+    facade_photos: Path | None = None  # real door/window photos to texture some openings (train split only)
 
 
 @dataclass
@@ -112,10 +113,18 @@ class Simulator:
         self.lighting = make_lighting(self.free_space, self.ceiling_z_m, rng)
         self._exposure_phase = rng.uniform(0, 2 * np.pi, 2)
         self.open_doors = doors_crossed(self.trajectory, self.features)
+        layers = make_texture_layers(params.seed)
+        doors_rgb, windows_rgb = (facade_crops(params.facade_photos, params.seed) if params.facade_photos is not None
+                                  else (layers[:0], layers[:0]))
+        n0 = len(layers)
+        photo_doors = tuple(range(n0, n0 + len(doors_rgb)))
+        photo_windows = tuple(range(n0 + len(doors_rgb), n0 + len(doors_rgb) + len(windows_rgb)))
         vertices = dress_scene(self.scene, self.features, params.seed, ground_z_m=self._ground_z(),
                                open_doors=self.open_doors,
-                               floor_levels_m=tuple(self.model.storey_elevations_m.values()))
-        self.renderer = StereoRenderer(vertices, make_texture_layers(params.seed), params.camera)
+                               floor_levels_m=tuple(self.model.storey_elevations_m.values()),
+                               photo_door_layers=photo_doors, photo_window_layers=photo_windows,
+                               storey_z_m=(self.floor_z_m, self.ceiling_z_m))
+        self.renderer = StereoRenderer(vertices, np.concatenate([layers, doors_rgb, windows_rgb]), params.camera)
         self.renderer.z_range_m = (self.floor_z_m - 1.0, self.ceiling_z_m + 1.0)  # other storeys are hidden
         self.half_depths = feature_half_depths(self.scene, self.features)
 

@@ -7,6 +7,9 @@ point is texture for stereo matching and visual odometry plus variety for the de
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import numpy as np
 
 TEXTURE_SIZE_PX = 256
@@ -93,3 +96,54 @@ def make_texture_layers(seed: int, size: int = TEXTURE_SIZE_PX) -> np.ndarray:
     grains = [1.0 + 0.12 * value_noise(rng, s, 32) + 0.10 * value_noise(rng, s, 96) for _ in layers]
     out = np.stack([np.clip(layer * g[..., None], 0, 1) for layer, g in zip(layers, grains, strict=True)])
     return (out * 255).astype(np.uint8)
+
+
+# --- door and window textures cut from real photos -----------------------------------------------------------
+
+FACADE_DOOR_CLASS, FACADE_WINDOW_CLASS = 5, 0  # classes of the facade data set's YOLO labels
+HELD_OUT_EVERY = 5  # photos whose number n has n % 5 == 0 are the detector's held-out test split: never used
+
+
+def facade_photo_number(path: Path) -> int | None:
+    digits = re.findall(r"\d+", path.stem)
+    return int(digits[-1]) if digits else None
+
+
+def facade_crops(folder: Path, seed: int, n_doors: int = 8, n_windows: int = 8,
+                 size: int = TEXTURE_SIZE_PX) -> tuple[np.ndarray, np.ndarray]:
+    """(doors (D, size, size, 3), windows (W, size, size, 3)) uint8 RGB crops along the labelled boxes of the
+    facade photos in `folder` (images/, labels/ in YOLO format), train split only (n % 5 != 0), seeded.
+    A crop is stretched to the square tile; the renderer maps it across the opening, so it gets its shape back."""
+    import cv2
+
+    rng = np.random.default_rng([seed, 0xFACE])
+    images = sorted(p for p in (folder / "images").glob("*.jpg")
+                    if (n := facade_photo_number(p)) is not None and n % HELD_OUT_EVERY != 0)
+    rng.shuffle(images)  # type: ignore[arg-type]
+    out: dict[int, list[np.ndarray]] = {FACADE_DOOR_CLASS: [], FACADE_WINDOW_CLASS: []}
+    want = {FACADE_DOOR_CLASS: n_doors, FACADE_WINDOW_CLASS: n_windows}
+    for img_path in images:
+        if all(len(out[c]) >= want[c] for c in out):
+            break
+        label = folder / "labels" / f"{img_path.stem}.txt"
+        if not label.exists():
+            continue
+        rows = [r.split() for r in label.read_text().splitlines() if len(r.split()) == 5]
+        boxes = [(int(r[0]), *map(float, r[1:])) for r in rows if int(r[0]) in out]
+        if not boxes:
+            continue
+        img = cv2.imread(str(img_path))
+        if img is None:
+            continue
+        h, w = img.shape[:2]
+        pick = boxes[int(rng.integers(len(boxes)))]
+        cls, (cx, cy, bw, bh) = int(pick[0]), pick[1:]
+        if len(out[cls]) >= want[cls] or bw * w < 40 or bh * h < 60:
+            continue
+        x0, x1 = int(max(0, (cx - bw / 2) * w)), int(min(w, (cx + bw / 2) * w))
+        y0, y1 = int(max(0, (cy - bh / 2) * h)), int(min(h, (cy + bh / 2) * h))
+        crop = cv2.resize(img[y0:y1, x0:x1], (size, size), interpolation=cv2.INTER_AREA)
+        out[cls].append(crop[:, :, ::-1])  # BGR -> RGB like the procedural layers
+    empty = np.zeros((0, size, size, 3), np.uint8)
+    return (np.stack(out[FACADE_DOOR_CLASS]) if out[FACADE_DOOR_CLASS] else empty,
+            np.stack(out[FACADE_WINDOW_CLASS]) if out[FACADE_WINDOW_CLASS] else empty)

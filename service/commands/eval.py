@@ -62,8 +62,10 @@ def register(app: typer.Typer) -> None:
             return
         out = Console()
         for v, res in report["variants"].items():
-            out.print(f"\n[bold]{building.name} — {v}[/bold] (n={n}, seed={seed}, sigma={sigma} m, drop={drop}, fp={fp})")
-            out.print("Table 1 (paper's descriptor, top-1 Hamming match): run, features detected, correct, incorrect, accuracy")
+            out.print(f"\n[bold]{building.name} — {v}[/bold] (n={n}, seed={seed}, sigma={sigma} m, drop={drop}, "
+                      f"fp={fp})")
+            out.print("Table 1 (paper's descriptor, top-1 Hamming match): run, features detected, correct, "
+                      "incorrect, accuracy")
             for run, det, ok, bad_ in res["table1_paper"]:
                 acc = 100.0 * ok / (ok + bad_) if ok + bad_ else 0.0
                 out.print(f"  Run {run}: {det:3d} {ok:3d} {bad_:3d} {acc:5.1f}%")

@@ -14,8 +14,9 @@ def register(app: typer.Typer) -> None:
         flight: Path = typer.Argument(..., help="Recorded flight (MCAP: /stereo, /imu, /ground_truth)."),
         building: Path = typer.Option(..., "--building", "-b", help="IFC file (or mesh) of the building flown in."),
         observations: str = typer.Option("truth", "--observations", help="truth: ground-truth doors/windows and "
-                                         "odometry with realistic noise and drift (the graph alone); perception: "
-                                         "the perception chain and visual odometry on the recorded images."),
+                                         "odometry with realistic noise and drift (the graph alone); truth-vo: the "
+                                         "same doors/windows, but the stereo visual odometry on the recorded "
+                                         "images; perception: the perception chain and the visual odometry."),
         stored_map: Path | None = typer.Option(None, "--map", help="A stored map (from --save-map) of this "
                                                "building to re-localize into from the first frames."),
         save_map: Path | None = typer.Option(None, "--save-map", help="Write this flight's map here at the end."),
@@ -23,6 +24,8 @@ def register(app: typer.Typer) -> None:
                                            "and result.json into this folder."),
         storey: str | None = typer.Option(None, "--storey", help="Restrict registration to this storey."),
         seed: int = typer.Option(0, "--seed", help="Seed of the noise added to truth observations."),
+        config: Path | None = typer.Option(None, "--config", help="macroloc config file (JSON/TOML); its "
+                                           "[graph] section sets keyframes, association and status thresholds."),
         json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
         over_zenoh: bool = typer.Option(False, "--over-zenoh", help="Publish the recording to a running `macroloc "
                                         "serve` on its Zenoh keys and score the poses it sends back."),
@@ -42,12 +45,19 @@ def register(app: typer.Typer) -> None:
         from graph.errors import UserInputError
         from graph.mapstore import StoredMap
         from service.commands._io import existing_file, print_json
+        from service.config import load_config
         from service.replay import replay as run_replay
-        from service.replay_sources import ObservationSource, PerceptionSource, TruthSource
+        from service.replay import settings_from_config
+        from service.replay_sources import (
+            ObservationSource,
+            PerceptionSource,
+            TruthFeaturesWithVisualOdometry,
+            TruthSource,
+        )
 
         existing_file(flight, "recording")
-        if observations not in ("truth", "perception"):
-            raise UserInputError(f"--observations must be truth or perception, not {observations!r}")
+        if observations not in ("truth", "truth-vo", "perception"):
+            raise UserInputError(f"--observations must be truth, truth-vo or perception, not {observations!r}")
         if over_zenoh:  # the service perceives the frames itself unless truth observations are sent along
             from service.replay_zenoh import replay_command
 
@@ -56,8 +66,12 @@ def register(app: typer.Typer) -> None:
             return
         model = load_building(building)
         stored = StoredMap.load(stored_map, model) if stored_map is not None else None
-        source: ObservationSource = TruthSource(seed=seed) if observations == "truth" else PerceptionSource()
-        result = run_replay(flight, model, source, stored=stored, storey_hint=storey)
+        source: ObservationSource = (TruthSource(seed=seed) if observations == "truth" else
+                                     TruthFeaturesWithVisualOdometry(seed=seed) if observations == "truth-vo"
+                                     else PerceptionSource())
+        params, policy, isam = settings_from_config(load_config(config).graph)
+        result = run_replay(flight, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
+                            isam=isam)
         if save_map is not None:
             result.localizer.stored_map().save(save_map)
         if report is not None:

@@ -78,7 +78,13 @@ def simulation_params(cfg: MacrolocConfig, seed: int, storey: str | None):  # no
     flight = replace(FlightParams(), duration_s=cfg.sim.duration_s, speed_mps=cfg.sim.speed_mps,
                      min_height_m=cfg.sim.min_height_m, max_height_m=cfg.sim.max_height_m,
                      rate_hz=cfg.sim.imu_rate_hz)
-    return SimulationParams(seed=seed, storey=storey, camera=camera, camera_rate_hz=c.rate_hz, flight=flight)
+    photos = cfg.sim.facade_photos
+    if photos is not None and not (photos / "images").is_dir():
+        from graph.errors import UserInputError
+
+        raise UserInputError(f"sim.facade_photos: {photos} has no images/ folder")
+    return SimulationParams(seed=seed, storey=storey, camera=camera, camera_rate_hz=c.rate_hz, flight=flight,
+                            facade_photos=photos)
 
 
 def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int = 0, storey: str | None = None,

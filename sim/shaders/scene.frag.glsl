@@ -74,13 +74,18 @@ void main() {
     if (dot(n, view) < 0.0) n = -n;
     vec3 an = abs(n);
     vec2 uv = an.z > max(an.x, an.y) ? v_pos.xy : (an.x > an.y ? v_pos.yz : v_pos.xz);
-    vec3 base = texture(tex, vec3(uv, v_layer)).rgb * v_tint;
+    // style >= 16: a photo of a real door/window stretched across the opening (row 0 of the photo at the top)
+    bool photo = v_style > 15.5 && v_fuv.x > -0.5;
+    vec2 st = photo ? vec2(clamp(v_fuv.x, 0.0, 1.0), 1.0 - clamp(v_fuv.y, 0.0, 1.0)) : uv;
+    vec3 base = texture(tex, vec3(st, v_layer)).rgb * v_tint;
     float shine = 0.0;
     float alpha = 1.0;
-    if (v_kind > 0.5 && v_kind < 1.5 && v_fuv.x > -0.5) {
+    if (v_kind > 0.5 && v_kind < 1.5 && v_fuv.x > -0.5 && !photo) {
         base = door_pattern(base, clamp(v_fuv, 0.0, 1.0), v_style, shine);
     }
-    if (glass_pass == 1) {
+    if (glass_pass == 1 && photo) {
+        alpha = 0.92;
+    } else if (glass_pass == 1) {
         float fres = pow(1.0 - max(dot(n, view), 0.0), 3.0);
         vec3 reflection = mix(vec3(0.55, 0.58, 0.6), sky_rgb, 0.5) * (0.8 + 0.2 * sin(v_pos.x * 3.0 + v_pos.z * 2.0));
         base = mix(v_tint * 0.6 + vec3(0.05, 0.08, 0.1), reflection, 0.4 + 0.5 * fres);

@@ -19,7 +19,8 @@ def random_T(rng: np.random.Generator, max_translation_m: float = 20.0, yaw_only
 def box_vertices(centre, normal_xy, width_m: float, height_m: float, depth_m: float = 0.1) -> np.ndarray:
     n = np.array([normal_xy[0], normal_xy[1], 0.0]) / np.linalg.norm(normal_xy)
     u = np.cross([0.0, 0.0, 1.0], n)
-    return np.array([np.asarray(centre) + a * width_m / 2 * u + b * depth_m / 2 * n + c * height_m / 2 * np.array([0, 0, 1.0])
+    z = np.array([0.0, 0.0, 1.0])
+    return np.array([np.asarray(centre) + a * width_m / 2 * u + b * depth_m / 2 * n + c * height_m / 2 * z
                      for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)])
 
 

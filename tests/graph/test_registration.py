@@ -10,9 +10,12 @@ from hypothesis import strategies as st
 from graph.evaluation import ScenarioParams, make_scenario, score
 from graph.features import BuildingModel
 from graph.observations import Observation, ObservationSet
-from graph.registration import hypothesis_count, register
+from graph.registration import (
+    _coplanar,  # the private eq. (10) kernel, tested directly
+    hypothesis_count,
+    register,
+)
 from graph.rigid import apply, invert, rotation_angle_deg
-from graph.registration import _coplanar  # the private eq. (10) kernel, tested directly
 from tests.graph.helpers import random_building, random_T
 
 

@@ -92,7 +92,7 @@ class FakeFlight:
 
 def service_config(building: Path, state_dir: Path, port: int, vehicle: str = "t1") -> MacrolocConfig:
     return load_config(None, service={"building": building, "state_dir": state_dir, "vehicle": vehicle,
-                                      "status_period_s": 0.2, "save_period_s": 0.5},
+                                      "status_period_s": 0.2, "save_period_s": 0.5, "perception": False},
                        zenoh=loopback(listen=[f"tcp/127.0.0.1:{port}"]).model_dump())
 
 

@@ -43,7 +43,8 @@ def test_serve_stops_cleanly_on_sigterm_and_saves_the_map(office_path: Path, tmp
     port = free_port()
     proc = subprocess.Popen([MACROLOC, "serve", "--building", str(office_path), "--vehicle", "cli",
                              "--listen", f"tcp/127.0.0.1:{port}", "--state-dir", str(tmp_path), "--log-json"],
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, MACROLOC_SERVICE__PERCEPTION="false"))
     try:
         from service.zenoh_io import session_config
 
@@ -62,6 +63,7 @@ def test_serve_stops_cleanly_on_sigterm_and_saves_the_map(office_path: Path, tmp
             proc.kill()
     assert proc.returncode == 0, stderr[-2000:]
     assert (tmp_path / "cli" / "map.pb").exists()
+    assert json.loads((tmp_path / "cli" / "config.resolved.json").read_text())["service"]["vehicle"] == "cli"
     lines = [json.loads(line) for line in stderr.splitlines() if line.startswith("{")]
     assert any("stopped" in line["msg"] for line in lines), "structured log of the clean stop"
 

@@ -105,3 +105,23 @@ def test_missing_or_bad_file_is_a_user_error(tmp_path: Path) -> None:
     bad.write_text("not mcap")
     with pytest.raises(UserInputError):
         list(read_flight(bad))
+
+
+def test_pose_round_trip_property() -> None:
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+    from scipy.spatial.transform import Rotation
+
+    floats = st.floats(-50.0, 50.0, allow_nan=False)
+
+    @settings(max_examples=50, deadline=None)
+    @given(st.tuples(floats, floats, floats), st.integers(0, 2**31 - 1))
+    def check(t: tuple[float, float, float], seed: int) -> None:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.random(random_state=seed).as_matrix()
+        T[:3, 3] = t
+        pose = pose_from_matrix(T)
+        assert abs(pose.qw**2 + pose.qx**2 + pose.qy**2 + pose.qz**2 - 1.0) < 1e-9
+        assert np.allclose(matrix_from_pose(pose), T, atol=1e-9)
+
+    check()

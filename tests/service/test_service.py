@@ -76,6 +76,7 @@ def test_localizes_answers_queries_and_holds_a_token(office_path, office_model, 
         poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
         waypoints = Collector(s, "macroloc/t1/waypoints", pb.Waypoints)
         status = Collector(s, "macroloc/t1/status", pb.ServiceStatus)
+        features = Collector(s, "macroloc/t1/features", pb.ObservedFeatures)
         flight = FakeFlight(office_model, yaw_T(0.7, np.array([3.0, -2.0, 0.1])))
         T = fly(s, flight, start_pose, 30)
         wait_for(lambda: _localized_at(poses, T), what="a localized pose near the truth")
@@ -89,6 +90,8 @@ def test_localizes_answers_queries_and_holds_a_token(office_path, office_model, 
         wait_for(lambda: waypoints.last() is not None and len(waypoints.last().points_cad) >= 2, what="waypoints")
         wait_for(lambda: status.last() is not None and status.last().status == pb.PoseEstimate.LOCALIZED,
                  what="a status message")
+        wait_for(lambda: features.last() is not None and features.last().header.frame_id == "cad"
+                 and any(f.id for f in features.last().features), what="reconstructed features in the CAD frame")
 
 
 def _bad_inputs() -> dict[str, list[bytes]]:
@@ -194,3 +197,29 @@ def test_stop_event_drains_and_saves(office_path, office_model, start_pose, tmp_
     assert snap.status == pb.PoseEstimate.LOCALIZED
     assert snap.header.stamp_ns == 30 * 33_000_000  # the last odometry was handled before saving
     assert threading.active_count() < 50
+
+
+def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, start_pose, tmp_path) -> None:
+    """A wall the model does not have, 1.5 m ahead in a frame's depth image, marks the planner's grid there."""
+    from service.frames import forward_T_body_cam
+    from service.recording import pose_from_matrix
+
+    port = free_port()
+    with running_service(service_config(office_path, tmp_path, port)) as service, client(port) as s:
+        poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        T = fly(s, FakeFlight(office_model, np.eye(4)), start_pose, 20)
+        wait_for(lambda: _localized_at(poses, T), what="localized")
+        image = pb.Image(width=8, height=6, encoding=pb.Image.RAW_MONO8, data=bytes(48))
+        depth = np.full((48, 64), 1.5, "<f4")
+        frame = pb.StereoFrame(camera_id="front", left=image, right=image,
+                               depth=pb.Image(width=64, height=48, encoding=pb.Image.RAW_DEPTH_F32,
+                                              data=depth.tobytes()),
+                               info=pb.CameraInfo(width=64, height=48, fx=48, fy=48, cx=31.5, cy=23.5,
+                                                  baseline_m=0.12, T_body_cam=pose_from_matrix(forward_T_body_cam())))
+        frame.header.stamp_ns = 21 * 33_000_000
+        s.put("macroloc/t1/stereo", frame.SerializeToString())
+        ahead_cad = T[:3, 3] + T[:3, 0] * 1.6  # body x is forward; the wall is 1.5 m ahead of the camera
+        grid, layer = service.planner.grid(T[2, 3])  # type: ignore[attr-defined]
+        r, c = grid.cell_of(ahead_cad)
+        wait_for(lambda: layer.occupied()[r - 1:r + 2, c - 1:c + 2].any(), what="the seen wall in the obstacle layer")
+        assert not layer.occupied()[grid.cell_of(T[:3, 3])], "nothing seen where the vehicle is"

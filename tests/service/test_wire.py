@@ -34,7 +34,7 @@ def test_field_numbers_are_stable() -> None:
     def numbers(msg) -> dict[str, int]:
         return {f.name: f.number for f in msg.DESCRIPTOR.fields}
 
-    assert numbers(pb.StereoFrame) == {"header": 1, "camera_id": 2, "left": 3, "right": 4, "info": 5}
+    assert numbers(pb.StereoFrame) == {"header": 1, "camera_id": 2, "left": 3, "right": 4, "info": 5, "depth": 6}
     assert numbers(pb.PoseEstimate) == {"header": 1, "T_cad_body": 2, "covariance": 3, "status": 4, "storey": 5,
                                         "T_cad_map": 6, "inliers": 7}
     assert numbers(pb.Goal)["position_cad"] == 2 and numbers(pb.Goal)["space_name"] == 4

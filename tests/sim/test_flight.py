@@ -96,3 +96,14 @@ def test_office_flight_passes_through_doors(office_path: Path, office_model) -> 
         f = office_model.features[k]
         near = np.linalg.norm(traj.positions_cad[:, :2] - f.centroid_cad[:2], axis=1) < 0.3
         assert (traj.positions_cad[near, 2] < f.corners_cad[:, 2].max() - 0.2).all()
+
+
+def test_named_storey_is_flown_at_its_height(duplex_path: Path, duplex_model) -> None:
+    from sim.simulator import SimulationParams, plan_only
+
+    traj, storey = plan_only(duplex_path, SimulationParams(seed=2, storey="Level 1",
+                                                           flight=FlightParams(duration_s=5.0)))
+    z0, _ = storey_levels(duplex_model, "Level 1")
+    assert storey == "Level 1"
+    h = traj.positions_cad[:, 2] - z0
+    assert h.min() >= 1.0 - 1e-6 and h.max() <= 1.8 + 1e-6

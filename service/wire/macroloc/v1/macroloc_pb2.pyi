@@ -88,18 +88,20 @@ class Image(_message.Message):
     def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., encoding: _Optional[_Union[Image.Encoding, str]] = ..., data: _Optional[bytes] = ...) -> None: ...
 
 class StereoFrame(_message.Message):
-    __slots__ = ("header", "camera_id", "left", "right", "info")
+    __slots__ = ("header", "camera_id", "left", "right", "info", "depth")
     HEADER_FIELD_NUMBER: _ClassVar[int]
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
     LEFT_FIELD_NUMBER: _ClassVar[int]
     RIGHT_FIELD_NUMBER: _ClassVar[int]
     INFO_FIELD_NUMBER: _ClassVar[int]
+    DEPTH_FIELD_NUMBER: _ClassVar[int]
     header: Header
     camera_id: str
     left: Image
     right: Image
     info: CameraInfo
-    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., camera_id: _Optional[str] = ..., left: _Optional[_Union[Image, _Mapping]] = ..., right: _Optional[_Union[Image, _Mapping]] = ..., info: _Optional[_Union[CameraInfo, _Mapping]] = ...) -> None: ...
+    depth: Image
+    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., camera_id: _Optional[str] = ..., left: _Optional[_Union[Image, _Mapping]] = ..., right: _Optional[_Union[Image, _Mapping]] = ..., info: _Optional[_Union[CameraInfo, _Mapping]] = ..., depth: _Optional[_Union[Image, _Mapping]] = ...) -> None: ...
 
 class Imu(_message.Message):
     __slots__ = ("header", "accel_mps2", "gyro_radps")
