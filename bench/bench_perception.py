@@ -57,6 +57,18 @@ def main(argv: list[str] | None = None) -> None:
         totals.append((time.perf_counter() - t0) * 1e3)
         for k, v in result.timings_ms.items():
             laps.setdefault(k, []).append(v)
+    # A frame with one door: the hand-drawn double-door box of bench.eval_perception_real (the detector misses it).
+    from bench.eval_perception_real import HAND_BOX_PX
+    from perception.detector import Detection
+
+    door = [Detection("door", 1.0, HAND_BOX_PX["50"])]
+    laps_door: dict[str, list[float]] = {}
+    for _ in range(args.frames):
+        t0 = time.perf_counter()
+        r_door = chain.process_boxes(pair, door)
+        r_door.timings_ms["detect"] = float(np.median(laps["detect"]))  # the detector runs on every frame alike
+        for k, v in r_door.timings_ms.items():
+            laps_door.setdefault(k, []).append(v)
     # The same two independent stages overlapped: detector and SGBM in two threads (both release the GIL).
     overlapped = []
     with ThreadPoolExecutor(2) as pool:
@@ -73,6 +85,9 @@ def main(argv: list[str] | None = None) -> None:
         "total_median_ms": round(float(np.median(totals)), 2),
         "total_p90_ms": round(float(np.percentile(totals, 90)), 2),
         "detect_and_stereo_overlapped_median_ms": round(float(np.median(overlapped)), 2),
+        "with_one_door_stage_median_ms": {k: round(float(np.median(v)), 2) for k, v in laps_door.items()},
+        "with_one_door_total_median_ms": round(float(np.median([sum(x) for x in zip(*laps_door.values(),
+                                                                                     strict=True)])), 2),
         "budget_ms_at_30fps": round(BUDGET_MS, 2),
     }
     figures["fps_serial"] = round(1000.0 / figures["total_median_ms"], 1)  # type: ignore[operator]
@@ -84,7 +99,12 @@ def main(argv: list[str] | None = None) -> None:
         print(f"  {k:12s} {v:7.2f} ms")
     print(f"  {'total':12s} {figures['total_median_ms']:7.2f} ms median, {figures['total_p90_ms']:.2f} ms p90 "
           f"-> {figures['fps_serial']} frames/s (target >= 30, budget {BUDGET_MS:.1f} ms)")
-    print(f"  detect || stereo in two threads: {figures['detect_and_stereo_overlapped_median_ms']:.2f} ms")
+    print(f"  detect || full-frame stereo in two threads: {figures['detect_and_stereo_overlapped_median_ms']:.2f} ms")
+    print("with one door box in view (stereo on the rows the box spans):")
+    for k, v in figures["with_one_door_stage_median_ms"].items():  # type: ignore[union-attr]
+        print(f"  {k:12s} {v:7.2f} ms")
+    total = figures["with_one_door_total_median_ms"]
+    print(f"  {'total':12s} {total:7.2f} ms -> {1000.0 / total:.1f} frames/s")  # type: ignore[operator]
 
 
 if __name__ == "__main__":

@@ -187,6 +187,9 @@ def _as_bytes(codes: np.ndarray) -> np.ndarray:
 def _match_top_k_faiss(codes_obs: np.ndarray, codes_model: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     import faiss
 
+    # One thread: on a 2-core machine shared with the rest of the service, OpenMP's spinning workers made the
+    # search 7x slower (566 ms vs 78 ms for 1000 x 100,000 measured here).
+    faiss.omp_set_num_threads(1)
     k = min(k, len(codes_model))
     idx = np.zeros((len(codes_obs), k), dtype=np.int64)
     dist = np.full((len(codes_obs), k), 64, dtype=np.int32)

@@ -27,7 +27,8 @@ class LineConfig:
     join_offset_px: float = 3.0  # our addition: the joined pieces must also be collinear (perpendicular offset)
     max_tilt_deg: float = 25.0  # |angle from the image vertical| for a side candidate (drone roll up to ~20 deg)
     margin: float = 0.10  # the box grows by this fraction of its size on each side before LSD
-    side_band: float = 0.30  # a side candidate lies within this fraction of the box width from that edge
+    side_band: float = 0.30  # a side candidate lies within this fraction of the box width inside that edge
+    side_band_out: float = 0.08  # ... or this fraction outside it (strong edges beside a feature are not its side)
     min_length: float = 0.35  # ... and is at least this fraction of the box height long
     near_length: float = 0.6  # among candidates at least this fraction of the longest, the nearest wins
     snap: float = 0.04  # a side's end this close (fraction of box height) to the box's top/bottom goes onto it
@@ -182,8 +183,10 @@ def refine_box(image: np.ndarray, box_xyxy: tuple[float, float, float, float], c
     vertical = [s for s in segs if _angle_diff_deg(_angle_deg(s), 90.0) <= cfg.max_tilt_deg]
     joined = [_orient(s) for s in join_segments(vertical, cfg)]
     long_enough = [s for s in joined if s[1, 1] - s[0, 1] >= cfg.min_length * bh]
-    left = _pick_side([s for s in long_enough if abs(s[:, 0].mean() - x0) <= cfg.side_band * bw], x0, cfg)
-    right = _pick_side([s for s in long_enough if abs(s[:, 0].mean() - x1) <= cfg.side_band * bw], x1, cfg)
+    left = _pick_side([s for s in long_enough if -cfg.side_band_out * bw <= s[:, 0].mean() - x0 <= cfg.side_band * bw],
+                      x0, cfg)
+    right = _pick_side([s for s in long_enough if -cfg.side_band_out * bw <= x1 - s[:, 0].mean() <= cfg.side_band * bw],
+                       x1, cfg)
     if left is not None and right is not None and right[:, 0].mean() - left[:, 0].mean() < 0.3 * bw:
         left, right = None, None  # both picked the same edge region: not a usable pair
     return Sides(
@@ -198,8 +201,9 @@ def _edge_column(gray: np.ndarray, box_xyxy: tuple[float, float, float, float], 
     """Fallback when LSD finds no side: the image column of strongest horizontal gradient within the side band
     (summed over the box's rows), as a vertical segment over the box's rows; the box edge if nothing stands out."""
     x0, y0, x1, y1 = box_xyxy
-    band = cfg.side_band * (x1 - x0)
-    u_lo, u_hi = int(max(1, edge_u - band)), int(min(gray.shape[1] - 1, edge_u + band))
+    inside, outside = cfg.side_band * (x1 - x0), cfg.side_band_out * (x1 - x0)
+    lo, hi = (edge_u - outside, edge_u + inside) if edge_u <= (x0 + x1) / 2 else (edge_u - inside, edge_u + outside)
+    u_lo, u_hi = int(max(1, lo)), int(min(gray.shape[1] - 1, hi))
     v_lo, v_hi = int(max(0, y0)), int(min(gray.shape[0], y1))
     if u_hi - u_lo < 3 or v_hi - v_lo < 3:
         return np.array([[edge_u, y0], [edge_u, y1]])

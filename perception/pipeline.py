@@ -83,6 +83,7 @@ class Perception:
         self.matcher = matcher
         self.lines = lines or LineConfig()
         self.plausibility = plausibility or PlausibilityConfig()
+        self.band_margin_px = 24  # rows of stereo context above and below the boxes
 
     @staticmethod
     def create(model_path: Path = DEFAULT_MODEL, sgbm: SgbmConfig | None = None, threads: int = 2) -> Perception:
@@ -98,7 +99,7 @@ class Perception:
                       ) -> PerceptionResult:
         """The chain after the detector, on given boxes (the detector's, or ground truth's for evaluation)."""
         clock = clock or _Clock()
-        depth_m = depth_from_disparity(self.matcher.disparity_px(pair.left, pair.right), pair.rig)
+        depth_m = self._depth_m(pair, detections)
         clock.lap("stereo")
         sides = [refine_box(pair.left, d.box_xyxy, self.lines) for d in detections]
         clock.lap("lines")
@@ -114,6 +115,20 @@ class Perception:
         for r in rejected:
             log.debug("rejected %s %.2f at %s: %s", r.detection.type, r.detection.score, r.detection.box_xyxy, r.reason)
         return PerceptionResult(features, rejected, detections, clock.laps)
+
+    def _depth_m(self, pair: StereoPair, detections: list[Detection]) -> np.ndarray:
+        """Depth (m, NaN unknown) of the left image, computed only on the band of rows the boxes span (plus a
+        margin): depth is read nowhere else, and a frame without detections needs no stereo at all."""
+        h = pair.left.shape[0]
+        depth_m = np.full(pair.left.shape[:2], np.nan, np.float32)
+        if not detections:
+            return depth_m
+        margin = self.band_margin_px
+        v0 = max(0, int(np.floor(min(d.box_xyxy[1] for d in detections))) - margin)
+        v1 = min(h, int(np.ceil(max(d.box_xyxy[3] for d in detections))) + margin)
+        band = self.matcher.disparity_px(pair.left[v0:v1], pair.right[v0:v1])
+        depth_m[v0:v1] = depth_from_disparity(band, pair.rig)
+        return depth_m
 
     def _reconstruct(self, det: Detection, sides: Sides, depth_m: np.ndarray,
                      pair: StereoPair) -> ObservedFeature | Rejected:

@@ -67,9 +67,11 @@ def test_corners_of_a_door_on_a_wall(yaw_deg):
     result = reconstruct_sides(sides, depth, RIG)
     assert not isinstance(result, str), result
     corners_cam, _ = result
-    assert np.abs(corners_cam - corners).max() < 0.03
+    # depth is read 4-12 px inside each side: on an oblique wall that costs ~z tan(yaw) / f * 8 px (5 cm here)
+    tol = 0.02 + 4.0 * np.tan(yaw) / RIG.fx_px * 8
+    assert np.abs(corners_cam - corners).max() < tol
     rec = measure(corners_cam, None)
-    assert rec.width_m == pytest.approx(0.9, abs=0.03) and rec.height_m == pytest.approx(2.0, abs=0.03)
+    assert rec.width_m == pytest.approx(0.9, abs=tol) and rec.height_m == pytest.approx(2.0, abs=tol)
     assert rec.tilt_deg < 1.0
 
 
