@@ -78,12 +78,15 @@ def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a = np.asarray(a, dtype=float) / np.linalg.norm(a)
     b = np.asarray(b, dtype=float) / np.linalg.norm(b)
     v = np.cross(a, b)
-    c = float(np.dot(a, b))
-    if c < -1.0 + 1e-12:  # opposite: turn by pi about any axis perpendicular to a
-        axis = np.cross(a, [1.0, 0.0, 0.0])
+    s, c = float(np.linalg.norm(v)), float(np.dot(a, b))
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        axis = np.cross(a, [1.0, 0.0, 0.0])  # opposite: turn by pi about any axis perpendicular to a
         if np.linalg.norm(axis) < 1e-6:
             axis = np.cross(a, [0.0, 1.0, 0.0])
         axis /= np.linalg.norm(axis)
         return 2.0 * np.outer(axis, axis) - np.eye(3)
-    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + K + K @ K / (1.0 + c)
+    k = v / s  # axis-angle form (Rodrigues), well conditioned also near pi, unlike I + K + K^2 / (1 + c)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
