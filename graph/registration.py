@@ -32,7 +32,8 @@ METHODS = ("robust", "paper")
 class RegistrationResult:
     """status: 'localized' | 'ambiguous' | 'not_localized'; T_cad_map maps map-frame points into the CAD frame.
 
-    For 'ambiguous', T_cad_map is the best of the competing poses and `alternatives` holds the others.
+    For 'ambiguous', T_cad_map is the best of the competing poses, `alternatives` holds the others, and `matches`
+    is empty (no observation can be tied to one CAD feature).
     """
 
     status: str

@@ -417,7 +417,8 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
     matches = [(i, index.features[j].id) for i, j in pairs]
     if rival is not None and ll_rival >= max(ll) - params.ambiguity_loglik_margin:
         diag["rival_storey"] = majority_storey(index, [int(rival.match[i]) for i in np.flatnonzero(rival.inliers)])
-        return RegistrationResult("ambiguous", T_cad_map, matches, n_best, storey,
+        # No matches: they would name one of the competing poses' features as if it were known.
+        return RegistrationResult("ambiguous", T_cad_map, [], n_best, storey,
                                   alternatives=[rival.T @ prep.T_mp_m], diagnostics=diag)
     return RegistrationResult("localized", T_cad_map, matches, n_best, storey, diagnostics=diag)
 
