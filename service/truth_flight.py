@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.features import BuildingModel, MacroFeature
+from sim.render import CameraModel  # the simulator's camera: one camera model for rendered and truth flights
 
 log = logging.getLogger(__name__)
 
@@ -32,16 +33,7 @@ MAX_RANGE_M = 8.0  # features further than this are not reported in view
 WALL_TYPES = ("IfcWall", "IfcColumn", "IfcCurtainWall", "IfcPlate", "IfcMember")
 
 
-@dataclass(frozen=True)
-class Camera:
-    width: int = 640
-    height: int = 480
-    fx: float = 480.0
-    fy: float = 480.0
-    cx: float = 319.5
-    cy: float = 239.5
-    baseline_m: float = 0.12
-    rate_hz: float = 30.0
+RATE_HZ = 30.0  # ground-truth frames per second
 
 
 @dataclass
@@ -249,7 +241,7 @@ def body_poses(xy: np.ndarray, z: float, rate_hz: float, rng: np.random.Generato
 # --- what the camera sees -----------------------------------------------------------------------------------
 
 
-def features_in_view(features: list[MacroFeature], T_cad_cam: np.ndarray, camera: Camera,
+def features_in_view(features: list[MacroFeature], T_cad_cam: np.ndarray, camera: CameraModel,
                      walls: np.ndarray) -> list[tuple[MacroFeature, np.ndarray, np.ndarray]]:
     """(feature, corners_cam (4, 3), corner_visible (4,)) for each feature with a corner in the image,
     in front of the camera, within MAX_RANGE_M, facing it, and not hidden behind a wall (2D line of sight)."""
@@ -294,8 +286,8 @@ def default_storey(model: BuildingModel) -> str:
 
 
 def write_truth_flight(building: Path, out: Path, seed: int = 0, duration_s: float = 60.0,
-                       storey: str | None = None, speed_mps: float = 1.0, camera: Camera | None = None,
-                       spin_s: float = 4.0, start: str = "open") -> Path:
+                       storey: str | None = None, speed_mps: float = 1.0, camera: CameraModel | None = None,
+                       rate_hz: float = RATE_HZ, spin_s: float = 4.0, start: str = "open") -> Path:
     """Plan a flight through `storey` of `building` (IFC) and record its ground truth as MCAP at `out`: it
     hovers and turns once on the spot for `spin_s` seconds, then flies at `speed_mps`. `start`: "random" (any
     waypoint) or "open" (one of the three waypoints with the most features in line of sight: taking off in a
@@ -304,7 +296,7 @@ def write_truth_flight(building: Path, out: Path, seed: int = 0, duration_s: flo
     from service.recording import FlightMetadata, FlightWriter, pose_from_matrix, vector3
     from service.wire.macroloc.v1 import macroloc_pb2 as pb
 
-    camera = camera or Camera()
+    camera = camera or CameraModel()
     model = load_building(building)
     storey = storey or default_storey(model)
     plan = floor_plan(Path(building), model, storey)
@@ -313,11 +305,11 @@ def write_truth_flight(building: Path, out: Path, seed: int = 0, duration_s: flo
     points = waypoints(model, plan, storey)
     score = np.array([_features_in_sight(p, feats, plan.sight) for p in points]) if start == "open" else None
     polyline = random_walk(points, plan.flight, speed_mps * duration_s + 5.0, rng, score)
-    xy = smooth_trajectory(polyline, speed_mps, camera.rate_hz, duration_s, start_s=spin_s)
-    T_cad_body = body_poses(xy, plan.floor_z + FLIGHT_HEIGHT_M, camera.rate_hz, rng, spin_s)
+    xy = smooth_trajectory(polyline, speed_mps, rate_hz, duration_s, start_s=spin_s)
+    T_cad_body = body_poses(xy, plan.floor_z + FLIGHT_HEIGHT_M, rate_hz, rng, spin_s)
     info = pb.CameraInfo(width=camera.width, height=camera.height, fx=camera.fx, fy=camera.fy, cx=camera.cx,
                          cy=camera.cy, baseline_m=camera.baseline_m, T_body_cam=pose_from_matrix(T_BODY_CAM))
-    dt = 1.0 / camera.rate_hz
+    dt = 1.0 / rate_hz
     velocity = np.gradient(T_cad_body[:, :3, 3], dt, axis=0)
     accel = np.gradient(velocity, dt, axis=0)
     yaw = np.unwrap(np.arctan2(T_cad_body[:, 1, 0], T_cad_body[:, 0, 0]))
