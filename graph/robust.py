@@ -7,7 +7,8 @@ rectangle already fixes a pose up to its symmetry (2 poses with gravity, 4–8 w
 rectangle is tried against every CAD feature of the same type and compatible size; each hypothesis is
 verified by all observations (centroid within a tolerance of a CAD feature of the same type), the best are
 refined with all corners (yaw + translation when gravity is known, full SE(3) otherwise), and the best
-pose is only reported `localized` when no *different* pose explains the observations about as well.
+pose is only reported `localized` when no *different* pose explains the observations about as well (an MLESAC
+log-likelihood within `ambiguity_loglik_margin`; every hypothesis is searched for such a rival).
 
 Frames: observations in `map`, features in `cad`; gravity-aligned `map'` = R_g map with gravity -> -z.
 """
@@ -50,7 +51,7 @@ class RobustParams:
     pair_tolerance_m: float = 0.35  # horizontal distance / height difference agreement of a pair
     coarse_observations: int = 12  # observations nearest the seed used to rank its hypotheses
     polish_tau_m: float = 0.45  # tolerance of the ranking after the vectorised polishing step
-    rival_candidates: int = 4  # best-evidence distinct hypotheses refined when looking for a rival
+    rival_candidates: int = 4  # best-supported distinct hypotheses refined when looking for a rival
     min_inlier_fraction: float = 0.35  # a pose explaining fewer of the observations is not trusted
     cross_type_weight: float = 0.5  # an observation on a feature of the other type (door/window confusion) counts half
     min_inliers: int = 3
@@ -358,17 +359,6 @@ def _rms(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams
     d, _ = _nearest_same_type(apply(T, prep.centroids), prep.types, index, upper_m=params.ambiguity_tau_m)
     d = d[np.isfinite(d)]
     return float(np.sqrt(np.mean(d * d))) if len(d) else np.inf
-
-
-def _evidence(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams) -> float:
-    """How many observations a pose explains, counted hard within `ambiguity_tau_m` (cross-type ones at their
-    weight): the yardstick for 'explains the observations about as well' — a soft score would let observation noise
-    decide between two poses that a building's symmetry makes equally good."""
-    moved = apply(T, prep.centroids)
-    d_same, _ = _nearest_same_type(moved, prep.types, index, upper_m=params.ambiguity_tau_m)
-    d_any, _ = index.tree_all.query(moved, distance_upper_bound=params.ambiguity_tau_m)
-    return float(np.maximum(d_same < params.ambiguity_tau_m,
-                            params.cross_type_weight * (d_any < params.ambiguity_tau_m)).sum())
 
 
 def _rival_candidates(best: _Pose, hyps: _Hypotheses, prep: _Prepared, index: ModelIndex,
