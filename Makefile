@@ -2,7 +2,7 @@
 VENV := .venv/bin
 export PYTHONUNBUFFERED := 1
 
-.PHONY: setup demo test test-slow lint bench eval train proto clean
+.PHONY: setup demo test test-slow lint bench eval eval-shared train proto clean
 setup:
 	@bash scripts/setup.sh
 
@@ -23,6 +23,11 @@ bench: setup         ## benchmarks, each figure printed beside its target
 
 eval: setup          ## the project's own localization evaluation on every bundled building
 	for b in data/buildings/*.ifc; do $(VENV)/macroloc eval $$b --n 200 --seed 1; done
+
+eval-shared: setup  ## the independent harness in ../shared/eval on every shared IFC (n=200, seed 1; ~1 h on 2 cores)
+	for b in ../shared/data/bim/*.ifc; do for v in gravity full nogravity; do \
+	  echo "$$b $$v: $$($(VENV)/python ../shared/eval/score_localize.py $$b --n 200 --seed 1 --variant $$v \
+	    --cmd "$(CURDIR)/$(VENV)/macroloc" $(EVAL_ARGS) | tail -1)"; done; done
 
 train: setup         ## reproduce the shipped detector weights (needs torch: the train extra)
 	MACROLOC_EXTRAS=dev,train bash scripts/setup.sh
