@@ -75,9 +75,10 @@ def floor_plan(path: Path, model: BuildingModel, storey: str) -> FloorPlan:
     """The storey's wall cuts, cached beside the feature cache (by file hash and storey)."""
     import trimesh
 
-    from graph.bim import cache_dir
+    from graph.bim import cache_dir, cache_key
 
-    cached = cache_dir() / f"floorplan-{model.sha256[:24]}-{abs(hash(storey)) % 10**8}.npz"
+    # cache_key hashes the storey name with SHA-256: Python's hash() of a str changes from process to process
+    cached = cache_dir() / f"floorplan-{cache_key(model.sha256, {'storey': storey})}.npz"
     floor_z = storey_floor_z(model, storey)
     if cached.exists():
         data = np.load(cached)
