@@ -237,13 +237,15 @@ class _Hypotheses:
 
 
 def _coarse(seed: int, prep: _Prepared, index: ModelIndex, params: RobustParams) -> _Hypotheses:
-    """Hypotheses of one observed rectangle against every compatible CAD feature, coarsely verified by all
-    observations; the tolerance grows with the distance from the seed (one rectangle gives the rotation only
-    to a few degrees)."""
+    """Hypotheses of one observed rectangle against every compatible CAD feature (and, with gravity, of the seed
+    and its farthest observation against CAD pairs: the only hypotheses a centroid-only seed gives), coarsely
+    verified by the observations; the tolerance grows with the distance from the seed (one rectangle gives the
+    rotation only to a few degrees)."""
     o = prep.obs[seed]
-    assert o.corners_map is not None  # seeds are rectangles
-    R, t = _seed_hypotheses(rectangle_edges(o.corners_map), index.type_indices[o.type], index, params,
-                            prep.gravity_known)
+    R, t = np.zeros((0, 3, 3)), np.zeros((0, 3))
+    if o.corners_map is not None:
+        R, t = _seed_hypotheses(rectangle_edges(o.corners_map), index.type_indices[o.type], index, params,
+                                prep.gravity_known)
     if prep.gravity_known and len(prep.obs) > 1:
         R2, t2 = _pair_hypotheses(seed, prep, index, params)
         R, t = np.concatenate([R, R2]), np.concatenate([t, t2])
@@ -333,9 +335,11 @@ def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustPa
     prep = _prepare(obs_set)
     n = len(prep.obs)
     rect_ids = [i for i, o in enumerate(prep.obs) if o.corners_map is not None and o.type in index.trees]
+    if not rect_ids and prep.gravity_known:  # centroids only: pair hypotheses (gravity fixes all but yaw)
+        rect_ids = [i for i, o in enumerate(prep.obs) if o.type in index.trees]
     if n == 0 or not rect_ids:
-        return RegistrationResult("not_localized", None, [], 0, None,
-                                  diagnostics={"reason": "no observed door/window rectangle"})
+        return RegistrationResult("not_localized", None, [], 0, None, diagnostics={
+            "reason": "no observed door/window rectangle (centroid-only observations need gravity)"})
     seeds = np.random.default_rng(params.seed).permutation(rect_ids)[: params.max_seeds]
     hyps = _Hypotheses(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, n, 3)), np.zeros(0))
     poses: list[_Pose] = []

@@ -82,11 +82,14 @@ def test_observing_a_whole_storey_localizes_and_names_it(office_model) -> None:
     assert np.allclose(r.T_cad_map, invert(T), atol=1e-6)
 
 
-def test_centroid_only_observations_are_verified_but_need_a_rectangle(office_model) -> None:
+def test_centroid_only_observations_need_gravity_or_a_rectangle(office_model) -> None:
     T = random_T(np.random.default_rng(7), yaw_only=True)
     feats = [f for f in office_model.features if f.storey == "Level 1"][:10]
-    none = register(office_model, observe(office_model, T, feats, corners=False))
-    assert none.status == "not_localized"
+    centroids = observe(office_model, T, feats, corners=False)
+    with_gravity = register(office_model, centroids)
+    assert with_gravity.status == "localized" and np.allclose(with_gravity.T_cad_map, invert(T), atol=1e-6)
+    without = register(office_model, ObservationSet(centroids.observations, None))
+    assert without.status == "not_localized" and "gravity" in without.diagnostics["reason"]
     mixed = observe(office_model, T, feats)
     mixed = ObservationSet([o if i % 2 == 0 else Observation(o.type, o.centroid_map) for i, o in
                             enumerate(mixed.observations)], mixed.gravity_map)
