@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from graph.features import BuildingModel
+from graph.keyframes import KeyframePolicy
 from graph.landmarks import feature_frame_cad
 from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting
 from graph.posegraph import PoseGraph
@@ -106,6 +107,9 @@ class LocalizerBackend:
         self._up_body: np.ndarray | None = None
         self._last_keyframe_ns: int | None = None
         self._T_last_keyframe: np.ndarray | None = None
+        p = self.params
+        self._keyframe_policy = KeyframePolicy(p.keyframe_min_translation_m, p.keyframe_min_rotation_rad,
+                                               p.keyframe_max_interval_s)
         self.last: Estimate | None = None
 
     @classmethod
@@ -168,11 +172,8 @@ class LocalizerBackend:
     def _keyframe_due(self, stamp_ns: int, T_odom_body: np.ndarray) -> bool:
         if self._last_keyframe_ns is None or self._T_last_keyframe is None or self.localizer.status != "localized":
             return True
-        p = self.params
-        d = np.linalg.inv(self._T_last_keyframe) @ T_odom_body
-        angle = float(np.arccos(np.clip((np.trace(d[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-        return bool(np.linalg.norm(d[:3, 3]) > p.keyframe_min_translation_m or angle > p.keyframe_min_rotation_rad
-                    or (stamp_ns - self._last_keyframe_ns) * 1e-9 >= p.keyframe_max_interval_s)
+        return self._keyframe_policy.is_keyframe(self._T_last_keyframe, T_odom_body,
+                                                 (stamp_ns - self._last_keyframe_ns) * 1e-9)
 
     def latest(self) -> Estimate | None:
         """The pose at the newest odometry sample (after a late keyframe changed the map), or None."""

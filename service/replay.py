@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from graph.features import BuildingModel
+from graph.keyframes import KeyframePolicy
 from graph.localizer import Estimate, Localizer, LocalizerParams
 from graph.mapstore import StoredMap
 from graph.posegraph import IsamSettings, PoseGraph
@@ -31,23 +32,6 @@ log = logging.getLogger(__name__)
 
 WRONG_TRANS_M = 1.0  # a localization whose pose is further off than this (or WRONG_ROT_DEG) is wrong
 WRONG_ROT_DEG = 10.0
-
-
-@dataclass(frozen=True)
-class KeyframePolicy:
-    """A new keyframe after this much motion or time since the last one."""
-
-    min_translation_m: float = 0.25
-    min_rotation_rad: float = 0.15
-    max_interval_s: float = 0.34
-
-    def is_keyframe(self, T_last: np.ndarray | None, T_now: np.ndarray, dt_s: float) -> bool:
-        if T_last is None:
-            return True
-        d = np.linalg.inv(T_last) @ T_now
-        angle = np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1))
-        return bool(np.linalg.norm(d[:3, 3]) > self.min_translation_m or angle > self.min_rotation_rad
-                    or dt_s >= self.max_interval_s)
 
 
 class FrameSink(Protocol):
