@@ -40,7 +40,6 @@ class ModelIndex:
     edge_v: np.ndarray  # (N, 3) unit: corner3 - corner0 direction
     len_u: np.ndarray  # (N,) metres
     len_v: np.ndarray  # (N,)
-    trees: dict[str, cKDTree]  # per type, over the indices in type_indices
     tree_all: cKDTree  # all features, x y z
     tree_typed: cKDTree  # all features in (x, y, z, type code x 1e4 m): a same-type nearest neighbour in one query
     type_indices: dict[str, np.ndarray]
@@ -58,16 +57,19 @@ class ModelIndex:
         ev = corners[:, 3] - corners[:, 0]
         lu, lv = np.linalg.norm(eu, axis=1), np.linalg.norm(ev, axis=1)
         type_indices: dict[str, np.ndarray] = {t: np.flatnonzero(types == t) for t in FEATURE_TYPES}
-        trees = {t: cKDTree(centroids[idx]) for t, idx in type_indices.items() if len(idx)}
         tables = build_tables(centroids) if tables is None else tables
         lifted = TYPE_SEPARATION_M * np.array([FEATURE_TYPES.index(t) for t in types], dtype=float).reshape(-1, 1)
         return cls(features=features, centroids=centroids, corners=corners, types=types,
                    type_codes=np.array([FEATURE_TYPES.index(t) for t in types], dtype=np.int8),
                    storeys=np.array([str(f.storey) for f in features]),
                    edge_u=eu / np.maximum(lu, 1e-9)[:, None], edge_v=ev / np.maximum(lv, 1e-9)[:, None],
-                   len_u=lu, len_v=lv, trees=trees, tree_all=cKDTree(centroids),
+                   len_u=lu, len_v=lv, tree_all=cKDTree(centroids),
                    tree_typed=cKDTree(np.concatenate([centroids, lifted], axis=1)),
                    type_indices=type_indices, tables=tables, codes=describe(centroids, list(types), tables))
+
+    def has_type(self, kind: str) -> bool:
+        """Whether the building has any feature of this type."""
+        return len(self.type_indices.get(kind, ())) > 0
 
     def pairs_within(self, max_m: float) -> FeaturePairs:
         """Ordered pairs (i, j), i != j, with horizontal distance <= max_m (memoised per distance)."""

@@ -334,9 +334,9 @@ def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustPa
     """Hypothesise from observed rectangles, verify, refine, and answer only when no rival pose is as good."""
     prep = _prepare(obs_set)
     n = len(prep.obs)
-    rect_ids = [i for i, o in enumerate(prep.obs) if o.corners_map is not None and o.type in index.trees]
+    rect_ids = [i for i, o in enumerate(prep.obs) if o.corners_map is not None and index.has_type(o.type)]
     if not rect_ids and prep.gravity_known:  # centroids only: pair hypotheses (gravity fixes all but yaw)
-        rect_ids = [i for i, o in enumerate(prep.obs) if o.type in index.trees]
+        rect_ids = [i for i, o in enumerate(prep.obs) if index.has_type(o.type)]
     if n == 0 or not rect_ids:
         return RegistrationResult("not_localized", None, [], 0, None, diagnostics={
             "reason": "no observed door/window rectangle (centroid-only observations need gravity)"})
