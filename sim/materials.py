@@ -14,7 +14,16 @@ import numpy as np
 
 from graph.features import MacroFeature
 from sim import textures as tx
-from sim.render import DETAIL_COLUMN, KIND_DOOR, KIND_GLASS, KIND_PLAIN, KIND_WINDOW_FRAME, VERTEX_FLOATS
+from sim.render import (
+    FLAG_CLOSED,
+    FLAG_DETAIL,
+    FLAGS_COLUMN,
+    KIND_DOOR,
+    KIND_GLASS,
+    KIND_PLAIN,
+    KIND_WINDOW_FRAME,
+    VERTEX_FLOATS,
+)
 from sim.scene import COVERING, DOOR, FURNITURE, OTHER, SLAB, STAIR, WALL, WINDOW, SceneGeometry
 
 WALL_TINTS = ((0.95, 0.94, 0.9), (0.9, 0.92, 0.95), (0.96, 0.9, 0.8), (0.85, 0.9, 0.85), (0.8, 0.8, 0.82),
@@ -133,7 +142,11 @@ def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
     verts[:, :, 13] = kind[:, None]
     verts[:, :, 14] = style[:, None]
     detail = np.isin(scene.tri_class, (FURNITURE, OTHER)) | ((scene.tri_class == STAIR) & (inst == 0))
-    verts[:, :, DETAIL_COLUMN] = detail[:, None]
+    # closed solids may be culled from behind (about half the fragments of a building); doors and windows stay
+    # double-sided: an opened door loses its leaf and the rest of it is no longer closed
+    closed = (scene.tri_closed if scene.tri_closed is not None else np.zeros(T, bool)) & ~np.isin(
+        scene.tri_class, (DOOR, WINDOW))
+    verts[:, :, FLAGS_COLUMN] = (FLAG_DETAIL * detail + FLAG_CLOSED * closed)[:, None]
     keep = ~_leaf_of(inst, fuv, kind, open_doors)
     z0 = float(scene.bounds_cad[0, 2]) if ground_z_m is None else ground_z_m
     floors = _space_floors(scene, floor_levels_m, floor_layer, rng)

@@ -20,8 +20,10 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-VERTEX_FLOATS = 16  # pos 3, normal 3, tint 3, layer 1, instance 1, feature uv 2, kind 1, style 1, detail 1
-DETAIL_COLUMN = 15  # 1.0: a small detailed object (furniture, fittings, railings), drawn only within DETAIL_RANGE_M
+VERTEX_FLOATS = 16  # pos 3, normal 3, tint 3, layer 1, instance 1, feature uv 2, kind 1, style 1, flags 1
+FLAGS_COLUMN = 15  # bit flags, not seen by the shaders:
+FLAG_DETAIL = 1  # a small detailed object (furniture, fittings, railings), drawn only within DETAIL_RANGE_M
+FLAG_CLOSED = 2  # part of a closed solid wound outward (counter-clockwise seen from outside): culled from behind
 DETAIL_RANGE_M = 12.0
 KIND_PLAIN, KIND_DOOR, KIND_WINDOW_FRAME, KIND_GLASS = 0.0, 1.0, 2.0, 3.0
 MAX_LIGHTS = 4
@@ -86,14 +88,15 @@ class ChunkIndex:
     box_max: np.ndarray
     huge: np.ndarray  # (C,) bool: the cell of oversized triangles (the ground, long slabs), drawn last
     detail: np.ndarray  # (C,) bool: cells of small detailed objects, drawn only within DETAIL_RANGE_M
+    closed: np.ndarray  # (C,) bool: cells of closed solids' triangles, drawn with back faces culled
 
     @classmethod
     def build(cls, vertices: np.ndarray, cell_m: float = 5.0) -> ChunkIndex:
         tri = vertices.reshape(-1, 3, vertices.shape[1])
         centre = tri[:, :, :3].mean(axis=1)
         extent = np.ptp(tri[:, :, :3], axis=1).max(axis=1)
-        detail = tri[:, 0, DETAIL_COLUMN] > 0.5
-        cell = np.column_stack([np.floor(centre / cell_m).astype(np.int64), detail])
+        flags = np.rint(tri[:, 0, FLAGS_COLUMN]).astype(np.int64)
+        cell = np.column_stack([np.floor(centre / cell_m).astype(np.int64), flags & (FLAG_DETAIL | FLAG_CLOSED)])
         cell[extent > 4 * cell_m, :3] = np.iinfo(np.int32).max  # huge triangles (ground, long slabs): own cell
         _, key = np.unique(cell, axis=0, return_inverse=True)
         key = key.reshape(-1)
@@ -105,15 +108,16 @@ class ChunkIndex:
         box_min = np.minimum.reduceat(pts.min(axis=1), starts, axis=0)
         box_max = np.maximum.reduceat(pts.max(axis=1), starts, axis=0)
         huge = np.ptp(np.stack([box_min, box_max]), axis=0).max(axis=1) > 8 * cell_m
+        cell_flags = np.rint(tri[starts, 0, FLAGS_COLUMN]).astype(np.int64)
         return cls(np.ascontiguousarray(tri.reshape(-1, vertices.shape[1])), starts * 3, counts * 3, box_min, box_max,
-                   huge, tri[starts, 0, DETAIL_COLUMN] > 0.5)
+                   huge, (cell_flags & FLAG_DETAIL) > 0, (cell_flags & FLAG_CLOSED) > 0)
 
     def visible_front_to_back(self, T_cad_cam: np.ndarray, camera: CameraModel,
                               z_range_m: tuple[float, float] | None = None) -> np.ndarray:
-        """(K, 2) (first vertex, vertex count) of the cells whose box meets the view frustum (and the height
-        range `z_range_m`, when given: the storey flown), nearest first, the oversized cell last."""
+        """(K, 3) (first vertex, vertex count, closed 0/1) of the cells whose box meets the view frustum (and the
+        height range `z_range_m`, when given: the storey flown), nearest first, the oversized cell last."""
         if len(self.first) == 0:
-            return np.zeros((0, 2), np.int64)
+            return np.zeros((0, 3), np.int64)
         T_cam_cad = np.linalg.inv(T_cad_cam)
         corners = np.stack([np.where(np.array([(i >> k) & 1 for k in range(3)], bool), self.box_max, self.box_min)
                             for i in range(8)], axis=1)  # (C, 8, 3)
@@ -132,7 +136,7 @@ class ChunkIndex:
         dist = dist + 1e6 * self.huge
         idx = np.flatnonzero(~out)
         idx = idx[np.argsort(dist[idx], kind="stable")]
-        return np.column_stack([self.first[idx], self.count[idx]])
+        return np.column_stack([self.first[idx], self.count[idx], self.closed[idx]])
 
 
 def _shader(name: str) -> str:
@@ -185,6 +189,11 @@ class StereoRenderer:
         self._set("tex", 0)  # the texture array on unit 0
         self._indirect: Any = None
         self.depth_prepass = True
+        self.cull_back_faces = True
+        # rows come back top first, a vertical flip of OpenGL's window: counter-clockwise in the camera's view
+        # (x right, y down) is clockwise to OpenGL
+        self.ctx.front_face = "cw"
+        self.ctx.cull_face = "back"
         self.z_range_m: tuple[float, float] | None = None  # heights drawn (the storey flown); None: all
 
     def _vao(self, verts: np.ndarray):  # noqa: ANN202 - moderngl.VertexArray | None
@@ -217,10 +226,10 @@ class StereoRenderer:
             ranges = self.chunks.visible_front_to_back(T_cad_cam, self.camera, self.z_range_m)
             if self.depth_prepass and self._vao_depth is not None:
                 self.fbo_depth.use()
-                self._draw_indirect(ranges, self._vao_depth)
+                self._draw_culled(ranges, self._vao_depth)
                 self.fbo.use()
                 self.ctx.depth_func = "<="
-            self._draw_indirect(ranges, self._vaos[0])
+            self._draw_culled(ranges, self._vaos[0])
             self.ctx.depth_func = "<"
         if self._vaos[1] is not None:
             self.fbo_glass.use()
@@ -242,6 +251,20 @@ class StereoRenderer:
             glass = np.rint(np.frombuffer(self.glass_id.read(), np.float32).reshape(h, w, 2)[:, :, 1]).astype(np.int32)
             instance = np.where(glass > 0, glass, instance)
         return RenderOutput(image, aux[:, :, 0].copy(), instance)
+
+    def _draw_culled(self, ranges: np.ndarray, vao) -> None:  # noqa: ANN001 - moderngl.VertexArray
+        """The closed solids' cells with back faces culled (they are hidden behind the solid's own front), then
+        the double-sided rest; each group nearest first."""
+        import moderngl
+
+        closed = ranges[:, 2] > 0
+        if self.cull_back_faces:
+            self.ctx.enable(moderngl.CULL_FACE)
+            self._draw_indirect(ranges[closed], vao)
+            self.ctx.disable(moderngl.CULL_FACE)
+            self._draw_indirect(ranges[~closed], vao)
+        else:
+            self._draw_indirect(ranges, vao)
 
     def _draw_indirect(self, ranges: np.ndarray, vao) -> None:  # noqa: ANN001 - moderngl.VertexArray
         """One glMultiDrawArraysIndirect call for the (first, count) vertex ranges, in their order."""

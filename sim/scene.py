@@ -23,7 +23,7 @@ from graph.errors import BuildingError
 
 log = logging.getLogger(__name__)
 
-SCENE_VERSION = 1
+SCENE_VERSION = 2  # 2: closed solids wound outward, tri_closed
 # element classes (values stored per triangle)
 WALL, SLAB, DOOR, WINDOW, STAIR, FURNITURE, COVERING, OTHER = range(8)
 CLASS_NAMES = ("wall", "slab", "door", "window", "stair", "furniture", "covering", "other")
@@ -46,7 +46,9 @@ class SceneGeometry:
 
     triangles_cad: (T, 3, 3) float32; tri_class: (T,) int8 (WALL, SLAB, ...); tri_element: (T,) int32 index
     into element_ids; tri_colour: (T, 3) float32 linear RGB in [0, 1] (the model's own style colour);
-    tri_glass: (T,) bool; element_ids: GlobalIds (or mesh node names); space_triangles_cad: (S, 3, 3).
+    tri_glass: (T,) bool; element_ids: GlobalIds (or mesh node names); space_triangles_cad: (S, 3, 3);
+    tri_closed: (T,) bool, the triangle bounds a closed solid and is wound outward (counter-clockwise seen from
+    outside), so the renderer may cull it from behind; None: not known (all drawn double-sided).
     """
 
     source: str
@@ -58,6 +60,7 @@ class SceneGeometry:
     tri_glass: np.ndarray
     element_ids: list[str]
     space_triangles_cad: np.ndarray
+    tri_closed: np.ndarray | None = None
 
     @property
     def bounds_cad(self) -> np.ndarray:
@@ -90,10 +93,11 @@ def load_scene(path: str | Path, use_cache: bool = True) -> SceneGeometry:
     scene = _read_ifc(path, sha) if suffix in IFC_SUFFIXES else _read_mesh(path, sha)
     if len(scene.triangles_cad) == 0:
         raise BuildingError(f"{path.name}: no renderable geometry")
+    scene.triangles_cad, scene.tri_closed = orient_closed_solids(scene.triangles_cad, scene.tri_element)
     tmp = cached.with_name(f"{cached.stem}.tmp{os.getpid()}.npz")
     np.savez(tmp, triangles=scene.triangles_cad, tri_class=scene.tri_class, tri_element=scene.tri_element,
              tri_colour=scene.tri_colour, tri_glass=scene.tri_glass, element_ids=np.array(scene.element_ids),
-             spaces=scene.space_triangles_cad, sha=np.array(sha))
+             spaces=scene.space_triangles_cad, sha=np.array(sha), closed=scene.tri_closed)
     os.replace(tmp, cached)
     return scene
 
@@ -101,7 +105,53 @@ def load_scene(path: str | Path, use_cache: bool = True) -> SceneGeometry:
 def _from_npz(path: Path, source: str) -> SceneGeometry:
     with np.load(path) as z:
         return SceneGeometry(source, str(z["sha"]), z["triangles"], z["tri_class"], z["tri_element"], z["tri_colour"],
-                             z["tri_glass"], [str(s) for s in z["element_ids"]], z["spaces"])
+                             z["tri_glass"], [str(s) for s in z["element_ids"]], z["spaces"], z["closed"])
+
+
+def orient_closed_solids(triangles: np.ndarray, tri_element: np.ndarray,
+                         tol_m: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
+    """(triangles with every closed solid wound outward, (T,) bool closed flag).
+
+    A solid is a connected set of one element's triangles (vertices equal within `tol_m`) in which every edge is
+    shared by exactly two triangles that run it in opposite directions (watertight and consistently wound); a
+    solid with negative signed volume is inside out and gets flipped. Everything else (single-sided panes, open
+    shells, degenerate triangles) stays as it was and is reported not closed: it must be drawn from both sides.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    T = len(triangles)
+    if T == 0:
+        return triangles, np.zeros(0, bool)
+    q = np.rint(triangles.reshape(-1, 3).astype(np.float64) / tol_m).astype(np.int64)
+    keyed = np.column_stack([np.repeat(tri_element.astype(np.int64), 3), q])
+    _, vid = np.unique(keyed, axis=0, return_inverse=True)
+    vid = vid.reshape(T, 3)
+    a, b = vid.reshape(-1), vid[:, [1, 2, 0]].reshape(-1)  # directed edges, 3 per triangle
+    face = np.repeat(np.arange(T), 3)
+    _, und, und_count = np.unique(np.column_stack([np.minimum(a, b), np.maximum(a, b)]), axis=0,
+                                  return_inverse=True, return_counts=True)
+    _, dir_inv, dir_count = np.unique(np.column_stack([a, b]), axis=0, return_inverse=True, return_counts=True)
+    und, dir_inv = und.reshape(-1), dir_inv.reshape(-1)
+    bad_edge = (a == b) | (und_count[und] != 2) | (dir_count[dir_inv] != 1)
+    bad_face = np.zeros(T, bool)
+    np.logical_or.at(bad_face, face, bad_edge)
+    # faces joined through shared edges; a component is closed when none of its faces has a bad edge
+    order = np.argsort(und, kind="stable")
+    first = order[:-1][und[order[:-1]] == und[order[1:]]]
+    second = order[1:][und[order[:-1]] == und[order[1:]]]
+    adj = coo_matrix((np.ones(len(first)), (face[first], face[second])), shape=(T, T))
+    n_comp, comp = connected_components(adj, directed=False)
+    comp_bad = np.zeros(n_comp, bool)
+    np.logical_or.at(comp_bad, comp, bad_face)
+    t = triangles.astype(np.float64)
+    volume = np.bincount(comp, np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])) / 6.0, n_comp)
+    closed_comp = ~comp_bad & (np.abs(volume) > 1e-9)
+    closed = closed_comp[comp]
+    flip = closed & (volume[comp] < 0)
+    out = triangles.copy()
+    out[flip] = triangles[flip][:, [0, 2, 1]]
+    return out, closed
 
 
 def _read_ifc(path: Path, sha: str) -> SceneGeometry:

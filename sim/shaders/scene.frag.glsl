@@ -13,10 +13,9 @@ uniform vec3 cam_pos;
 uniform vec3 sky_rgb;
 uniform int glass_pass;
 in vec3 v_pos;
-in vec3 v_normal;
-in vec3 v_tint;
+flat in vec3 v_normal;
+flat in vec3 v_tint;
 in vec2 v_fuv;
-in float v_z;
 flat in float v_layer;
 flat in float v_inst;
 flat in float v_kind;
@@ -102,9 +101,14 @@ void main() {
         float r2 = dot(d, d);
         vec3 l = d * inversesqrt(r2);
         float att = 1.0 / (1.0 + 0.08 * r2);
-        float diffuse = max(dot(n, l), 0.0);
-        if (shine > 0.0) diffuse += shine * pow(max(dot(reflect(-l, n), view), 0.0), 20.0);
-        light += light_col[i] * att * diffuse;
+        light += light_col[i] * (att * max(dot(n, l), 0.0));
+    }
+    // highlight of the nearest light (lights come nearest first) on shiny parts: outside the loop, because
+    // llvmpipe runs both sides of a branch for every pixel
+    if (n_lights > 0) {
+        vec3 d = light_pos[0] - v_pos;
+        vec3 l = normalize(d);
+        light += light_col[0] * (shine / (1.0 + 0.08 * dot(d, d)) * pow(max(dot(reflect(-l, n), view), 0.0), 20.0));
     }
     vec3 c = (glass_pass == 1) ? base * (0.6 + 0.4 * light) : base * light;
     c *= exposure * 1.4;
@@ -112,5 +116,5 @@ void main() {
     float nz = 2.0 * hash(gl_FragCoord.xy) - 1.0;  // uniform in [-1, 1]
     c += noise_sigma * 1.7 * nz;
     out_colour = vec4(c.bgr, alpha);
-    out_aux = vec4(v_z, v_inst, 0.0, 1.0);
+    out_aux = vec4(1.0 / gl_FragCoord.w, v_inst, 0.0, 1.0);  // 1/w = z along the optical axis
 }

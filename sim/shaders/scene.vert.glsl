@@ -13,10 +13,9 @@ in vec2 in_fuv;
 in float in_kind;
 in float in_style;
 out vec3 v_pos;
-out vec3 v_normal;
-out vec3 v_tint;
+flat out vec3 v_normal;  // per-triangle (face normals, one tint per element): flat is cheaper
+flat out vec3 v_tint;
 out vec2 v_fuv;
-out float v_z;
 flat out float v_layer;
 flat out float v_inst;
 flat out float v_kind;
@@ -30,7 +29,6 @@ void main() {
     v_normal = in_normal;
     v_tint = in_tint;
     v_fuv = in_fuv;
-    v_z = pc.z;
     v_layer = in_layer;
     v_inst = in_inst;
     v_kind = in_kind;
