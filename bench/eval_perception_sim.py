@@ -46,7 +46,8 @@ def _iou(a, b) -> float:  # type: ignore[no-untyped-def]
     return float(iou_xyxy(np.asarray([a], float), np.asarray([b], float))[0, 0])
 
 
-def run(building: Path, seeds: list[int], every: int, duration_s: float) -> dict[str, object]:
+def run(building: Path, seeds: list[int], every: int, duration_s: float,
+        model: Path | None = None) -> dict[str, object]:
     from perception.calib import StereoRig
     from perception.detector import Detection
     from perception.evaluate import GroundTruth, pr_curve
@@ -54,7 +55,7 @@ def run(building: Path, seeds: list[int], every: int, duration_s: float) -> dict
     from sim.flight import FlightParams
     from sim.simulator import SimulationParams, Simulator
 
-    chain = Perception.create()
+    chain = Perception.create(model) if model is not None else Perception.create()
     errors: dict[str, dict[str, list[float]]] = {"detector": {}, "oracle_boxes": {}}
     counts = {"frames": 0, "truth_4_visible": 0}
     dets_all: list[list[Detection]] = []
@@ -112,8 +113,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--every", type=int, default=6)
     ap.add_argument("--duration", type=float, default=30.0)
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "perception" / "sim_eval.json")
+    ap.add_argument("--model", type=Path, default=None, help="detector ONNX (default: the shipped one)")
     args = ap.parse_args(argv)
-    figures = run(args.building, args.seeds, args.every, args.duration)
+    figures = run(args.building, args.seeds, args.every, args.duration, args.model)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(figures, indent=1) + "\n")
     print(json.dumps(figures, indent=1))

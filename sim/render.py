@@ -209,6 +209,11 @@ class StereoRenderer:
     def render(self, T_cad_cam: np.ndarray, lighting: Lighting, frame_seed: float = 0.0,
                with_truth: bool = True) -> RenderOutput:
         """One camera at pose T_cad_cam (4x4, optical frame -> CAD). Truth = depth and instance buffers."""
+        with self.ctx:  # current for this call: a process may hold several renderers (EGL contexts)
+            return self._render(T_cad_cam, lighting, frame_seed, with_truth)
+
+    def _render(self, T_cad_cam: np.ndarray, lighting: Lighting, frame_seed: float,
+                with_truth: bool) -> RenderOutput:
         import moderngl
 
         T_cam_cad = np.linalg.inv(np.asarray(T_cad_cam, dtype=np.float64))

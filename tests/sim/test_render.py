@@ -132,3 +132,15 @@ def test_sgbm_recovers_true_depth_on_rendered_pair(room, renderer_vga) -> None:
     est = cam.fx * cam.baseline_m / disp[sel]
     rel = np.abs(est - truth[sel]) / truth[sel]
     assert np.median(rel) < 0.03
+
+
+def test_two_renderers_in_one_process_each_draw_their_own_scene(room, renderer, renderer_vga) -> None:
+    """Each renderer owns an EGL context; the one created last must not capture the other's draws."""
+    T = look_at([1.0, 1.0, 1.4], [6.0, 5.5, 1.0])
+    small = renderer.render(T, _lighting())
+    vga = renderer_vga.render(T, _lighting())
+    again = renderer.render(T, _lighting())
+    assert small.image_bgr.shape[:2] == (SMALL.height, SMALL.width)
+    assert vga.image_bgr.shape[:2] == (480, 640)
+    assert small.depth_m is not None and again.depth_m is not None
+    np.testing.assert_array_equal(small.depth_m, again.depth_m)
