@@ -100,6 +100,16 @@ class SimConfig(BaseModel):
                                        "numbered n % 5 != 0 are used (the rest is the detector's test split)")
 
 
+class PerceptionConfig(BaseModel):
+    """The perception chain (perception/): which door/window detector, and on which frames it runs."""
+
+    detector_model: Path | None = Field(None, description="detector ONNX file with its JSON sidecar beside it; "
+                                        "default: the shipped perception/models/detector.onnx (trained on real "
+                                        "photos). A detector adapted to one building is trained on renders of its "
+                                        "model: python -m perception.train --sim FOLDER --out DIR")
+    detect_every: int = Field(3, ge=1, description="replay: run the chain on every n-th stereo frame")
+
+
 class GraphConfig(BaseModel):
     """The pose graph and the localizer (graph/posegraph, graph/localizer): keyframes, association, status."""
 
@@ -123,6 +133,7 @@ class MacrolocConfig(BaseSettings):
     service: ServiceConfig = Field(default_factory=lambda: ServiceConfig())
     planning: PlanningConfig = Field(default_factory=lambda: PlanningConfig())
     sim: SimConfig = Field(default_factory=lambda: SimConfig())
+    perception: PerceptionConfig = Field(default_factory=lambda: PerceptionConfig())
     graph: GraphConfig = Field(default_factory=lambda: GraphConfig())
 
     @classmethod

@@ -9,6 +9,7 @@ the decode-only pipeline otherwise (logged).
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -62,12 +63,15 @@ def forward_T_body_cam(forward_m: float = 0.10, left_m: float = 0.06) -> np.ndar
     return T
 
 
-def make_perception_pipeline(threads: int = 2) -> PerceptionPipeline | None:
-    """The perception chain with its shipped detector, or None when it cannot load (logged)."""
+def make_perception_pipeline(threads: int = 2, detector_model: Path | None = None) -> PerceptionPipeline | None:
+    """The perception chain with the given detector (default: the shipped one), or None when it cannot load
+    (logged)."""
     try:
         from perception.pipeline import Perception
 
-        return PerceptionPipeline(Perception.create(threads=threads), forward_T_body_cam())
+        chain = (Perception.create(detector_model, threads=threads) if detector_model is not None
+                 else Perception.create(threads=threads))
+        return PerceptionPipeline(chain, forward_T_body_cam())
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception
         log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)
         return None

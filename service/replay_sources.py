@@ -10,6 +10,7 @@ on the recorded images, once they exist. Both return a `FrameInput` per recorded
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -167,13 +168,13 @@ class PerceptionSource:
     frame; sightings get the id of the nearest ground-truth feature (within 0.5 m) for scoring only.
     """
 
-    def __init__(self, detect_every: int = 3) -> None:
+    def __init__(self, detect_every: int = 3, detector_model: Path | None = None) -> None:
         try:
             from perception.pipeline import Perception
         except ImportError:
             raise UserInputError("--observations perception: the perception chain (perception.pipeline) "
                                  "is not available; use --observations truth") from None
-        self.perception = Perception.create()
+        self.perception = Perception.create(detector_model) if detector_model is not None else Perception.create()
         self.detect_every = detect_every
         self.odometry = VisualOdometry()
         self._n = 0

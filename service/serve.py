@@ -23,7 +23,7 @@ def make_pipeline(cfg: MacrolocConfig) -> FramePipeline:
     if cfg.service.perception:
         from service.frames import make_perception_pipeline
 
-        pipeline = make_perception_pipeline()
+        pipeline = make_perception_pipeline(detector_model=cfg.perception.detector_model)
         if pipeline is not None:
             return pipeline
     return NullPipeline()

@@ -21,7 +21,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Run the perception chain (detect, LSD sides, SGBM depth, 3D corners) on one rectified stereo pair.
 
-        JSON: {"features": [{"type", "score", "box_xyxy", "corners_cam": [[x,y,z] x4], ...}], "rejected": [...]};
+        JSON: {"features": [{"type", "score", "box_xyxy", "corners_cam": [\\[x, y, z] x 4], ...}], "rejected": [...]};
         corners in the left camera's optical frame (x right, y down, z forward), metres, TL, TR, BR, BL.
         """
         import cv2

@@ -25,7 +25,8 @@ def register(app: typer.Typer) -> None:
         storey: str | None = typer.Option(None, "--storey", help="Restrict registration to this storey."),
         seed: int = typer.Option(0, "--seed", help="Seed of the noise added to truth observations."),
         config: Path | None = typer.Option(None, "--config", help="macroloc config file (JSON/TOML); its "
-                                           "[graph] section sets keyframes, association and status thresholds."),
+                                           "graph section sets keyframes, association and status thresholds, its "
+                                           "perception section the detector (perception.detector_model)."),
         json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
         over_zenoh: bool = typer.Option(False, "--over-zenoh", help="Publish the recording to a running `macroloc "
                                         "serve` on its Zenoh keys and score the poses it sends back."),
@@ -64,12 +65,16 @@ def register(app: typer.Typer) -> None:
             replay_command(flight, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
                            vehicle, speed, json_out)
             return
+        cfg = load_config(config)
+        detector = cfg.perception.detector_model
+        if observations == "perception" and detector is not None:
+            existing_file(detector, "detector model (perception.detector_model)")
         model = load_building(building)
         stored = StoredMap.load(stored_map, model) if stored_map is not None else None
         source: ObservationSource = (TruthSource(seed=seed) if observations == "truth" else
                                      TruthFeaturesWithVisualOdometry(seed=seed) if observations == "truth-vo"
-                                     else PerceptionSource())
-        params, policy, isam = settings_from_config(load_config(config).graph)
+                                     else PerceptionSource(cfg.perception.detect_every, detector))
+        params, policy, isam = settings_from_config(cfg.graph)
         result = run_replay(flight, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
                             isam=isam)
         if save_map is not None:

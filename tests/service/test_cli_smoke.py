@@ -31,3 +31,34 @@ def test_a_missing_input_file_is_one_clean_line(name: str, tmp_path, capsys) -> 
     rc = main([name, *args])
     err = capsys.readouterr().err
     assert rc == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_no_help_text_holds_what_rich_would_take_for_markup(capsys) -> None:
+    """`--help` goes through rich: a "[word]" in a help string is read as a style tag and vanishes from it."""
+    import re
+
+    import typer
+
+    from service.cli import app
+
+    assert main(["--help"]) == 0  # registers every command
+
+    markup = re.compile(r"(?<!\\)\[/?[A-Za-z_#@][^\]\[]*\]")  # rich's tag syntax; "\\[" escapes it
+    group = typer.main.get_command(app)
+    texts = []
+    for name, command in group.commands.items():  # type: ignore[attr-defined]
+        texts += [(name, command.help or "")] + [(f"{name} {p.name}", getattr(p, "help", "") or "")
+                                                for p in command.params]
+    swallowed = [(where, text) for where, text in texts if markup.search(text)]
+    assert len(texts) > 40 and not swallowed
+
+
+def test_replay_names_a_missing_detector_from_the_config_in_one_line(tmp_path, capsys) -> None:
+    flight = tmp_path / "f.mcap"
+    flight.write_bytes(b"\x89MCAP0\r\n")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[perception]\ndetector_model = "{tmp_path / "nope.onnx"}"\n')
+    rc = main(["replay", str(flight), "--building", str(tmp_path / "b.ifc"), "--observations", "perception",
+               "--config", str(cfg)])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and "detector model" in err and "nope.onnx" in err
