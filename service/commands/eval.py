@@ -14,7 +14,7 @@ def register(app: typer.Typer) -> None:
     def eval_(
         building: Path = typer.Argument(..., help="IFC file, or a mesh, of the building."),
         n: int = typer.Option(100, "--n", min=1, help="Scenarios per variant."),
-        seed: int = typer.Option(1, "--seed", help="Scenario seed (scenario i draws from numpy default_rng((seed, i)))."),
+        seed: int = typer.Option(1, "--seed", help="Scenario seed (scenario i draws from default_rng((seed, i)))."),
         variant: list[str] = typer.Option(list(VARIANTS), "--variant", help="gravity, full, nogravity (repeatable)."),
         sigma: float = typer.Option(0.05, "--sigma", min=0.0, help="Corner noise std-dev, m."),
         drop: float = typer.Option(0.15, "--drop", min=0.0, max=0.95, help="Probability a feature is missed."),
