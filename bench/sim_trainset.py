@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -24,25 +23,13 @@ log = logging.getLogger(__name__)
 
 def export(out: Path, buildings: tuple[str, ...] = TRAIN_BUILDINGS, seeds: tuple[int, ...] = SEEDS,
            duration_s: float = 40.0, every: int = 6) -> dict[str, int]:
-    from sim.export import YoloExporter
-    from sim.flight import FlightParams
-    from sim.simulator import SimulationParams, Simulator
+    from sim.export import render_training_frames
 
     totals = {"images": 0, "door": 0, "window": 0}
     for name in buildings:
-        for seed in seeds:
-            t0 = time.time()
-            sim = Simulator(ROOT / "data" / "buildings" / name, SimulationParams(seed=seed,
-                                                                                 flight=FlightParams(duration_s=duration_s)))
-            exporter = YoloExporter(out, f"{Path(name).stem}_s{seed}", every_n=1)
-            times = sim.frame_times_s
-            for i in range(0, len(times), every):
-                frame = sim.render_at(i, float(times[i]))
-                exporter.add(i, frame.left_bgr, frame.features)
-            sim.close()
-            for k in totals:
-                totals[k] += exporter.counts[k]
-            log.info("%s seed %d: %s in %.0f s", name, seed, exporter.counts, time.time() - t0)
+        counts = render_training_frames(ROOT / "data" / "buildings" / name, out, seeds, duration_s, every)
+        for k in totals:
+            totals[k] += counts[k]
     return totals
 
 

@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "simulate",
     "detect",
     "perceive",
+    "adapt_detector",
     "replay",
     "serve",
     "demo",

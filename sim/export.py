@@ -73,3 +73,30 @@ class YoloExporter:
         for line in lines:
             self.counts["door" if line.startswith("0 ") else "window"] += 1
         return True
+
+
+def render_training_frames(building: Path, out_dir: Path, seeds: tuple[int, ...], duration_s: float = 40.0,
+                           every: int = 6, prefix: str | None = None) -> dict[str, int]:
+    """Seeded flights through `building`, every `every`-th frame written to `out_dir` as a left image with YOLO
+    labels; only those frames are rendered. Returns the counts {"images", "door", "window"}."""
+    import time
+
+    from sim.flight import FlightParams
+    from sim.simulator import SimulationParams, Simulator
+
+    totals = {"images": 0, "door": 0, "window": 0}
+    for seed in seeds:
+        t0 = time.time()
+        sim = Simulator(building, SimulationParams(seed=seed, flight=FlightParams(duration_s=duration_s)))
+        try:
+            exporter = YoloExporter(out_dir, f"{prefix or building.stem}_s{seed}", every_n=1)
+            times = sim.frame_times_s
+            for i in range(0, len(times), every):
+                frame = sim.render_at(i, float(times[i]))
+                exporter.add(i, frame.left_bgr, frame.features)
+        finally:
+            sim.close()
+        for k in totals:
+            totals[k] += exporter.counts[k]
+        log.info("%s seed %d: %s in %.0f s", building.name, seed, exporter.counts, time.time() - t0)
+    return totals
