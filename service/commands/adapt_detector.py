@@ -43,7 +43,7 @@ def register(app: typer.Typer) -> None:
         The shipped detector learned doors from real facade photos; indoors, in corridors, it finds few. Trained
         on renders of the building's own model (Office_A, 3 flights of 40 s, 2400 steps, ~8 min on 2 cores) it
         found 3x more of the doors on held-out flights (AP50 0.23 -> 0.40). Use it with
-        `perception.detector_model = "DIR/detector.onnx"` in the config. Needs torch: pip install -e '.[train]'.
+        `perception.detector_model = "DIR/detector.onnx"` in the config. Needs torch: pip install -e '.\\[train]'.
         """
         import importlib.util
         import json
