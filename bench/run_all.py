@@ -9,7 +9,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
-BENCHMARKS = ("bench_localize", "bench_posegraph", "bench_perception", "bench_zenoh", "bench_render")
+BENCHMARKS = ("bench_localize", "bench_posegraph", "bench_perception", "bench_zenoh", "bench_render",
+              "bench_obstacles")
 
 
 def main() -> int:

@@ -7,7 +7,9 @@ The static layer comes from the building's solids (walls, slabs, stairs, railing
 horizontal plane z = storey elevation + flight height. Doors, windows, openings and spaces are left out, and
 ifcopenshell subtracts the openings from the walls, so doorways are gaps in the section: a drone passes.
 The dynamic layer counts depth points (CAD frame) inside a height band around the flight height: a 2D
-projection of a voxel grid, which is all a 2D planner consumes (measured cheaper than an OctoMap here).
+projection of a voxel grid, which is all a 2D planner consumes: 0.9 ms per frame of 18,500 depth points
+against 11 ms for an OctoMap with ray casting (pyoctomap, 13x; `python -m bench.bench_obstacles`). It does not
+clear cells seen free again, as OctoMap would: an obstacle that leaves stays until the layer is reset.
 """
 
 from __future__ import annotations
