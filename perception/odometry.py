@@ -5,10 +5,13 @@ Each frame: ORB on the left image; its features are matched to the reference key
 A frame becomes the reference when tracking thins out or the camera has moved far from it; only then is the
 stereo pair matched: OpenCV SGBM's sub-pixel disparity at each keypoint gives its 3D point by eq. 2
 (z = fx * baseline / disparity), kept where the disparity is consistent over the 3 x 3 pixels around it (not
-on a depth edge). Measured on a simulated 60 s flight through Office_A against matching ORB features along
-rows (integer disparities, wrong matches on horizontal edges): drift 0.61 m instead of 2.41 m, rotation error
-over 1 s p90 0.55 deg instead of 2.18 deg, and faster (SGBM runs only at keyframes). Chosen over dense RGB-D
-odometry (Open3D) for cost, and it does not import open3d (which needs libusb here).
+on a depth edge); 128 disparities reach down to 0.45 m, for a wall close by. With a gyroscope, a PnP rotation
+more than 2 deg from the gyro's since the keyframe is replaced by the gyro's and the translation refitted: a wall
+filling the view lets PnP take a turn for a slide. Measured on simulated 60 s flights, drift at the end against
+the first version (ORB matched along rows: integer disparities, wrong matches on horizontal edges; no gyro):
+Office_A seed 1 0.33 m instead of 2.41 m, Jasmin-Sun seed 3 0.09 m instead of 6.3 m (a 70 deg turn facing a
+wall, which that version missed entirely). SGBM runs only at keyframes. Chosen over dense RGB-D odometry (Open3D)
+for cost, and it does not import open3d (which needs libusb here).
 
 Frames: `odom` = the first frame's left camera (optical: x right, y down, z forward); `T_odom_cam` 4x4, metres.
 """
@@ -22,7 +25,7 @@ import cv2
 import numpy as np
 
 from perception.calib import StereoRig
-from perception.stereo import SgbmMatcher, to_gray
+from perception.stereo import SgbmConfig, SgbmMatcher, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +45,7 @@ class OdometryConfig:
     rekey_rotation_rad: float = 0.35
     max_step_m: float = 0.15  # a frame-to-frame jump beyond this (4.5 m/s at 30 Hz) is a wrong PnP solution
     max_step_rad: float = 0.25
+    gyro_tolerance_rad: float = 0.035  # a PnP rotation this far from the gyro's is replaced by the gyro's
 
 
 @dataclass
@@ -67,14 +71,20 @@ class StereoOdometry:
         self.orb = cv2.ORB_create(  # type: ignore[attr-defined]
             nfeatures=self.config.n_features, fastThreshold=self.config.fast_threshold)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-        self.sgbm = SgbmMatcher()
+        self.sgbm = SgbmMatcher(SgbmConfig(num_disparities=128))  # depth down to 0.45 m: a wall close by
         self.K = rig.K
         self._ref: _Keyframe | None = None
         self._T_last = np.eye(4)
         self._T_prev = np.eye(4)
+        self._inliers: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3)), np.zeros((0, 2)))  # of the last PnP
 
-    def track(self, left: np.ndarray, right: np.ndarray) -> OdometryResult:
-        """The left camera's pose in the odometry frame after this stereo pair (uint8 grey or BGR)."""
+    def track(self, left: np.ndarray, right: np.ndarray, R_prev_cur: np.ndarray | None = None) -> OdometryResult:
+        """The left camera's pose in the odometry frame after this stereo pair (uint8 grey or BGR).
+
+        R_prev_cur: the camera's rotation since the previous frame from a gyroscope (3x3, previous camera frame
+        <- this one), when there is one. A plane filling the view (a wall close by) leaves PnP unable to tell a
+        turn from a slide: where its rotation departs from the gyro's, the gyro's is kept and the translation
+        refitted to the same matches."""
         kp, desc = self.orb.detectAndCompute(to_gray(left), None)
         kp = list(kp)
         desc = desc if desc is not None else np.zeros((0, 32), np.uint8)
@@ -82,8 +92,13 @@ class StereoOdometry:
             self._ref = self._keyframe(np.eye(4), left, right, kp, desc)
             return OdometryResult(np.eye(4), len(self._ref.points_cam), True)
         T_ref_cam, inliers = self._pnp(kp, desc)
+        if T_ref_cam is not None and R_prev_cur is not None:
+            T_ref_cam = self._agree_with_gyro(T_ref_cam, self._ref.T_odom_cam[:3, :3].T @ self._T_last[:3, :3]
+                                              @ R_prev_cur)
         if T_ref_cam is None or not self._plausible(self._ref.T_odom_cam @ T_ref_cam):
             T = self._T_last @ (np.linalg.inv(self._T_prev) @ self._T_last)  # constant velocity
+            if R_prev_cur is not None:
+                T[:3, :3] = self._T_last[:3, :3] @ R_prev_cur
             self._advance(T)
             self._ref = self._keyframe(T, left, right, kp, desc)
             return OdometryResult(T, inliers, False)
@@ -92,6 +107,25 @@ class StereoOdometry:
         if self._should_rekey(T_ref_cam, inliers):
             self._ref = self._keyframe(T, left, right, kp, desc)
         return OdometryResult(T, inliers, True)
+
+    def _agree_with_gyro(self, T_ref_cam: np.ndarray, R_ref_cam_gyro: np.ndarray) -> np.ndarray:
+        """T_ref_cam, its rotation replaced by the gyro's (and the translation refitted) if they disagree."""
+        d = T_ref_cam[:3, :3].T @ R_ref_cam_gyro
+        if np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1)) <= self.config.gyro_tolerance_rad:
+            return T_ref_cam
+        obj, img = self._inliers
+        R_cam_ref = R_ref_cam_gyro.T
+        # x_cam = R X + t, seen along the ray m: m x (R X + t) = 0, linear in t (3 rows per point, rank 2)
+        m = np.column_stack([(img[:, 0] - self.rig.cx_px) / self.rig.fx_px,
+                             (img[:, 1] - self.rig.cy_px) / self.rig.fy_px, np.ones(len(img))])
+        mx = np.zeros((len(m), 3, 3))
+        mx[:, 0, 1], mx[:, 0, 2], mx[:, 1, 2] = -m[:, 2], m[:, 1], -m[:, 0]
+        mx -= mx.transpose(0, 2, 1)
+        rx = obj @ R_cam_ref.T
+        t_cam_ref = np.linalg.lstsq(mx.reshape(-1, 3), -np.einsum("nij,nj->ni", mx, rx).reshape(-1), rcond=None)[0]
+        T_cam_ref = np.eye(4)
+        T_cam_ref[:3, :3], T_cam_ref[:3, 3] = R_cam_ref, t_cam_ref
+        return np.linalg.inv(T_cam_ref)
 
     def _keyframe(self, T_odom_cam: np.ndarray, left: np.ndarray, right: np.ndarray, kp: list,
                   desc: np.ndarray) -> _Keyframe:
@@ -149,6 +183,7 @@ class StereoOdometry:
         if not ok or inl is None or len(inl) < self.config.min_inliers:
             return None, 0 if inl is None else len(inl)
         idx = inl[:, 0]
+        self._inliers = (obj[idx], img[idx])
         rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], self.K, None, rvec, tvec)
         T_cam_ref = np.eye(4)
         T_cam_ref[:3, :3] = cv2.Rodrigues(rvec)[0]

@@ -118,12 +118,14 @@ def _rot_z(yaw: float) -> np.ndarray:
 
 
 class VisualOdometry:
-    """T_odom_body from the stereo visual odometry on the recorded images; the odometry frame is the first
-    body frame levelled by the IMU's gravity."""
+    """T_odom_body from the stereo visual odometry on the recorded images, its rotation checked against the
+    IMU's gyroscope (integrated over the frame's samples); the odometry frame is the first body frame levelled
+    by the IMU's gravity."""
 
     def __init__(self) -> None:
         self._odometry: StereoOdometry | None = None
         self._T_odom_cam0: np.ndarray | None = None
+        self._last_imu_ns: int | None = None
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray,
                  up_body: np.ndarray | None) -> np.ndarray:
@@ -140,7 +142,13 @@ class VisualOdometry:
                 T_odom_body0[:3, :3] = _rotation_aligning(up_body, np.array([0.0, 0.0, 1.0]))
             self._T_odom_cam0 = T_odom_body0 @ T_body_cam
         assert self._T_odom_cam0 is not None
-        return self._T_odom_cam0 @ self._odometry.track(left, right).T_odom_cam @ np.linalg.inv(T_body_cam)
+        R_body_cam = T_body_cam[:3, :3]
+        R_gyro = _gyro_rotation(frame.imu, self._last_imu_ns)
+        if frame.imu:
+            self._last_imu_ns = frame.imu[-1].header.stamp_ns
+        R_prev_cur = None if R_gyro is None else R_body_cam.T @ R_gyro @ R_body_cam
+        result = self._odometry.track(left, right, R_prev_cur)
+        return self._T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
 
 
 class TruthFeaturesWithVisualOdometry:
@@ -200,6 +208,23 @@ class PerceptionSource:
                 sightings.append(Sighting(f.type, corners_body, truth_id=_nearest_id(f.centroid_cam, truth)))
         self._n += 1
         return FrameInput(frame.stamp_ns, T_odom_body, sightings, up_body, T_body_cam)
+
+
+def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:
+    """The body's rotation over the samples' span (previous body frame <- this one) from their angular rates
+    (each held from the previous sample's stamp to its own); None without samples or a previous stamp."""
+    if not samples or last_ns is None:
+        return None
+    from scipy.spatial.transform import Rotation
+
+    R = np.eye(3)
+    t_prev = last_ns
+    for s in samples:
+        dt = (s.header.stamp_ns - t_prev) * 1e-9
+        t_prev = s.header.stamp_ns
+        w = np.array([s.gyro_radps.x, s.gyro_radps.y, s.gyro_radps.z])
+        R = R @ Rotation.from_rotvec(w * dt).as_matrix()
+    return R
 
 
 def _up_from_imu(frame: FlightFrame) -> np.ndarray | None:

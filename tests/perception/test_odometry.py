@@ -42,3 +42,25 @@ def test_recovers_a_sideways_slide() -> None:
     assert abs(t[0] - xs[-1]) < 0.05  # x right (optical frame)
     assert abs(t[1]) < 0.05 and abs(t[2]) < 0.08
     assert np.allclose(result.T_odom_cam[:3, :3], np.eye(3), atol=0.03)
+
+
+def test_a_rotation_the_gyro_contradicts_is_replaced_and_the_translation_refitted() -> None:
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    vo = StereoOdometry(RIG)
+    T_ref_cam = np.eye(4)
+    T_ref_cam[:3, :3] = Rotation.from_euler("y", 20, degrees=True).as_matrix()  # a turn...
+    T_ref_cam[:3, 3] = [0.05, -0.01, 0.1]
+    obj = np.column_stack([rng.uniform(-1, 1, 80), rng.uniform(-0.8, 0.8, 80), rng.uniform(1.0, 2.0, 80)])
+    T_cam_ref = np.linalg.inv(T_ref_cam)
+    pc = obj @ T_cam_ref[:3, :3].T + T_cam_ref[:3, 3]
+    img = np.column_stack([RIG.fx_px * pc[:, 0] / pc[:, 2] + RIG.cx_px, RIG.fy_px * pc[:, 1] / pc[:, 2] + RIG.cy_px])
+    vo._inliers = (obj, img)
+    wrong = np.eye(4)
+    wrong[:3, 3] = [0.4, -0.01, 0.1]  # ...taken by PnP for a slide (a wall filling the view)
+    fixed = vo._agree_with_gyro(wrong, T_ref_cam[:3, :3])
+    np.testing.assert_allclose(fixed, T_ref_cam, atol=1e-6)
+    close = T_ref_cam.copy()
+    close[:3, :3] = T_ref_cam[:3, :3] @ Rotation.from_euler("x", 1.0, degrees=True).as_matrix()
+    np.testing.assert_array_equal(vo._agree_with_gyro(close, T_ref_cam[:3, :3]), close)  # within tolerance: kept
