@@ -65,6 +65,7 @@ class ReplayResult:
     ape: ErrorStats
     rpe_1s: ErrorStats
     wrong_localizations: int
+    wrong_while_localized_s: float  # flight time spent `localized` with the pose WRONG_TRANS_M / WRONG_ROT_DEG off
     status_final: str
     keyframes: int
     landmarks: int
@@ -81,6 +82,7 @@ class ReplayResult:
                 "processing_to_localize_s": _round(self.processing_to_localize_s),
                 "ape_rmse_m": _round(self.ape.rmse), "ape_max_m": _round(self.ape.max),
                 "rpe_1s_rmse_m": _round(self.rpe_1s.rmse), "wrong_localizations": self.wrong_localizations,
+                "wrong_while_localized_s": round(self.wrong_while_localized_s, 3),
                 "status_final": self.status_final, "keyframes": self.keyframes, "landmarks": self.landmarks,
                 "cad_links": self.cad_links, "wrong_links": self.wrong_links,
                 "isam_update_ms_mean": round(self.isam_update_ms_mean, 3),
@@ -181,7 +183,8 @@ def _score(trace: ReplayTrace, localizer: Localizer, busy_s: float, busy_at_loca
         frames=len(t), processing_fps=len(t) / max(busy_s, 1e-9), localized=first is not None,
         time_to_localize_s=None if first is None else float(t[first]),
         processing_to_localize_s=busy_at_localized, ape=ape, rpe_1s=rpe,
-        wrong_localizations=_wrong_localizations(trace), status_final=trace.status[-1],
+        wrong_localizations=_wrong_localizations(trace), wrong_while_localized_s=_wrong_while_localized_s(trace),
+        status_final=trace.status[-1],
         keyframes=localizer.graph.n_keyframes, landmarks=len(localizer.landmarks), cad_links=len(links),
         wrong_links=sum(1 for j, fid in links.items() if truth_of.get(j) not in (None, fid)),
         isam_update_ms_mean=float(np.mean(kf_ms)) if kf_ms else 0.0,
@@ -201,13 +204,28 @@ def _truth_ids(localizer: Localizer) -> dict[int, str]:
     return {j: lm.truth_id for j, lm in localizer.landmarks.items() if lm.truth_id is not None}
 
 
+def _is_wrong(T_est: np.ndarray, T_true: np.ndarray) -> bool:
+    d = np.linalg.inv(T_true) @ T_est
+    angle = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
+    return bool(np.linalg.norm(d[:3, 3]) > WRONG_TRANS_M or angle > WRONG_ROT_DEG)
+
+
+def _wrong_while_localized_s(trace: ReplayTrace) -> float:
+    """Flight time (s) during which the status said `localized` and the pose was WRONG_TRANS_M / WRONG_ROT_DEG
+    off: a correct entry followed by a drift away is counted here, not by `_wrong_localizations`."""
+    t = np.asarray(trace.t_s)
+    dt = np.diff(t, append=t[-1] + (np.median(np.diff(t)) if len(t) > 1 else 0.0)) if len(t) else t
+    return float(sum(step for step, status, T_est, T_true in zip(dt, trace.status, trace.T_est, trace.T_true,
+                                                                 strict=True)
+                     if status == "localized" and T_est is not None and np.isfinite(T_true).all()
+                     and _is_wrong(T_est, T_true)))
+
+
 def _wrong_localizations(trace: ReplayTrace) -> int:
     """Times the status entered 'localized' with a pose more than WRONG_TRANS_M / WRONG_ROT_DEG off."""
     wrong, before = 0, "exploring"
     for status, T_est, T_true in zip(trace.status, trace.T_est, trace.T_true, strict=True):
         if status == "localized" and before != "localized" and T_est is not None and np.isfinite(T_true).all():
-            d = np.linalg.inv(T_true) @ T_est
-            angle = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
-            wrong += int(np.linalg.norm(d[:3, 3]) > WRONG_TRANS_M or angle > WRONG_ROT_DEG)
+            wrong += int(_is_wrong(T_est, T_true))
         before = status
     return wrong

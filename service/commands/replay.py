@@ -40,7 +40,8 @@ def register(app: typer.Typer) -> None:
 
         Prints frames, processing_fps, localized, time_to_localize_s (flight time of the first `localized`),
         ape_rmse_m / ape_max_m (CAD frame, no alignment, frames after localization), rpe_1s_rmse_m,
-        wrong_localizations (entries into `localized` more than 1 m or 10 deg off) and status_final.
+        wrong_localizations (entries into `localized` more than 1 m or 10 deg off), wrong_while_localized_s
+        (flight time `localized` while that far off, e.g. after a drift) and status_final.
         """
         from graph.bim import load_building
         from graph.errors import UserInputError

@@ -12,7 +12,7 @@ import pytest
 from service.cli import main
 
 KEYS = {"frames", "processing_fps", "localized", "time_to_localize_s", "ape_rmse_m", "ape_max_m",
-        "wrong_localizations", "status_final"}
+        "wrong_localizations", "wrong_while_localized_s", "status_final"}
 
 
 @pytest.fixture(scope="module")
@@ -84,3 +84,21 @@ def test_bad_input_is_one_line_and_exit_2(flight: Path, fzk_path: Path, argv_tai
 def test_a_missing_recording_is_exit_2(fzk_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc, _, err = run(["replay", str(tmp_path / "none.mcap"), "--building", str(fzk_path), "--json"], capsys)
     assert rc == 2 and "recording not found" in err
+
+
+def test_a_correct_entry_that_drifts_away_counts_as_wrong_while_localized() -> None:
+    from service.replay import ReplayTrace, _wrong_localizations, _wrong_while_localized_s
+
+    trace = ReplayTrace()
+    for k in range(40):  # 10 Hz; localized from 1 s; the estimate drifts 0.1 m per frame from 1 s on
+        T_true = np.eye(4)
+        T_true[0, 3] = 0.2 * k
+        T_est = T_true.copy()
+        T_est[1, 3] = 0.1 * max(0, k - 10)
+        trace.t_s.append(0.1 * k)
+        trace.status.append("exploring" if k < 10 else "localized")
+        trace.T_true.append(T_true)
+        trace.T_est.append(T_est if k >= 10 else None)  # type: ignore[arg-type]
+    assert _wrong_localizations(trace) == 0  # the entry at 1 s was right
+    # more than 1 m off from k = 21 (1.1 m) to k = 39: 19 frames of 0.1 s
+    assert _wrong_while_localized_s(trace) == pytest.approx(1.9)
