@@ -35,6 +35,7 @@ class OdometryConfig:
     n_features: int = 2000
     fast_threshold: int = 7  # rendered walls are low in contrast: a lower FAST threshold keeps features
     min_disparity_px: float = 1.0
+    num_disparities: int = 128  # SGBM's search range at keyframes: depth down to fx * baseline / 128 (0.45 m)
     edge_disparity_px: float = 1.0  # a keypoint whose 3 x 3 disparities spread more lies on a depth edge
     max_depth_m: float = 15.0
     ratio: float = 0.8  # Lowe's ratio test for frame-to-keyframe matches
@@ -71,7 +72,7 @@ class StereoOdometry:
         self.orb = cv2.ORB_create(  # type: ignore[attr-defined]
             nfeatures=self.config.n_features, fastThreshold=self.config.fast_threshold)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-        self.sgbm = SgbmMatcher(SgbmConfig(num_disparities=128))  # depth down to 0.45 m: a wall close by
+        self.sgbm = SgbmMatcher(SgbmConfig(num_disparities=self.config.num_disparities))
         self.K = rig.K
         self._ref: _Keyframe | None = None
         self._T_last = np.eye(4)
