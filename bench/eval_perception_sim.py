@@ -55,7 +55,7 @@ def run(building: Path, seeds: list[int], every: int, duration_s: float,
     from sim.flight import FlightParams
     from sim.simulator import SimulationParams, Simulator
 
-    chain = Perception.create(model) if model is not None else Perception.create()
+    chain = Perception.create(model)
     errors: dict[str, dict[str, list[float]]] = {"detector": {}, "oracle_boxes": {}}
     counts = {"frames": 0, "truth_4_visible": 0}
     dets_all: list[list[Detection]] = []

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from graph.rigid import rotation_angle_rad
+
 
 @dataclass(frozen=True)
 class KeyframePolicy:
@@ -20,6 +22,6 @@ class KeyframePolicy:
         if T_last is None:
             return True
         d = np.linalg.inv(T_last) @ T_now
-        angle = np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1))
+        angle = rotation_angle_rad(d[:3, :3])
         return bool(np.linalg.norm(d[:3, 3]) > self.min_translation_m or angle > self.min_rotation_rad
                     or dt_s >= self.max_interval_s)

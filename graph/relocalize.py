@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from graph.landmarks import FLIP_ABOUT_UP
+from graph.rigid import rotation_angle_rad
 
 NORMAL_COS_MIN = np.cos(np.radians(35.0))  # |n_obs . n_known| above this: same wall direction
 CHUNK = 256  # hypotheses scored at once (memory: CHUNK x observed x known x 3 floats)
@@ -101,5 +102,5 @@ def _nearest_known(H: np.ndarray, obs_T: np.ndarray, same_type: np.ndarray, know
 
 def _differs(T_a: np.ndarray, T_b: np.ndarray, trans_m: float = 1.0, angle_rad: float = np.radians(15.0)) -> bool:
     D = np.linalg.inv(T_a) @ T_b
-    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
+    angle = rotation_angle_rad(D[:3, :3])
     return bool(np.linalg.norm(D[:3, 3]) > trans_m or angle > angle_rad)

@@ -27,8 +27,13 @@ def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.asarray(points) @ T[:3, :3].T + T[:3, 3]
 
 
+def rotation_angle_rad(R: np.ndarray) -> float:
+    """The angle of the 3x3 rotation R (radians, in [0, pi])."""
+    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+
 def rotation_angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+    return float(np.degrees(rotation_angle_rad(R)))
 
 
 def weighted_rigid_fit(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from graph.rigid import rotation_angle_rad
 from perception.calib import StereoRig
 from perception.stereo import SgbmConfig, SgbmMatcher, to_gray
 
@@ -112,7 +113,7 @@ class StereoOdometry:
     def _agree_with_gyro(self, T_ref_cam: np.ndarray, R_ref_cam_gyro: np.ndarray) -> np.ndarray:
         """T_ref_cam, its rotation replaced by the gyro's (and the translation refitted) if they disagree."""
         d = T_ref_cam[:3, :3].T @ R_ref_cam_gyro
-        if np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1)) <= self.config.gyro_tolerance_rad:
+        if rotation_angle_rad(d) <= self.config.gyro_tolerance_rad:
             return T_ref_cam
         obj, img = self._inliers
         R_cam_ref = R_ref_cam_gyro.T
@@ -138,7 +139,7 @@ class StereoOdometry:
     def _plausible(self, T: np.ndarray) -> bool:
         """Is the motion since the last frame one a drone can make?"""
         step = np.linalg.inv(self._T_last) @ T
-        angle = np.arccos(np.clip((np.trace(step[:3, :3]) - 1) / 2, -1, 1))
+        angle = rotation_angle_rad(step[:3, :3])
         return bool(np.linalg.norm(step[:3, 3]) <= self.config.max_step_m and angle <= self.config.max_step_rad)
 
     def _advance(self, T: np.ndarray) -> None:
@@ -193,6 +194,6 @@ class StereoOdometry:
 
     def _should_rekey(self, T_ref_cam: np.ndarray, inliers: int) -> bool:
         c = self.config
-        angle = np.arccos(np.clip((np.trace(T_ref_cam[:3, :3]) - 1) / 2, -1, 1))
+        angle = rotation_angle_rad(T_ref_cam[:3, :3])
         return bool(inliers < c.rekey_inliers or np.linalg.norm(T_ref_cam[:3, 3]) > c.rekey_translation_m
                     or angle > c.rekey_rotation_rad)

@@ -86,8 +86,9 @@ class Perception:
         self.band_margin_px = 24  # rows of stereo context above and below the boxes
 
     @staticmethod
-    def create(model_path: Path = DEFAULT_MODEL, sgbm: SgbmConfig | None = None, threads: int = 2) -> Perception:
-        return Perception(Detector(model_path, threads=threads), SgbmMatcher(sgbm))
+    def create(model_path: Path | None = None, sgbm: SgbmConfig | None = None, threads: int = 2) -> Perception:
+        """The chain with the detector at `model_path` (None: the shipped one)."""
+        return Perception(Detector(model_path or DEFAULT_MODEL, threads=threads), SgbmMatcher(sgbm))
 
     def process(self, pair: StereoPair) -> PerceptionResult:
         clock = _Clock()

@@ -69,9 +69,7 @@ def make_perception_pipeline(threads: int = 2, detector_model: Path | None = Non
     try:
         from perception.pipeline import Perception
 
-        chain = (Perception.create(detector_model, threads=threads) if detector_model is not None
-                 else Perception.create(threads=threads))
-        return PerceptionPipeline(chain, forward_T_body_cam())
+        return PerceptionPipeline(Perception.create(detector_model, threads=threads), forward_T_body_cam())
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception
         log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)
         return None

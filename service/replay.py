@@ -22,6 +22,7 @@ from graph.localizer import Estimate, Localizer, LocalizerParams
 from graph.mapstore import StoredMap
 from graph.posegraph import IsamSettings, PoseGraph
 from graph.registrar import FirstOfRegistrar, ModelRegistrar, Registrar, StoredMapRegistrar
+from graph.rigid import rotation_angle_deg
 from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from service.replay_sources import FrameInput, ObservationSource, TruthSource
 
@@ -206,8 +207,7 @@ def _truth_ids(localizer: Localizer) -> dict[int, str]:
 
 def _is_wrong(T_est: np.ndarray, T_true: np.ndarray) -> bool:
     d = np.linalg.inv(T_true) @ T_est
-    angle = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
-    return bool(np.linalg.norm(d[:3, 3]) > WRONG_TRANS_M or angle > WRONG_ROT_DEG)
+    return bool(np.linalg.norm(d[:3, 3]) > WRONG_TRANS_M or rotation_angle_deg(d[:3, :3]) > WRONG_ROT_DEG)
 
 
 def _wrong_while_localized_s(trace: ReplayTrace) -> float:

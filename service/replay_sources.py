@@ -17,6 +17,7 @@ import numpy as np
 
 from graph.errors import UserInputError
 from graph.localizer import Sighting
+from graph.rigid import rotation_angle_rad
 from service.recording import FlightFrame, matrix_from_pose
 
 if TYPE_CHECKING:
@@ -84,7 +85,7 @@ class TruthSource:
         else:
             dT = np.linalg.inv(self._T_true_prev) @ T_cad_body
             step_m = float(np.linalg.norm(dT[:3, 3]))
-            angle = float(np.arccos(np.clip((np.trace(dT[:3, :3]) - 1) / 2, -1, 1)))
+            angle = rotation_angle_rad(dT[:3, :3])
             dt_s = (stamp_ns - self._stamp_prev) * 1e-9
             noisy = dT.copy()
             noisy[:3, 3] = (dT[:3, 3] * (1 + n.odom_scale_error)
@@ -182,7 +183,7 @@ class PerceptionSource:
         except ImportError:
             raise UserInputError("--observations perception: the perception chain (perception.pipeline) "
                                  "is not available; use --observations truth") from None
-        self.perception = Perception.create(detector_model) if detector_model is not None else Perception.create()
+        self.perception = Perception.create(detector_model)
         self.detect_every = detect_every
         self.odometry = VisualOdometry()
         self._n = 0
