@@ -66,6 +66,16 @@ class BuildingModel:
         """(N, 3) feature centroids in the CAD frame, metres."""
         return np.array([f.centroid_cad for f in self.features], dtype=float).reshape(-1, 3)
 
+    def checked_storey(self, name: str | None) -> str | None:
+        """`name` when some door or window of the model is on that storey (None passes); else UserInputError."""
+        from graph.errors import UserInputError
+
+        known = sorted({f.storey for f in self.features if f.storey})
+        if name is not None and name not in known:
+            raise UserInputError(f"storey {name!r} has no doors or windows in {self.source} "
+                                 f"(storeys: {', '.join(known) or 'none'})")
+        return name
+
     def by_storey(self) -> dict[str | None, list[MacroFeature]]:
         out: dict[str | None, list[MacroFeature]] = {}
         for f in self.features:

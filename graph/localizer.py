@@ -12,7 +12,7 @@ cad = the model. Sightings arrive with their 4 corners in the body frame, metres
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -30,11 +30,16 @@ Z_UP = np.array([0.0, 0.0, 1.0])
 
 @dataclass(frozen=True)
 class Sighting:
-    """A door/window seen in one frame: type and corners (4, 3) in the body frame (any order), metres."""
+    """A door/window seen in one frame: type and corners (4, 3) in the body frame (any order), metres.
+
+    truncated: (sideways, vertically) cut by the image border; the corners on that side are the border's, not
+    the opening's, so the position along that axis is known only roughly (see LocalizerParams.truncated_sigma_m).
+    """
 
     type: str
     corners_body: np.ndarray
     truth_id: str | None = None  # ground truth (simulated flights), for scoring only: never used to match
+    truncated: tuple[bool, bool] = (False, False)
 
 
 @dataclass(frozen=True)
@@ -45,8 +50,11 @@ class LocalizerParams:
     odometry_rot_sigma_per_m: float = 0.01  # rad per metre travelled
     sighting_sigma_m: tuple[float, float] = (0.03, 0.004)  # sigma = a + b * range^2 (stereo) of a sighting's position
     sighting_sigma_rad: tuple[float, float] = (0.03, 0.012)  # same for its orientation (plane of noisy corners)
+    truncated_sigma_m: float = 0.5  # position sigma along an axis on which the sighting is cut by the image border
     max_range_m: float = 7.0  # sightings further away are ignored
     min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
+    registration_tolerance_m: float = 0.6  # the model registrar's inlier / ambiguity tolerance (see GraphConfig)
+    registration_min_landmarks: int = 2  # the model registrar tries from this many confirmed landmarks on
     degraded_after_s: float = 10.0  # localized but no CAD-linked sighting for this long
     lost_after_s: float = 30.0
 
@@ -96,16 +104,18 @@ class Localizer:
         self._T_odom_prev: np.ndarray | None = None
         self._last_link_ns: int | None = None
         self._registered_with = 0
+        self._carried: list[tuple[np.ndarray, list[Sighting]]] = []  # (T_odom_body, sightings) since the keyframe
 
     # --- the loop ---------------------------------------------------------------------------------------------
 
     def add_keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting],
                      up_body: np.ndarray | None = None, with_covariance: bool = False) -> Estimate:
         """One keyframe: odometry pose T_odom_body (4x4, odometry frame z up), sightings, gravity's up (body)."""
+        carried = self._carry_to(T_odom_body)
         i, T_map_body = self._predict(T_odom_body)
         self.keyframe_stamps_ns.append(stamp_ns)
         up_body = self._add_gravity(i, T_map_body, up_body)
-        self._add_sightings(i, T_map_body, sightings, up_body, stamp_ns)
+        self._add_sightings(i, T_map_body, carried + list(sightings), up_body, stamp_ns)
         self.graph.update()
         if self._should_register():
             self._register(stamp_ns)
@@ -114,14 +124,28 @@ class Localizer:
         self._update_status(stamp_ns)
         return self._estimate(stamp_ns, i, with_covariance)
 
-    def track(self, stamp_ns: int, T_odom_body: np.ndarray) -> Estimate:
-        """A frame between keyframes: the last keyframe's estimate moved by the odometry since then."""
+    def track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting] | None = None) -> Estimate:
+        """A frame between keyframes: the last keyframe's estimate moved by the odometry since then. Its
+        sightings are kept and enter the graph with the next keyframe, moved into that keyframe's body frame by
+        the odometry between the two (a few tenths of a second: its error is far below a sighting's)."""
         i = self.graph.n_keyframes - 1
         assert self._T_odom_prev is not None, "track() before the first keyframe"
+        if sightings:
+            self._carried.append((T_odom_body, list(sightings)))
         T_map_body = self.graph.T_map_body(i) @ np.linalg.inv(self._T_odom_prev) @ T_odom_body
         return self._estimate_at(stamp_ns, i, T_map_body)
 
     # --- steps ------------------------------------------------------------------------------------------------
+
+    def _carry_to(self, T_odom_kf: np.ndarray) -> list[Sighting]:
+        """The sightings kept since the last keyframe, in the body frame of the keyframe at T_odom_kf."""
+        carried: list[Sighting] = []
+        for T_odom_body, sightings in self._carried:
+            T_kf_body = np.linalg.inv(T_odom_kf) @ T_odom_body
+            carried += [replace(s, corners_body=s.corners_body @ T_kf_body[:3, :3].T + T_kf_body[:3, 3])
+                        for s in sightings]
+        self._carried = []
+        return carried
 
     def _predict(self, T_odom_body: np.ndarray) -> tuple[int, np.ndarray]:
         if self._T_odom_prev is None:
@@ -168,9 +192,19 @@ class Localizer:
                 T_body_rect = np.linalg.inv(T_map_body) @ closer_flip(T_map_rect, self.graph.T_map_rect(j))
                 if j in self.links:
                     self._last_link_ns = stamp_ns
-            sigmas = np.r_[np.full(3, p.sighting_sigma_rad[0] + p.sighting_sigma_rad[1] * rng**2),  # [rot; trans]
-                           np.full(3, p.sighting_sigma_m[0] + p.sighting_sigma_m[1] * rng**2)]
-            self.graph.add_sighting(i, j, T_body_rect, sigmas)
+            self.graph.add_sighting(i, j, T_body_rect, self._sighting_sigmas(s, rng))
+
+    def _sighting_sigmas(self, s: Sighting, range_m: float) -> np.ndarray:
+        """[rot; trans] sigmas of a sighting, the translation along the rectangle's own axes (u along the wall,
+        n its normal, z up): stereo noise grows with range squared; a side cut by the image border is loose."""
+        p = self.params
+        sigma_m = p.sighting_sigma_m[0] + p.sighting_sigma_m[1] * range_m**2
+        trans = np.full(3, sigma_m)
+        if s.truncated[0]:
+            trans[0] = max(sigma_m, p.truncated_sigma_m)
+        if s.truncated[1]:
+            trans[2] = max(sigma_m, p.truncated_sigma_m)
+        return np.r_[np.full(3, p.sighting_sigma_rad[0] + p.sighting_sigma_rad[1] * range_m**2), trans]
 
     def _associate(self, kind: str, T_map_rect: np.ndarray) -> int | None:
         """The same-type landmark nearest to the sighting within `associate_m`, or None (a new landmark)."""
@@ -205,6 +239,7 @@ class Localizer:
         self.inliers = result.inliers
         if result.status != "localized" or result.T_cad_map is None:
             self.status = result.status if result.status == "ambiguous" else "exploring"
+            log.info("registration of %d landmarks: %s (%d inliers)", len(keys), result.status, result.inliers)
             return
         log.info("localized with %d inliers of %d landmarks (%d matches)", result.inliers, len(keys),
                  len(result.matches))

@@ -35,12 +35,23 @@ class ModelRegistrar:
     """Registration against the whole building model (see module doc)."""
 
     def __init__(self, model: BuildingModel, method: str = "robust", storey_hint: str | None = None,
-                 min_landmarks: int = 3, **register_params: float) -> None:
+                 min_landmarks: int = 3, tolerance_m: float | None = None, **register_params: float) -> None:
+        """`min_landmarks`: registration is tried from this many landmarks on (the robust method then also
+        accepts a pose with as many inliers: with gravity, two rectangles fix a pose, and its ambiguity test
+        answers 'ambiguous' where the building repeats them); `tolerance_m`: how far (m) an aligned landmark
+        may lie from its CAD feature and still support a pose (the method's inlier tolerance, and the robust
+        method's ambiguity tolerance; None: the method's defaults)."""
         self.model = model
         self.method = method
         self.storey_hint = storey_hint
         self.min_landmarks = min_landmarks
-        self.register_params = register_params
+        self.register_params = dict(register_params)
+        if method == "robust":
+            self.register_params.setdefault("min_inliers", min_landmarks)
+        if tolerance_m is not None:
+            self.register_params["inlier_threshold_m"] = tolerance_m
+            if method == "robust":
+                self.register_params["ambiguity_tau_m"] = tolerance_m
         self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
                        if f.orientation == "vertical" and (storey_hint is None or f.storey == storey_hint)]
         try:

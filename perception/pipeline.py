@@ -47,6 +47,14 @@ class ObservedFeature:
     tilt_deg: float
     sides_px: tuple[np.ndarray, np.ndarray]
     sides_from_lines: tuple[bool, bool]
+    truncated: tuple[bool, bool] = (False, False)  # (sideways, vertically): the box touches the image border
+
+    @staticmethod
+    def truncation(box_xyxy: tuple[float, float, float, float], width_px: int, height_px: int,
+                   margin_px: float = 2.0) -> tuple[bool, bool]:
+        """Whether a box is cut by the image border: (at the left or right, at the top or bottom)."""
+        x0, y0, x1, y1 = box_xyxy
+        return (x0 < margin_px or x1 > width_px - margin_px, y0 < margin_px or y1 > height_px - margin_px)
 
     @property
     def centroid_cam(self) -> np.ndarray:
@@ -142,8 +150,10 @@ class Perception:
                                  pair.gravity_cam is not None, self.plausibility)
         if reason is not None:
             return Rejected(det, reason)
+        h, w = pair.left.shape[:2]
         return ObservedFeature(det.type, det.score, det.box_xyxy, corners_cam, rec.width_m, rec.height_m,
-                               rec.tilt_deg, (sides.left_px, sides.right_px), sides.from_lines)
+                               rec.tilt_deg, (sides.left_px, sides.right_px), sides.from_lines,
+                               ObservedFeature.truncation(det.box_xyxy, w, h))
 
 
 class _Clock:

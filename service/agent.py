@@ -193,12 +193,20 @@ class VehicleAgent:
 
     def __init__(self, session: zenoh.Session, vehicle: str, drone: KinematicDrone, odometry: DriftingOdometry,
                  sensor: Sensor, follower: WaypointFollower | None = None, sensor_period_s: float = 0.1,
-                 lockstep_timeout_s: float = 0.0) -> None:
+                 lockstep_timeout_s: float = 0.0, exploration_odom: np.ndarray | None = None,
+                 explore_after_s: float = 10.0) -> None:
+        """`exploration_odom`: (N, 3) the vehicle's own exploration route in its odometry frame, flown on its
+        odometry while the service is not localized, after `explore_after_s` of turning on the spot."""
         self.keys = Keys(vehicle)
         self.drone = drone
         self.odometry = odometry
         self.sensor = sensor
         self.follower = follower or WaypointFollower()
+        self.explorer = WaypointFollower(self.follower.params)
+        if exploration_odom is not None:
+            self.explorer.set_waypoints(exploration_odom)
+        self.explore_after_s = explore_after_s
+        self._T_odom_body = odometry.T_odom_body
         self.sensor_period_s = sensor_period_s
         self.lockstep_timeout_s = lockstep_timeout_s  # > 0: after a measurement, wait for its pose (slow sensors)
         self.stamp_ns = 0
@@ -242,7 +250,7 @@ class VehicleAgent:
         """Control from the estimate, move the true vehicle, publish IMU, odometry and (periodically) sightings."""
         T_est = self.localized_pose()
         with self._lock:
-            v_body, yaw_rate = self.follower.explore() if T_est is None else self.follower.command(T_est)
+            v_body, yaw_rate = self.follower.command(T_est) if T_est is not None else self._explore()
         self.drone.step(dt_s, v_body, yaw_rate)
         self.stamp_ns += int(round(dt_s * 1e9))
         T_true = self.drone.T_cad_body
@@ -251,7 +259,8 @@ class VehicleAgent:
         imu.header.stamp_ns = self.stamp_ns
         imu.header.frame_id = "body"
         self._pubs["imu"].put(imu.SerializeToString())
-        odo = pb.Odometry(T_map_body=pose_from_matrix(self.odometry.update(T_true)))
+        self._T_odom_body = self.odometry.update(T_true)
+        odo = pb.Odometry(T_map_body=pose_from_matrix(self._T_odom_body))
         odo.header.stamp_ns = self.stamp_ns
         odo.header.frame_id = "map"
         self._pubs["odometry"].put(odo.SerializeToString())
@@ -261,6 +270,14 @@ class VehicleAgent:
                 self._pubs[key].put(message.SerializeToString())
             if self.lockstep_timeout_s > 0:
                 self._wait_for_pose(self.stamp_ns, self.lockstep_timeout_s)
+
+    def _explore(self) -> tuple[np.ndarray, float]:
+        """Not localized: turn on the spot, then fly the exploration route on odometry (if any), then turn."""
+        route = self.explorer.waypoints_cad  # in the odometry frame here
+        if self.stamp_ns * 1e-9 < self.explore_after_s or not len(route) or \
+                np.linalg.norm((route[-1] - self._T_odom_body[:3, 3])[:2]) < self.explorer.params.reach_m:
+            return self.follower.explore()
+        return self.explorer.command(self._T_odom_body)
 
     def _wait_for_pose(self, stamp_ns: int, timeout_s: float) -> None:
         """Simulated time waits for the service to answer this measurement (a sensor slower than real time)."""

@@ -90,6 +90,7 @@ class BackendParams:
     keyframe_min_rotation_rad: float = 0.15  # or this much turn,
     keyframe_max_interval_s: float = 2.0  # or this long; else they are skipped (a hovering vehicle adds nothing)
     localizer: LocalizerParams | None = None
+    storey_hint: str | None = None  # register against this storey's doors and windows only (graph.storey_hint)
 
 
 class LocalizerBackend:
@@ -115,7 +116,11 @@ class LocalizerBackend:
     @classmethod
     def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None, method: str = "robust",
                           params: BackendParams | None = None) -> LocalizerBackend:
-        fallback = ModelRegistrar(model, method=method)
+        params = params or BackendParams()
+        localizer = params.localizer or LocalizerParams()
+        fallback = ModelRegistrar(model, method=method, storey_hint=params.storey_hint,
+                                  min_landmarks=localizer.registration_min_landmarks,
+                                  tolerance_m=localizer.registration_tolerance_m)
         if snapshot is None:
             return cls(model, fallback, params)
         features = {f.id: f for f in model.features}
@@ -166,7 +171,7 @@ class LocalizerBackend:
         """A keyframe with the sightings when the vehicle moved or time passed enough (or it is still exploring),
         else only the tracked pose: the graph grows with the flight, not with the time spent hovering."""
         if not sightings or not self._keyframe_due(stamp_ns, T_odom_body):
-            return self._track(stamp_ns, T_odom_body)
+            return self._track(stamp_ns, T_odom_body, sightings)
         return self._keyframe(stamp_ns, T_odom_body, sightings)
 
     def _keyframe_due(self, stamp_ns: int, T_odom_body: np.ndarray) -> bool:
@@ -205,10 +210,11 @@ class LocalizerBackend:
         self._T_last_keyframe = T_odom_body
         return self._remember(self.localizer.add_keyframe(stamp_ns, T_odom_body, sightings, self._up_body))
 
-    def _track(self, stamp_ns: int, T_odom_body: np.ndarray) -> Estimate:
+    def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting] | None = None) -> Estimate:
+        """The pose between keyframes; sightings given here enter the graph with the next keyframe."""
         if self.localizer.graph.n_keyframes == 0:
-            return self._keyframe(stamp_ns, T_odom_body, [])
-        return self._remember(self.localizer.track(stamp_ns, T_odom_body))
+            return self._keyframe(stamp_ns, T_odom_body, sightings or [])
+        return self._remember(self.localizer.track(stamp_ns, T_odom_body, sightings))
 
     def _remember(self, est: Estimate) -> Estimate:
         """Keep the newest estimate (a late keyframe for an older stamp does not replace a newer pose)."""

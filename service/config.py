@@ -122,6 +122,17 @@ class GraphConfig(BaseModel):
                                     "for this long: degraded")
     lost_after_s: float = Field(30.0, description="... for this long: lost")
     relinearize_threshold: float = Field(0.01, description="iSAM2 relinearization threshold")
+    registration_tolerance_m: float = Field(
+        0.6, gt=0, description="registering the map to the model: an aligned landmark this close to a same-type "
+        "CAD feature supports the pose, m (perception's landmarks lie 0.1-0.5 m off their feature: a tighter "
+        "tolerance leaves the right pose too few inliers to beat its rivals)")
+    storey_hint: str | None = Field(
+        None, description="the storey the vehicle flies on, when the operator knows it (it took off there): "
+        "registration then considers only that storey's doors and windows. Storeys built alike are otherwise "
+        "told apart only by what differs between them, and the status stays ambiguous until that is seen")
+    registration_min_landmarks: int = Field(
+        2, ge=2, description="registration is tried once this many landmarks have been seen twice (with gravity "
+        "two doors or windows fix the pose; where the building repeats them the status stays ambiguous)")
 
 
 class MacrolocConfig(BaseSettings):

@@ -19,7 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from graph.bim import load_building
 from graph.errors import UserInputError
+from graph.features import BuildingModel
 from service.config import MacrolocConfig, load_config
 from service.planning import GoalSpec, Planner, PlanningError
 from service.planning_grid import Space
@@ -39,6 +41,7 @@ class DemoParams:
     max_goal_distance_m: float = 25.0
     observations: str = "truth"  # truth: noisy ground truth; perception: rendered frames -> perception chain
     camera_rate_hz: float = 5.0  # perception mode: frames per simulated second (the loop waits for each pose)
+    detector_model: Path | None = None  # perception mode: None = the building's bundled adapted one, if any
 
 
 @dataclass
@@ -71,7 +74,8 @@ def choose_route(planner: Planner, seed: int, params: DemoParams) -> tuple[str, 
     from sim.vehicle import level_pose
 
     rng = np.random.default_rng(seed)
-    floor = min(planner.model.storey_elevations_m.values(), default=0.0)
+    storey = take_off_storey(planner.model)
+    floor = planner.model.storey_elevations_m.get(storey, 0.0) if storey is not None else 0.0
     z = floor + planner.flight_height_m
     grid, free = planner.free_cells(z)
     sensor = TruthSensor(planner.model, grid, seed, drop_fraction=0.0)
@@ -98,6 +102,44 @@ def choose_route(planner: Planner, seed: int, params: DemoParams) -> tuple[str, 
     raise UserInputError("no take-off point with a view and a connected goal room found in this building")
 
 
+def exploration_route(planner: Planner, start_xyz: np.ndarray, seed: int, length_m: float = 40.0) -> np.ndarray:
+    """(N, 3) CAD points of a seeded collision-free route from the take-off point through the storey's free
+    space: legs of 6-15 m to random free cells, planned by the service's own A* planner."""
+    rng = np.random.default_rng([seed, 0xE4])
+    grid, free = planner.free_cells(start_xyz[2])
+    cells = np.argwhere(free)
+    route, here, total = [np.asarray(start_xyz, float)[None]], np.asarray(start_xyz, float), 0.0
+    for _ in range(40):
+        target = grid.centre_cad(cells[rng.integers(len(cells))][None])[0]
+        if not 6.0 <= float(np.linalg.norm((target - here)[:2])) <= 15.0:
+            continue
+        try:
+            leg = planner.plan(here, GoalSpec(position_cad=target))
+        except PlanningError:
+            continue
+        route.append(leg.points_cad[1:])
+        total += leg.length_m
+        here = leg.points_cad[-1]
+        if total >= length_m:
+            break
+    return np.concatenate(route)
+
+
+def bundled_detector(building: Path) -> Path | None:
+    """The detector adapted to a bundled building (`macroloc adapt-detector`), shipped beside it as
+    NAME_detector/detector.onnx, or None."""
+    path = building.with_name(f"{building.stem}_detector") / "detector.onnx"
+    return path if path.is_file() else None
+
+
+def take_off_storey(model: BuildingModel) -> str | None:
+    """The storey the demo's vehicle takes off on (the lowest with doors or windows): its operator knows the
+    floor it stands on and tells the service (graph.storey_hint), as a real deployment's would."""
+    named = {f.storey for f in model.features if f.storey}
+    levels = sorted((z, name) for name, z in model.storey_elevations_m.items() if name in named)
+    return levels[0][1] if levels else None
+
+
 def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None,
              cfg: MacrolocConfig | None = None) -> DemoResult:
     """One closed-loop flight; the service and the agent each on their own Zenoh session (loopback)."""
@@ -114,9 +156,12 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     wall_start = time.monotonic()
     port = _free_port()
     perceive = params.observations == "perception"
+    detector = (params.detector_model or bundled_detector(building)) if perceive else None
     cfg = cfg or load_config(None, service={"building": building, "vehicle": "demo", "status_period_s": 1.0,
                                             "perception": perceive},
-                             zenoh={"listen": [f"tcp/127.0.0.1:{port}"]})
+                             zenoh={"listen": [f"tcp/127.0.0.1:{port}"]},
+                             graph={"storey_hint": take_off_storey(load_building(building))},
+                             perception={"detector_model": detector})
     rng = np.random.default_rng([params.seed, 0xDE40])
     stop = threading.Event()
     with zenoh.open(session_config(cfg.zenoh)) as service_session:
@@ -133,10 +178,15 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
                 grid, _ = service.planner.grid(start_xyz[2])
                 sensor: Sensor = RenderedStereoCamera(building, params.seed) if perceive else \
                     TruthSensor(service.planner.model, grid, params.seed)
+                # The vehicle's own exploration, for when turning on the spot is not enough to localize: in
+                # this simulation a route through the storey's free space handed over in its odometry frame
+                # (a real vehicle explores with its own obstacle sensing); it flies it on its odometry.
+                route_cad = exploration_route(service.planner, start_xyz, params.seed)
+                route_odom = route_cad @ np.linalg.inv(T_cad_odom)[:3, :3].T + np.linalg.inv(T_cad_odom)[:3, 3]
                 agent = VehicleAgent(agent_session, "demo", KinematicDrone(T0),
                                      DriftingOdometry(T_cad_odom, T0, params.seed), sensor,
                                      sensor_period_s=1.0 / params.camera_rate_hz if perceive else 0.1,
-                                     lockstep_timeout_s=5.0 if perceive else 0.0)
+                                     lockstep_timeout_s=5.0 if perceive else 0.0, exploration_odom=route_odom)
                 result = _fly(agent, goal, params, pb)
                 agent.close()
                 sensor.close()
@@ -144,7 +194,8 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
             stop.set()
             thread.join(timeout=30.0)
     result.seed, result.start, result.goal = params.seed, start, f"space {goal.name} ({goal.long_name})"
-    result.observations = sensor.label
+    result.observations = sensor.label + (f" (detector {cfg.perception.detector_model or 'shipped'})"
+                                          if perceive else "")
     result.wall_time_s = time.monotonic() - wall_start
     return result
 

@@ -51,7 +51,7 @@ class PerceptionPipeline:
         rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam
         result = self.perception.process(StereoPair(left, right, rig, stamp_ns=frame.header.stamp_ns))
-        return [Sighting(f.type, f.corners_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3])
+        return [Sighting(f.type, f.corners_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3], truncated=f.truncated)
                 for f in result.features]
 
 

@@ -97,6 +97,8 @@ def _round(v: float | None, nd: int = 4) -> float | None:
 def settings_from_config(graph: GraphConfig) -> tuple[LocalizerParams, KeyframePolicy, IsamSettings]:
     """The factory's half that reads the config: typed constructor arguments for the components."""
     params = LocalizerParams(associate_m=graph.associate_m, cad_link_m=graph.cad_link_m,
+                             registration_tolerance_m=graph.registration_tolerance_m,
+                             registration_min_landmarks=graph.registration_min_landmarks,
                              degraded_after_s=graph.degraded_after_s, lost_after_s=graph.lost_after_s)
     policy = KeyframePolicy(graph.keyframe_translation_m, graph.keyframe_rotation_rad, graph.keyframe_interval_s)
     return params, policy, IsamSettings(relinearize_threshold=graph.relinearize_threshold)
@@ -106,7 +108,9 @@ def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey
                    T_body_cam: np.ndarray | None = None, params: LocalizerParams | None = None,
                    isam: IsamSettings | None = None) -> Localizer:
     """The factory: registration against a stored map when one is given, else against the whole model."""
-    registrar: Registrar = ModelRegistrar(model, storey_hint=storey_hint)
+    p = params or LocalizerParams()
+    registrar: Registrar = ModelRegistrar(model, storey_hint=storey_hint, min_landmarks=p.registration_min_landmarks,
+                                          tolerance_m=p.registration_tolerance_m)
     if stored is not None:
         registrar = FirstOfRegistrar([StoredMapRegistrar(stored.known_rects(model), min_landmarks=2), registrar])
     return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam)
@@ -141,7 +145,7 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
             est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body)
             T_kf, t_kf = inputs.T_odom_body, t_s
         else:
-            est = localizer.track(inputs.stamp_ns, inputs.T_odom_body)
+            est = localizer.track(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings)
         busy_s += time.perf_counter() - start
         if busy_at_localized is None and est.status == "localized":
             busy_at_localized = busy_s

@@ -206,7 +206,8 @@ class PerceptionSource:
             truth = _truth_centroids_cam(frame)
             for f in result.features:
                 corners_body = (T_body_cam[:3, :3] @ f.corners_cam.T).T + T_body_cam[:3, 3]
-                sightings.append(Sighting(f.type, corners_body, truth_id=_nearest_id(f.centroid_cam, truth)))
+                sightings.append(Sighting(f.type, corners_body, truth_id=_nearest_id(f.centroid_cam, truth),
+                                          truncated=f.truncated))
         self._n += 1
         return FrameInput(frame.stamp_ns, T_odom_body, sightings, up_body, T_body_cam)
 

@@ -34,6 +34,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -
     from graph.bim import load_building
     from service.backend import BackendParams, LocalizerBackend
     from service.planning import Planner
+    from service.replay import settings_from_config
 
     if cfg.service.building is None:
         raise UserInputError("no building model: set service.building in the config or pass --building")
@@ -41,7 +42,12 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -
     model = load_building(building)
     store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
     snapshot = store.load(model.sha256)
-    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, BackendParams())
+    localizer_params, _, _ = settings_from_config(cfg.graph)  # the config's [graph] section, as replay reads it
+    backend_params = BackendParams(keyframe_min_translation_m=cfg.graph.keyframe_translation_m,
+                                   keyframe_min_rotation_rad=cfg.graph.keyframe_rotation_rad,
+                                   localizer=localizer_params,
+                                   storey_hint=model.checked_storey(cfg.graph.storey_hint))
+    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, backend_params)
     p = cfg.planning
     planner = Planner.for_building(building, p.cell_m, p.vehicle_radius_m, p.flight_height_m)
     for elevation in sorted(model.storey_elevations_m.values())[:1]:

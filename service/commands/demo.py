@@ -18,6 +18,10 @@ def register(app: typer.Typer) -> None:
         observations: str = typer.Option("truth", "--observations", help="truth: the doors and windows in view "
                                          "from the model's ground truth with noise; perception: rendered stereo "
                                          "frames through the service's perception chain (slow on a CPU)."),
+        detector: Path | None = typer.Option(None, "--detector", help="With --observations perception: the "
+                                             "detector (ONNX beside its JSON sidecar). Default: the one adapted to "
+                                             "the building and shipped beside it (data/buildings/NAME_detector/), "
+                                             "else the generic shipped detector."),
         json_out: bool = typer.Option(False, "--json", help="Print {localization_time_s, goal_error_m, "
                                       "path_length_m, goal_error_pct} (a list with several seeds)."),
     ) -> None:
@@ -41,9 +45,12 @@ def register(app: typer.Typer) -> None:
             raise UserInputError("--speedup must be positive")
         if observations not in ("truth", "perception"):
             raise UserInputError(f"--observations must be truth or perception, not {observations!r}")
+        if detector is not None:
+            existing_file(detector, "detector model")
         rows = []
         for s in seed:
-            result = run_demo(path, DemoParams(seed=s, speedup=speedup, observations=observations))
+            result = run_demo(path, DemoParams(seed=s, speedup=speedup, observations=observations,
+                                               detector_model=detector))
             picture = out if len(seed) == 1 else out.with_name(f"{out.stem}-seed{s}{out.suffix or '.png'}")
             planner = Planner.for_building(path, 0.2, 0.35, 1.4)
             plot_flight(result, planner, picture)

@@ -22,7 +22,8 @@ def register(app: typer.Typer) -> None:
         save_map: Path | None = typer.Option(None, "--save-map", help="Write this flight's map here at the end."),
         report: Path | None = typer.Option(None, "--report", help="Write a top-down picture, per-frame figures "
                                            "and result.json into this folder."),
-        storey: str | None = typer.Option(None, "--storey", help="Restrict registration to this storey."),
+        storey: str | None = typer.Option(None, "--storey", help="Register against this storey's doors and "
+                                          "windows only (default: graph.storey_hint of the config)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the noise added to truth observations."),
         config: Path | None = typer.Option(None, "--config", help="macroloc config file (JSON/TOML); its "
                                            "graph section sets keyframes, association and status thresholds, its "
@@ -76,6 +77,7 @@ def register(app: typer.Typer) -> None:
                                      TruthFeaturesWithVisualOdometry(seed=seed) if observations == "truth-vo"
                                      else PerceptionSource(cfg.perception.detect_every, detector))
         params, policy, isam = settings_from_config(cfg.graph)
+        storey = model.checked_storey(storey if storey is not None else cfg.graph.storey_hint)
         result = run_replay(flight, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
                             isam=isam)
         if save_map is not None:

@@ -175,3 +175,57 @@ def test_status_degrades_when_support_falls_away(corridor) -> None:
         T = make_T(np.eye(3), np.array([60.0 + k, 0.0, 1.4]))
         est = loc.add_keyframe(stamp + k * 1_000_000_000, T, [], UP)
     assert est.status in ("degraded", "lost")
+
+
+def test_sightings_between_keyframes_enter_the_graph_with_the_next_keyframe(corridor) -> None:
+    """Sightings handed to track() are kept and, at the next keyframe, moved into its body frame by the odometry:
+    the same landmarks, at the same map positions, as when every frame is a keyframe."""
+    poses = straight_flight(40)
+    T_odom_cad = make_T(rot_z(0.7), np.array([3.0, -2.0, 0.0]))
+    every = fly(corridor, poses, [T_odom_cad @ T for T in poses])
+    rng = np.random.default_rng(0)
+    loc = Localizer(corridor, PoseGraph(), model_registrar(corridor))
+    for k, T_true in enumerate(poses):
+        sightings = sightings_from(corridor, T_true, rng=rng)
+        if k % 4 == 0:  # a keyframe every 4th frame; the frames between carry their sightings only
+            loc.add_keyframe(k * 100_000_000, T_odom_cad @ T_true, sightings, UP)
+        else:
+            loc.track(k * 100_000_000, T_odom_cad @ T_true, sightings)
+    loc.add_keyframe(40 * 100_000_000, T_odom_cad @ poses[-1], [], UP)  # takes the last three frames' sightings
+    assert loc.graph.n_keyframes == 11
+    assert sum(lm.n_sightings for lm in loc.landmarks.values()) == sum(
+        lm.n_sightings for lm in every.landmarks.values())
+    assert loc.status == "localized"
+    for j, lm in loc.landmarks.items():
+        twin = next(o for o in every.landmarks.values() if o.truth_id == lm.truth_id)
+        assert np.allclose(loc.graph.T_map_rect(j)[:3, 3], every.graph.T_map_rect(twin.key)[:3, 3], atol=1e-6)
+
+
+
+@pytest.mark.parametrize("axis", [0, 2])  # 0: cut at the image's side (error along the wall), 2: at top/bottom
+def test_a_sighting_cut_by_the_image_border_barely_moves_its_landmark_along_that_axis(corridor, axis: int) -> None:
+    """Three clean sightings of a door and three cut by the image border, whose corners stop at the border
+    and so put the door 0.3 m off along the cut axis. Flagged as truncated, they must move the landmark less
+    than a tenth as far as the same sightings unflagged."""
+    from dataclasses import replace
+
+    from graph.localizer import Sighting
+
+    T_cad_body = make_T(np.eye(3), np.array([0.0, 0.0, 1.4]))
+    target = next(f for f in corridor.features if f.type == "door")
+    T_body_cad = np.linalg.inv(T_cad_body)
+    corners = (T_body_cad[:3, :3] @ target.corners_cad.T).T + T_body_cad[:3, 3]
+    n = target.normal_cad / np.linalg.norm(target.normal_cad)
+    offset = 0.3 * (np.cross([0.0, 0.0, 1.0], n) if axis == 0 else np.array([0.0, 0.0, 1.0]))
+    clean = Sighting("door", corners)
+    cut = Sighting("door", corners + offset, truncated=(axis == 0, axis == 2))
+
+    def landmark_shift(flagged: bool) -> float:
+        loc = Localizer(corridor, PoseGraph(), model_registrar(corridor, min_landmarks=99))
+        sightings = [clean] * 3 + [cut if flagged else replace(cut, truncated=(False, False))] * 3
+        loc.add_keyframe(0, T_cad_body, sightings, UP)
+        (j,) = loc.landmarks
+        return float(np.linalg.norm(loc.graph.T_map_rect(j)[:3, 3] - (T_cad_body[:3, 3] + corners.mean(axis=0))))
+
+    assert landmark_shift(flagged=False) > 0.1
+    assert landmark_shift(flagged=True) < 0.1 * landmark_shift(flagged=False)

@@ -23,6 +23,20 @@ def test_chain_after_the_detector_recovers_a_door_on_a_wall(depth_m):
     assert np.abs(f.corners_cam - corners).max() < tol
     assert f.width_m == pytest.approx(0.9, abs=tol) and f.height_m == pytest.approx(2.0, abs=tol)
     assert set(result.timings_ms) == {"stereo", "lines", "reconstruct"}
+    assert f.truncated == (False, False)
+
+
+@pytest.mark.parametrize(("box", "expected"), [
+    ((100.0, 50.0, 200.0, 400.0), (False, False)),
+    ((0.0, 50.0, 200.0, 400.0), (True, False)),
+    ((100.0, 50.0, 639.5, 400.0), (True, False)),
+    ((100.0, 0.0, 200.0, 400.0), (False, True)),
+    ((100.0, 50.0, 200.0, 480.0), (False, True)),
+])
+def test_a_box_touching_the_image_border_is_truncated_on_that_axis(box, expected):
+    from perception.pipeline import ObservedFeature
+
+    assert ObservedFeature.truncation(box, 640, 480) == expected
 
 
 def test_implausible_shapes_are_rejected_with_a_reason():

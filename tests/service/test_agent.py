@@ -1,0 +1,75 @@
+"""The reference vehicle agent's exploration and the demo's exploration route (no service: nobody answers)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zenoh
+
+from service.agent import VehicleAgent
+from service.demo import exploration_route
+from service.planning import Planner, line_of_sight
+from service.zenoh_io import session_config
+from sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
+from tests.service.helpers import loopback
+
+
+class Blind:
+    """A sensor that sees nothing: the vehicle never hears it is localized."""
+
+    label = "blind"
+
+    def measure(self, stamp_ns: int, T_cad_body: np.ndarray) -> list:
+        return []
+
+    def close(self) -> None:
+        pass
+
+
+def _distance_to_polyline(p: np.ndarray, line: np.ndarray) -> float:
+    a, b = line[:-1, :2], line[1:, :2]
+    ab = b - a
+    t = np.clip(((p[:2] - a) * ab).sum(axis=1) / np.maximum((ab * ab).sum(axis=1), 1e-12), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(a + t[:, None] * ab - p[:2], axis=1)))
+
+
+def test_unlocalized_the_vehicle_turns_then_flies_its_exploration_route_on_odometry() -> None:
+    T0 = level_pose(np.array([2.0, 1.0, 1.4]), 0.4)
+    T_cad_odom = level_pose(np.array([5.0, -3.0, 0.0]), 1.1)  # the odometry frame is anywhere
+    route_cad = np.array([[2.0, 1.0, 1.4], [6.0, 1.0, 1.4], [6.0, 5.0, 1.4]])
+    T_odom_cad = np.linalg.inv(T_cad_odom)
+    route_odom = route_cad @ T_odom_cad[:3, :3].T + T_odom_cad[:3, 3]
+    odometry = DriftingOdometry(T_cad_odom, T0, seed=0, drift_per_m=0.0, yaw_drift_rad_per_m=0.0)
+    with zenoh.open(session_config(loopback())) as session:
+        agent = VehicleAgent(session, "explore-test", KinematicDrone(T0), odometry, Blind(),
+                             exploration_odom=route_odom, explore_after_s=2.0)
+        for _ in range(60):  # 2 s: turning on the spot
+            agent.tick(1 / 30)
+        assert np.linalg.norm(agent.drone.T_cad_body[:3, 3] - T0[:3, 3]) < 0.05
+        track = []
+        for _ in range(30 * 25):
+            agent.tick(1 / 30)
+            track.append(agent.drone.T_cad_body[:3, 3].copy())
+        agent.close()
+    assert np.linalg.norm(track[-1][:2] - route_cad[-1, :2]) < 0.3  # flew the route to its end ...
+    assert max(_distance_to_polyline(p, route_cad) for p in track) < 0.5  # ... along it
+
+
+@pytest.fixture(scope="module")
+def planner(office_path) -> Planner:
+    return Planner.for_building(office_path, cell_m=0.2, vehicle_radius_m=0.35, flight_height_m=1.4)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_demo_exploration_route_is_long_and_stays_in_free_space(planner: Planner, seed: int) -> None:
+    door = next(f for f in planner.model.features if f.type == "door" and f.storey == "Level 1")
+    start = np.r_[door.centroid_cad[:2] + 1.2 * door.normal_cad[:2], 1.4]
+    grid, free = planner.free_cells(start[2])
+    if not free[grid.cell_of(start)]:
+        start = np.r_[door.centroid_cad[:2] - 1.2 * door.normal_cad[:2], 1.4]
+    route = exploration_route(planner, start, seed, length_m=30.0)
+    assert np.allclose(route[0], start)
+    assert np.linalg.norm(np.diff(route, axis=0), axis=1).sum() >= 30.0
+    cells = [grid.cell_of(p) for p in route[1:]]
+    assert all(free[c] for c in cells)
+    assert all(line_of_sight(free, a, b) for a, b in zip(cells[:-1], cells[1:], strict=True))
