@@ -54,7 +54,7 @@ class LocalizerParams:
     max_range_m: float = 7.0  # sightings further away are ignored
     min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
     registration_tolerance_m: float = 0.6  # the model registrar's inlier / ambiguity tolerance (see GraphConfig)
-    registration_min_landmarks: int = 2  # the model registrar tries from this many confirmed landmarks on
+    registration_min_landmarks: int = 4  # the model registrar tries from (and needs inliers of) this many landmarks
     degraded_after_s: float = 10.0  # localized but no CAD-linked sighting for this long
     lost_after_s: float = 30.0
 

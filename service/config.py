@@ -131,8 +131,9 @@ class GraphConfig(BaseModel):
         "registration then considers only that storey's doors and windows. Storeys built alike are otherwise "
         "told apart only by what differs between them, and the status stays ambiguous until that is seen")
     registration_min_landmarks: int = Field(
-        2, ge=2, description="registration is tried once this many landmarks have been seen twice (with gravity "
-        "two doors or windows fix the pose; where the building repeats them the status stays ambiguous)")
+        4, ge=2, description="registration is tried once this many landmarks have been seen twice, and a pose "
+        "must explain as many. With gravity two doors fix a pose, but at the tolerance above a building of a "
+        "hundred alike doors offers chance fits of three landmarks (a wrong localization was seen with 3)")
 
 
 class MacrolocConfig(BaseSettings):

@@ -82,6 +82,18 @@ def test_demo_localizes_and_reaches_the_goal(seed: int, tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_demo_closes_the_loop_through_perception(tmp_path: Path) -> None:
+    """Rendered stereo frames -> the service's perception chain (the detector adapted to Office_A and shipped
+    beside it) -> localized -> flown to the goal on the service's poses (~3.5 min on 2 cores)."""
+    from service.demo import DemoParams, run_demo
+
+    result = run_demo(params=DemoParams(seed=0, observations="perception"))
+    assert "office_a_detector" in result.observations
+    assert result.localized and result.reached
+    assert result.goal_error_m < 0.5 and result.path_length_m > 5.0
+
+
+@pytest.mark.slow
 def test_killed_mid_flight_restarts_and_relocalizes(office_path: Path, office_model, tmp_path: Path) -> None:
     """SIGKILL (no chance to save at exit): the periodically saved map is intact and the restart re-localizes
     from a couple of doors, with the vehicle's odometry going on as if nothing happened."""

@@ -73,6 +73,7 @@ def test_a_second_flight_relocalizes_into_the_stored_map(flight: Path, fzk_path:
 @pytest.mark.parametrize("argv_tail, message", [
     (["--observations", "sonar"], "--observations"),
     (["--map", "/nonexistent/map.json"], "stored map not found"),
+    (["--storey", "Level 9"], "storey 'Level 9' has no doors or windows"),
 ])
 def test_bad_input_is_one_line_and_exit_2(flight: Path, fzk_path: Path, argv_tail: list[str], message: str,
                                           capsys: pytest.CaptureFixture[str]) -> None:

@@ -10,6 +10,7 @@ import pytest
 import zenoh
 
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from service.zenoh_io import session_config
 from tests.service.helpers import (
     FakeFlight,
     client,
@@ -223,3 +224,17 @@ def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, st
         r, c = grid.cell_of(ahead_cad)
         wait_for(lambda: layer.occupied()[r - 1:r + 2, c - 1:c + 2].any(), what="the seen wall in the obstacle layer")
         assert not layer.occupied()[grid.cell_of(T[:3, 3])], "nothing seen where the vehicle is"
+
+
+def test_a_storey_hint_that_is_not_in_the_building_is_refused_at_start(office_path, tmp_path) -> None:
+    from graph.errors import UserInputError
+    from service.serve import build_service
+
+    cfg = service_config(office_path, tmp_path, free_port())
+    cfg = cfg.model_copy(update={"graph": cfg.graph.model_copy(update={"storey_hint": "Level 9"})})
+    with pytest.raises(UserInputError, match="storey 'Level 9' has no doors or windows.*Level 1, Level 2"):
+        build_service(cfg, session=None)
+    cfg = cfg.model_copy(update={"graph": cfg.graph.model_copy(update={"storey_hint": "Level 2"})})
+    with zenoh.open(session_config(loopback())) as session:
+        service = build_service(cfg, session)
+    assert service.backend.localizer.registrar.storey_hint == "Level 2"  # type: ignore[attr-defined]
