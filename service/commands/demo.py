@@ -47,7 +47,7 @@ def register(app: typer.Typer) -> None:
             raise UserInputError(f"--observations must be truth or perception, not {observations!r}")
         if detector is not None:
             existing_file(detector, "detector model")
-        rows = []
+        rows, pictures = [], []
         for s in seed:
             result = run_demo(path, DemoParams(seed=s, speedup=speedup, observations=observations,
                                                detector_model=detector))
@@ -55,6 +55,7 @@ def register(app: typer.Typer) -> None:
             planner = Planner.for_building(path, 0.2, 0.35, 1.4)
             plot_flight(result, planner, picture)
             rows.append(result)
+            pictures.append(picture)
             if not json_out:
                 sys.stdout.write(
                     f"seed {s}: {result.start} -> {result.goal} ({result.observations})\n"
@@ -65,7 +66,7 @@ def register(app: typer.Typer) -> None:
                     f"  reached: {result.reached}, wall time {result.wall_time_s:.1f} s, picture {picture}\n")
         if json_out:
             docs = [dict(r.table_row(), seed=r.seed, observations=r.observations, reached=r.reached,
-                         picture=str(out)) for r in rows]
+                         picture=str(p)) for r, p in zip(rows, pictures, strict=True)]
             print_json(docs[0] if len(docs) == 1 else docs)
         elif len(rows) > 1:
             sys.stdout.write(f"all seeds: {[result_json(r)['goal_error_m'] for r in rows]}\n")
