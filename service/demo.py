@@ -4,8 +4,9 @@ The service runs on one Zenoh session, the vehicle agent on another, connected o
 takes off at a seeded room of the ground floor, turns on the spot to look around and then, if the service
 has not said LOCALIZED yet, explores (a seeded route through the storey's free space, flown on its own
 odometry); once localized it sends a goal (an IfcSpace by name), follows the service's waypoints using the
-service's pose, and hovers at the goal. The operator tells the service the take-off storey (graph.storey_hint). Reported, as in the paper's Table 2: localization time (simulated seconds from take-off to
-the first LOCALIZED pose), error at the goal (true position vs the goal point, m) and that error as a
+service's pose, and hovers at the goal. The operator tells the service the take-off storey
+(graph.storey_hint). Reported, as in the paper's Table 2: localization time (simulated seconds from take-off
+to the first LOCALIZED pose), error at the goal (true position vs the goal point, m) and that error as a
 percentage of the flown path's length. A picture of the flight is written.
 """
 
