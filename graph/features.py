@@ -10,6 +10,8 @@ from typing import Literal
 
 import numpy as np
 
+from graph.errors import UserInputError
+
 FeatureType = Literal["door", "window"]
 FEATURE_TYPES: tuple[FeatureType, ...] = ("door", "window")
 Orientation = Literal["vertical", "horizontal"]
@@ -68,8 +70,6 @@ class BuildingModel:
 
     def checked_storey(self, name: str | None) -> str | None:
         """`name` when some door or window of the model is on that storey (None passes); else UserInputError."""
-        from graph.errors import UserInputError
-
         known = sorted({f.storey for f in self.features if f.storey})
         if name is not None and name not in known:
             raise UserInputError(f"storey {name!r} has no doors or windows in {self.source} "

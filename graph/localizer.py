@@ -22,6 +22,7 @@ from graph.mapstore import StoredLandmark, StoredMap
 from graph.posegraph import PoseGraph
 from graph.registrar import Registrar
 from graph.relocalize import ObservedRect
+from graph.rigid import apply
 
 log = logging.getLogger(__name__)
 
@@ -142,8 +143,7 @@ class Localizer:
         carried: list[Sighting] = []
         for T_odom_body, sightings in self._carried:
             T_kf_body = np.linalg.inv(T_odom_kf) @ T_odom_body
-            carried += [replace(s, corners_body=s.corners_body @ T_kf_body[:3, :3].T + T_kf_body[:3, 3])
-                        for s in sightings]
+            carried += [replace(s, corners_body=apply(T_kf_body, s.corners_body)) for s in sightings]
         self._carried = []
         return carried
 

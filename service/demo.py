@@ -24,6 +24,7 @@ import numpy as np
 from graph.bim import load_building
 from graph.errors import UserInputError
 from graph.features import BuildingModel
+from graph.rigid import apply
 from service.config import MacrolocConfig, load_config
 from service.planning import GoalSpec, Planner, PlanningError
 from service.planning_grid import Space
@@ -184,7 +185,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
                 # this simulation a route through the storey's free space handed over in its odometry frame
                 # (a real vehicle explores with its own obstacle sensing); it flies it on its odometry.
                 route_cad = exploration_route(service.planner, start_xyz, params.seed)
-                route_odom = route_cad @ np.linalg.inv(T_cad_odom)[:3, :3].T + np.linalg.inv(T_cad_odom)[:3, 3]
+                route_odom = apply(np.linalg.inv(T_cad_odom), route_cad)
                 agent = VehicleAgent(agent_session, "demo", KinematicDrone(T0),
                                      DriftingOdometry(T_cad_odom, T0, params.seed), sensor,
                                      sensor_period_s=1.0 / params.camera_rate_hz if perceive else 0.1,

@@ -15,6 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from graph.localizer import Sighting
+from graph.rigid import apply
 from service.recording import decode_image, matrix_from_pose
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 
@@ -51,7 +52,7 @@ class PerceptionPipeline:
         rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam
         result = self.perception.process(StereoPair(left, right, rig, stamp_ns=frame.header.stamp_ns))
-        return [Sighting(f.type, f.corners_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3], truncated=f.truncated)
+        return [Sighting(f.type, apply(T_body_cam, f.corners_cam), truncated=f.truncated)
                 for f in result.features]
 
 
