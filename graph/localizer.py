@@ -12,6 +12,7 @@ cad = the model. Sightings arrive with their 4 corners in the body frame, metres
 from __future__ import annotations
 
 import logging
+from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -20,9 +21,10 @@ from graph.features import BuildingModel
 from graph.landmarks import closer_flip, feature_frame_cad, is_vertical, observed_frame
 from graph.mapstore import StoredLandmark, StoredMap
 from graph.posegraph import PoseGraph
-from graph.registrar import Registrar
-from graph.relocalize import ObservedRect
-from graph.rigid import apply
+from graph.registrar import ModelRegistrar, Registrar, candidates_from
+from graph.relocalize import Alignment, ObservedRect
+from graph.rigid import apply, rotation_angle_deg
+from graph.surfaces import SurfaceIndex, align_to_surfaces, band_points
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +57,15 @@ class LocalizerParams:
     max_range_m: float = 7.0  # sightings further away are ignored
     min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
     registration_tolerance_m: float = 0.6  # the model registrar's inlier / ambiguity tolerance (see GraphConfig)
-    registration_min_landmarks: int = 4  # the model registrar tries from (and needs inliers of) this many landmarks
+    registration_min_landmarks: int = 4  # the model registrar answers 'localized' from this many landmarks ...
+    verified_min_landmarks: int = 2  # ... and offers candidate poses from this many, for the surface check
+    surface_window_keyframes: int = 60  # the depth points of this many recent keyframes check a registration
+    surface_min_points: int = 200  # fewer points than this: no check (the registration needs the landmarks above)
+    surface_min_support: float = 0.9  # a pose must put this fraction of the points on the model's surfaces ...
+    surface_margin: float = 0.3  # ... and every other candidate pose this much less
+    surface_fit: bool = True  # once localized, each keyframe's depth points fitted to the walls join the graph
+    surface_fit_max_correction_m: float = 0.5  # a fit that moves the pose further is not trusted (wrong wall)
+    surface_fit_sigma_m: float = 0.05  # a fitted point's distance to its wall, model against reality (m)
     degraded_after_s: float = 10.0  # localized but no CAD-linked sighting for this long
     lost_after_s: float = 30.0
 
@@ -89,8 +99,12 @@ class Localizer:
     """Keyframe-by-keyframe localization in the building model (see module doc)."""
 
     def __init__(self, model: BuildingModel, graph: PoseGraph, registrar: Registrar,
-                 params: LocalizerParams | None = None, T_body_cam: np.ndarray | None = None) -> None:
+                 params: LocalizerParams | None = None, T_body_cam: np.ndarray | None = None,
+                 surfaces: SurfaceIndex | None = None) -> None:
+        """`surfaces`: the model's walls, to check registrations against the depth points given with keyframes
+        (graph.surfaces); the registrar should then try from `verified_min_landmarks` landmarks."""
         self.model = model
+        self.surfaces = surfaces
         self.graph = graph
         self.registrar = registrar
         self.params = params or LocalizerParams()
@@ -106,22 +120,31 @@ class Localizer:
         self._last_link_ns: int | None = None
         self._registered_with = 0
         self._carried: list[tuple[np.ndarray, list[Sighting]]] = []  # (T_odom_body, sightings) since the keyframe
+        self._points: deque[tuple[int, np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
+        self.surface_checks: list[tuple[int, list[float]]] = []  # (stamp_ns, support of each candidate pose)
+        self.surface_fits = 0  # keyframes whose depth was fitted to the walls
 
     # --- the loop ---------------------------------------------------------------------------------------------
 
     def add_keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting],
-                     up_body: np.ndarray | None = None, with_covariance: bool = False) -> Estimate:
-        """One keyframe: odometry pose T_odom_body (4x4, odometry frame z up), sightings, gravity's up (body)."""
+                     up_body: np.ndarray | None = None, with_covariance: bool = False,
+                     points_body: np.ndarray | None = None) -> Estimate:
+        """One keyframe: odometry pose T_odom_body (4x4, odometry frame z up), sightings, gravity's up (body),
+        and optionally 3-D points (N, 3) the camera measured at this keyframe, body frame (stereo depth)."""
         carried = self._carry_to(T_odom_body)
         i, T_map_body = self._predict(T_odom_body)
         self.keyframe_stamps_ns.append(stamp_ns)
         up_body = self._add_gravity(i, T_map_body, up_body)
+        if points_body is not None and self.surfaces is not None and len(points_body):
+            self._points.append((i, band_points(points_body, up_body, seed=i)))
         self._add_sightings(i, T_map_body, carried + list(sightings), up_body, stamp_ns)
         self.graph.update()
         if self._should_register():
             self._register(stamp_ns)
         elif self.graph.has_anchor:
             self._link_new_landmarks(stamp_ns)
+        if self.graph.has_anchor and self._points and self._points[-1][0] == i:
+            self._fit_to_surfaces(i, self._points[-1][1])
         self._update_status(stamp_ns)
         return self._estimate(stamp_ns, i, with_covariance)
 
@@ -225,8 +248,49 @@ class Localizer:
 
     def _should_register(self) -> bool:
         n = len(self._confirmed())
-        return (self.status in ("exploring", "ambiguous") and n >= self.registrar.min_landmarks
-                and n > self._registered_with)
+        needed = candidates_from(self.registrar) if self._can_check_surfaces() else self.registrar.min_landmarks
+        return self.status in ("exploring", "ambiguous") and n >= needed and n > self._registered_with
+
+    def _can_check_surfaces(self) -> bool:
+        return self.surfaces is not None and sum(len(p) for _, p in self._points) >= self.params.surface_min_points
+
+    def _points_map(self) -> np.ndarray:
+        """The recent keyframes' depth points in the map frame, at the keyframes' current estimates."""
+        parts = [apply(self.graph.T_map_body(i), p) for i, p in self._points if len(p)]
+        return np.vstack(parts) if parts else np.zeros((0, 3))
+
+    def _choose_by_surfaces(self, result: Alignment, stamp_ns: int) -> np.ndarray | None:
+        """The pose to anchor the map with, or None: the registrar's answer, checked by the walls (graph.surfaces).
+
+        Without depth points only the registrar's own 'localized' counts. With them, a candidate pose is taken
+        when it puts `surface_min_support` of the points on the model's surfaces and every other candidate
+        `surface_margin` less; the registrar's 'localized' stands unless another candidate beats it by that
+        margin (the walls contradict it), and is refused where the walls confirm a different pose."""
+        p = self.params
+        T_reg = result.T_cad_map if result.status == "localized" else None
+        if not self._can_check_surfaces():
+            return T_reg
+        assert self.surfaces is not None
+        points_map = self._points_map()
+        differ = lambda A, B: _poses_differ(A, B, points_map)  # noqa: E731
+        candidates = [T for T, _ in result.candidates]
+        if T_reg is not None and not any(not differ(T, T_reg) for T in candidates):
+            candidates.insert(0, T_reg)
+        if not candidates:
+            return None
+        support = np.array([self.surfaces.support(apply(T, points_map)) for T in candidates])
+        self.surface_checks.append((stamp_ns, support.round(3).tolist()))
+        log.info("surface check of %d candidate poses (%d points): support %s", len(candidates), len(points_map),
+                 ", ".join(f"{s:.2f}" for s in support))
+        best = int(np.argmax(support))
+        others = [s for T, s in zip(candidates, support, strict=True) if differ(T, candidates[best])]
+        confirmed = support[best] >= p.surface_min_support and all(s <= support[best] - p.surface_margin
+                                                                     for s in others)
+        if T_reg is not None:
+            i_reg = next(k for k, T in enumerate(candidates) if not differ(T, T_reg))
+            beaten = support[best] >= support[i_reg] + p.surface_margin
+            return None if beaten or (confirmed and best != i_reg) else T_reg
+        return candidates[best] if confirmed else None
 
     def _register(self, stamp_ns: int) -> None:
         """Register the map's landmarks to the model; on success anchor the graph to the CAD frame."""
@@ -235,21 +299,43 @@ class Localizer:
         corners = [self.landmarks[j].corners_map for j in keys]
         result = self.registrar(observed, corners)
         self._registered_with = len(keys)
-        self.registrations.append((stamp_ns, result.status))
         self.inliers = result.inliers
-        if result.status != "localized" or result.T_cad_map is None:
-            self.status = result.status if result.status == "ambiguous" else "exploring"
+        T_cad_map = self._choose_by_surfaces(result, stamp_ns)
+        if T_cad_map is None:
+            status = "exploring" if result.status == "not_localized" else "ambiguous"
+            self.registrations.append((stamp_ns, status))
+            self.status = status
             log.info("registration of %d landmarks: %s (%d inliers)", len(keys), result.status, result.inliers)
             return
+        self.registrations.append((stamp_ns, "localized"))
         log.info("localized with %d inliers of %d landmarks (%d matches)", result.inliers, len(keys),
                  len(result.matches))
-        self.graph.add_anchor(np.linalg.inv(result.T_cad_map))
-        for j, fid in result.matches:
-            self._link(j, fid, result.T_cad_map)
+        self.graph.add_anchor(np.linalg.inv(T_cad_map))
+        if T_cad_map is result.T_cad_map:  # the registrar's own pose: its matches hold
+            for j, fid in result.matches:
+                self._link(j, fid, T_cad_map)
         self.status = "localized"
         self._last_link_ns = stamp_ns
         self.graph.update(extra_iterations=2)
         self._link_new_landmarks(stamp_ns)
+
+    def _fit_to_surfaces(self, i: int, points_body: np.ndarray) -> None:
+        """Keyframe i's depth points fitted to the model's walls (point-to-plane) enter the graph as a measured
+        T_cad_body with the fit's information: the walls hold the pose where the doors' corners are coarse."""
+        T_cad_map = self.graph.T_cad_map()
+        if not self.params.surface_fit or self.surfaces is None or T_cad_map is None:
+            return
+        T_guess = T_cad_map @ self.graph.T_map_body(i)
+        fit = align_to_surfaces(self.surfaces, points_body, T_guess, sigma_m=self.params.surface_fit_sigma_m)
+        if fit is None:
+            return
+        step = np.linalg.inv(T_guess) @ fit.T_cad_body
+        if np.linalg.norm(step[:3, 3]) > self.params.surface_fit_max_correction_m or \
+                rotation_angle_deg(step[:3, :3]) > 5.0:
+            return
+        self.graph.add_cad_pose(i, fit.T_cad_body, fit.information)
+        self.graph.update()
+        self.surface_fits += 1
 
     def _link_new_landmarks(self, stamp_ns: int) -> None:
         """Landmarks not yet linked that lie within `cad_link_m` of a same-type CAD feature are linked."""
@@ -318,6 +404,23 @@ class Localizer:
         T_cad_body = None if T_cad_map is None else T_cad_map @ T_map_body
         return Estimate(stamp_ns, self.status, T_map_body, T_cad_body, T_cad_map, inliers=self.inliers, keyframe=i,
                         matches=dict(self.links))
+
+
+def model_registrar(model: BuildingModel, params: LocalizerParams, storey_hint: str | None = None,
+                    with_surfaces: bool = False, method: str = "robust") -> ModelRegistrar:
+    """The registrar against the whole model, from the localizer's parameters (one place for replay and the
+    service): candidates from `verified_min_landmarks` on when the surface check can decide among them."""
+    return ModelRegistrar(model, method=method, storey_hint=storey_hint,
+                          min_landmarks=params.registration_min_landmarks, tolerance_m=params.registration_tolerance_m,
+                          candidates_from=params.verified_min_landmarks if with_surfaces else None)
+
+
+def _poses_differ(A: np.ndarray, B: np.ndarray, points_map: np.ndarray, apart_m: float = 0.5,
+                  turned_deg: float = 5.0) -> bool:
+    """Two candidate T_cad_map are different poses where they place the points (map frame) `apart_m` apart on
+    average, or differ in rotation by `turned_deg` (not at the map's origin, which may be far away)."""
+    moved = float(np.linalg.norm(apply(A, points_map) - apply(B, points_map), axis=1).mean())
+    return moved > apart_m or rotation_angle_deg(A[:3, :3] @ B[:3, :3].T) > turned_deg
 
 
 def _rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:

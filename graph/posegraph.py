@@ -11,6 +11,7 @@ Factors (all built-in, so the real-time path never calls Python):
   PriorFactorPose3(X(i)), roll/pitch only     gravity (yaw and translation free)
   BetweenFactorPose3(X(i), L(j), T_body_rect)  a sighting of landmark j from keyframe i
   PriorFactorPose3(A(0)), weak                 keeps the anchor determined whatever its links
+  BetweenFactorPose3(A(0), X(i), T_cad_body)   robust (Huber): keyframe i's depth fitted to the model's walls
   BetweenFactorPose3(A(0), L(j), T_cad_feature) robust (Cauchy): landmark j is the CAD feature
       (between(T_map_cad, T_map_rect) = T_cad_map T_map_rect = T_cad_rect, so the anchor is stored as
        T_map_cad and no inverse-direction trap arises)
@@ -125,6 +126,13 @@ class PoseGraph:
         self._insert(ANCHOR, T_map_cad_guess)
         self._add(gtsam.PriorFactorPose3(ANCHOR, pose3(T_map_cad_guess), diagonal(ANCHOR_PRIOR_SIGMAS)))
         self.has_anchor = True
+
+    def add_cad_pose(self, i: int, T_cad_body: np.ndarray, information: np.ndarray, huber_k: float = 1.5) -> None:
+        """Keyframe i's pose in the CAD frame, measured (depth against the model's surfaces, graph.surfaces),
+        with its 6 x 6 information [rot; trans]: between(T_map_cad, T_map_body) = T_cad_body. Huber-robust."""
+        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k),
+                                               gtsam.noiseModel.Gaussian.Information(np.asarray(information, float)))
+        self._add(gtsam.BetweenFactorPose3(ANCHOR, X(i), pose3(T_cad_body), noise))
 
     def add_cad_link(self, j: int, T_cad_rect: np.ndarray, sigmas: np.ndarray = CAD_LINK_SIGMAS) -> None:
         """Landmark j is the CAD feature with frame T_cad_rect (robust: a wrong match loses its weight)."""

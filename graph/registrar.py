@@ -24,30 +24,42 @@ log = logging.getLogger(__name__)
 
 class Registrar(Protocol):
     """Places the map's landmarks in the CAD frame. Input: landmarks with T_map_rect and their corners
-    (4, 3) in the map frame (or None); the map frame's z is up (gravity)."""
+    (4, 3) in the map frame (or None); the map frame's z is up (gravity). `min_landmarks`: the fewest landmarks
+    it answers 'localized' from; a registrar may offer candidate poses from fewer (`candidates_from`)."""
 
     min_landmarks: int
 
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment: ...
 
 
+def candidates_from(registrar: Registrar) -> int:
+    """The fewest landmarks from which `registrar` offers candidate poses (its `candidates_from` where it has
+    one, else its `min_landmarks`)."""
+    return int(getattr(registrar, "candidates_from", registrar.min_landmarks))
+
+
 class ModelRegistrar:
     """Registration against the whole building model (see module doc)."""
 
     def __init__(self, model: BuildingModel, method: str = "robust", storey_hint: str | None = None,
-                 min_landmarks: int = 3, tolerance_m: float | None = None, **register_params: float) -> None:
+                 min_landmarks: int = 3, tolerance_m: float | None = None, candidates_from: int | None = None,
+                 **register_params: float) -> None:
         """`min_landmarks`: registration is tried from this many landmarks on (the robust method then also
         accepts a pose with as many inliers: with gravity, two rectangles fix a pose, and its ambiguity test
         answers 'ambiguous' where the building repeats them); `tolerance_m`: how far (m) an aligned landmark
         may lie from its CAD feature and still support a pose (the method's inlier tolerance, and the robust
-        method's ambiguity tolerance; None: the method's defaults)."""
+        method's ambiguity tolerance; None: the method's defaults); `candidates_from`: with fewer landmarks
+        than `min_landmarks` but at least this many (robust method), the candidate poses come back as
+        'ambiguous', for other evidence to decide (the localizer's surface check); None: `min_landmarks`."""
         self.model = model
         self.method = method
         self.storey_hint = storey_hint
         self.min_landmarks = min_landmarks
+        self.candidates_from = min(min_landmarks, candidates_from or min_landmarks) if method == "robust" \
+            else min_landmarks
         self.register_params = dict(register_params)
         if method == "robust":
-            self.register_params.setdefault("min_inliers", min_landmarks)
+            self.register_params.setdefault("min_inliers", self.candidates_from)
         if tolerance_m is not None:
             self.register_params["inlier_threshold_m"] = tolerance_m
             if method == "robust":
@@ -76,7 +88,10 @@ class ModelRegistrar:
         result = self._register(self.model, ObservationSet(obs, gravity_map, self.storey_hint), method=self.method,
                                 **self.register_params)
         matches = [(landmarks[i].key, fid) for i, fid in result.matches]
-        return Alignment(result.status, result.T_cad_map, matches, int(result.inliers))
+        status = result.status
+        if status == "localized" and result.inliers < self.min_landmarks:  # a candidate, not an answer
+            status, matches = "ambiguous", []
+        return Alignment(status, result.T_cad_map, matches, int(result.inliers), result.candidates)
 
 
 class StoredMapRegistrar:
@@ -98,11 +113,12 @@ class FirstOfRegistrar:
     def __init__(self, registrars: list[Registrar]) -> None:
         self.registrars = registrars
         self.min_landmarks = min(r.min_landmarks for r in registrars)
+        self.candidates_from = min(candidates_from(r) for r in registrars)
 
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
         result = Alignment("not_localized", None)
         for registrar in self.registrars:
-            if len(landmarks) < registrar.min_landmarks:
+            if len(landmarks) < candidates_from(registrar):
                 continue
             result = registrar(landmarks, corners_map)
             if result.status != "not_localized":

@@ -44,6 +44,7 @@ class RegistrationResult:
     elapsed_ms: float = 0.0
     alternatives: list[np.ndarray] = field(default_factory=list)
     diagnostics: dict = field(default_factory=dict)
+    candidates: list[tuple[np.ndarray, int]] = field(default_factory=list)  # distinct poses, inliers; best first
 
     def to_json(self) -> dict:
         return {

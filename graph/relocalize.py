@@ -48,6 +48,9 @@ class Alignment:
     T_cad_map: np.ndarray | None
     matches: list[tuple[int, str]] = field(default_factory=list)  # (landmark key, known id)
     inliers: int = 0
+    # distinct poses that explain the landmarks (T_cad_map, landmarks explained), best first; the localizer's
+    # surface check chooses among them (graph.surfaces)
+    candidates: list[tuple[np.ndarray, int]] = field(default_factory=list)
 
 
 def align_rectangles(observed: list[ObservedRect], known: list[KnownRect], inlier_m: float = 0.35,

@@ -407,14 +407,20 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
                 rival_inliers=int(rival.inliers.sum()) if rival is not None else 0)
     pairs = [(int(i), int(best.match[i])) for i in np.flatnonzero(best.inliers)]
     T_cad_map = best.T @ prep.T_mp_m
+    distinct: list[_Pose] = []
+    for p in [best] + sorted(candidates, key=lambda c: -int(c.inliers.sum())):
+        if p.inliers.sum() >= min_inliers and all(_distinct(q, p, anchor, params) for q in distinct):
+            distinct.append(p)
+    candidate_poses = [(q.T @ prep.T_mp_m, int(q.inliers.sum())) for q in distinct]
     storey = majority_storey(index, [j for _, j in pairs])
     matches = [(i, index.features[j].id) for i, j in pairs]
     if rival is not None and ll_rival >= max(ll) - params.ambiguity_loglik_margin:
         diag["rival_storey"] = majority_storey(index, [int(rival.match[i]) for i in np.flatnonzero(rival.inliers)])
         # No matches: they would name one of the competing poses' features as if it were known.
         return RegistrationResult("ambiguous", T_cad_map, [], n_best, storey,
-                                  alternatives=[rival.T @ prep.T_mp_m], diagnostics=diag)
-    return RegistrationResult("localized", T_cad_map, matches, n_best, storey, diagnostics=diag)
+                                  alternatives=[rival.T @ prep.T_mp_m], diagnostics=diag, candidates=candidate_poses)
+    return RegistrationResult("localized", T_cad_map, matches, n_best, storey, diagnostics=diag,
+                              candidates=candidate_poses)
 
 
 def _loglik(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams, s2: float) -> float:

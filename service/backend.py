@@ -25,10 +25,12 @@ import numpy as np
 from graph.features import BuildingModel
 from graph.keyframes import KeyframePolicy
 from graph.landmarks import feature_frame_cad
-from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting
+from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar
 from graph.posegraph import PoseGraph
-from graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
+from graph.registrar import Registrar, StoredMapRegistrar, candidates_from
 from graph.relocalize import Alignment, KnownRect, ObservedRect
+from graph.rigid import apply
+from graph.surfaces import SurfaceIndex
 from service.inputs import ImuIn, Observation, ObservationsIn, OdometryIn
 from service.recording import matrix_from_pose, pose_from_matrix, vector3
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
@@ -66,7 +68,7 @@ class RestoredRegistrar:
             found = self.stored(landmarks, corners_map)
             if found.status == "localized":
                 return found
-        if len(landmarks) >= self.fallback.min_landmarks:
+        if len(landmarks) >= candidates_from(self.fallback):
             return self.fallback(landmarks, corners_map)
         return Alignment("not_localized", None)
 
@@ -97,10 +99,11 @@ class LocalizerBackend:
     """Turns input events into localizer calls; one thread only (the service's worker)."""
 
     def __init__(self, model: BuildingModel, registrar: Registrar, params: BackendParams | None = None,
-                 T_body_cam: np.ndarray | None = None) -> None:
+                 T_body_cam: np.ndarray | None = None, surfaces: SurfaceIndex | None = None) -> None:
         self.model = model
         self.params = params or BackendParams()
-        self.localizer = Localizer(model, PoseGraph(), registrar, self.params.localizer, T_body_cam)
+        self.localizer = Localizer(model, PoseGraph(), registrar, self.params.localizer, T_body_cam, surfaces)
+        self._points: tuple[np.ndarray, np.ndarray] | None = None  # (T_odom_body, points_body) of the newest depth
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
         self._odometry: OrderedDict[int, np.ndarray] = OrderedDict()  # stamp_ns -> T_odom_body
         self._pending: list[ObservationsIn] = []  # sightings that arrived before the odometry of their stamp
@@ -115,21 +118,21 @@ class LocalizerBackend:
 
     @classmethod
     def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None, method: str = "robust",
-                          params: BackendParams | None = None) -> LocalizerBackend:
+                          params: BackendParams | None = None,
+                          surfaces: SurfaceIndex | None = None) -> LocalizerBackend:
+        """`surfaces`: the model's walls, to check registrations against the frames' depth (graph.surfaces)."""
         params = params or BackendParams()
         localizer = params.localizer or LocalizerParams()
-        fallback = ModelRegistrar(model, method=method, storey_hint=params.storey_hint,
-                                  min_landmarks=localizer.registration_min_landmarks,
-                                  tolerance_m=localizer.registration_tolerance_m)
+        fallback = model_registrar(model, localizer, params.storey_hint, surfaces is not None, method)
         if snapshot is None:
-            return cls(model, fallback, params)
+            return cls(model, fallback, params, surfaces=surfaces)
         features = {f.id: f for f in model.features}
         linked = [KnownRect(lm.id, features[lm.id].type, feature_frame_cad(features[lm.id]))
                   for lm in snapshot.landmarks_map if lm.id in features and features[lm.id].orientation == "vertical"]
         saved_T = matrix_from_pose(snapshot.T_cad_map) if snapshot.status == pb.PoseEstimate.LOCALIZED else None
         log.info("restoring a saved map: %d linked landmarks, T_cad_map %s", len(linked),
                  "saved" if saved_T is not None else "absent")
-        return cls(model, RestoredRegistrar(model, saved_T, linked, fallback), params)
+        return cls(model, RestoredRegistrar(model, saved_T, linked, fallback), params, surfaces=surfaces)
 
     # --- inputs -------------------------------------------------------------------------------------------------
 
@@ -153,6 +156,13 @@ class LocalizerBackend:
         due = self._T_last_keyframe is None or float(np.linalg.norm(
             (np.linalg.inv(self._T_last_keyframe) @ ev.T_map_body)[:3, 3])) > self.params.odometry_keyframe_m
         return self._keyframe(ev.stamp_ns, ev.T_map_body, []) if due else self._track(ev.stamp_ns, ev.T_map_body)
+
+    def depth(self, stamp_ns: int, points_body: np.ndarray) -> None:
+        """Depth points (N, 3, body frame) measured at stamp_ns: given to the next keyframe, for the surface check
+        of registrations (graph.surfaces). Without odometry at that stamp they are dropped."""
+        T_odom_body = self.odometry_at(stamp_ns)
+        if T_odom_body is not None and len(points_body):
+            self._points = (T_odom_body, np.asarray(points_body, float))
 
     def observations(self, ev: ObservationsIn) -> Estimate | None:
         """A keyframe with these sightings at the odometry pose of their stamp; None (kept pending until the
@@ -208,7 +218,13 @@ class LocalizerBackend:
     def _keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
         self._last_keyframe_ns = stamp_ns
         self._T_last_keyframe = T_odom_body
-        return self._remember(self.localizer.add_keyframe(stamp_ns, T_odom_body, sightings, self._up_body))
+        points_body = None
+        if self._points is not None:  # the newest depth, moved into this keyframe's body frame
+            T_odom_points, points = self._points
+            points_body = apply(np.linalg.inv(T_odom_body) @ T_odom_points, points)
+            self._points = None
+        return self._remember(self.localizer.add_keyframe(stamp_ns, T_odom_body, sightings, self._up_body,
+                                                          points_body=points_body))
 
     def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting] | None = None) -> Estimate:
         """The pose between keyframes; sightings given here enter the graph with the next keyframe."""

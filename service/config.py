@@ -134,6 +134,12 @@ class GraphConfig(BaseModel):
         4, ge=2, description="registration is tried once this many landmarks have been seen twice, and a pose "
         "must explain as many. With gravity two doors fix a pose, but at the tolerance above a building of a "
         "hundred alike doors offers chance fits of three landmarks (a wrong localization was seen with 3)")
+    surface_check: bool = Field(
+        True, description="check registrations against the walls: with depth points (stereo), a pose from as "
+        "few as verified_min_landmarks landmarks is taken when it puts most of the points on the model's "
+        "surfaces and no other candidate pose does (IFC models)")
+    verified_min_landmarks: int = Field(
+        2, ge=2, description="with the surface check, candidate poses are weighed from this many landmarks")
 
 
 class MacrolocConfig(BaseSettings):

@@ -19,14 +19,19 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from graph.bim import cache_dir, file_sha256
 
+if TYPE_CHECKING:
+    from graph.surfaces import SurfaceIndex
+
 log = logging.getLogger(__name__)
 
 NOT_OBSTACLES = ("IfcDoor", "IfcWindow", "IfcOpeningElement", "IfcSpace", "IfcAnnotation", "IfcVirtualElement")
+NOT_SEEN = ("IfcOpeningElement", "IfcSpace", "IfcAnnotation", "IfcVirtualElement")  # no surface a camera sees
 MESH_CACHE_VERSION = 1
 
 
@@ -49,15 +54,18 @@ class BuildingSolids:
     spaces: list[Space] = field(default_factory=list)
 
 
-def load_solids(ifc_path: Path) -> BuildingSolids:
-    """Obstacle triangles and spaces of an IFC file, cached by its SHA-256 (the geometry takes seconds)."""
+def load_solids(ifc_path: Path, with_doors_and_windows: bool = False) -> BuildingSolids:
+    """Obstacle triangles and spaces of an IFC file, cached by its SHA-256 (the geometry takes seconds).
+    `with_doors_and_windows`: every surface a camera sees (the doors' leaves and the windows' frames too), for
+    checking what a camera measured against the model (graph.surfaces), not for planning."""
     sha = file_sha256(ifc_path)
-    cached = cache_dir() / f"solids-v{MESH_CACHE_VERSION}-{sha[:32]}.npz"
+    kind = "seen" if with_doors_and_windows else "solids"
+    cached = cache_dir() / f"{kind}-v{MESH_CACHE_VERSION}-{sha[:32]}.npz"
     if cached.exists():
         with np.load(cached) as npz:
             spaces = [Space(**s) for s in json.loads(str(npz["spaces_json"]))]
             return BuildingSolids(npz["vertices"], npz["faces"], spaces)
-    solids = _read_solids(ifc_path)
+    solids = _read_solids(ifc_path, NOT_SEEN if with_doors_and_windows else NOT_OBSTACLES)
     tmp = cached.with_name(f"{cached.stem}.tmp{os.getpid()}.npz")
     np.savez_compressed(tmp, vertices=solids.vertices_cad, faces=solids.faces,
                         spaces_json=json.dumps([s.__dict__ for s in solids.spaces]))
@@ -81,12 +89,12 @@ def _iterate_shapes(ifc_file, **filters):  # noqa: ANN001, ANN202 - ifcopenshell
             break
 
 
-def _read_solids(ifc_path: Path) -> BuildingSolids:
+def _read_solids(ifc_path: Path, exclude: tuple[str, ...] = NOT_OBSTACLES) -> BuildingSolids:
     import ifcopenshell
 
     ifc_file = ifcopenshell.open(str(ifc_path))
     vertices, faces, offset = [], [], 0
-    for _, verts, tris in _iterate_shapes(ifc_file, exclude=list(NOT_OBSTACLES)):
+    for _, verts, tris in _iterate_shapes(ifc_file, exclude=list(exclude)):
         vertices.append(verts)
         faces.append(tris + offset)
         offset += len(verts)
@@ -102,6 +110,20 @@ def _read_solids(ifc_path: Path) -> BuildingSolids:
     if not vertices:
         return BuildingSolids(np.zeros((0, 3)), np.zeros((0, 3), np.int64), spaces)
     return BuildingSolids(np.vstack(vertices), np.vstack(faces).astype(np.int64), spaces)
+
+
+def surfaces_for(building: Path) -> SurfaceIndex | None:
+    """The model's surfaces for checking registrations against depth (graph.surfaces): every surface a camera
+    sees in an IFC model; None (logged) for other formats, whose registrations then go unchecked."""
+    from graph.surfaces import SurfaceIndex
+
+    if Path(building).suffix.lower() != ".ifc":
+        log.info("%s: no surface check of registrations (IFC models only)", Path(building).name)
+        return None
+    seen = load_solids(Path(building), with_doors_and_windows=True)
+    index = SurfaceIndex.from_mesh(seen.vertices_cad, seen.faces)
+    log.info("%s: %d surface samples for checking registrations", Path(building).name, len(index))
+    return index
 
 
 @dataclass

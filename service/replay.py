@@ -18,11 +18,12 @@ import numpy as np
 
 from graph.features import BuildingModel
 from graph.keyframes import KeyframePolicy
-from graph.localizer import Estimate, Localizer, LocalizerParams
+from graph.localizer import Estimate, Localizer, LocalizerParams, model_registrar
 from graph.mapstore import StoredMap
 from graph.posegraph import IsamSettings, PoseGraph
-from graph.registrar import FirstOfRegistrar, ModelRegistrar, Registrar, StoredMapRegistrar
-from graph.rigid import rotation_angle_deg
+from graph.registrar import FirstOfRegistrar, Registrar, StoredMapRegistrar
+from graph.rigid import apply, rotation_angle_deg
+from graph.surfaces import SurfaceIndex
 from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from service.replay_sources import FrameInput, ObservationSource, TruthSource
 
@@ -99,6 +100,7 @@ def settings_from_config(graph: GraphConfig) -> tuple[LocalizerParams, KeyframeP
     params = LocalizerParams(associate_m=graph.associate_m, cad_link_m=graph.cad_link_m,
                              registration_tolerance_m=graph.registration_tolerance_m,
                              registration_min_landmarks=graph.registration_min_landmarks,
+                             verified_min_landmarks=graph.verified_min_landmarks,
                              degraded_after_s=graph.degraded_after_s, lost_after_s=graph.lost_after_s)
     policy = KeyframePolicy(graph.keyframe_translation_m, graph.keyframe_rotation_rad, graph.keyframe_interval_s)
     return params, policy, IsamSettings(relinearize_threshold=graph.relinearize_threshold)
@@ -106,20 +108,20 @@ def settings_from_config(graph: GraphConfig) -> tuple[LocalizerParams, KeyframeP
 
 def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey_hint: str | None = None,
                    T_body_cam: np.ndarray | None = None, params: LocalizerParams | None = None,
-                   isam: IsamSettings | None = None) -> Localizer:
-    """The factory: registration against a stored map when one is given, else against the whole model."""
+                   isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None) -> Localizer:
+    """The factory: registration against a stored map when one is given, else against the whole model; with
+    the model's surfaces, registrations are checked against the depth points (graph.surfaces)."""
     p = params or LocalizerParams()
-    registrar: Registrar = ModelRegistrar(model, storey_hint=storey_hint, min_landmarks=p.registration_min_landmarks,
-                                          tolerance_m=p.registration_tolerance_m)
+    registrar: Registrar = model_registrar(model, p, storey_hint, surfaces is not None)
     if stored is not None:
         registrar = FirstOfRegistrar([StoredMapRegistrar(stored.known_rects(model), min_landmarks=2), registrar])
-    return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam)
+    return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam, surfaces=surfaces)
 
 
 def replay(flight: Path, model: BuildingModel, source: ObservationSource | None = None,
            stored: StoredMap | None = None, storey_hint: str | None = None, policy: KeyframePolicy | None = None,
            sink: FrameSink = null_sink, params: LocalizerParams | None = None,
-           isam: IsamSettings | None = None) -> ReplayResult:
+           isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None) -> ReplayResult:
     """Run `flight` (MCAP) through a new localizer in `model`; see module doc."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
@@ -133,16 +135,25 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
     t_kf = t0 = None
     busy_s = 0.0
     busy_at_localized: float | None = None
+    points_body: np.ndarray | None = None
+    T_points: np.ndarray | None = None
     for frame in read_flight(flight):
         start = time.perf_counter()
         inputs: FrameInput = source(frame)
         if localizer is None:
-            localizer = make_localizer(model, stored, storey_hint, inputs.T_body_cam, params, isam)
+            localizer = make_localizer(model, stored, storey_hint, inputs.T_body_cam, params, isam, surfaces)
         t0 = frame.stamp_ns if t0 is None else t0
         t_s = (frame.stamp_ns - t0) * 1e-9
         is_kf = policy.is_keyframe(T_kf, inputs.T_odom_body, t_s - (t_kf if t_kf is not None else -1e9))
+        if inputs.points_body is not None:
+            points_body = inputs.points_body  # the newest depth points, given with the next keyframe
+            T_points = inputs.T_odom_body
         if is_kf:
-            est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body)
+            if points_body is not None and T_points is not None:  # into this keyframe's body frame
+                points_body = apply(np.linalg.inv(inputs.T_odom_body) @ T_points, points_body)
+            est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body,
+                                         points_body=points_body)
+            points_body = T_points = None
             T_kf, t_kf = inputs.T_odom_body, t_s
         else:
             est = localizer.track(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings)

@@ -17,7 +17,7 @@ import numpy as np
 
 from graph.errors import UserInputError
 from graph.localizer import Sighting
-from graph.rigid import rotation_angle_rad
+from graph.rigid import apply, rotation_angle_rad
 from service.recording import FlightFrame, matrix_from_pose
 
 if TYPE_CHECKING:
@@ -34,6 +34,7 @@ class FrameInput:
     sightings: list[Sighting]
     up_body: np.ndarray | None
     T_body_cam: np.ndarray
+    points_body: np.ndarray | None = None  # (N, 3) stereo depth points, body frame, when this frame measured them
 
 
 class ObservationSource(Protocol):
@@ -53,6 +54,7 @@ class TruthNoise:
     gravity_sigma_rad: float = 0.005
     miss_rate: float = 0.1
     min_visible_corners: int = 3  # three corners complete a rectangle
+    depth_stride_px: int = 20  # depth points: every this many pixels of the true depth image, with the noise above
 
 
 class TruthSource:
@@ -74,7 +76,24 @@ class TruthSource:
         T_odom_body = self._odometry(T_cad_body, frame.stamp_ns)
         up_body = T_cad_body[:3, :3].T @ np.array([0.0, 0.0, 1.0]) + self.rng.normal(0, self.noise.gravity_sigma_rad, 3)
         up_body /= np.linalg.norm(up_body)
-        return FrameInput(frame.stamp_ns, T_odom_body, self._sightings(gt, T_body_cam), up_body, T_body_cam)
+        return FrameInput(frame.stamp_ns, T_odom_body, self._sightings(gt, T_body_cam), up_body, T_body_cam,
+                          self._points(gt, frame.stereo.info, T_body_cam))
+
+    def _points(self, gt, info, T_body_cam: np.ndarray) -> np.ndarray | None:  # noqa: ANN001 - pb types
+        """Points of the true depth image on a grid, with the stereo depth noise, body frame."""
+        if not gt.HasField("depth"):
+            return None
+        from service.recording import decode_image
+
+        depth_m = decode_image(gt.depth)
+        step = self.noise.depth_stride_px
+        v, u = np.mgrid[step // 2:depth_m.shape[0]:step, step // 2:depth_m.shape[1]:step]
+        z = depth_m[v, u].astype(float)
+        ok = np.isfinite(z) & (z > 0.3)
+        u, v, z = u[ok], v[ok], z[ok]
+        z = z + self.rng.normal(0, 1, len(z)) * self.noise.depth_sigma_per_m2 * z * z
+        points_cam = np.column_stack([(u - info.cx) * z / info.fx, (v - info.cy) * z / info.fy, z])
+        return points_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3]
 
     def _odometry(self, T_cad_body: np.ndarray, stamp_ns: int) -> np.ndarray:
         n = self.noise
@@ -127,6 +146,7 @@ class VisualOdometry:
         self._odometry: StereoOdometry | None = None
         self._T_odom_cam0: np.ndarray | None = None
         self._last_imu_ns: int | None = None
+        self.points_body: np.ndarray | None = None  # the last frame's stereo points when it became a keyframe
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray,
                  up_body: np.ndarray | None) -> np.ndarray:
@@ -149,6 +169,8 @@ class VisualOdometry:
             self._last_imu_ns = frame.imu[-1].header.stamp_ns
         R_prev_cur = None if R_gyro is None else R_body_cam.T @ R_gyro @ R_body_cam
         result = self._odometry.track(left, right, R_prev_cur)
+        self.points_body = None if result.keyframe_points_cam is None else apply(T_body_cam,
+                                                                                  result.keyframe_points_cam)
         return self._T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
 
 
@@ -166,7 +188,8 @@ class TruthFeaturesWithVisualOdometry:
         inputs = self.truth(frame)
         up_body = _up_from_imu(frame)
         T_odom_body = self.odometry(frame, decode_image(frame.stereo.left), decode_image(frame.stereo.right), up_body)
-        return FrameInput(inputs.stamp_ns, T_odom_body, inputs.sightings, up_body, inputs.T_body_cam)
+        return FrameInput(inputs.stamp_ns, T_odom_body, inputs.sightings, up_body, inputs.T_body_cam,
+                          self.odometry.points_body)
 
 
 class PerceptionSource:
@@ -209,7 +232,7 @@ class PerceptionSource:
                 sightings.append(Sighting(f.type, corners_body, truth_id=_nearest_id(f.centroid_cam, truth),
                                           truncated=f.truncated))
         self._n += 1
-        return FrameInput(frame.stamp_ns, T_odom_body, sightings, up_body, T_body_cam)
+        return FrameInput(frame.stamp_ns, T_odom_body, sightings, up_body, T_body_cam, self.odometry.points_body)
 
 
 def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:

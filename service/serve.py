@@ -47,7 +47,10 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -
                                    keyframe_min_rotation_rad=cfg.graph.keyframe_rotation_rad,
                                    localizer=localizer_params,
                                    storey_hint=model.checked_storey(cfg.graph.storey_hint))
-    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, backend_params)
+    from service.planning_grid import surfaces_for
+
+    surfaces = surfaces_for(building) if cfg.graph.surface_check else None
+    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, backend_params, surfaces)
     p = cfg.planning
     planner = Planner.for_building(building, p.cell_m, p.vehicle_radius_m, p.flight_height_m)
     for elevation in sorted(model.storey_elevations_m.values())[:1]:

@@ -226,7 +226,7 @@ class StereoRenderer:
         self.fbo.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-        self.prog["glass_pass"].value = 0
+        self._set("glass_pass", 0)
         if self._vaos[0] is not None:
             ranges = self.chunks.visible_front_to_back(T_cad_cam, self.camera, self.z_range_m)
             if self.depth_prepass and self._vao_depth is not None:
@@ -243,7 +243,7 @@ class StereoRenderer:
                 self.fbo_glass.use()
             self.ctx.enable(moderngl.BLEND)
             self.ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
-            self.prog["glass_pass"].value = 1
+            self._set("glass_pass", 1)
             self._vaos[1].render(moderngl.TRIANGLES)
             self.ctx.disable(moderngl.BLEND)
         w, h = self.camera.width, self.camera.height

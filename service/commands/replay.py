@@ -78,8 +78,13 @@ def register(app: typer.Typer) -> None:
                                      else PerceptionSource(cfg.perception.detect_every, detector))
         params, policy, isam = settings_from_config(cfg.graph)
         storey = model.checked_storey(storey if storey is not None else cfg.graph.storey_hint)
+        surfaces = None
+        if cfg.graph.surface_check:
+            from service.planning_grid import surfaces_for
+
+            surfaces = surfaces_for(building)
         result = run_replay(flight, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
-                            isam=isam)
+                            isam=isam, surfaces=surfaces)
         if save_map is not None:
             result.localizer.stored_map().save(save_map)
         if report is not None:

@@ -103,3 +103,40 @@ def test_a_correct_entry_that_drifts_away_counts_as_wrong_while_localized() -> N
     assert _wrong_localizations(trace) == 0  # the entry at 1 s was right
     # more than 1 m off from k = 21 (1.1 m) to k = 39: 19 frames of 0.1 s
     assert _wrong_while_localized_s(trace) == pytest.approx(1.9)
+
+
+def test_truth_depth_points_come_from_the_true_depth_image() -> None:
+    """`--observations truth` measures depth points on a grid of the true depth image (with stereo noise), in
+    the body frame: what the surface check of registrations reads (graph.surfaces)."""
+    from service.recording import encode_image, pose_from_matrix
+    from service.replay_sources import TruthSource
+    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+    gt = pb.GroundTruth(depth=encode_image(np.full((480, 640), 2.0, np.float32)))
+    gt.T_body_cam.CopyFrom(pose_from_matrix(np.eye(4)))
+    info = pb.CameraInfo(fx=480.0, fy=480.0, cx=319.5, cy=239.5)
+    points = TruthSource(seed=1)._points(gt, info, np.eye(4))
+    assert points is not None and points.shape == (24 * 32, 3)
+    assert np.abs(points[:, 2] - 2.0).max() < 0.1  # noise 0.005 z^2 = 2 cm
+    rays = points[:, :2] / points[:, 2:]  # (u - cx) / fx, (v - cy) / fy of the grid's pixels, 10 to 630 / 470
+    assert np.allclose(rays[0], (np.array([10, 10]) - [319.5, 239.5]) / 480.0)
+    assert np.allclose(rays[-1], (np.array([630, 470]) - [319.5, 239.5]) / 480.0)
+    assert TruthSource()._points(pb.GroundTruth(), info, np.eye(4)) is None
+
+
+def test_the_backend_hands_depth_to_the_next_keyframe() -> None:
+    """LocalizerBackend.depth: points measured at a stamp reach the localizer with the next keyframe, moved into
+    its body frame by the odometry between the two."""
+    from graph.surfaces import SurfaceIndex
+    from service.backend import LocalizerBackend
+    from service.inputs import OdometryIn
+    from tests.graph.scenes import corridor_model, make_T
+
+    model = corridor_model()
+    surfaces = SurfaceIndex(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
+    backend = LocalizerBackend.fresh_or_restored(model, None, surfaces=surfaces)
+    backend.odometry(OdometryIn(0, np.eye(4)))
+    backend.depth(0, np.array([[3.0, 0.0, 0.1], [4.0, 1.0, -0.2]]))
+    backend.odometry(OdometryIn(100_000_000, make_T(np.eye(3), np.array([1.5, 0.0, 0.0]))))  # a keyframe (> 1 m)
+    (i, points), = list(backend.localizer._points)
+    assert i == 1 and np.allclose(points, [[1.5, 0.0, 0.1], [2.5, 1.0, -0.2]])

@@ -1,0 +1,222 @@
+"""The surface check (graph.surfaces) and how the localizer uses it to choose among candidate poses.
+
+The room: a 12 x 7 m box with a 4 m partition from one wall, walls 3 m tall, floor and ceiling; only the
+walls (not the floor and ceiling) are sampled. Depth points are what a camera in the room sees of the walls.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from graph.localizer import Localizer, LocalizerParams
+from graph.posegraph import PoseGraph
+from graph.relocalize import Alignment
+from graph.rigid import apply, rotation_angle_deg
+from graph.surfaces import SurfaceIndex, SurfaceParams, align_to_surfaces, band_points
+from tests.graph.scenes import corridor_model, make_T, rot_z, sightings_from
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def quad(a, b, c, d) -> tuple[np.ndarray, np.ndarray]:
+    return np.array([a, b, c, d], float), np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def wall(x0, y0, x1, y1, h=3.0):  # noqa: ANN001, ANN201
+    return quad((x0, y0, 0), (x1, y1, 0), (x1, y1, h), (x0, y0, h))
+
+
+def room_mesh() -> tuple[np.ndarray, np.ndarray]:
+    parts = [wall(0, 0, 12, 0), wall(12, 0, 12, 7), wall(12, 7, 0, 7), wall(0, 7, 0, 0), wall(5, 0, 5, 4),
+             quad((0, 0, 0), (12, 0, 0), (12, 7, 0), (0, 7, 0)), quad((0, 0, 3), (12, 0, 3), (12, 7, 3), (0, 7, 3))]
+    vertices, faces, offset = [], [], 0
+    for v, f in parts:
+        vertices.append(v)
+        faces.append(f + offset)
+        offset += len(v)
+    return np.vstack(vertices), np.vstack(faces)
+
+
+@pytest.fixture(scope="module")
+def room() -> SurfaceIndex:
+    return SurfaceIndex.from_mesh(*room_mesh(), SurfaceParams(spacing_m=0.05))
+
+
+def wall_points(rng: np.random.Generator, n: int = 400, z: float = 1.4, n_walls: int = 5) -> np.ndarray:
+    """Points on the walls at about camera height (CAD), as a camera turning in the room would measure them."""
+    v, f = room_mesh()
+    walls = v[f[: 2 * n_walls]]  # the walls' triangles (2 each)
+    k = rng.integers(0, len(walls), n)
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    p = (1 - s)[:, None] * walls[k, 0] + (s * (1 - r2))[:, None] * walls[k, 1] + (s * r2)[:, None] * walls[k, 2]
+    p[:, 2] = z + rng.uniform(-0.4, 0.4, n)
+    return p
+
+
+def test_samples_cover_the_walls_only(room: SurfaceIndex) -> None:
+    wall_area = 2 * (12 + 7) * 3.0 + 4 * 3.0  # each wall is one quad
+    assert len(room) == pytest.approx(wall_area / 0.05**2, rel=0.02)
+    assert np.abs(room.samples_cad[:, 2] - 1.5).max() <= 1.5 + 1e-9
+    on_wall = ((np.abs(room.samples_cad[:, 0]) < 1e-9) | (np.abs(room.samples_cad[:, 0] - 12) < 1e-9)
+               | (np.abs(room.samples_cad[:, 1]) < 1e-9) | (np.abs(room.samples_cad[:, 1] - 7) < 1e-9)
+               | ((np.abs(room.samples_cad[:, 0] - 5) < 1e-9) & (room.samples_cad[:, 1] <= 4 + 1e-9)))
+    assert on_wall.all()  # floor and ceiling (horizontal) are not sampled
+
+
+@settings(max_examples=25, deadline=None)
+@given(yaw=st.floats(-np.pi, np.pi), tx=st.floats(-20, 20), ty=st.floats(-20, 20), seed=st.integers(0, 1000))
+def test_support_is_full_at_the_true_pose_in_any_map_frame(room: SurfaceIndex, yaw: float, tx: float, ty: float,
+                                                          seed: int) -> None:
+    """Points measured in an arbitrary map frame, moved back by the true T_cad_map, all lie on the walls."""
+    points_cad = wall_points(np.random.default_rng(seed))
+    T_map_cad = make_T(rot_z(yaw), np.array([tx, ty, 0.3]))
+    points_map = apply(T_map_cad, points_cad)
+    assert room.support(apply(np.linalg.inv(T_map_cad), points_map)) == 1.0
+
+
+def test_support_falls_when_the_pose_is_off(room: SurfaceIndex) -> None:
+    points = wall_points(np.random.default_rng(1))
+    assert room.support(points) == 1.0
+    for T in (make_T(np.eye(3), np.array([1.0, 0.0, 0.0])), make_T(np.eye(3), np.array([0.0, 1.0, 0.0])),
+              make_T(rot_z(np.radians(10)), np.zeros(3))):
+        assert room.support(apply(T, points)) < 0.7
+    half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))  # the outer walls onto themselves
+    assert 0.7 < room.support(apply(half_turn, points)) < 0.95  # only the partition's points tell
+    assert room.support(np.zeros((0, 3))) == 0.0
+
+
+def test_band_points_keep_the_camera_height_and_range() -> None:
+    rng = np.random.default_rng(2)
+    points = rng.uniform(-10, 10, (20000, 3))
+    kept = band_points(points, np.array([0.0, 0.0, 2.0]), half_height_m=0.5, max_range_m=8.0, max_points=10_000)
+    assert len(kept) and np.abs(kept[:, 2]).max() <= 0.5 and np.linalg.norm(kept, axis=1).max() <= 8.0
+    expected = (np.abs(points[:, 2]) <= 0.5) & (np.linalg.norm(points, axis=1) <= 8.0)
+    assert len(kept) == expected.sum()
+    assert len(band_points(points, UP, max_points=50)) == 50
+
+
+# --- the localizer's choice among candidate poses --------------------------------------------------------------
+
+
+class CandidatesRegistrar:
+    """Answers every registration with the given candidate poses (T_cad_map, inliers), as 'ambiguous' or, for
+    `localized`, naming the first one; tries from 2 landmarks, trusts from 4."""
+
+    min_landmarks = 4
+    candidates_from = 2
+
+    def __init__(self, candidates: list[np.ndarray], localized: bool = False) -> None:
+        self.candidates = candidates
+        self.localized = localized
+        self.calls = 0
+
+    def __call__(self, landmarks, corners_map) -> Alignment:  # noqa: ANN001
+        self.calls += 1
+        status = "localized" if self.localized else "ambiguous"
+        return Alignment(status, self.candidates[0], [], len(landmarks), [(T, len(landmarks))
+                                                                           for T in self.candidates])
+
+
+T_TRUE = make_T(np.eye(3), np.array([2.0, 3.5, 0.0]))  # T_cad_map: the flight starts 2 m into the room
+T_WRONG = make_T(rot_z(0.35), np.array([3.0, 2.0, 0.0]))  # 20 degrees and a metre or so off
+
+
+def fly_in_room(room: SurfaceIndex | None, registrar: CandidatesRegistrar, with_points: bool = True,
+                n_walls: int = 5) -> Localizer:
+    """Three keyframes that see two doors of a corridor model (the registrar ignores where they are) and the
+    room's walls around the flight."""
+    model = corridor_model()
+    rng = np.random.default_rng(3)
+    loc = Localizer(model, PoseGraph(), registrar, LocalizerParams(surface_min_points=100), surfaces=room)
+    T_cad_body_doors = make_T(np.eye(3), np.array([1.0, 0.0, 1.4]))  # where two doors are in view
+    for k in range(3):
+        T_map_body = make_T(np.eye(3), np.array([0.1 * k, 0.0, 1.4]))
+        T_cad_body = T_TRUE @ T_map_body
+        points_cad = wall_points(rng, 150, n_walls=n_walls)
+        points_body = apply(np.linalg.inv(T_cad_body), points_cad) if with_points else None
+        sightings = sightings_from(model, T_cad_body_doors)[:2]
+        loc.add_keyframe(k * 100_000_000, T_map_body, sightings, UP, points_body=points_body)
+    return loc
+
+
+def test_the_walls_choose_the_true_candidate(room: SurfaceIndex) -> None:
+    for order in ([T_WRONG, T_TRUE], [T_TRUE, T_WRONG]):
+        loc = fly_in_room(room, CandidatesRegistrar(order))
+        assert loc.status == "localized"
+        T_cad_map = loc.graph.T_cad_map()
+        assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
+        assert loc.surface_checks and max(loc.surface_checks[-1][1]) == 1.0
+
+
+def test_two_landmarks_without_depth_stay_ambiguous(room: SurfaceIndex) -> None:
+    registrar = CandidatesRegistrar([T_WRONG, T_TRUE])
+    assert fly_in_room(room, registrar, with_points=False).status == "exploring"  # 4 landmarks needed
+    assert registrar.calls == 0
+    assert fly_in_room(None, CandidatesRegistrar([T_WRONG, T_TRUE])).status == "exploring"
+
+
+def test_walls_that_cannot_tell_the_candidates_apart_leave_it_ambiguous() -> None:
+    """A box room without the partition is the same after a half-turn about its centre (like the duplex):
+    both poses put every point on a wall, and the status stays ambiguous."""
+    v, f = room_mesh()
+    box = SurfaceIndex.from_mesh(v, f[:8], SurfaceParams(spacing_m=0.05))  # the 4 outer walls
+    half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))
+    loc = fly_in_room(box, CandidatesRegistrar([T_TRUE, half_turn @ T_TRUE]), n_walls=4)
+    assert loc.surface_checks[-1][1] == [1.0, 1.0]
+    assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None
+    same = T_TRUE @ make_T(np.eye(3), np.array([0.0, 0.0, 0.1]))  # 0.1 m apart: one pose, not a rival
+    assert fly_in_room(box, CandidatesRegistrar([T_TRUE, same]), n_walls=4).status == "localized"
+
+
+def test_a_localized_answer_the_walls_contradict_is_refused(room: SurfaceIndex) -> None:
+    loc = fly_in_room(room, CandidatesRegistrar([T_WRONG, T_TRUE], localized=True))
+    assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None
+    loc = fly_in_room(room, CandidatesRegistrar([T_TRUE, T_WRONG], localized=True))
+    assert loc.status == "localized"
+
+
+# --- point-to-plane fit of a keyframe's depth to the walls ------------------------------------------------------
+
+
+@settings(max_examples=15, deadline=None)
+@given(dx=st.floats(-0.2, 0.2), dy=st.floats(-0.2, 0.2), dyaw_deg=st.floats(-3, 3), seed=st.integers(0, 1000))
+def test_fit_to_the_walls_recovers_a_perturbed_pose(room: SurfaceIndex, dx: float, dy: float, dyaw_deg: float,
+                                                    seed: int) -> None:
+    T_cad_body = make_T(rot_z(0.3), np.array([3.0, 2.5, 1.4]))
+    points_body = apply(np.linalg.inv(T_cad_body), wall_points(np.random.default_rng(seed), 300))
+    guess = T_cad_body @ make_T(rot_z(np.radians(dyaw_deg)), np.array([dx, dy, 0.0]))
+    fit = align_to_surfaces(room, points_body, guess)
+    assert fit is not None and fit.inliers == 300
+    assert np.linalg.norm(fit.T_cad_body[:3, 3] - T_cad_body[:3, 3]) < 0.01
+    assert rotation_angle_deg(fit.T_cad_body[:3, :3] @ T_cad_body[:3, :3].T) < 0.1
+    # vertical walls fix x, y and yaw, not the height: (almost) no information along z
+    cov = np.linalg.inv(fit.information)
+    assert np.sqrt(cov[5, 5]) > 100 * np.sqrt(cov[3, 3])
+
+
+def test_no_fit_far_from_any_wall(room: SurfaceIndex) -> None:
+    points_body = wall_points(np.random.default_rng(4), 300)
+    assert align_to_surfaces(room, points_body, make_T(np.eye(3), np.array([40.0, 40.0, 0.0]))) is None
+
+
+def test_a_measured_cad_pose_moves_the_keyframe() -> None:
+    """PoseGraph.add_cad_pose: between(T_map_cad, T_map_body) = T_cad_body pulls the keyframe (the anchor is
+    fixed by a tight prior here) along the directions its information holds."""
+    import gtsam
+
+    from graph.posegraph import ANCHOR, pose3
+
+    graph = PoseGraph()
+    graph.add_first_keyframe(np.eye(4))
+    graph.add_keyframe(make_T(np.eye(3), np.array([1.0, 0.0, 0.0])), np.full(6, 0.5), make_T(np.eye(3), [1.0, 0, 0]))
+    graph.add_anchor(np.eye(4))
+    graph._add(gtsam.PriorFactorPose3(ANCHOR, pose3(np.eye(4)), gtsam.noiseModel.Isotropic.Sigma(6, 1e-4)))
+    info = np.diag([1e4, 1e4, 1e4, 1e4, 1e4, 1e-6])  # z free
+    graph.add_cad_pose(1, make_T(np.eye(3), np.array([1.3, -0.2, 5.0])), info)
+    graph.update(extra_iterations=2)
+    t = graph.T_map_body(1)[:3, 3]
+    assert abs(t[0] - 1.3) < 0.02 and abs(t[1] + 0.2) < 0.02 and abs(t[2]) < 0.05
