@@ -2,7 +2,8 @@
 
 `PerceptionPipeline` decodes a wire `StereoFrame`, runs `perception.pipeline.Perception` (detector -> LSD ->
 SGBM -> 3D corners) and returns the doors/windows with corners in the body frame, using the frame's own
-CameraInfo (intrinsics, baseline, T_body_cam). `make_pipeline` picks it when the detector's weights load, and
+CameraInfo (intrinsics, baseline, T_body_cam); every few frames it also measures stereo depth points for the
+localizer's surface check (graph.surfaces). `make_pipeline` picks it when the detector's weights load, and
 the decode-only pipeline otherwise (logged).
 """
 
@@ -23,7 +24,10 @@ log = logging.getLogger(__name__)
 
 
 class FramePipeline(Protocol):
-    """Stereo frame -> sightings (doors/windows, corners in the body frame). Perception plugs in here."""
+    """Stereo frame -> sightings (doors/windows, corners in the body frame). Perception plugs in here.
+    `points_body`: the last frame's stereo depth points (body frame, metres) when it measured them, else None."""
+
+    points_body: np.ndarray | None
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]: ...
 
@@ -32,6 +36,8 @@ class NullPipeline:
     """Sees nothing in the frames (perception off or unavailable): a frame still gets its pose from odometry,
     and sightings come on the observations key (e.g. from the vehicle's own detector)."""
 
+    points_body: np.ndarray | None = None
+
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
         return []
 
@@ -39,9 +45,16 @@ class NullPipeline:
 class PerceptionPipeline:
     """StereoFrame -> sightings (corners in the body frame, metres) through the perception chain."""
 
-    def __init__(self, perception, default_T_body_cam: np.ndarray) -> None:  # noqa: ANN001 - perception.Perception
+    def __init__(self, perception, default_T_body_cam: np.ndarray,  # noqa: ANN001 - perception.Perception
+                 depth_every: int = 3, depth_stride_px: int = 16) -> None:
+        """Every `depth_every`-th frame also gives stereo depth points (`points_body`, SGBM over the whole frame,
+        every `depth_stride_px`-th pixel) for the surface check of registrations; 0: never."""
         self.perception = perception
         self.default_T_body_cam = default_T_body_cam
+        self.depth_every = depth_every
+        self.depth_stride_px = depth_stride_px
+        self.points_body: np.ndarray | None = None  # the last frame's depth points, when it measured them
+        self._n = 0
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
         from perception.calib import StereoRig
@@ -52,8 +65,24 @@ class PerceptionPipeline:
         rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam
         result = self.perception.process(StereoPair(left, right, rig, stamp_ns=frame.header.stamp_ns))
+        self.points_body = None
+        if self.depth_every and self._n % self.depth_every == 0:
+            self.points_body = apply(T_body_cam, self._depth_points_cam(left, right, rig))
+        self._n += 1
         return [Sighting(f.type, apply(T_body_cam, f.corners_cam), truncated=f.truncated)
                 for f in result.features]
+
+    def _depth_points_cam(self, left: np.ndarray, right: np.ndarray, rig) -> np.ndarray:  # noqa: ANN001 - StereoRig
+        """(N, 3) camera-frame points of the SGBM depth on a grid (eq. 2 back-projection), 0.3-8 m."""
+        from perception.stereo import depth_from_disparity
+
+        depth_m = depth_from_disparity(self.perception.matcher.disparity_px(left, right), rig)
+        s = self.depth_stride_px
+        v, u = np.mgrid[s // 2:depth_m.shape[0]:s, s // 2:depth_m.shape[1]:s]
+        z = depth_m[v, u]
+        ok = np.isfinite(z) & (z > 0.3) & (z < 8.0)
+        u, v, z = u[ok], v[ok], z[ok].astype(float)
+        return np.column_stack([(u - rig.cx_px) * z / rig.fx_px, (v - rig.cy_px) * z / rig.fy_px, z])
 
 
 def forward_T_body_cam(forward_m: float = 0.10, left_m: float = 0.06) -> np.ndarray:

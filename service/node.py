@@ -191,11 +191,11 @@ class LocalizationService:
         """Perceive the frame; its sightings become a keyframe at the odometry pose of its stamp (kept pending
         until that odometry arrives); the frame's pose goes out at once, from the latest odometry."""
         sightings = self.pipeline(ev.frame)
-        points_body = None
+        points_body = self.pipeline.points_body  # the pipeline's own stereo depth, when it measured some
         if ev.frame.HasField("depth") and self.backend.localizer.surfaces is not None:
             from service.frames import depth_points_body
 
-            points_body = depth_points_body(ev.frame, stride_px=20, max_range_m=8.0)
+            points_body = depth_points_body(ev.frame, stride_px=20, max_range_m=8.0)  # the vehicle's depth
         with self._lock:
             if points_body is not None:
                 self.backend.depth(ev.stamp_ns, points_body)

@@ -1,0 +1,40 @@
+"""The service's frame pipeline (service/frames.py): stereo depth points for the surface check."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from service.recording import encode_image, pose_from_matrix
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+
+def textured_pair(disparity_px: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A fronto-parallel textured plane: the right image is the left shifted by the disparity."""
+    rng = np.random.default_rng(seed)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (480, 640 + disparity_px)).astype(np.uint8), (5, 5), 1.2)
+    left = texture[:, :640]
+    right = texture[:, disparity_px:disparity_px + 640]
+    return left, right
+
+
+def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
+    pytest.importorskip("onnxruntime")
+    from perception.pipeline import Perception
+    from service.frames import PerceptionPipeline, forward_T_body_cam
+
+    pipeline = PerceptionPipeline(Perception.create(None), forward_T_body_cam(), depth_every=3)
+    left, right = textured_pair(24)
+    info = pb.CameraInfo(width=640, height=480, fx=480.0, fy=480.0, cx=319.5, cy=239.5, baseline_m=0.12,
+                         T_body_cam=pose_from_matrix(forward_T_body_cam()))
+    frame = pb.StereoFrame(left=encode_image(left), right=encode_image(right), info=info)
+    measured = []
+    for _ in range(4):
+        pipeline(frame)
+        measured.append(pipeline.points_body)
+    assert measured[1] is None and measured[2] is None and measured[3] is not None
+    points = measured[0]
+    assert points is not None and len(points) > 500
+    # the plane is z = fx b / d = 2.4 m ahead of the camera: body x (forward) = 2.4 + the camera's 0.10 m
+    assert np.median(points[:, 0]) == pytest.approx(2.5, abs=0.05)
