@@ -2,8 +2,9 @@
 
 Per keyframe: predict the pose from odometry, level it with gravity, add the sightings of doors and windows
 as landmark factors (re-observations or new landmarks), update iSAM2 with the new factors only, register the
-map to the building model while exploring, link newly seen landmarks to their CAD features once localized,
-and return the pose in the CAD frame with its status.
+map to the building model while exploring (the candidate poses checked against the model's walls where the
+keyframes bring depth points, graph.surfaces), link newly seen landmarks to their CAD features once localized
+and fit the keyframe's depth to the walls, and return the pose in the CAD frame with its status.
 
 Frames: map = this flight's odometry frame with z up (gravity); body = x forward, y left, z up;
 cad = the model. Sightings arrive with their 4 corners in the body frame, metres.
@@ -272,7 +273,10 @@ class Localizer:
             return T_reg
         assert self.surfaces is not None
         points_map = self._points_map()
-        differ = lambda A, B: _poses_differ(A, B, points_map)  # noqa: E731
+
+        def differ(A: np.ndarray, B: np.ndarray) -> bool:
+            return _poses_differ(A, B, points_map)
+
         candidates = [T for T, _ in result.candidates]
         if T_reg is not None and not any(not differ(T, T_reg) for T in candidates):
             candidates.insert(0, T_reg)
