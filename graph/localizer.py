@@ -64,6 +64,7 @@ class LocalizerParams:
     surface_min_points: int = 200  # fewer points than this: no check (the registration needs the landmarks above)
     surface_min_support: float = 0.9  # a pose must put this fraction of the points on the model's surfaces ...
     surface_margin: float = 0.3  # ... and every other candidate pose this much less
+    surface_retry_s: float = 1.0  # with no new landmark, the check is retried this often as the walls come in view
     surface_fit: bool = True  # once localized, each keyframe's depth points fitted to the walls join the graph
     surface_fit_max_correction_m: float = 0.5  # a fit that moves the pose further is not trusted (wrong wall)
     surface_fit_sigma_m: float = 0.05  # a fitted point's distance to its wall, model against reality (m)
@@ -120,6 +121,7 @@ class Localizer:
         self._T_odom_prev: np.ndarray | None = None
         self._last_link_ns: int | None = None
         self._registered_with = 0
+        self._registered_at: tuple[int, int] = (0, 0)  # (stamp_ns, depth points) of the last registration
         self._carried: list[tuple[np.ndarray, list[Sighting]]] = []  # (T_odom_body, sightings) since the keyframe
         self._points: deque[tuple[int, np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
         self.surface_checks: list[tuple[int, list[float]]] = []  # (stamp_ns, support of each candidate pose)
@@ -140,7 +142,7 @@ class Localizer:
             self._points.append((i, band_points(points_body, up_body, seed=i)))
         self._add_sightings(i, T_map_body, carried + list(sightings), up_body, stamp_ns)
         self.graph.update()
-        if self._should_register():
+        if self._should_register(stamp_ns):
             self._register(stamp_ns)
         elif self.graph.has_anchor:
             self._link_new_landmarks(stamp_ns)
@@ -247,13 +249,23 @@ class Localizer:
         return [j for j, lm in sorted(self.landmarks.items())
                 if lm.n_sightings >= self.params.min_sightings_to_register]
 
-    def _should_register(self) -> bool:
+    def _should_register(self, stamp_ns: int) -> bool:
+        """While not localized: when a landmark was confirmed since the last attempt, or (with the surface
+        check) when `surface_retry_s` passed and more depth points came in: the walls decide as they are seen."""
+        if self.status not in ("exploring", "ambiguous"):
+            return False
         n = len(self._confirmed())
-        needed = candidates_from(self.registrar) if self._can_check_surfaces() else self.registrar.min_landmarks
-        return self.status in ("exploring", "ambiguous") and n >= needed and n > self._registered_with
+        if not self._can_check_surfaces():
+            return n >= self.registrar.min_landmarks and n > self._registered_with
+        last_ns, last_points = self._registered_at
+        more_walls = (stamp_ns - last_ns) * 1e-9 >= self.params.surface_retry_s and self._n_points() > last_points
+        return n >= candidates_from(self.registrar) and (n > self._registered_with or more_walls)
+
+    def _n_points(self) -> int:
+        return sum(len(p) for _, p in self._points)
 
     def _can_check_surfaces(self) -> bool:
-        return self.surfaces is not None and sum(len(p) for _, p in self._points) >= self.params.surface_min_points
+        return self.surfaces is not None and self._n_points() >= self.params.surface_min_points
 
     def _points_map(self) -> np.ndarray:
         """The recent keyframes' depth points in the map frame, at the keyframes' current estimates."""
@@ -303,6 +315,7 @@ class Localizer:
         corners = [self.landmarks[j].corners_map for j in keys]
         result = self.registrar(observed, corners)
         self._registered_with = len(keys)
+        self._registered_at = (stamp_ns, self._n_points())
         self.inliers = result.inliers
         T_cad_map = self._choose_by_surfaces(result, stamp_ns)
         if T_cad_map is None:

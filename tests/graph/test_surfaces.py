@@ -220,3 +220,28 @@ def test_a_measured_cad_pose_moves_the_keyframe() -> None:
     graph.update(extra_iterations=2)
     t = graph.T_map_body(1)[:3, 3]
     assert abs(t[0] - 1.3) < 0.02 and abs(t[1] + 0.2) < 0.02 and abs(t[2]) < 0.05
+
+
+def test_the_check_is_retried_as_the_walls_come_into_view(room: SurfaceIndex) -> None:
+    """Two doors and the outer walls only: the half-turn about the room's centre fits as well, and the status
+    stays ambiguous; once the partition comes into view the same two doors settle it, with no new landmark."""
+    half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))
+    registrar = CandidatesRegistrar([half_turn @ T_TRUE, T_TRUE])
+    model = corridor_model()
+    rng = np.random.default_rng(5)
+    loc = Localizer(model, PoseGraph(), registrar, LocalizerParams(surface_min_points=100), surfaces=room)
+    sightings = sightings_from(model, make_T(np.eye(3), np.array([1.0, 0.0, 1.4])))[:2]
+    statuses = []
+    for k in range(8):
+        T_map_body = make_T(np.eye(3), np.array([0.05 * k, 0.0, 1.4]))
+        if k < 3:
+            points_cad = wall_points(rng, 150, n_walls=4)
+        else:  # the partition (x = 5 m, y in 0..4 m)
+            points_cad = np.column_stack([np.full(300, 5.0), rng.uniform(0, 4, 300), rng.uniform(1.0, 1.8, 300)])
+        points_body = apply(np.linalg.inv(T_TRUE @ T_map_body), points_cad)
+        loc.add_keyframe(k * 500_000_000, T_map_body, sightings, UP, points_body=points_body)
+        statuses.append(loc.status)
+    assert statuses[2] == "ambiguous" and statuses[-1] == "localized"
+    assert registrar.calls >= 2  # retried with the same two landmarks
+    T_cad_map = loc.graph.T_cad_map()  # the true pose, not the half-turn 10 m away (the graph has moved it a
+    assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.1  # few cm since)
