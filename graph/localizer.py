@@ -267,10 +267,12 @@ class Localizer:
     def _can_check_surfaces(self) -> bool:
         return self.surfaces is not None and self._n_points() >= self.params.surface_min_points
 
-    def _points_map(self) -> np.ndarray:
-        """The recent keyframes' depth points in the map frame, at the keyframes' current estimates."""
+    def _points_map(self, at_most: int = 2000) -> np.ndarray:
+        """The recent keyframes' depth points in the map frame, at the keyframes' current estimates; `at_most`
+        of them, evenly drawn (a support known to ~1 % is enough, and each point costs a k-d tree query)."""
         parts = [apply(self.graph.T_map_body(i), p) for i, p in self._points if len(p)]
-        return np.vstack(parts) if parts else np.zeros((0, 3))
+        points = np.vstack(parts) if parts else np.zeros((0, 3))
+        return points[:: int(np.ceil(len(points) / at_most))] if len(points) > at_most else points
 
     def _choose_by_surfaces(self, result: Alignment, stamp_ns: int) -> np.ndarray | None:
         """The pose to anchor the map with, or None: the registrar's answer, checked by the walls (graph.surfaces).

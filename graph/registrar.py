@@ -106,9 +106,11 @@ class StoredMapRegistrar:
 
 
 class FirstOfRegistrar:
-    """Tries each registrar in turn (when the map holds enough landmarks for it); the first answer that is
-    not `not_localized` wins. A stored map first, the whole model after: re-localization falls back to a
-    fresh localization when the new flight starts outside the stored map."""
+    """Tries each registrar in turn (when the map holds enough landmarks for it); the first 'localized' answer
+    wins. A stored map first, the whole model after: re-localization falls back to a fresh localization when
+    the new flight starts outside the stored map, or when the stored map's few landmarks leave it ambiguous.
+    Without a 'localized' answer, the first 'ambiguous' one that offers candidate poses (for the localizer's
+    surface check) is returned, else the first 'ambiguous' one."""
 
     def __init__(self, registrars: list[Registrar]) -> None:
         self.registrars = registrars
@@ -116,11 +118,14 @@ class FirstOfRegistrar:
         self.candidates_from = min(candidates_from(r) for r in registrars)
 
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
-        result = Alignment("not_localized", None)
+        ambiguous: list[Alignment] = []
         for registrar in self.registrars:
             if len(landmarks) < candidates_from(registrar):
                 continue
             result = registrar(landmarks, corners_map)
-            if result.status != "not_localized":
+            if result.status == "localized":
                 return result
-        return result
+            if result.status == "ambiguous":
+                ambiguous.append(result)
+        with_candidates = [a for a in ambiguous if a.candidates]
+        return (with_candidates or ambiguous or [Alignment("not_localized", None)])[0]

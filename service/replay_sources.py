@@ -54,7 +54,8 @@ class TruthNoise:
     gravity_sigma_rad: float = 0.005
     miss_rate: float = 0.1
     min_visible_corners: int = 3  # three corners complete a rectangle
-    depth_stride_px: int = 20  # depth points: every this many pixels of the true depth image, with the noise above
+    depth_stride_px: int = 20  # depth points: every this many pixels of the true depth image, with the noise above,
+    depth_every: int = 4  # ... on every this many frames (a keyframe takes the newest)
 
 
 class TruthSource:
@@ -63,6 +64,8 @@ class TruthSource:
     def __init__(self, noise: TruthNoise | None = None, seed: int = 0) -> None:
         self.noise = noise or TruthNoise()
         self.rng = np.random.default_rng(seed)
+        self.depth_rng = np.random.default_rng([seed, 1])  # its own stream: depth leaves the sightings' noise alone
+        self._n = 0
         self._T_true_prev: np.ndarray | None = None
         self._T_odom: np.ndarray | None = None
         self._stamp_prev = 0
@@ -76,8 +79,10 @@ class TruthSource:
         T_odom_body = self._odometry(T_cad_body, frame.stamp_ns)
         up_body = T_cad_body[:3, :3].T @ np.array([0.0, 0.0, 1.0]) + self.rng.normal(0, self.noise.gravity_sigma_rad, 3)
         up_body /= np.linalg.norm(up_body)
+        with_depth = self._n % self.noise.depth_every == 0
+        self._n += 1
         return FrameInput(frame.stamp_ns, T_odom_body, self._sightings(gt, T_body_cam), up_body, T_body_cam,
-                          self._points(gt, frame.stereo.info, T_body_cam))
+                          self._points(gt, frame.stereo.info, T_body_cam) if with_depth else None)
 
     def _points(self, gt, info, T_body_cam: np.ndarray) -> np.ndarray | None:  # noqa: ANN001 - pb types
         """Points of the true depth image on a grid, with the stereo depth noise, body frame."""
@@ -91,7 +96,7 @@ class TruthSource:
         z = depth_m[v, u].astype(float)
         ok = np.isfinite(z) & (z > 0.3)
         u, v, z = u[ok], v[ok], z[ok]
-        z = z + self.rng.normal(0, 1, len(z)) * self.noise.depth_sigma_per_m2 * z * z
+        z = z + self.depth_rng.normal(0, 1, len(z)) * self.noise.depth_sigma_per_m2 * z * z
         points_cam = np.column_stack([(u - info.cx) * z / info.fx, (v - info.cy) * z / info.fy, z])
         return points_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3]
 
