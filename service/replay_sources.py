@@ -55,7 +55,7 @@ class TruthNoise:
     miss_rate: float = 0.1
     min_visible_corners: int = 3  # three corners complete a rectangle
     depth_stride_px: int = 20  # depth points: every this many pixels of the true depth image, with the noise above,
-    depth_every: int = 4  # ... on every this many frames (a keyframe takes the newest)
+    depth_every: int = 1  # ... on every this many frames (a keyframe takes the newest): a depth camera's rate
 
 
 class TruthSource:
