@@ -123,6 +123,7 @@ class Localizer:
         self._registered_with = 0
         self._registered_at: tuple[int, int] = (0, 0)  # (stamp_ns, depth points) of the last registration
         self._carried: list[tuple[np.ndarray, list[Sighting]]] = []  # (T_odom_body, sightings) since the keyframe
+        self._depth: tuple[np.ndarray, np.ndarray] | None = None  # (T_odom_body, points_body): newest since it
         self._points: deque[tuple[int, np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
         self.surface_checks: list[tuple[int, list[float]]] = []  # (stamp_ns, support of each candidate pose)
         self.surface_fits = 0  # keyframes whose depth was fitted to the walls
@@ -133,8 +134,12 @@ class Localizer:
                      up_body: np.ndarray | None = None, with_covariance: bool = False,
                      points_body: np.ndarray | None = None) -> Estimate:
         """One keyframe: odometry pose T_odom_body (4x4, odometry frame z up), sightings, gravity's up (body),
-        and optionally 3-D points (N, 3) the camera measured at this keyframe, body frame (stereo depth)."""
+        and optionally 3-D points (N, 3) the camera measured at this keyframe, body frame (stereo depth); without
+        them, the newest given to `add_depth` since the last keyframe."""
         carried = self._carry_to(T_odom_body)
+        depth, self._depth = self._depth, None
+        if points_body is None and depth is not None:  # into this keyframe's body frame, by the odometry
+            points_body = apply(np.linalg.inv(T_odom_body) @ depth[0], depth[1])
         i, T_map_body = self._predict(T_odom_body)
         self.keyframe_stamps_ns.append(stamp_ns)
         up_body = self._add_gravity(i, T_map_body, up_body)
@@ -161,6 +166,11 @@ class Localizer:
             self._carried.append((T_odom_body, list(sightings)))
         T_map_body = self.graph.T_map_body(i) @ np.linalg.inv(self._T_odom_prev) @ T_odom_body
         return self._estimate_at(stamp_ns, i, T_map_body)
+
+    def add_depth(self, T_odom_body: np.ndarray, points_body: np.ndarray) -> None:
+        """Depth points (N, 3, body frame) measured at odometry pose T_odom_body between keyframes: the newest
+        enter with the next keyframe, moved into its body frame (as `track`'s sightings are)."""
+        self._depth = (np.asarray(T_odom_body, float), np.asarray(points_body, float))
 
     # --- steps ------------------------------------------------------------------------------------------------
 

@@ -29,7 +29,6 @@ from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, mode
 from graph.posegraph import PoseGraph
 from graph.registrar import Registrar, StoredMapRegistrar, candidates_from
 from graph.relocalize import Alignment, KnownRect, ObservedRect
-from graph.rigid import apply
 from graph.surfaces import SurfaceIndex
 from service.inputs import ImuIn, Observation, ObservationsIn, OdometryIn
 from service.recording import matrix_from_pose, pose_from_matrix, vector3
@@ -103,7 +102,6 @@ class LocalizerBackend:
         self.model = model
         self.params = params or BackendParams()
         self.localizer = Localizer(model, PoseGraph(), registrar, self.params.localizer, T_body_cam, surfaces)
-        self._points: tuple[np.ndarray, np.ndarray] | None = None  # (T_odom_body, points_body) of the newest depth
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
         self._odometry: OrderedDict[int, np.ndarray] = OrderedDict()  # stamp_ns -> T_odom_body
         self._pending: list[ObservationsIn] = []  # sightings that arrived before the odometry of their stamp
@@ -162,7 +160,7 @@ class LocalizerBackend:
         of registrations (graph.surfaces). Without odometry at that stamp they are dropped."""
         T_odom_body = self.odometry_at(stamp_ns)
         if T_odom_body is not None and len(points_body):
-            self._points = (T_odom_body, np.asarray(points_body, float))
+            self.localizer.add_depth(T_odom_body, points_body)
 
     def observations(self, ev: ObservationsIn) -> Estimate | None:
         """A keyframe with these sightings at the odometry pose of their stamp; None (kept pending until the
@@ -218,13 +216,7 @@ class LocalizerBackend:
     def _keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
         self._last_keyframe_ns = stamp_ns
         self._T_last_keyframe = T_odom_body
-        points_body = None
-        if self._points is not None:  # the newest depth, moved into this keyframe's body frame
-            T_odom_points, points = self._points
-            points_body = apply(np.linalg.inv(T_odom_body) @ T_odom_points, points)
-            self._points = None
-        return self._remember(self.localizer.add_keyframe(stamp_ns, T_odom_body, sightings, self._up_body,
-                                                          points_body=points_body))
+        return self._remember(self.localizer.add_keyframe(stamp_ns, T_odom_body, sightings, self._up_body))
 
     def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting] | None = None) -> Estimate:
         """The pose between keyframes; sightings given here enter the graph with the next keyframe."""

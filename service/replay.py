@@ -22,7 +22,7 @@ from graph.localizer import Estimate, Localizer, LocalizerParams, model_registra
 from graph.mapstore import StoredMap
 from graph.posegraph import IsamSettings, PoseGraph
 from graph.registrar import FirstOfRegistrar, Registrar, StoredMapRegistrar
-from graph.rigid import apply, rotation_angle_deg
+from graph.rigid import rotation_angle_deg
 from graph.surfaces import SurfaceIndex
 from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from service.replay_sources import FrameInput, ObservationSource, TruthSource
@@ -135,8 +135,6 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
     t_kf = t0 = None
     busy_s = 0.0
     busy_at_localized: float | None = None
-    points_body: np.ndarray | None = None
-    T_points: np.ndarray | None = None
     for frame in read_flight(flight):
         start = time.perf_counter()
         inputs: FrameInput = source(frame)
@@ -146,14 +144,9 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
         t_s = (frame.stamp_ns - t0) * 1e-9
         is_kf = policy.is_keyframe(T_kf, inputs.T_odom_body, t_s - (t_kf if t_kf is not None else -1e9))
         if inputs.points_body is not None:
-            points_body = inputs.points_body  # the newest depth points, given with the next keyframe
-            T_points = inputs.T_odom_body
+            localizer.add_depth(inputs.T_odom_body, inputs.points_body)  # given with the next keyframe
         if is_kf:
-            if points_body is not None and T_points is not None:  # into this keyframe's body frame
-                points_body = apply(np.linalg.inv(inputs.T_odom_body) @ T_points, points_body)
-            est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body,
-                                         points_body=points_body)
-            points_body = T_points = None
+            est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body)
             T_kf, t_kf = inputs.T_odom_body, t_s
         else:
             est = localizer.track(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings)
