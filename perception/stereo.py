@@ -81,6 +81,17 @@ def back_project(uv_px: np.ndarray, depth_m: np.ndarray, rig: StereoRig) -> np.n
     return np.stack([d * (uv[:, 0] - rig.cx_px) / rig.fx_px, d * (uv[:, 1] - rig.cy_px) / rig.fy_px, d], axis=1)
 
 
+def depth_grid(depth_m: np.ndarray, stride_px: int, min_m: float,
+               max_m: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) on a grid (every `stride_px`, from half a stride in) whose depth lies in (min_m, max_m),
+    and those depths (N,) in metres, float64: the points to `back_project`."""
+    s = stride_px
+    v, u = np.mgrid[s // 2:depth_m.shape[0]:s, s // 2:depth_m.shape[1]:s]
+    z = depth_m[v, u].astype(np.float64)
+    ok = np.isfinite(z) & (z > min_m) & (z < max_m)
+    return np.column_stack([u[ok], v[ok]]), z[ok]
+
+
 def ray_cam(uv_px: np.ndarray, rig: StereoRig) -> np.ndarray:
     """Viewing rays (N,3), unit length, through pixels (N,2), in the camera frame (eq. 2 with d = 1, normalised)."""
     rays = back_project(uv_px, np.ones(len(np.asarray(uv_px).reshape(-1, 2))), rig)

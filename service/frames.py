@@ -74,15 +74,10 @@ class PerceptionPipeline:
 
     def _depth_points_cam(self, left: np.ndarray, right: np.ndarray, rig) -> np.ndarray:  # noqa: ANN001 - StereoRig
         """(N, 3) camera-frame points of the SGBM depth on a grid (eq. 2 back-projection), 0.3-8 m."""
-        from perception.stereo import depth_from_disparity
+        from perception.stereo import back_project, depth_from_disparity, depth_grid
 
         depth_m = depth_from_disparity(self.perception.matcher.disparity_px(left, right), rig)
-        s = self.depth_stride_px
-        v, u = np.mgrid[s // 2:depth_m.shape[0]:s, s // 2:depth_m.shape[1]:s]
-        z = depth_m[v, u]
-        ok = np.isfinite(z) & (z > 0.3) & (z < 8.0)
-        u, v, z = u[ok], v[ok], z[ok].astype(float)
-        return np.column_stack([(u - rig.cx_px) * z / rig.fx_px, (v - rig.cy_px) * z / rig.fy_px, z])
+        return back_project(*depth_grid(depth_m, self.depth_stride_px, 0.3, 8.0), rig)
 
 
 def forward_T_body_cam(forward_m: float = 0.10, left_m: float = 0.06) -> np.ndarray:

@@ -88,17 +88,15 @@ class TruthSource:
         """Points of the true depth image on a grid, with the stereo depth noise, body frame."""
         if not gt.HasField("depth"):
             return None
+        from perception.calib import StereoRig
+        from perception.stereo import back_project, depth_grid
         from service.recording import decode_image
 
-        depth_m = decode_image(gt.depth)
-        step = self.noise.depth_stride_px
-        v, u = np.mgrid[step // 2:depth_m.shape[0]:step, step // 2:depth_m.shape[1]:step]
-        z = depth_m[v, u].astype(float)
-        ok = np.isfinite(z) & (z > 0.3)
-        u, v, z = u[ok], v[ok], z[ok]
+        uv, z = depth_grid(decode_image(gt.depth), self.noise.depth_stride_px, 0.3)
         z = z + self.depth_rng.normal(0, 1, len(z)) * self.noise.depth_sigma_per_m2 * z * z
-        points_cam = np.column_stack([(u - info.cx) * z / info.fx, (v - info.cy) * z / info.fy, z])
-        return points_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3]
+        rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
+        points_cam = back_project(uv, z, rig)
+        return apply(T_body_cam, points_cam)
 
     def _odometry(self, T_cad_body: np.ndarray, stamp_ns: int) -> np.ndarray:
         n = self.noise
