@@ -297,25 +297,27 @@ class Localizer:
             return T_reg
         assert self.surfaces is not None
         points_map = self._points_map()
-
-        def differ(A: np.ndarray, B: np.ndarray) -> bool:
-            return _poses_differ(A, B, points_map)
-
         candidates = [T for T, _ in result.candidates]
-        if T_reg is not None and not any(not differ(T, T_reg) for T in candidates):
-            candidates.insert(0, T_reg)
+        moved = [apply(T, points_map) for T in candidates]  # the points under each candidate, CAD frame
+        if T_reg is not None:
+            moved_reg = apply(T_reg, points_map)
+            if all(_poses_differ(T, T_reg, m, moved_reg) for T, m in zip(candidates, moved, strict=True)):
+                candidates.insert(0, T_reg)
+                moved.insert(0, moved_reg)
         if not candidates:
             return None
-        support = np.array([self.surfaces.support(apply(T, points_map)) for T in candidates])
+        support = np.array([self.surfaces.support(m) for m in moved])
         self.surface_checks.append((stamp_ns, support.round(3).tolist()))
         log.info("surface check of %d candidate poses (%d points): support %s", len(candidates), len(points_map),
                  ", ".join(f"{s:.2f}" for s in support))
         best = int(np.argmax(support))
-        others = [s for T, s in zip(candidates, support, strict=True) if differ(T, candidates[best])]
+        others = [s for T, m, s in zip(candidates, moved, support, strict=True)
+                  if _poses_differ(T, candidates[best], m, moved[best])]
         confirmed = support[best] >= p.surface_min_support and all(s <= support[best] - p.surface_margin
                                                                      for s in others)
         if T_reg is not None:
-            i_reg = next(k for k, T in enumerate(candidates) if not differ(T, T_reg))
+            i_reg = next(k for k, (T, m) in enumerate(zip(candidates, moved, strict=True))
+                         if not _poses_differ(T, T_reg, m, moved_reg))
             beaten = support[best] >= support[i_reg] + p.surface_margin
             return None if beaten or (confirmed and best != i_reg) else T_reg
         return candidates[best] if confirmed else None
@@ -444,11 +446,12 @@ def model_registrar(model: BuildingModel, params: LocalizerParams, storey_hint: 
                           candidates_from=params.verified_min_landmarks if with_surfaces else None)
 
 
-def _poses_differ(A: np.ndarray, B: np.ndarray, points_map: np.ndarray, apart_m: float = 0.5,
+def _poses_differ(A: np.ndarray, B: np.ndarray, moved_A: np.ndarray, moved_B: np.ndarray, apart_m: float = 0.5,
                   turned_deg: float = 5.0) -> bool:
-    """Two candidate T_cad_map are different poses where they place the points (map frame) `apart_m` apart on
-    average, or differ in rotation by `turned_deg` (not at the map's origin, which may be far away)."""
-    moved = float(np.linalg.norm(apply(A, points_map) - apply(B, points_map), axis=1).mean())
+    """Two candidate T_cad_map are different poses where they place the points (`moved_A`, `moved_B`: the same
+    map-frame points under each) `apart_m` apart on average, or differ in rotation by `turned_deg` (not at the
+    map's origin, which may be far away)."""
+    moved = float(np.linalg.norm(moved_A - moved_B, axis=1).mean())
     return moved > apart_m or rotation_angle_deg(A[:3, :3] @ B[:3, :3].T) > turned_deg
 
 
