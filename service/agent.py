@@ -254,7 +254,7 @@ class VehicleAgent:
         self.drone.step(dt_s, v_body, yaw_rate)
         self.stamp_ns += int(round(dt_s * 1e9))
         T_true = self.drone.T_cad_body
-        imu = pb.Imu(accel_mps2=vector3(T_true[:3, :3].T @ np.array([0.0, 0.0, GRAVITY_MPS2])),
+        imu = pb.Imu(accel_mps2=vector3(self.drone.specific_force_body(GRAVITY_MPS2)),
                      gyro_radps=pb.Vector3(z=yaw_rate))
         imu.header.stamp_ns = self.stamp_ns
         imu.header.frame_id = "body"

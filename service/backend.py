@@ -3,8 +3,8 @@
 `LocalizerBackend` feeds the pose-graph localizer (`graph.localizer.Localizer`): odometry poses are buffered by
 stamp; a set of sightings (ObservedFeatures in the body, left-camera or odometry frame, or sightings made by
 the perception pipeline from a stereo frame) becomes a keyframe at the odometry pose of its stamp; any other
-odometry sample only moves the last estimate (`track`). The IMU's mean specific force gives "up" in the body
-frame.
+odometry sample only moves the last estimate (`track`). The IMU's specific force, less the odometry's own
+acceleration, gives "up" in the body frame (perception.gravity).
 
 Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cam_left, cad. Metres.
 
@@ -30,6 +30,7 @@ from graph.posegraph import PoseGraph
 from graph.registrar import Registrar, StoredMapRegistrar, candidates_from
 from graph.relocalize import Alignment, KnownRect, ObservedRect
 from graph.surfaces import SurfaceIndex
+from perception.gravity import GravityEstimator
 from service.inputs import ImuIn, Observation, ObservationsIn, OdometryIn
 from service.recording import matrix_from_pose, pose_from_matrix, vector3
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
@@ -107,6 +108,8 @@ class LocalizerBackend:
         self._pending: list[ObservationsIn] = []  # sightings that arrived before the odometry of their stamp
         self.unmatched = 0  # sightings dropped: no odometry near their stamp
         self._up_body: np.ndarray | None = None
+        self._gravity = GravityEstimator()
+        self._accel_body: list[np.ndarray] = []  # specific forces since the last odometry sample
         self._last_keyframe_ns: int | None = None
         self._T_last_keyframe: np.ndarray | None = None
         p = self.params
@@ -135,13 +138,18 @@ class LocalizerBackend:
     # --- inputs -------------------------------------------------------------------------------------------------
 
     def imu(self, ev: ImuIn) -> None:
-        """Low-passed specific force: up in the body frame (a hovering or slowly moving vehicle)."""
+        """A specific force sample: with the next odometry sample, it gives up in the body frame
+        (perception.gravity: the odometry's own acceleration is taken out)."""
         norm = float(np.linalg.norm(ev.accel_mps2))
-        if 5.0 < norm < 15.0:
-            up = ev.accel_mps2 / norm
-            self._up_body = up if self._up_body is None else 0.98 * self._up_body + 0.02 * up
+        if 5.0 < norm < 15.0:  # a knock or a free fall is not gravity
+            self._accel_body.append(np.asarray(ev.accel_mps2, float))
+            del self._accel_body[:-256]
 
     def odometry(self, ev: OdometryIn) -> Estimate:
+        if self._accel_body:
+            up = self._gravity.update(ev.stamp_ns, ev.T_map_body, np.array(self._accel_body))
+            self._up_body = up if up is not None else self._up_body
+            self._accel_body = []
         self._odometry[ev.stamp_ns] = ev.T_map_body
         while len(self._odometry) > 512:
             self._odometry.popitem(last=False)

@@ -143,13 +143,18 @@ def _rot_z(yaw: float) -> np.ndarray:
 class VisualOdometry:
     """T_odom_body from the stereo visual odometry on the recorded images, its rotation checked against the
     IMU's gyroscope (integrated over the frame's samples); the odometry frame is the first body frame levelled
-    by the IMU's gravity."""
+    by the IMU's gravity. After each frame, `up_body` is gravity's direction with the odometry's acceleration
+    taken out of the specific force (perception.gravity)."""
 
     def __init__(self) -> None:
+        from perception.gravity import GravityEstimator
+
         self._odometry: StereoOdometry | None = None
         self._T_odom_cam0: np.ndarray | None = None
         self._last_imu_ns: int | None = None
+        self._gravity = GravityEstimator()
         self.points_body: np.ndarray | None = None  # the last frame's stereo points when it became a keyframe
+        self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray,
                  up_body: np.ndarray | None) -> np.ndarray:
@@ -174,7 +179,9 @@ class VisualOdometry:
         result = self._odometry.track(left, right, R_prev_cur)
         self.points_body = None if result.keyframe_points_cam is None else apply(T_body_cam,
                                                                                   result.keyframe_points_cam)
-        return self._T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
+        T_odom_body = self._T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
+        self.up_body = self._gravity.update(frame.stamp_ns, T_odom_body, _specific_forces(frame))
+        return T_odom_body
 
 
 class TruthFeaturesWithVisualOdometry:
@@ -189,18 +196,19 @@ class TruthFeaturesWithVisualOdometry:
         from service.recording import decode_image
 
         inputs = self.truth(frame)
-        up_body = _up_from_imu(frame)
-        T_odom_body = self.odometry(frame, decode_image(frame.stereo.left), decode_image(frame.stereo.right), up_body)
-        return FrameInput(inputs.stamp_ns, T_odom_body, inputs.sightings, up_body, inputs.T_body_cam,
+        T_odom_body = self.odometry(frame, decode_image(frame.stereo.left), decode_image(frame.stereo.right),
+                                    _up_from_imu(frame))
+        return FrameInput(inputs.stamp_ns, T_odom_body, inputs.sightings, self.odometry.up_body, inputs.T_body_cam,
                           self.odometry.points_body)
 
 
 class PerceptionSource:
     """The perception chain (doors and windows in 3D) and the stereo visual odometry on recorded images.
 
-    Gravity comes from the IMU's specific force (its mean over the frame's samples: up in the body frame);
-    the odometry frame is the first body frame levelled by it. The chain runs on every `detect_every`-th
-    frame; sightings get the id of the nearest ground-truth feature (within 0.5 m) for scoring only.
+    Gravity comes from the IMU's specific force less the odometry's acceleration (VisualOdometry.up_body);
+    the odometry frame is the first body frame levelled by the first frame's specific force. The chain runs on
+    every `detect_every`-th frame; sightings get the id of the nearest ground-truth feature (within 0.5 m) for
+    scoring only.
     """
 
     def __init__(self, detect_every: int = 3, detector_model: Path | None = None) -> None:
@@ -222,8 +230,8 @@ class PerceptionSource:
         info = frame.stereo.info
         T_body_cam = matrix_from_pose(info.T_body_cam)
         left, right = decode_image(frame.stereo.left), decode_image(frame.stereo.right)
-        up_body = _up_from_imu(frame)
-        T_odom_body = self.odometry(frame, left, right, up_body)
+        T_odom_body = self.odometry(frame, left, right, _up_from_imu(frame))
+        up_body = self.odometry.up_body
         sightings: list[Sighting] = []
         if self._n % self.detect_every == 0:
             rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
@@ -255,11 +263,17 @@ def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:
     return R
 
 
+def _specific_forces(frame: FlightFrame) -> np.ndarray:
+    """(K, 3) the frame's IMU specific forces, body frame, m/s^2."""
+    return np.array([[s.accel_mps2.x, s.accel_mps2.y, s.accel_mps2.z] for s in frame.imu], float).reshape(-1, 3)
+
+
 def _up_from_imu(frame: FlightFrame) -> np.ndarray | None:
-    """Unit up direction in the body frame: the mean specific force of the frame's IMU samples."""
+    """Unit up direction in the body frame: the mean specific force of the frame's IMU samples (gravity plus
+    the vehicle's acceleration: a first guess, to level the odometry frame at the start)."""
     if not frame.imu:
         return None
-    f = np.mean([[s.accel_mps2.x, s.accel_mps2.y, s.accel_mps2.z] for s in frame.imu], axis=0)
+    f = _specific_forces(frame).mean(axis=0)
     norm = float(np.linalg.norm(f))
     return f / norm if norm > 1e-6 else None
 

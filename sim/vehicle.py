@@ -42,6 +42,7 @@ class KinematicDrone:
         self.T_cad_body = np.array(T_cad_body, float)
         self.limits = limits or DroneLimits()
         self.velocity_cad = np.zeros(3)  # m/s
+        self.accel_cad = np.zeros(3)  # m/s^2, over the last step (what an accelerometer adds to gravity)
         self.distance_m = 0.0
 
     def step(self, dt_s: float, velocity_body_cmd: np.ndarray, yaw_rate_cmd_radps: float) -> None:
@@ -56,11 +57,17 @@ class KinematicDrone:
         if np.linalg.norm(dv) > dv_max:
             dv *= dv_max / np.linalg.norm(dv)
         self.velocity_cad = self.velocity_cad + dv
+        self.accel_cad = dv / dt_s if dt_s > 0 else np.zeros(3)
         yaw = yaw_of(self.T_cad_body) + float(np.clip(yaw_rate_cmd_radps, -lim.max_yaw_rate_radps,
                                                       lim.max_yaw_rate_radps)) * dt_s
         step = self.velocity_cad * dt_s
         self.distance_m += float(np.linalg.norm(step))
         self.T_cad_body = level_pose(self.T_cad_body[:3, 3] + step, yaw)
+
+
+    def specific_force_body(self, gravity_mps2: float = 9.81) -> np.ndarray:
+        """(3,) what an accelerometer on the body measures now: gravity's reaction plus the acceleration, m/s^2."""
+        return self.T_cad_body[:3, :3].T @ (self.accel_cad + np.array([0.0, 0.0, gravity_mps2]))
 
 
 class DriftingOdometry:

@@ -73,3 +73,25 @@ def test_the_demo_exploration_route_is_long_and_stays_in_free_space(planner: Pla
     cells = [grid.cell_of(p) for p in route[1:]]
     assert all(free[c] for c in cells)
     assert all(line_of_sight(free, a, b) for a, b in zip(cells[:-1], cells[1:], strict=True))
+
+
+def test_the_vehicles_imu_measures_its_acceleration_and_gravity_is_recovered() -> None:
+    """The simulated vehicle's accelerometer reports gravity's reaction plus its acceleration (as a real one
+    does); perception.gravity, given the odometry, takes the acceleration back out of it."""
+    from perception.gravity import GravityEstimator
+
+    drone = KinematicDrone(level_pose(np.zeros(3), 0.0))
+    estimator = GravityEstimator()
+    dt_s, leans, errors = 1.0 / 30.0, [], []
+    for k in range(150):  # speed up along x, turn while cruising, brake
+        command = (np.array([1.0, 0.0, 0.0]), 0.0) if k < 60 else (np.array([1.0, 0.0, 0.0]), 1.0) if k < 110 \
+            else (np.zeros(3), 0.0)
+        drone.step(dt_s, *command)
+        f_body = drone.specific_force_body()
+        assert np.allclose(drone.T_cad_body[:3, :3] @ f_body, drone.accel_cad + [0.0, 0.0, 9.81])
+        up = estimator.update(int(k * dt_s * 1e9), drone.T_cad_body, f_body[None, :])
+        if k >= 30:
+            leans.append(np.degrees(np.arccos(f_body[2] / np.linalg.norm(f_body))))
+            errors.append(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0))))  # the drone flies level: up = z
+    assert max(leans) > 5.0  # 1-1.5 m/s^2 lean the specific force by 6-9 degrees
+    assert np.median(errors) < 0.5 and max(errors) < 0.3 * max(leans)

@@ -1,0 +1,70 @@
+"""Gravity's direction in the body frame from the IMU's specific force, the vehicle's own acceleration removed.
+
+An accelerometer measures the specific force f = R_odom_body^T (a + g e_z): the reaction to gravity plus the
+vehicle's acceleration a. Taking f alone as "up" tilts it by atan(|a| / g): 3 degrees at 0.5 m/s^2, 6.5
+degrees in a 1.5 m/s turn of 2 m radius. That tilt reaches the pose graph through its roll/pitch prior, and at
+3 degrees it moves a point on the floor 5 m ahead by 0.26 m.
+
+The odometry already knows the acceleration. Between two instants t1 and t2 the mean acceleration is
+(v(t2) - v(t1)) / (t2 - t1), whatever it did in between; lines fitted to the odometry's positions near t1 and
+t2 give those velocities. The frames' specific forces between t1 and t2, rotated into the odometry frame,
+average to that mean acceleration plus g e_z. Their difference is up in the odometry frame, and the newest
+attitude takes it into the body frame. Since up is measured in the odometry frame each time, the tilt the
+odometry's rotation accumulates is absorbed too.
+
+Frames: odometry frame (gravity roughly -z), body frame of the IMU; metres, seconds.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class GravityParams:
+    window_s: float = 1.0  # positions and specific forces of this long a span estimate the mean acceleration
+    min_span_s: float = 0.5  # a shorter history gives the specific force alone (as at take-off)
+    max_accel_mps2: float = 4.0  # a larger fitted acceleration is not a flight's: no estimate for this frame
+    end_s: float = 0.25  # the velocities at the window's ends: lines fitted to this long a part of it
+
+
+class GravityEstimator:
+    """Up (unit, body frame) per frame from the IMU samples and the odometry pose (see module doc)."""
+
+    def __init__(self, params: GravityParams | None = None) -> None:
+        self.params = params or GravityParams()
+        self._history: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # (t_s, p_odom, f_odom)
+
+    def update(self, stamp_ns: int, T_odom_body: np.ndarray, accel_body_mps2: np.ndarray) -> np.ndarray | None:
+        """This frame's IMU specific forces (K, 3, body frame, m/s^2) and odometry pose (4x4) -> up in the body
+        frame, or None without IMU samples (or when the odometry jumped)."""
+        f = np.asarray(accel_body_mps2, float).reshape(-1, 3)
+        if len(f) == 0:
+            return None
+        R = np.asarray(T_odom_body, float)[:3, :3]
+        t_s = stamp_ns * 1e-9
+        self._history.append((t_s, np.asarray(T_odom_body, float)[:3, 3].copy(), R @ f.mean(axis=0)))
+        while t_s - self._history[0][0] > self.params.window_s:
+            self._history.popleft()
+        t = np.array([h[0] for h in self._history])
+        end = self.params.end_s
+        first, last = t <= t[0] + end, t >= t[-1] - end
+        if t[-1] - t[0] < self.params.min_span_s or first.sum() < 2 or last.sum() < 2:
+            up_odom = self._history[-1][2]  # too little history: the specific force alone
+        else:
+            p = np.array([h[1] for h in self._history])
+            f = np.array([h[2] for h in self._history])
+            # the mean acceleration between the centres of the window's first and last parts is the difference of
+            # their velocities (lines fitted to each part's positions), whatever the acceleration did in between
+            t1, t2 = t[first].mean(), t[last].mean()
+            v1, v2 = np.polyfit(t[first] - t1, p[first], 1)[0], np.polyfit(t[last] - t2, p[last], 1)[0]
+            accel_odom = (v2 - v1) / (t2 - t1)
+            inside = (t >= t1) & (t <= t2)
+            if np.linalg.norm(accel_odom) > self.params.max_accel_mps2 or not inside.any():
+                return None
+            up_odom = f[inside].mean(axis=0) - accel_odom
+        norm = float(np.linalg.norm(up_odom))
+        return R.T @ up_odom / norm if norm > 1e-6 else None
