@@ -4,7 +4,7 @@ Per keyframe: predict the pose from odometry, level it with gravity, add the sig
 as landmark factors (re-observations or new landmarks), update iSAM2 with the new factors only, register the
 map to the building model while exploring (the candidate poses checked against the model's walls where the
 keyframes bring depth points, graph.surfaces), link newly seen landmarks to their CAD features once localized
-and fit the keyframe's depth to the walls, and return the pose in the CAD frame with its status.
+and fit the keyframe's depth to the walls and the floor, and return the pose in the CAD frame with its status.
 
 Frames: map = this flight's odometry frame with z up (gravity); body = x forward, y left, z up;
 cad = the model. Sightings arrive with their 4 corners in the body frame, metres.
@@ -25,7 +25,7 @@ from graph.posegraph import PoseGraph
 from graph.registrar import ModelRegistrar, Registrar, candidates_from
 from graph.relocalize import Alignment, ObservedRect
 from graph.rigid import apply, rotation_angle_deg
-from graph.surfaces import SurfaceIndex, align_to_surfaces, band_points
+from graph.surfaces import SurfaceIndex, align_to_surfaces, band_points, floor_points
 
 log = logging.getLogger(__name__)
 
@@ -124,9 +124,10 @@ class Localizer:
         self._registered_at: tuple[int, int] = (0, 0)  # (stamp_ns, depth points) of the last registration
         self._carried: list[tuple[np.ndarray, list[Sighting]]] = []  # (T_odom_body, sightings) since the keyframe
         self._depth: tuple[np.ndarray, np.ndarray] | None = None  # (T_odom_body, points_body): newest since it
-        self._points: deque[tuple[int, np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
+        # (keyframe, points at the camera's height, points below it: the floor), body frame
+        self._points: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
         self.surface_checks: list[tuple[int, list[float]]] = []  # (stamp_ns, support of each candidate pose)
-        self.surface_fits = 0  # keyframes whose depth was fitted to the walls
+        self.surface_fits = 0  # keyframes whose depth was fitted to the walls (and floor)
 
     # --- the loop ---------------------------------------------------------------------------------------------
 
@@ -144,7 +145,8 @@ class Localizer:
         self.keyframe_stamps_ns.append(stamp_ns)
         up_body = self._add_gravity(i, T_map_body, up_body)
         if points_body is not None and self.surfaces is not None and len(points_body):
-            self._points.append((i, band_points(points_body, up_body, seed=i)))
+            self._points.append((i, band_points(points_body, up_body, seed=i),
+                                 floor_points(points_body, up_body, seed=i)))
         self._add_sightings(i, T_map_body, carried + list(sightings), up_body, stamp_ns)
         self.graph.update()
         if self._should_register(stamp_ns):
@@ -152,7 +154,7 @@ class Localizer:
         elif self.graph.has_anchor:
             self._link_new_landmarks(stamp_ns)
         if self.graph.has_anchor and self._points and self._points[-1][0] == i:
-            self._fit_to_surfaces(i, self._points[-1][1])
+            self._fit_to_surfaces(i, *self._points[-1][1:])
         self._update_status(stamp_ns)
         return self._estimate(stamp_ns, i, with_covariance)
 
@@ -272,7 +274,7 @@ class Localizer:
         return n >= candidates_from(self.registrar) and (n > self._registered_with or more_walls)
 
     def _n_points(self) -> int:
-        return sum(len(p) for _, p in self._points)
+        return sum(len(p) for _, p, _ in self._points)
 
     def _can_check_surfaces(self) -> bool:
         return self.surfaces is not None and self._n_points() >= self.params.surface_min_points
@@ -280,7 +282,7 @@ class Localizer:
     def _points_map(self, at_most: int = 2000) -> np.ndarray:
         """The recent keyframes' depth points in the map frame, at the keyframes' current estimates; `at_most`
         of them, evenly drawn (a support known to ~1 % is enough, and each point costs a k-d tree query)."""
-        parts = [apply(self.graph.T_map_body(i), p) for i, p in self._points if len(p)]
+        parts = [apply(self.graph.T_map_body(i), p) for i, p, _ in self._points if len(p)]
         points = np.vstack(parts) if parts else np.zeros((0, 3))
         return points[:: int(np.ceil(len(points) / at_most))] if len(points) > at_most else points
 
@@ -350,14 +352,16 @@ class Localizer:
         self.graph.update(extra_iterations=2)
         self._link_new_landmarks(stamp_ns)
 
-    def _fit_to_surfaces(self, i: int, points_body: np.ndarray) -> None:
-        """Keyframe i's depth points fitted to the model's walls (point-to-plane) enter the graph as a measured
-        T_cad_body with the fit's information: the walls hold the pose where the doors' corners are coarse."""
+    def _fit_to_surfaces(self, i: int, points_body: np.ndarray, floor_body: np.ndarray) -> None:
+        """Keyframe i's depth points fitted to the model's walls and floors (point-to-plane) enter the graph as a
+        measured T_cad_body with the fit's information: the walls hold the pose where the doors' corners are
+        coarse, the floor holds its height."""
         T_cad_map = self.graph.T_cad_map()
         if not self.params.surface_fit or self.surfaces is None or T_cad_map is None:
             return
         T_guess = T_cad_map @ self.graph.T_map_body(i)
-        fit = align_to_surfaces(self.surfaces, points_body, T_guess, sigma_m=self.params.surface_fit_sigma_m)
+        fit = align_to_surfaces(self.surfaces, points_body, T_guess, floor_body,
+                                sigma_m=self.params.surface_fit_sigma_m)
         if fit is None:
             return
         step = np.linalg.inv(T_guess) @ fit.T_cad_body

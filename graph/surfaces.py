@@ -8,8 +8,13 @@ where on a storey one is) and answers, for a pose hypothesis, which fraction of 
 `tolerance_m` of a surface (`support`). The localizer uses it to choose among the registrar's candidate poses
 and to refuse a pose the walls contradict (graph.localizer).
 
-Points: CAD frame, metres. The observed points should come from a band around the camera's height (see
-`band_points`), where the floor and ceiling do not appear.
+Once localized, `align_to_surfaces` fits a keyframe's points to the surfaces (point-to-plane) for a measured
+pose. The floors, sampled apart, take part there: a stereo camera sees the floor ahead, and its height is the
+one thing the walls cannot give and the doors' corners give worst (their bottoms hide behind the image's edge
+or furniture, their tops include the frame).
+
+Points: CAD frame, metres. The observed points for the check should come from a band around the camera's
+height (see `band_points`), where the floor and ceiling do not appear; `floor_points` picks those below it.
 """
 
 from __future__ import annotations
@@ -18,8 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 MAX_SAMPLES = 3_000_000  # memory bound of the index (~100 MB with the tree)
+COVERED_M = 0.5  # a horizontal surface with another this little above it is a slab's underside: not a floor
 
 
 @dataclass(frozen=True)
@@ -27,23 +34,33 @@ class SurfaceParams:
     spacing_m: float = 0.1  # distance between surface samples
     max_normal_z: float = 0.7  # triangles whose normal's |z| exceeds this (floors, ceilings, slabs) are left out
     tolerance_m: float = 0.2  # a point this close to a sample lies on the surface
+    horizontal_spacing_m: float = 0.2  # the floors' samples (open above), for fitting heights (0: none)
 
 
 class SurfaceIndex:
-    """Samples of the model's non-horizontal surfaces in a k-d tree (see module doc)."""
+    """Samples of the model's non-horizontal surfaces in a k-d tree (see module doc), and optionally of its
+    horizontal ones (floors, tables, stairs' treads) in a second tree: they say nothing about where on a storey
+    one is, so `support` leaves them out, but they fix the height in `align_to_surfaces`."""
 
     def __init__(self, samples_cad: np.ndarray, params: SurfaceParams | None = None,
-                 normals_cad: np.ndarray | None = None) -> None:
-        """samples_cad (N, 3) metres; normals_cad (N, 3) unit normals of their surfaces (for `align`)."""
+                 normals_cad: np.ndarray | None = None, horizontal_cad: np.ndarray | None = None,
+                 horizontal_normals_cad: np.ndarray | None = None) -> None:
+        """samples_cad (N, 3) metres; normals_cad (N, 3) unit normals of their surfaces (for `align`); the same
+        for the horizontal surfaces (M, 3), when given."""
         self.params = params or SurfaceParams()
         self.samples_cad = np.asarray(samples_cad, float).reshape(-1, 3)
         self.normals_cad = None if normals_cad is None else np.asarray(normals_cad, float).reshape(-1, 3)
         self.tree = cKDTree(self.samples_cad)
+        self.horizontal: tuple[cKDTree, np.ndarray, np.ndarray] | None = None  # (tree, samples, normals)
+        if horizontal_cad is not None and horizontal_normals_cad is not None and len(horizontal_cad):
+            h = np.asarray(horizontal_cad, float).reshape(-1, 3)
+            self.horizontal = (cKDTree(h), h, np.asarray(horizontal_normals_cad, float).reshape(-1, 3))
 
     @classmethod
     def from_mesh(cls, vertices_cad: np.ndarray, faces: np.ndarray, params: SurfaceParams | None = None,
                   seed: int = 0) -> SurfaceIndex:
-        """Samples on the triangles (V, 3) / (F, 3) at about `spacing_m`, area-weighted, seeded."""
+        """Samples on the triangles (V, 3) / (F, 3) at about `spacing_m` (the horizontal ones at
+        `horizontal_spacing_m`), area-weighted, seeded."""
         p = params or SurfaceParams()
         tri = np.asarray(vertices_cad, float)[np.asarray(faces, np.int64)]
         if len(tri) == 0:
@@ -52,21 +69,15 @@ class SurfaceIndex:
         area = 0.5 * np.linalg.norm(cross, axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
             nz = np.abs(cross[:, 2]) / (2.0 * area)
-        keep = (area > 1e-9) & (nz <= p.max_normal_z)
-        tri, area = tri[keep], area[keep]
-        density = 1.0 / p.spacing_m**2
-        n_total = int(min(MAX_SAMPLES, max(1, area.sum() * density)))
         rng = np.random.default_rng(seed)
-        # every triangle gets floor(expected) samples, plus one more with the fractional part's probability
-        expected = area / area.sum() * n_total
-        counts = np.floor(expected).astype(np.int64) + (rng.random(len(area)) < expected % 1.0)
-        idx = np.repeat(np.arange(len(tri)), counts)
-        r1, r2 = rng.random(len(idx)), rng.random(len(idx))
-        s = np.sqrt(r1)
-        a, b, c = tri[idx, 0], tri[idx, 1], tri[idx, 2]
-        samples = (1 - s)[:, None] * a + (s * (1 - r2))[:, None] * b + (s * r2)[:, None] * c
-        normals = cross[keep][idx] / (2.0 * area[idx])[:, None]
-        return cls(samples, p, normals)
+        samples, normals = _sample(tri, cross, area, (area > 1e-9) & (nz <= p.max_normal_z), p.spacing_m, rng)
+        horizontal = (None, None)
+        if p.horizontal_spacing_m > 0:
+            h, h_normals = _sample(tri, cross, area, (area > 1e-9) & (nz > p.max_normal_z), p.horizontal_spacing_m,
+                                   rng)
+            open_above = _open_above(h, p.horizontal_spacing_m)
+            horizontal = (h[open_above], h_normals[open_above])
+        return cls(samples, p, normals, *horizontal)
 
     def __len__(self) -> int:
         return len(self.samples_cad)
@@ -78,6 +89,38 @@ class SurfaceIndex:
             return 0.0
         d, _ = self.tree.query(pts, distance_upper_bound=self.params.tolerance_m)
         return float(np.isfinite(d).mean())
+
+
+def _open_above(samples: np.ndarray, spacing_m: float) -> np.ndarray:
+    """(N,) bool: the horizontal samples with no other within COVERED_M above them (and a spacing aside). A
+    point measured on a floor lies on a surface open above; a slab's underside lies its thickness below its top,
+    often nearer to such a point than the top's next sample, and would pull a fit down (the IFC solids' winding
+    is not reliable enough to tell top from underside: Office_A's slabs face either way)."""
+    if len(samples) == 0:
+        return np.zeros(0, bool)
+    half_height, aside = 0.5 * COVERED_M, 2.0 * spacing_m
+    scale = np.array([1.0 / aside, 1.0 / aside, 1.0 / half_height])  # an ellipsoid becomes the unit ball
+    tree = cKDTree(samples * scale)
+    lifted = (samples + [0.0, 0.0, half_height + 0.02]) * scale  # from 2 cm to COVERED_M + 2 cm above
+    return np.asarray(tree.query_ball_point(lifted, r=1.0, return_length=True)) == 0
+
+
+def _sample(tri: np.ndarray, cross: np.ndarray, area: np.ndarray, keep: np.ndarray, spacing_m: float,
+            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(samples (N, 3), unit normals (N, 3)) on the kept triangles, area-weighted, about `spacing_m` apart."""
+    tri, cross, area = tri[keep], cross[keep], area[keep]
+    if len(tri) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    n_total = int(min(MAX_SAMPLES, max(1, area.sum() / spacing_m**2)))
+    # every triangle gets floor(expected) samples, plus one more with the fractional part's probability
+    expected = area / area.sum() * n_total
+    counts = np.floor(expected).astype(np.int64) + (rng.random(len(area)) < expected % 1.0)
+    idx = np.repeat(np.arange(len(tri)), counts)
+    r1, r2 = rng.random(len(idx)), rng.random(len(idx))
+    s = np.sqrt(r1)
+    a, b, c = tri[idx, 0], tri[idx, 1], tri[idx, 2]
+    samples = (1 - s)[:, None] * a + (s * (1 - r2))[:, None] * b + (s * r2)[:, None] * c
+    return samples, cross[idx] / (2.0 * area[idx])[:, None]
 
 
 @dataclass(frozen=True)
@@ -92,57 +135,92 @@ class SurfaceFit:
 
 
 def align_to_surfaces(index: SurfaceIndex, points_body: np.ndarray, T_cad_body: np.ndarray,
-                      iterations: int = 6, max_distance_m: float = 0.3, sigma_m: float = 0.05,
-                      depth_sigma_per_m2: float = 0.005, independent_points: int = 30,
-                      min_inliers: int = 50) -> SurfaceFit | None:
-    """Point-to-plane ICP of the points (body frame) on the index's surfaces from the initial T_cad_body. The
-    steps move yaw and translation only (Gauss-Newton with Huber weights, in the CAD frame about the points'
-    centroid): gravity fixes roll and pitch far better than points at camera height on vertical walls do. The
-    information of the result is that of all 6 directions, in GTSAM's right perturbation T exp(xi). None when
-    fewer than `min_inliers` points (or half of them) find a surface within `max_distance_m`.
+                      floor_body: np.ndarray | None = None, iterations: int = 6, max_distance_m: float = 0.3,
+                      sigma_m: float = 0.05, depth_sigma_per_m2: float = 0.005, independent_points: int = 30,
+                      min_inliers: int = 50, tilt_sigma_rad: float = 0.01) -> SurfaceFit | None:
+    """Point-to-plane ICP of the points (body frame) on the index's walls, and of `floor_body` (points below the
+    camera, `floor_points`) on its horizontal surfaces when it has them, from the initial T_cad_body.
+    Gauss-Newton with Huber weights, in the CAD frame about the points' centroid; the steps' roll and pitch
+    are held near the initial pose's (gravity's) with `tilt_sigma_rad`, since points at camera height on
+    vertical walls hardly see them, while the floor does. The information of the result is the points' alone
+    (not that hold), for all 6 directions, in GTSAM's right perturbation T exp(xi). None when
+    fewer than `min_inliers` of the wall points (or half of them) find a wall within `max_distance_m`: the floor
+    alone says only the height.
 
     A point's distance to its surface has sigma `sigma_m` (the model against reality) + `depth_sigma_per_m2`
     times its range squared (stereo depth); residuals beyond 1.5 sigma are down-weighted (Huber).
 
     The points of one keyframe share errors (the depth's calibration, the model against reality), so the
-    information is that of `independent_points` points, however many there are."""
+    information is that of `independent_points` points, however many there are: the walls' and the floor's
+    points each, since they measure different directions (position and yaw; height)."""
     if index.normals_cad is None or len(index) == 0:
         return None
-    p = np.asarray(points_body, float).reshape(-1, 3)
-    if len(p) < min_inliers:
+    walls = np.asarray(points_body, float).reshape(-1, 3)
+    if len(walls) < min_inliers:
         return None
+    floor = np.zeros((0, 3)) if floor_body is None or index.horizontal is None else \
+        np.asarray(floor_body, float).reshape(-1, 3)
+    p = np.vstack([walls, floor])
+    surfaces = [(index.tree, index.samples_cad, index.normals_cad)]
+    if len(floor):
+        assert index.horizontal is not None
+        surfaces.append(index.horizontal)
     T = np.asarray(T_cad_body, float).copy()
     sigma = sigma_m + depth_sigma_per_m2 * np.einsum("ij,ij->i", p, p)  # per point, m
+    tilt_prior = 1.0 / tilt_sigma_rad**2  # the steps' roll and pitch stay near gravity's unless the points say
     for it in range(iterations + 1):
         q = p @ T[:3, :3].T + T[:3, 3]
-        d, k = index.tree.query(q, distance_upper_bound=max_distance_m)
-        ok = np.isfinite(d)
-        if ok.sum() < max(min_inliers, 0.5 * len(p)):
+        # every point on its nearest surface; the band's points count where that is a wall, the points below
+        # where it is a floor (the walls' feet and what stands on the floor, furniture the model may lack, are
+        # left to the band)
+        best = np.full(len(p), np.inf)
+        on, n, on_floor = np.zeros((len(p), 3)), np.zeros((len(p), 3)), np.zeros(len(p), bool)
+        for s_i, (tree, samples, normals) in enumerate(surfaces):
+            d, k = tree.query(q, distance_upper_bound=max_distance_m)
+            nearer = d < best
+            best[nearer], on[nearer], n[nearer] = d[nearer], samples[k[nearer]], normals[k[nearer]]
+            on_floor[nearer] = s_i == 1
+        on_walls = (np.arange(len(p)) < len(walls)) & ~on_floor
+        ok = np.isfinite(best) & (on_walls | (on_floor & (np.arange(len(p)) >= len(walls))))
+        if on_walls[ok].sum() < max(min_inliers, 0.5 * len(walls)):
             return None
-        n = index.normals_cad[k[ok]]
-        r = np.einsum("ij,ij->i", n, q[ok] - index.samples_cad[k[ok]])  # signed point-to-plane distance
+        on, n = on[ok], n[ok]
+        r = np.einsum("ij,ij->i", n, q[ok] - on)  # signed point-to-plane distance
         s_ok = sigma[ok]
         w = np.minimum(1.0, 1.5 * s_ok / np.maximum(np.abs(r), 1e-12)) / s_ok**2  # Huber x inverse variance
         if it == iterations:
             break
         c = q[ok].mean(axis=0)
-        arm = q[ok] - c
-        J4 = np.column_stack([arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0], n])  # d r / d [yaw about c; x, y, z]
-        H4 = (J4 * w[:, None]).T @ J4 + 1e-6 * np.eye(4)
-        step = -np.linalg.solve(H4, (J4 * w[:, None]).T @ r)
-        cy, sy = np.cos(step[0]), np.sin(step[0])
-        Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+        J6 = np.hstack([np.cross(q[ok] - c, n), n])  # d r / d [rotation about c; translation], CAD frame
+        H6 = (J6 * w[:, None]).T @ J6 + np.diag([tilt_prior, tilt_prior, 1e-6, 1e-6, 1e-6, 1e-6])
+        step = -np.linalg.solve(H6, (J6 * w[:, None]).T @ r)
         delta = np.eye(4)
-        delta[:3, :3], delta[:3, 3] = Rz, c - Rz @ c + step[1:]
+        delta[:3, :3] = Rotation.from_rotvec(step[:3]).as_matrix()
+        delta[:3, 3] = c - delta[:3, :3] @ c + step[3:]
         T = delta @ T
         if np.abs(step).max() < 1e-5:
             break
     m = n @ T[:3, :3]  # the normals in the body frame
     J = np.hstack([np.cross(p[ok], m), m])  # d r / d [rot; trans], right perturbation
-    H = (J * w[:, None]).T @ J
-    scale = min(1.0, independent_points / max(1, int(ok.sum())))
+    H = np.zeros((6, 6))
+    for group in (on_walls[ok], ~on_walls[ok]):
+        Jg = J[group]
+        H += (Jg * w[group, None]).T @ Jg * min(1.0, independent_points / max(1, int(group.sum())))
     rms = float(np.sqrt(np.mean(r * r)))
-    return SurfaceFit(T, H * scale + 1e-6 * np.eye(6), int(ok.sum()), rms)
+    return SurfaceFit(T, H + 1e-6 * np.eye(6), int(ok.sum()), rms)
+
+
+def floor_points(points_body: np.ndarray, up_body: np.ndarray, below_m: float = 0.5, max_range_m: float = 4.0,
+                 max_points: int = 100, seed: int = 0) -> np.ndarray:
+    """The points (N, 3), body frame, more than `below_m` below the camera's height and within `max_range_m`:
+    mostly the floor, which fixes the height when fitted (`align_to_surfaces` with a horizontal index). At most
+    `max_points`, drawn evenly (seeded)."""
+    p = np.asarray(points_body, float).reshape(-1, 3)
+    up = np.asarray(up_body, float) / np.linalg.norm(up_body)
+    p = p[(p @ up < -below_m) & (np.linalg.norm(p, axis=1) <= max_range_m)]
+    if len(p) > max_points:
+        p = p[np.sort(np.random.default_rng(seed).choice(len(p), max_points, replace=False))]
+    return p
 
 
 def band_points(points_body: np.ndarray, up_body: np.ndarray, half_height_m: float = 0.5,

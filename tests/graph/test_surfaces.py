@@ -1,7 +1,8 @@
 """The surface check (graph.surfaces) and how the localizer uses it to choose among candidate poses.
 
-The room: a 12 x 7 m box with a 4 m partition from one wall, walls 3 m tall, floor and ceiling; only the
-walls (not the floor and ceiling) are sampled. Depth points are what a camera in the room sees of the walls.
+The room: a 12 x 7 m box with a 4 m partition from one wall, walls 3 m tall, floor and ceiling; the walls are
+sampled for the check, the floor and ceiling apart, for fitting heights. Depth points are what a camera in the
+room sees of the walls (and of the floor).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from graph.localizer import Localizer, LocalizerParams
 from graph.posegraph import PoseGraph
 from graph.relocalize import Alignment
 from graph.rigid import apply, rotation_angle_deg
-from graph.surfaces import SurfaceIndex, SurfaceParams, align_to_surfaces, band_points
+from graph.surfaces import SurfaceIndex, SurfaceParams, align_to_surfaces, band_points, floor_points
 from tests.graph.scenes import corridor_model, make_T, rot_z, sightings_from
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -64,7 +65,12 @@ def test_samples_cover_the_walls_only(room: SurfaceIndex) -> None:
     on_wall = ((np.abs(room.samples_cad[:, 0]) < 1e-9) | (np.abs(room.samples_cad[:, 0] - 12) < 1e-9)
                | (np.abs(room.samples_cad[:, 1]) < 1e-9) | (np.abs(room.samples_cad[:, 1] - 7) < 1e-9)
                | ((np.abs(room.samples_cad[:, 0] - 5) < 1e-9) & (room.samples_cad[:, 1] <= 4 + 1e-9)))
-    assert on_wall.all()  # floor and ceiling (horizontal) are not sampled
+    assert on_wall.all()  # floor and ceiling (horizontal) are not among the walls' samples ...
+    assert room.horizontal is not None  # ... but apart, every 0.2 m, for fitting heights
+    _, floors, normals = room.horizontal
+    assert len(floors) == pytest.approx(2 * 12 * 7 / 0.2**2, rel=0.05)
+    assert np.allclose(np.minimum(np.abs(floors[:, 2]), np.abs(floors[:, 2] - 3.0)), 0.0)
+    assert np.allclose(np.abs(normals[:, 2]), 1.0)
 
 
 @settings(max_examples=25, deadline=None)
@@ -196,6 +202,46 @@ def test_fit_to_the_walls_recovers_a_perturbed_pose(room: SurfaceIndex, dx: floa
     # vertical walls fix x, y and yaw, not the height: (almost) no information along z
     cov = np.linalg.inv(fit.information)
     assert np.sqrt(cov[5, 5]) > 100 * np.sqrt(cov[3, 3])
+
+
+def test_a_slabs_underside_is_no_floor() -> None:
+    """A 0.2 m slab: its top is open above, its underside is covered by the slab itself and is left out (a point
+    on the floor would otherwise find it before the top's next sample and be pulled 0.2 m down)."""
+    top = quad((0, 0, 0), (6, 0, 0), (6, 5, 0), (0, 5, 0))
+    bottom = quad((0, 0, -0.2), (0, 5, -0.2), (6, 5, -0.2), (6, 0, -0.2))
+    index = SurfaceIndex.from_mesh(np.vstack([top[0], bottom[0]]), np.vstack([top[1], bottom[1] + 4]))
+    assert index.horizontal is not None
+    heights = index.horizontal[1][:, 2]
+    assert len(heights) == pytest.approx(30 / 0.2**2, rel=0.1)
+    assert np.mean(np.abs(heights) > 1e-9) < 0.01  # (a sample or two by the edge may find no top within 0.4 m)
+
+
+def floor_points_cad(rng: np.random.Generator, n: int = 150) -> np.ndarray:
+    """Points on the floor (z = 0) ahead of a camera at (3, 2.5) looking along yaw 0.3 rad, 1-4 m away."""
+    r, a = rng.uniform(1.0, 4.0, n), rng.uniform(-0.5, 0.5, n) + 0.3
+    return np.column_stack([3.0 + r * np.cos(a), 2.5 + r * np.sin(a), np.zeros(n)])
+
+
+@settings(max_examples=15, deadline=None)
+@given(dx=st.floats(-0.2, 0.2), dz=st.floats(-0.2, 0.2), dyaw_deg=st.floats(-3, 3), seed=st.integers(0, 1000))
+def test_the_floor_fixes_the_height(room: SurfaceIndex, dx: float, dz: float, dyaw_deg: float, seed: int) -> None:
+    """Floor points with the walls' (floor_points picks them by their height below the camera): the fit
+    recovers a perturbed height as well, and now carries information along z."""
+    rng = np.random.default_rng(seed)
+    T_cad_body = make_T(rot_z(0.3), np.array([3.0, 2.5, 1.4]))
+    seen_body = apply(np.linalg.inv(T_cad_body), np.vstack([wall_points(rng, 300), floor_points_cad(rng)]))
+    below = floor_points(seen_body, UP, seed=seed)
+    assert len(below) == 100 and np.allclose(apply(T_cad_body, below)[:, 2], 0.0)  # the floor's, at most 100
+    band = band_points(seen_body, UP, seed=seed)
+    guess = T_cad_body @ make_T(rot_z(np.radians(dyaw_deg)), np.array([dx, 0.0, dz]))
+    fit = align_to_surfaces(room, band, guess, below)
+    assert fit is not None
+    assert np.linalg.norm(fit.T_cad_body[:3, 3] - T_cad_body[:3, 3]) < 0.01
+    assert 1.0 / np.sqrt(fit.information[5, 5]) < 0.03  # the floor's points measure the height to cm
+    walls_only = SurfaceIndex(room.samples_cad, room.params, room.normals_cad)  # no horizontal samples
+    for fit in (align_to_surfaces(walls_only, band, guess, below), align_to_surfaces(room, band, guess)):
+        assert fit is not None and abs(fit.T_cad_body[2, 3] - guess[2, 3]) < 0.005  # z stays where it was guessed
+        assert fit.information[5, 5] < 1e-4 * fit.information[3, 3]  # and says (next to) nothing about it
 
 
 def test_no_fit_far_from_any_wall(room: SurfaceIndex) -> None:
