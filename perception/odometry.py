@@ -55,7 +55,6 @@ class OdometryResult:
     T_odom_cam: np.ndarray  # 4x4
     inliers: int
     tracked: bool  # False: PnP failed, the pose is the last one moved at constant velocity
-    keyframe_points_cam: np.ndarray | None = None  # (N, 3) metres, this frame's: set when it became the reference
 
 
 @dataclass
@@ -93,7 +92,7 @@ class StereoOdometry:
         desc = desc if desc is not None else np.zeros((0, 32), np.uint8)
         if self._ref is None:
             self._ref = self._keyframe(np.eye(4), left, right, kp, desc)
-            return OdometryResult(np.eye(4), len(self._ref.points_cam), True, self._ref.points_cam)
+            return OdometryResult(np.eye(4), len(self._ref.points_cam), True)
         T_ref_cam, inliers = self._pnp(kp, desc)
         if T_ref_cam is not None and R_prev_cur is not None:
             T_ref_cam = self._agree_with_gyro(T_ref_cam, self._ref.T_odom_cam[:3, :3].T @ self._T_last[:3, :3]
@@ -104,12 +103,12 @@ class StereoOdometry:
                 T[:3, :3] = self._T_last[:3, :3] @ R_prev_cur
             self._advance(T)
             self._ref = self._keyframe(T, left, right, kp, desc)
-            return OdometryResult(T, inliers, False, self._ref.points_cam)
+            return OdometryResult(T, inliers, False)
         T = self._ref.T_odom_cam @ T_ref_cam
         self._advance(T)
         if self._should_rekey(T_ref_cam, inliers):
             self._ref = self._keyframe(T, left, right, kp, desc)
-            return OdometryResult(T, inliers, True, self._ref.points_cam)
+            return OdometryResult(T, inliers, True)
         return OdometryResult(T, inliers, True)
 
     def _agree_with_gyro(self, T_ref_cam: np.ndarray, R_ref_cam_gyro: np.ndarray) -> np.ndarray:

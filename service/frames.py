@@ -42,6 +42,29 @@ class NullPipeline:
         return []
 
 
+class StereoDepth:
+    """Depth points for the surface check and fit (graph.surfaces): every `every`-th frame, SGBM over the whole
+    rectified pair, every `stride_px`-th pixel at 0.3-8 m, back-projected (eq. 2) into the body frame; None on the
+    other frames. The service's pipeline and the replay's sources measure depth alike through it."""
+
+    def __init__(self, matcher=None, every: int = 3, stride_px: int = 16) -> None:  # noqa: ANN001 - SgbmMatcher
+        from perception.stereo import SgbmMatcher
+
+        self.matcher = matcher or SgbmMatcher()
+        self.every = every
+        self.stride_px = stride_px
+        self._n = 0
+
+    def __call__(self, left: np.ndarray, right: np.ndarray, rig, T_body_cam: np.ndarray) -> np.ndarray | None:  # noqa: ANN001 - StereoRig
+        from perception.stereo import back_project, depth_from_disparity, depth_grid
+
+        n, self._n = self._n, self._n + 1
+        if not self.every or n % self.every:
+            return None
+        depth_m = depth_from_disparity(self.matcher.disparity_px(left, right), rig)
+        return apply(T_body_cam, back_project(*depth_grid(depth_m, self.stride_px, 0.3, 8.0), rig))
+
+
 class PerceptionPipeline:
     """StereoFrame -> sightings (corners in the body frame, metres) through the perception chain."""
 
@@ -51,10 +74,8 @@ class PerceptionPipeline:
         every `depth_stride_px`-th pixel) for the surface check of registrations; 0: never."""
         self.perception = perception
         self.default_T_body_cam = default_T_body_cam
-        self.depth_every = depth_every
-        self.depth_stride_px = depth_stride_px
+        self.depth = StereoDepth(perception.matcher, depth_every, depth_stride_px)
         self.points_body: np.ndarray | None = None  # the last frame's depth points, when it measured them
-        self._n = 0
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
         from perception.calib import StereoRig
@@ -65,19 +86,9 @@ class PerceptionPipeline:
         rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam
         result = self.perception.process(StereoPair(left, right, rig, stamp_ns=frame.header.stamp_ns))
-        self.points_body = None
-        if self.depth_every and self._n % self.depth_every == 0:
-            self.points_body = apply(T_body_cam, self._depth_points_cam(left, right, rig))
-        self._n += 1
+        self.points_body = self.depth(left, right, rig, T_body_cam)
         return [Sighting(f.type, apply(T_body_cam, f.corners_cam), truncated=f.truncated)
                 for f in result.features]
-
-    def _depth_points_cam(self, left: np.ndarray, right: np.ndarray, rig) -> np.ndarray:  # noqa: ANN001 - StereoRig
-        """(N, 3) camera-frame points of the SGBM depth on a grid (eq. 2 back-projection), 0.3-8 m."""
-        from perception.stereo import back_project, depth_from_disparity, depth_grid
-
-        depth_m = depth_from_disparity(self.perception.matcher.disparity_px(left, right), rig)
-        return back_project(*depth_grid(depth_m, self.depth_stride_px, 0.3, 8.0), rig)
 
 
 def forward_T_body_cam(forward_m: float = 0.10, left_m: float = 0.06) -> np.ndarray:

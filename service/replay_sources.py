@@ -144,16 +144,20 @@ class VisualOdometry:
     """T_odom_body from the stereo visual odometry on the recorded images, its rotation checked against the
     IMU's gyroscope (integrated over the frame's samples); the odometry frame is the first body frame levelled
     by the IMU's gravity. After each frame, `up_body` is gravity's direction with the odometry's acceleration
-    taken out of the specific force (perception.gravity)."""
+    taken out of the specific force (perception.gravity), and `points_body` the stereo depth points the service
+    would measure on that frame (service.frames.StereoDepth: every third frame), or None."""
 
-    def __init__(self) -> None:
+    def __init__(self, matcher=None) -> None:  # noqa: ANN001 - perception.stereo.SgbmMatcher
+        """`matcher`: the stereo matcher for the depth points (default: a new one)."""
         from perception.gravity import GravityEstimator
+        from service.frames import StereoDepth
 
         self._odometry: StereoOdometry | None = None
         self._T_odom_cam0: np.ndarray | None = None
         self._last_imu_ns: int | None = None
         self._gravity = GravityEstimator()
-        self.points_body: np.ndarray | None = None  # the last frame's stereo points when it became a keyframe
+        self._depth = StereoDepth(matcher)
+        self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
         self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray,
@@ -177,8 +181,7 @@ class VisualOdometry:
             self._last_imu_ns = frame.imu[-1].header.stamp_ns
         R_prev_cur = None if R_gyro is None else R_body_cam.T @ R_gyro @ R_body_cam
         result = self._odometry.track(left, right, R_prev_cur)
-        self.points_body = None if result.keyframe_points_cam is None else apply(T_body_cam,
-                                                                                  result.keyframe_points_cam)
+        self.points_body = self._depth(left, right, self._odometry.rig, T_body_cam)
         T_odom_body = self._T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
         self.up_body = self._gravity.update(frame.stamp_ns, T_odom_body, _specific_forces(frame))
         return T_odom_body
@@ -219,7 +222,7 @@ class PerceptionSource:
                                  "is not available; use --observations truth") from None
         self.perception = Perception.create(detector_model)
         self.detect_every = detect_every
-        self.odometry = VisualOdometry()
+        self.odometry = VisualOdometry(self.perception.matcher)
         self._n = 0
 
     def __call__(self, frame: FlightFrame) -> FrameInput:
