@@ -1,5 +1,6 @@
 """Pictures of a replay: the top-down view (model, true and estimated trajectories, matched features) and
-the per-frame figures (error, status, sightings, iSAM2 update time), plus result.json."""
+the per-frame figures (position error with its horizontal and height parts, tilt and yaw errors, status,
+sightings, iSAM2 update time), plus result.json."""
 
 from __future__ import annotations
 
@@ -58,19 +59,39 @@ def _frames(result: ReplayResult, path: Path) -> Path:
 
     tr = result.trace
     t = np.array(tr.t_s)
-    err = np.array([np.linalg.norm(E[:3, 3] - T[:3, 3]) if E is not None else np.nan
-                    for E, T in zip(tr.T_est, tr.T_true, strict=True)])
-    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True)
-    axes[0].plot(t, err)
-    axes[0].set_ylabel("position error (m)")
-    axes[1].step(t, [STATUS_LEVEL.get(s, -1) for s in tr.status], where="post")
-    axes[1].set_yticks(list(STATUS_LEVEL.values()), list(STATUS_LEVEL.keys()))
-    axes[2].plot(t, tr.n_sightings, ".", ms=2)
-    axes[2].set_ylabel("sightings")
+    err = np.array([_pose_error(E, T) for E, T in zip(tr.T_est, tr.T_true, strict=True)])  # (N, 5)
+    fig, axes = plt.subplots(5, 1, figsize=(10, 11), sharex=True)
+    axes[0].plot(t, err[:, 0], label="position")
+    axes[0].plot(t, err[:, 1], lw=0.8, label="horizontal")
+    axes[0].plot(t, err[:, 2], lw=0.8, label="height (estimate - truth)")
+    axes[0].axhline(0.0, color="0.7", lw=0.5)
+    axes[0].set_ylabel("error (m)")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[1].plot(t, err[:, 3], lw=0.8, label="tilt")
+    axes[1].plot(t, err[:, 4], lw=0.8, label="yaw")
+    axes[1].set_ylabel("attitude error (deg)")
+    axes[1].legend(loc="upper right", fontsize=8)
+    axes[2].step(t, [STATUS_LEVEL.get(s, -1) for s in tr.status], where="post")
+    axes[2].set_yticks(list(STATUS_LEVEL.values()), list(STATUS_LEVEL.keys()))
+    axes[3].plot(t, tr.n_sightings, ".", ms=2)
+    axes[3].set_ylabel("sightings")
     kf = np.array(tr.keyframe)
-    axes[3].plot(t[kf], np.array(tr.update_ms)[kf], ".", ms=2)
-    axes[3].set_ylabel("iSAM2 update (ms)")
-    axes[3].set_xlabel("flight time (s)")
+    axes[4].plot(t[kf], np.array(tr.update_ms)[kf], ".", ms=2)
+    axes[4].set_ylabel("iSAM2 update (ms)")
+    axes[4].set_xlabel("flight time (s)")
     fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return path
+
+
+def _pose_error(T_est: np.ndarray | None, T_true: np.ndarray) -> np.ndarray:
+    """(position, horizontal, height signed, tilt deg, |yaw| deg) of an estimate against the truth, CAD frame;
+    NaN where there is no estimate."""
+    if T_est is None:
+        return np.full(5, np.nan)
+    d = T_est[:3, 3] - T_true[:3, 3]
+    up_est, up_true = T_est[:3, :3] @ [0.0, 0.0, 1.0], T_true[:3, :3] @ [0.0, 0.0, 1.0]
+    tilt = np.degrees(np.arccos(np.clip(up_est @ up_true, -1.0, 1.0)))
+    R = T_true[:3, :3].T @ T_est[:3, :3]
+    yaw = abs(np.degrees(np.arctan2(R[1, 0], R[0, 0])))
+    return np.array([np.linalg.norm(d), np.linalg.norm(d[:2]), d[2], tilt, yaw])
