@@ -161,6 +161,7 @@ def align_to_surfaces(index: SurfaceIndex, points_body: np.ndarray, T_cad_body: 
     floor = np.zeros((0, 3)) if floor_body is None or index.horizontal is None else \
         np.asarray(floor_body, float).reshape(-1, 3)
     p = np.vstack([walls, floor])
+    in_band = np.arange(len(p)) < len(walls)  # the first points are the band's, the rest from below
     surfaces = [(index.tree, index.samples_cad, index.normals_cad)]
     if len(floor):
         assert index.horizontal is not None
@@ -180,8 +181,8 @@ def align_to_surfaces(index: SurfaceIndex, points_body: np.ndarray, T_cad_body: 
             nearer = d < best
             best[nearer], on[nearer], n[nearer] = d[nearer], samples[k[nearer]], normals[k[nearer]]
             on_floor[nearer] = s_i == 1
-        on_walls = (np.arange(len(p)) < len(walls)) & ~on_floor
-        ok = np.isfinite(best) & (on_walls | (on_floor & (np.arange(len(p)) >= len(walls))))
+        on_walls = in_band & ~on_floor
+        ok = np.isfinite(best) & (on_walls | (on_floor & ~in_band))
         if on_walls[ok].sum() < max(min_inliers, 0.5 * len(walls)):
             return None
         on, n = on[ok], n[ok]

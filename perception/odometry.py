@@ -108,7 +108,6 @@ class StereoOdometry:
         self._advance(T)
         if self._should_rekey(T_ref_cam, inliers):
             self._ref = self._keyframe(T, left, right, kp, desc)
-            return OdometryResult(T, inliers, True)
         return OdometryResult(T, inliers, True)
 
     def _agree_with_gyro(self, T_ref_cam: np.ndarray, R_ref_cam_gyro: np.ndarray) -> np.ndarray:

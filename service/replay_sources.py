@@ -160,8 +160,7 @@ class VisualOdometry:
         self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
         self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
 
-    def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray,
-                 up_body: np.ndarray | None) -> np.ndarray:
+    def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         from perception.calib import StereoRig
         from perception.odometry import StereoOdometry
 
@@ -171,6 +170,7 @@ class VisualOdometry:
             rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
             self._odometry = StereoOdometry(rig)
             T_odom_body0 = np.eye(4)
+            up_body = _up_from_imu(frame)
             if up_body is not None:
                 T_odom_body0[:3, :3] = _rotation_aligning(up_body, np.array([0.0, 0.0, 1.0]))
             self._T_odom_cam0 = T_odom_body0 @ T_body_cam
@@ -199,8 +199,7 @@ class TruthFeaturesWithVisualOdometry:
         from service.recording import decode_image
 
         inputs = self.truth(frame)
-        T_odom_body = self.odometry(frame, decode_image(frame.stereo.left), decode_image(frame.stereo.right),
-                                    _up_from_imu(frame))
+        T_odom_body = self.odometry(frame, decode_image(frame.stereo.left), decode_image(frame.stereo.right))
         return FrameInput(inputs.stamp_ns, T_odom_body, inputs.sightings, self.odometry.up_body, inputs.T_body_cam,
                           self.odometry.points_body)
 
@@ -233,7 +232,7 @@ class PerceptionSource:
         info = frame.stereo.info
         T_body_cam = matrix_from_pose(info.T_body_cam)
         left, right = decode_image(frame.stereo.left), decode_image(frame.stereo.right)
-        T_odom_body = self.odometry(frame, left, right, _up_from_imu(frame))
+        T_odom_body = self.odometry(frame, left, right)
         up_body = self.odometry.up_body
         sightings: list[Sighting] = []
         if self._n % self.detect_every == 0:

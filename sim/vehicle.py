@@ -64,7 +64,6 @@ class KinematicDrone:
         self.distance_m += float(np.linalg.norm(step))
         self.T_cad_body = level_pose(self.T_cad_body[:3, 3] + step, yaw)
 
-
     def specific_force_body(self, gravity_mps2: float = 9.81) -> np.ndarray:
         """(3,) what an accelerometer on the body measures now: gravity's reaction plus the acceleration, m/s^2."""
         return self.T_cad_body[:3, :3].T @ (self.accel_cad + np.array([0.0, 0.0, gravity_mps2]))
