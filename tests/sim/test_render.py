@@ -144,3 +144,21 @@ def test_two_renderers_in_one_process_each_draw_their_own_scene(room, renderer, 
     assert vga.image_bgr.shape[:2] == (480, 640)
     assert small.depth_m is not None and again.depth_m is not None
     np.testing.assert_array_equal(small.depth_m, again.depth_m)
+
+
+def test_plain_shader_variant_draws_what_the_full_shader_draws(room, renderer) -> None:
+    """Surfaces with no door pattern or photo are shaded by a variant without that code (llvmpipe would run it
+    for every pixel); drawing everything with the full variant must give the same image."""
+    T = look_at([3.5, 3.0, 1.5], [3.5, 5.9, 1.2])  # facing the door wall: door, wall, floor, ceiling in view
+    split = renderer.render(T, _lighting(), frame_seed=2.0)
+    chunks = renderer.chunks
+    assert chunks.pattern.any() and not chunks.pattern.all()  # the door's cells only
+    saved = chunks.pattern.copy()
+    try:
+        chunks.pattern[:] = True
+        full = renderer.render(T, _lighting(), frame_seed=2.0)
+    finally:
+        chunks.pattern[:] = saved
+    assert split.instance is not None and (split.instance == 1).mean() > 0.05  # the door is in view
+    np.testing.assert_array_equal(split.image_bgr, full.image_bgr)
+    np.testing.assert_array_equal(split.depth_m, full.depth_m)
