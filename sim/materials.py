@@ -36,6 +36,27 @@ PHOTO_SHARE = 0.5  # doors/windows textured with a real photo, when photos are g
 PHOTO_STYLE = 16.0
 
 
+N_DOOR_PATTERNS = 5  # raised panels x2, x4, vision panel, kick plate, vision slits (scene.frag.glsl)
+DOUBLE_DOOR_STYLE = 10.0  # styles 10 + pattern: two leaves; below: one leaf, pattern + 5 x (handle on the left)
+DOUBLE_DOOR_WIDTH_M = 1.2  # openings at least this wide get two leaves (most of the time)
+
+
+def door_style(width_m: float | None, rng: np.random.Generator) -> float:
+    """A door's style for the shader: a wide opening is mostly a double door; a standard one has one leaf, and
+    one in five standard-width (0.95-1.2 m) openings is a pair of narrow leaves."""
+    pattern = int(rng.integers(N_DOOR_PATTERNS))
+    if width_m is not None and width_m >= 0.95:
+        share = 0.85 if width_m >= DOUBLE_DOOR_WIDTH_M else 0.2
+        if rng.random() < share:
+            return DOUBLE_DOOR_STYLE + pattern
+    return float(pattern + N_DOOR_PATTERNS * int(rng.integers(2)))
+
+
+def _door_width_m(gid: str, instances: dict[str, int], features: list[MacroFeature]) -> float | None:
+    k = instances.get(gid, 0)
+    return features[k - 1].width_m if k else None
+
+
 def _element_rng(seed: int, key: str) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(key.encode())])
 
@@ -96,7 +117,7 @@ def dress_scene(scene: SceneGeometry, features: list[MacroFeature], seed: int,
             layer[idx] = tx.DOOR_LAYERS[er.integers(len(tx.DOOR_LAYERS))]
             tint[idx] = DOOR_TINTS[er.integers(len(DOOR_TINTS))]
             kind[idx] = KIND_DOOR
-            style[idx] = er.integers(8)
+            style[idx] = door_style(_door_width_m(gid, instances, features), er)
             if photo_door_layers and er.random() < PHOTO_SHARE:
                 layer[idx] = photo_door_layers[er.integers(len(photo_door_layers))]
                 tint[idx] = 0.9 + 0.2 * er.random()

@@ -43,11 +43,11 @@ float bevel(vec2 uv, vec4 r, float w) {  // -1 lower-left edge, +1 upper-right e
     return (uv.x - r.x < w || uv.y - r.y < w) ? -1.0 : 1.0;
 }
 
-vec3 door_pattern(vec3 base, vec2 uv, float style, out float shine) {
+// A door's look from its style (materials.py): single leaves 0-9 (pattern = style mod 5, handle on the right
+// below 5), double leaves 10-14 (pattern = style - 10, handles where the leaves meet). Patterns: two raised
+// panels, four panels, a vision panel, a kick plate, two narrow vision slits (flush institutional doors).
+vec3 leaf_pattern(vec3 base, vec3 frame, vec2 uv, float s, out float shine) {
     shine = 0.0;
-    vec3 frame = base * 0.55 + vec3(0.08);
-    if (uv.x < 0.055 || uv.x > 0.945 || uv.y > 0.965) return frame;
-    float s = mod(style, 4.0);
     vec3 c = base;
     if (s < 1.0) {          // two raised panels
         float b = bevel(uv, vec4(0.2, 0.1, 0.8, 0.45), 0.012) + bevel(uv, vec4(0.2, 0.55, 0.8, 0.9), 0.012);
@@ -59,12 +59,31 @@ vec3 door_pattern(vec3 base, vec2 uv, float style, out float shine) {
     } else if (s < 3.0) {   // flush door with a vision panel
         if (box(uv, vec4(0.3, 0.58, 0.7, 0.88)) > 0.5) { c = vec3(0.18, 0.22, 0.25); shine = 0.5; }
         if (box(uv, vec4(0.28, 0.56, 0.72, 0.9)) > 0.5 && box(uv, vec4(0.3, 0.58, 0.7, 0.88)) < 0.5) c = frame;
-    } else {                // flush door with a metal kick plate
+    } else if (s < 4.0) {   // flush door with a metal kick plate
         if (uv.y < 0.1) { c = vec3(0.7, 0.72, 0.75); shine = 0.3; }
+    } else {                // flush door with two narrow vision slits, one above the other
+        float slit = box(uv, vec4(0.45, 0.56, 0.55, 0.86)) + box(uv, vec4(0.45, 0.14, 0.55, 0.44));
+        float trim = box(uv, vec4(0.43, 0.54, 0.57, 0.88)) + box(uv, vec4(0.43, 0.12, 0.57, 0.46));
+        if (trim > 0.5) c = frame;
+        if (slit > 0.5) { c = vec3(0.12, 0.14, 0.16); shine = 0.5; }
     }
-    float hu = (mod(style, 8.0) < 4.0) ? 0.86 : 0.14;  // handle side
+    return c;
+}
+
+vec3 door_pattern(vec3 base, vec2 uv, float style, out float shine) {
+    shine = 0.0;
+    float st = floor(style + 0.5);
+    bool two = st > 9.5;
+    vec3 frame = base * 0.55 + vec3(0.08);
+    float fw = two ? 0.03 : 0.055;  // the frame's width, a fraction of the opening
+    if (uv.x < fw || uv.x > 1.0 - fw || uv.y > 0.965) return frame;
+    if (two && abs(uv.x - 0.5) < 0.006) return base * 0.35;  // the gap where the leaves meet
+    // a leaf's own (u, v) in [0, 1]: a double door's leaves mirror each other, u = 1 where they meet
+    vec2 luv = two ? vec2(uv.x < 0.5 ? 2.0 * uv.x : 2.0 * (1.0 - uv.x), uv.y) : uv;
+    vec3 c = leaf_pattern(base, frame, luv, two ? st - 10.0 : mod(st, 5.0), shine);
+    float hu = (two || st < 4.5) ? 0.86 : 0.14;  // handle side
     float hs = (hu > 0.5) ? -1.0 : 1.0;
-    vec2 d = (uv - vec2(hu, 0.47)) * vec2(0.9, 2.1);  // metric-ish: a door is about 0.9 x 2.1 m
+    vec2 d = (luv - vec2(hu, 0.47)) * vec2(0.9, 2.1);  // metric-ish: a leaf is about 0.9 x 2.1 m
     if (length(d) < 0.035) { c = vec3(0.75, 0.74, 0.7); shine = 0.8; }
     if (abs(d.y) < 0.012 && d.x * hs > -0.01 && d.x * hs < 0.13) { c = vec3(0.82, 0.8, 0.75); shine = 0.8; }
     return c;

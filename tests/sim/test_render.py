@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from sim.groundtruth import feature_half_depths, features_in_view
-from sim.materials import dress_scene
-from sim.render import CameraModel, Lighting, StereoRenderer
+from sim.materials import DOUBLE_DOOR_STYLE, door_style, dress_scene
+from sim.render import KIND_DOOR, PHOTO_STYLE, CameraModel, Lighting, StereoRenderer
 from sim.textures import make_texture_layers
 from tests.sim.room import look_at, ray_cast_depth, room_scene
 
@@ -162,3 +162,42 @@ def test_plain_shader_variant_draws_what_the_full_shader_draws(room, renderer) -
     assert split.instance is not None and (split.instance == 1).mean() > 0.05  # the door is in view
     np.testing.assert_array_equal(split.image_bgr, full.image_bgr)
     np.testing.assert_array_equal(split.depth_m, full.depth_m)
+
+
+@pytest.mark.parametrize("width_m, double_share", [(0.8, (0.0, 0.0)), (1.02, (0.1, 0.3)), (1.8, (0.78, 0.92))])
+def test_wide_openings_are_mostly_double_doors(width_m, double_share) -> None:
+    rng = np.random.default_rng(0)
+    styles = np.array([door_style(width_m, rng) for _ in range(600)])
+    assert np.all(styles == np.round(styles)) and styles.min() >= 0 and styles.max() < PHOTO_STYLE
+    double = np.mean(styles >= DOUBLE_DOOR_STYLE)
+    assert double_share[0] <= double <= double_share[1]
+
+
+def _door_strips(renderer_for_style, style: float) -> tuple[float, float]:
+    """Mean grey of the door's central column and of the columns a quarter in from each side, at mid-height."""
+    r = renderer_for_style(style)
+    out = r.render(look_at([3.5, 4.4, 1.1], [3.5, 5.9, 1.1]), _lighting(), frame_seed=1.0)
+    r.release()
+    assert out.instance is not None
+    cols = np.flatnonzero((out.instance == 1).any(axis=0))
+    rows = np.flatnonzero((out.instance == 1).any(axis=1))
+    x0, x1, yc = cols.min(), cols.max(), (rows.min() + rows.max()) // 2
+    grey = out.image_bgr.mean(axis=2)[yc - 10:yc + 10]
+    xc, q = (x0 + x1) // 2, (x1 - x0) // 4
+    return float(grey[:, xc - 1:xc + 2].min(axis=1).mean()), float(grey[:, [xc - q, xc + q]].mean())
+
+
+def test_a_double_door_shows_where_its_leaves_meet(room) -> None:
+    scene, features = room
+    base = dress_scene(scene, features, seed=3)
+    door = np.abs(base[:, 13] - KIND_DOOR) < 0.5
+
+    def renderer_for_style(style: float) -> StereoRenderer:
+        verts = base.copy()
+        verts[door, 14] = style
+        return StereoRenderer(verts, make_texture_layers(3), SMALL)
+
+    gap, leaves = _door_strips(renderer_for_style, DOUBLE_DOOR_STYLE + 3)  # two flush leaves with kick plates
+    assert gap < 0.6 * leaves
+    gap, leaves = _door_strips(renderer_for_style, 3)  # one flush leaf: nothing at its middle
+    assert gap > 0.8 * leaves
