@@ -26,7 +26,6 @@ FLAG_DETAIL = 1  # a small detailed object (furniture, fittings, railings), draw
 FLAG_CLOSED = 2  # part of a closed solid wound outward (counter-clockwise seen from outside): culled from behind
 DETAIL_RANGE_M = 12.0
 KIND_PLAIN, KIND_DOOR, KIND_WINDOW_FRAME, KIND_GLASS = 0.0, 1.0, 2.0, 3.0
-PHOTO_STYLE = 15.5  # styles above it stretch a photo across the opening (scene.frag.glsl)
 MAX_LIGHTS = 4
 
 
@@ -90,7 +89,6 @@ class ChunkIndex:
     huge: np.ndarray  # (C,) bool: the cell of oversized triangles (the ground, long slabs), drawn last
     detail: np.ndarray  # (C,) bool: cells of small detailed objects, drawn only within DETAIL_RANGE_M
     closed: np.ndarray  # (C,) bool: cells of closed solids' triangles, drawn with back faces culled
-    pattern: np.ndarray  # (C,) bool: cells of door-pattern or photo triangles, shaded by the PATTERN variant
 
     @classmethod
     def build(cls, vertices: np.ndarray, cell_m: float = 5.0) -> ChunkIndex:
@@ -98,9 +96,7 @@ class ChunkIndex:
         centre = tri[:, :, :3].mean(axis=1)
         extent = np.ptp(tri[:, :, :3], axis=1).max(axis=1)
         flags = np.rint(tri[:, 0, FLAGS_COLUMN]).astype(np.int64)
-        pattern = needs_pattern(tri)
-        cell = np.column_stack([np.floor(centre / cell_m).astype(np.int64), flags & (FLAG_DETAIL | FLAG_CLOSED),
-                                pattern])
+        cell = np.column_stack([np.floor(centre / cell_m).astype(np.int64), flags & (FLAG_DETAIL | FLAG_CLOSED)])
         cell[extent > 4 * cell_m, :3] = np.iinfo(np.int32).max  # huge triangles (ground, long slabs): own cell
         _, key = np.unique(cell, axis=0, return_inverse=True)
         key = key.reshape(-1)
@@ -114,15 +110,14 @@ class ChunkIndex:
         huge = np.ptp(np.stack([box_min, box_max]), axis=0).max(axis=1) > 8 * cell_m
         cell_flags = np.rint(tri[starts, 0, FLAGS_COLUMN]).astype(np.int64)
         return cls(np.ascontiguousarray(tri.reshape(-1, vertices.shape[1])), starts * 3, counts * 3, box_min, box_max,
-                   huge, (cell_flags & FLAG_DETAIL) > 0, (cell_flags & FLAG_CLOSED) > 0, needs_pattern(tri[starts]))
+                   huge, (cell_flags & FLAG_DETAIL) > 0, (cell_flags & FLAG_CLOSED) > 0)
 
     def visible_front_to_back(self, T_cad_cam: np.ndarray, camera: CameraModel,
                               z_range_m: tuple[float, float] | None = None) -> np.ndarray:
-        """(K, 4) (first vertex, vertex count, closed 0/1, pattern 0/1) of the cells whose box meets the view
-        frustum (and the height range `z_range_m`, when given: the storey flown), nearest first, the oversized cell
-        last."""
+        """(K, 3) (first vertex, vertex count, closed 0/1) of the cells whose box meets the view frustum (and the
+        height range `z_range_m`, when given: the storey flown), nearest first, the oversized cell last."""
         if len(self.first) == 0:
-            return np.zeros((0, 4), np.int64)
+            return np.zeros((0, 3), np.int64)
         T_cam_cad = np.linalg.inv(T_cad_cam)
         corners = np.stack([np.where(np.array([(i >> k) & 1 for k in range(3)], bool), self.box_max, self.box_min)
                             for i in range(8)], axis=1)  # (C, 8, 3)
@@ -141,25 +136,11 @@ class ChunkIndex:
         dist = dist + 1e6 * self.huge
         idx = np.flatnonzero(~out)
         idx = idx[np.argsort(dist[idx], kind="stable")]
-        return np.column_stack([self.first[idx], self.count[idx], self.closed[idx], self.pattern[idx]])
+        return np.column_stack([self.first[idx], self.count[idx], self.closed[idx]])
 
 
-def needs_pattern(tri: np.ndarray) -> np.ndarray:
-    """(T,) bool for triangles (T, 3, VERTEX_FLOATS): those the PATTERN shader variant must draw (a door's
-    pattern or a photo across an opening: a feature uv on a door, or a photo style)."""
-    has_uv = (tri[:, :, 11] > -0.5).any(axis=1)
-    door = (np.abs(tri[:, :, 13] - KIND_DOOR) < 0.5).any(axis=1)
-    photo = (tri[:, :, 14] > PHOTO_STYLE).any(axis=1)
-    return np.asarray(has_uv & (door | photo), dtype=bool)
-
-
-def _shader(name: str, **defines: int) -> str:
-    """A shader's source with `#define NAME value` lines after its #version line."""
-    text = resources.files("sim").joinpath("shaders", name).read_text()
-    if not defines:
-        return text
-    version, rest = text.split("\n", 1)
-    return "\n".join([version, *(f"#define {k} {v}" for k, v in defines.items()), rest])
+def _shader(name: str) -> str:
+    return resources.files("sim").joinpath("shaders", name).read_text()
 
 
 class StereoRenderer:
@@ -171,20 +152,13 @@ class StereoRenderer:
 
         self.camera = camera
         self.ctx = moderngl.create_standalone_context(backend="egl")  # type: ignore[arg-type]  # stubs lag
-        # the scene shader's variants: plain surfaces, door patterns and photos, glass (scene.frag.glsl)
-        self.prog, self.prog_pattern, self.prog_glass = (
-            self.ctx.program(vertex_shader=_shader("scene.vert.glsl"),
-                             fragment_shader=_shader("scene.frag.glsl", PATTERN=pattern, GLASS=glass))
-            for pattern, glass in ((0, 0), (1, 0), (1, 1)))
-        self._scene_progs: list[Any] = [self.prog, self.prog_pattern, self.prog_glass]
+        self.prog: Any = self.ctx.program(vertex_shader=_shader("scene.vert.glsl"),
+                                          fragment_shader=_shader("scene.frag.glsl"))
         verts = np.ascontiguousarray(vertices, dtype=np.float32)
         glass = verts[:, 13] == KIND_GLASS
         self.chunks = ChunkIndex.build(verts[~glass])
         self._vbos: list[Any] = []
-        self._vaos = [self._vao(self.prog, self.chunks.vertices), self._vao(self.prog_glass, verts[glass])]
-        self._vao_pattern = None
-        if self._vaos[0] is not None:
-            self._vao_pattern = self._vao(self.prog_pattern, self.chunks.vertices, self._vbos[0])
+        self._vaos = [self._vao(self.chunks.vertices), self._vao(verts[glass])]
         # depth pre-pass: positions only, no shading; the full shader then runs once per visible pixel
         self.prog_depth: Any = self.ctx.program(vertex_shader=_shader("depth.vert.glsl"),
                                            fragment_shader="#version 330\nvoid main() {}\n")
@@ -208,7 +182,7 @@ class StereoRenderer:
         self.fbo_colour = self.ctx.framebuffer(color_attachments=[self.colour])  # clears the colour alone (sky)
         n, f = camera.near_m, camera.far_m
         proj = (2 * camera.fx / w, 2 * camera.fy / h, 2 * (camera.cx + 0.5) / w - 1, 2 * (camera.cy + 0.5) / h - 1)
-        progs: list[Any] = [*self._scene_progs, self.prog_depth]
+        progs: list[Any] = [self.prog, self.prog_depth]
         for prog in progs:
             prog["proj"].value = proj
             prog["nearfar"].value = (n, f)
@@ -222,17 +196,15 @@ class StereoRenderer:
         self.ctx.cull_face = "back"
         self.z_range_m: tuple[float, float] | None = None  # heights drawn (the storey flown); None: all
 
-    def _vao(self, prog: Any, verts: np.ndarray, vbo: Any = None):  # noqa: ANN202 - moderngl.VertexArray | None
-        """A vertex array of `prog` over `verts` (a new buffer) or over the existing buffer `vbo`."""
+    def _vao(self, verts: np.ndarray):  # noqa: ANN202 - moderngl.VertexArray | None
         if len(verts) == 0:
             return None
-        if vbo is None:
-            vbo = self.ctx.buffer(verts.tobytes())
-            self._vbos.append(vbo)  # kept for the depth pre-pass and the other variants
-        # attributes a variant does not read (the plain variant: no feature uv, kind or style) are skipped
-        return self.ctx.vertex_array(prog, [(vbo, "3f 3f 3f 1f 1f 2f 1f 1f 4x",
-                                             "in_pos", "in_normal", "in_tint", "in_layer", "in_inst",
-                                             "in_fuv", "in_kind", "in_style")], skip_errors=True)
+        vbo = self.ctx.buffer(verts.tobytes())
+        vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 3f 3f 1f 1f 2f 1f 1f 4x",
+                                                 "in_pos", "in_normal", "in_tint", "in_layer", "in_inst",
+                                                 "in_fuv", "in_kind", "in_style")])
+        self._vbos.append(vbo)  # kept for the depth pre-pass
+        return vao
 
     def render(self, T_cad_cam: np.ndarray, lighting: Lighting, frame_seed: float = 0.0,
                with_truth: bool = True) -> RenderOutput:
@@ -254,6 +226,7 @@ class StereoRenderer:
         self.fbo.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
+        self._set("glass_pass", 0)
         if self._vaos[0] is not None:
             ranges = self.chunks.visible_front_to_back(T_cad_cam, self.camera, self.z_range_m)
             if self.depth_prepass and self._vao_depth is not None:
@@ -261,9 +234,7 @@ class StereoRenderer:
                 self._draw_culled(ranges, self._vao_depth)
                 self.fbo.use()
                 self.ctx.depth_func = "<="
-            plain = ranges[:, 3] == 0
-            self._draw_culled(ranges[plain], self._vaos[0])
-            self._draw_culled(ranges[~plain], self._vao_pattern)
+            self._draw_culled(ranges, self._vaos[0])
             self.ctx.depth_func = "<"
         if self._vaos[1] is not None:
             self.fbo_glass.use()
@@ -272,6 +243,7 @@ class StereoRenderer:
                 self.fbo_glass.use()
             self.ctx.enable(moderngl.BLEND)
             self.ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
+            self._set("glass_pass", 1)
             self._vaos[1].render(moderngl.TRIANGLES)
             self.ctx.disable(moderngl.BLEND)
         w, h = self.camera.width, self.camera.height
@@ -343,15 +315,13 @@ class StereoRenderer:
         self._set("frame_seed", float(seed % 1000.0))
 
     def _set(self, name: str, value: object) -> None:
-        """Set a uniform of the scene shader's variants; where the GLSL compiler optimised it away, skipped."""
-        for prog in self._scene_progs:
-            if name in prog:
-                prog[name].value = value
+        """Set a uniform of the scene shader; one the GLSL compiler optimised away is skipped."""
+        if name in self.prog:
+            self.prog[name].value = value
 
     def _write(self, name: str, data: bytes) -> None:
-        for prog in self._scene_progs:
-            if name in prog:
-                prog[name].write(data)
+        if name in self.prog:
+            self.prog[name].write(data)
 
     def release(self) -> None:
         self.ctx.release()

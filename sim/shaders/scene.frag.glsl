@@ -1,10 +1,6 @@
 #version 330
 // Textured, lit surfaces; doors get a frame, panels and a handle from their opening's (u, v) in [0, 1];
 // glass (second pass) is blended over what lies behind it. Outputs BGR colour and (depth_m, instance).
-// Compiled in three variants (render.py defines PATTERN and GLASS after the #version line): plain surfaces
-// (neither), door patterns and photo-textured openings (PATTERN), the blended glass pass (PATTERN and GLASS).
-// llvmpipe runs both sides of a branch for every pixel, so code a surface does not need costs every pixel
-// anyway: the door pattern alone was a third of the shading time of a frame with no door in it.
 uniform sampler2DArray tex;
 uniform vec3 light_pos[4];
 uniform vec3 light_col[4];
@@ -15,6 +11,7 @@ uniform float noise_sigma;
 uniform float frame_seed;
 uniform vec3 cam_pos;
 uniform vec3 sky_rgb;
+uniform int glass_pass;
 in vec3 v_pos;
 flat in vec3 v_normal;
 flat in vec3 v_tint;
@@ -95,25 +92,18 @@ void main() {
     if (dot(n, view) < 0.0) n = -n;
     vec3 an = abs(n);
     vec2 uv = an.z > max(an.x, an.y) ? v_pos.xy : (an.x > an.y ? v_pos.yz : v_pos.xz);
-    float shine = 0.0;
-    float alpha = 1.0;
-#if PATTERN
     // style >= 16: a photo of a real door/window stretched across the opening (row 0 of the photo at the top)
     bool photo = v_style > 15.5 && v_fuv.x > -0.5;
     vec2 st = photo ? vec2(clamp(v_fuv.x, 0.0, 1.0), 1.0 - clamp(v_fuv.y, 0.0, 1.0)) : uv;
     vec3 base = texture(tex, vec3(st, v_layer)).rgb * v_tint;
-#else
-    vec3 base = texture(tex, vec3(uv, v_layer)).rgb * v_tint;
-#endif
-#if PATTERN && !GLASS
+    float shine = 0.0;
+    float alpha = 1.0;
     if (v_kind > 0.5 && v_kind < 1.5 && v_fuv.x > -0.5 && !photo) {
         base = door_pattern(base, clamp(v_fuv, 0.0, 1.0), v_style, shine);
     }
-#endif
-#if GLASS
-    if (photo) {
+    if (glass_pass == 1 && photo) {
         alpha = 0.92;
-    } else {
+    } else if (glass_pass == 1) {
         float fres = pow(1.0 - max(dot(n, view), 0.0), 3.0);
         vec3 reflection = mix(vec3(0.55, 0.58, 0.6), sky_rgb, 0.5) * (0.8 + 0.2 * sin(v_pos.x * 3.0 + v_pos.z * 2.0));
         base = mix(v_tint * 0.6 + vec3(0.05, 0.08, 0.1), reflection, 0.4 + 0.5 * fres);
@@ -124,7 +114,6 @@ void main() {
             alpha = 1.0;
         }
     }
-#endif
     vec3 light = ambient;
     for (int i = 0; i < n_lights; i++) {
         vec3 d = light_pos[i] - v_pos;
@@ -133,20 +122,14 @@ void main() {
         float att = 1.0 / (1.0 + 0.08 * r2);
         light += light_col[i] * (att * max(dot(n, l), 0.0));
     }
-#if PATTERN && !GLASS
-    // highlight of the nearest light (lights come nearest first) on shiny parts (handles, kick plates, vision
-    // panels): only door patterns shine
+    // highlight of the nearest light (lights come nearest first) on shiny parts: outside the loop, because
+    // llvmpipe runs both sides of a branch for every pixel
     if (n_lights > 0) {
         vec3 d = light_pos[0] - v_pos;
         vec3 l = normalize(d);
         light += light_col[0] * (shine / (1.0 + 0.08 * dot(d, d)) * pow(max(dot(reflect(-l, n), view), 0.0), 20.0));
     }
-#endif
-#if GLASS
-    vec3 c = base * (0.6 + 0.4 * light);
-#else
-    vec3 c = base * light;
-#endif
+    vec3 c = (glass_pass == 1) ? base * (0.6 + 0.4 * light) : base * light;
     c *= exposure * 1.4;
     c = c * (1.0 + 0.25 * c) / (1.0 + c);  // tone curve: ~linear in the shadows, saturates softly
     float nz = 2.0 * hash(gl_FragCoord.xy) - 1.0;  // uniform in [-1, 1]

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from sim.groundtruth import feature_half_depths, features_in_view
-from sim.materials import DOUBLE_DOOR_STYLE, door_style, dress_scene
-from sim.render import KIND_DOOR, PHOTO_STYLE, CameraModel, Lighting, StereoRenderer
+from sim.materials import DOUBLE_DOOR_STYLE, PHOTO_STYLE, door_style, dress_scene
+from sim.render import KIND_DOOR, CameraModel, Lighting, StereoRenderer
 from sim.textures import make_texture_layers
 from tests.sim.room import look_at, ray_cast_depth, room_scene
 
@@ -146,29 +146,12 @@ def test_two_renderers_in_one_process_each_draw_their_own_scene(room, renderer, 
     np.testing.assert_array_equal(small.depth_m, again.depth_m)
 
 
-def test_plain_shader_variant_draws_what_the_full_shader_draws(room, renderer) -> None:
-    """Surfaces with no door pattern or photo are shaded by a variant without that code (llvmpipe would run it
-    for every pixel); drawing everything with the full variant must give the same image."""
-    T = look_at([3.5, 3.0, 1.5], [3.5, 5.9, 1.2])  # facing the door wall: door, wall, floor, ceiling in view
-    split = renderer.render(T, _lighting(), frame_seed=2.0)
-    chunks = renderer.chunks
-    assert chunks.pattern.any() and not chunks.pattern.all()  # the door's cells only
-    saved = chunks.pattern.copy()
-    try:
-        chunks.pattern[:] = True
-        full = renderer.render(T, _lighting(), frame_seed=2.0)
-    finally:
-        chunks.pattern[:] = saved
-    assert split.instance is not None and (split.instance == 1).mean() > 0.05  # the door is in view
-    np.testing.assert_array_equal(split.image_bgr, full.image_bgr)
-    np.testing.assert_array_equal(split.depth_m, full.depth_m)
-
-
 @pytest.mark.parametrize("width_m, double_share", [(0.8, (0.0, 0.0)), (1.02, (0.1, 0.3)), (1.8, (0.78, 0.92))])
 def test_wide_openings_are_mostly_double_doors(width_m, double_share) -> None:
     rng = np.random.default_rng(0)
     styles = np.array([door_style(width_m, rng) for _ in range(600)])
-    assert np.all(styles == np.round(styles)) and styles.min() >= 0 and styles.max() < PHOTO_STYLE
+    assert np.all(styles == np.round(styles)) and styles.min() >= 0
+    assert styles.max() < PHOTO_STYLE - 0.5  # below the shader's photo threshold
     double = np.mean(styles >= DOUBLE_DOOR_STYLE)
     assert double_share[0] <= double <= double_share[1]
 
