@@ -17,6 +17,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import subprocess
 import sys
 import time
@@ -231,11 +232,16 @@ def train(args: argparse.Namespace) -> None:
                     pe.copy_(pm)
         if step % 100 == 0 or step == args.steps - 1:
             log.info("step %d/%d loss %.3f (%.0f s)", step, args.steps, float(loss.detach()), time.time() - t0)
-    export(ema, anchors, args, data, len(sim), time.time() - t0)
+    export(ema, anchors, args, data, sim, time.time() - t0)
+
+
+def rendered_sources(sim: list[Sample]) -> list[str]:
+    """The buildings and seeds rendered frames came from, by their exported names (BUILDING_sSEED_FRAME)."""
+    return sorted({m.group(1) for s in sim if (m := re.match(r"(.+_s\d+)_\d+$", s.name))})
 
 
 def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str, list[Sample]],  # type: ignore[no-untyped-def]
-           n_sim: int, train_s: float) -> None:
+           sim: list[Sample], train_s: float) -> None:
     import torch
 
     from perception.model import STRIDE_PX
@@ -260,10 +266,10 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
     }
     extra: dict[str, object] = {
         "threshold_rule": "max mean F1 (door, window) on the validation split's PR curves",
-        "trained_on": {"real_facade_photos": len(data["train"]), "rendered_frames": n_sim},
+        "trained_on": {"real_facade_photos": len(data["train"]), "rendered_frames": len(sim)},
         "split": "facades: test = img_n with n % 5 == 0 (never trained on); val = seeded 15 % of the rest",
         "training": {"steps": args.steps, "batch": args.batch, "lr": args.lr, "seed": args.seed,
-                     "sim_fraction": args.sim_fraction, "rendered_buildings": "duplex, fzk_haus (office_a held out)",
+                     "sim_fraction": args.sim_fraction, "rendered_flights": rendered_sources(sim),
                      "seconds": round(train_s)},
         "figures": figures,
         "reproduce": "python -m perception.train",

@@ -83,3 +83,13 @@ def test_mostly_hidden_boxes_are_dropped():
 @pytest.mark.parametrize("n", [0, 5, 10, 105])
 def test_test_split_rule(n: int):
     assert is_real_test(Path(f"img_{n}.jpg"))
+
+
+def test_a_trained_model_names_the_flights_its_rendered_frames_came_from():
+    from perception.train import rendered_sources
+
+    def sample(name: str) -> Sample:
+        return Sample(name, np.zeros((4, 4, 3), np.uint8), np.zeros((0, 4)), np.zeros(0, int))
+
+    sim = [sample(n) for n in ("office_a_s11_000000", "office_a_s11_000006", "duplex_s2_000012", "photo_17")]
+    assert rendered_sources(sim) == ["duplex_s2", "office_a_s11"]
