@@ -22,9 +22,9 @@ from graph.features import BuildingModel
 from graph.landmarks import closer_flip, feature_frame_cad, is_vertical, observed_frame
 from graph.mapstore import StoredLandmark, StoredMap
 from graph.posegraph import PoseGraph
-from graph.registrar import ModelRegistrar, Registrar, candidates_from
+from graph.registrar import ModelRegistrar, Registrar
 from graph.relocalize import Alignment, ObservedRect
-from graph.rigid import apply, rotation_angle_deg
+from graph.rigid import apply, rotation_aligning, rotation_angle_deg
 from graph.surfaces import SurfaceIndex, align_to_surfaces, band_points, floor_points
 
 log = logging.getLogger(__name__)
@@ -204,7 +204,7 @@ class Localizer:
             return T_map_body[:3, :3].T @ Z_UP
         up_body = np.asarray(up_body, float) / np.linalg.norm(up_body)
         T_level = T_map_body.copy()
-        T_level[:3, :3] = _rotation_aligning(T_map_body[:3, :3] @ up_body, Z_UP) @ T_map_body[:3, :3]
+        T_level[:3, :3] = rotation_aligning(T_map_body[:3, :3] @ up_body, Z_UP) @ T_map_body[:3, :3]
         self.graph.add_gravity(i, T_level)
         return up_body
 
@@ -271,7 +271,7 @@ class Localizer:
             return n >= self.registrar.min_landmarks and n > self._registered_with
         last_ns, last_points = self._registered_at
         more_walls = (stamp_ns - last_ns) * 1e-9 >= self.params.surface_retry_s and self._n_points() > last_points
-        return n >= candidates_from(self.registrar) and (n > self._registered_with or more_walls)
+        return n >= self.registrar.candidates_from and (n > self._registered_with or more_walls)
 
     def _n_points(self) -> int:
         return sum(len(p) for _, p, _ in self._points)
@@ -457,16 +457,3 @@ def _poses_differ(A: np.ndarray, B: np.ndarray, moved_A: np.ndarray, moved_B: np
     map's origin, which may be far away)."""
     moved = float(np.linalg.norm(moved_A - moved_B, axis=1).mean())
     return moved > apart_m or rotation_angle_deg(A[:3, :3] @ B[:3, :3].T) > turned_deg
-
-
-def _rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking unit vector a onto unit vector b (3x3)."""
-    a = a / np.linalg.norm(a)
-    b = b / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(np.dot(a, b))
-    if c < -1 + 1e-9:
-        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
-    V = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + V + V @ V / (1 + c)

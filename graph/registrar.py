@@ -25,17 +25,13 @@ log = logging.getLogger(__name__)
 class Registrar(Protocol):
     """Places the map's landmarks in the CAD frame. Input: landmarks with T_map_rect and their corners
     (4, 3) in the map frame (or None); the map frame's z is up (gravity). `min_landmarks`: the fewest landmarks
-    it answers 'localized' from; a registrar may offer candidate poses from fewer (`candidates_from`)."""
+    it answers 'localized' from; `candidates_from` (<= min_landmarks): the fewest it is asked with at all, below
+    `min_landmarks` answering with candidate poses for other evidence to choose among."""
 
     min_landmarks: int
+    candidates_from: int
 
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment: ...
-
-
-def candidates_from(registrar: Registrar) -> int:
-    """The fewest landmarks from which `registrar` offers candidate poses (its `candidates_from` where it has
-    one, else its `min_landmarks`)."""
-    return int(getattr(registrar, "candidates_from", registrar.min_landmarks))
 
 
 class ModelRegistrar:
@@ -100,6 +96,7 @@ class StoredMapRegistrar:
     def __init__(self, known: list[KnownRect], min_landmarks: int = 3) -> None:
         self.known = known
         self.min_landmarks = min_landmarks
+        self.candidates_from = min_landmarks
 
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
         return align_rectangles(landmarks, self.known, min_inliers=self.min_landmarks)
@@ -115,12 +112,12 @@ class FirstOfRegistrar:
     def __init__(self, registrars: list[Registrar]) -> None:
         self.registrars = registrars
         self.min_landmarks = min(r.min_landmarks for r in registrars)
-        self.candidates_from = min(candidates_from(r) for r in registrars)
+        self.candidates_from = min(r.candidates_from for r in registrars)
 
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
         ambiguous: list[Alignment] = []
         for registrar in self.registrars:
-            if len(landmarks) < candidates_from(registrar):
+            if len(landmarks) < registrar.candidates_from:
                 continue
             result = registrar(landmarks, corners_map)
             if result.status == "localized":

@@ -27,7 +27,7 @@ from graph.keyframes import KeyframePolicy
 from graph.landmarks import feature_frame_cad
 from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar
 from graph.posegraph import PoseGraph
-from graph.registrar import Registrar, StoredMapRegistrar, candidates_from
+from graph.registrar import Registrar, StoredMapRegistrar
 from graph.relocalize import Alignment, KnownRect, ObservedRect
 from graph.surfaces import SurfaceIndex
 from perception.gravity import GravityEstimator
@@ -48,6 +48,7 @@ class RestoredRegistrar:
     """Re-localization after a restart: saved T_cad_map, then the saved CAD-linked landmarks, then the model."""
 
     min_landmarks = 1
+    candidates_from = 1
 
     def __init__(self, model: BuildingModel, T_cad_map_saved: np.ndarray | None, linked: list[KnownRect],
                  fallback: Registrar, agree_m: float = 0.4) -> None:
@@ -68,7 +69,7 @@ class RestoredRegistrar:
             found = self.stored(landmarks, corners_map)
             if found.status == "localized":
                 return found
-        if len(landmarks) >= candidates_from(self.fallback):
+        if len(landmarks) >= self.fallback.candidates_from:
             return self.fallback(landmarks, corners_map)
         return Alignment("not_localized", None)
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from graph.errors import UserInputError
 from graph.localizer import Sighting
-from graph.rigid import apply, rotation_angle_rad
+from graph.rigid import apply, rotation_aligning, rotation_angle_rad
 from service.recording import FlightFrame, matrix_from_pose
 
 if TYPE_CHECKING:
@@ -172,7 +172,7 @@ class VisualOdometry:
             T_odom_body0 = np.eye(4)
             up_body = _up_from_imu(frame)
             if up_body is not None:
-                T_odom_body0[:3, :3] = _rotation_aligning(up_body, np.array([0.0, 0.0, 1.0]))
+                T_odom_body0[:3, :3] = rotation_aligning(up_body, np.array([0.0, 0.0, 1.0]))
             self._T_odom_cam0 = T_odom_body0 @ T_body_cam
         assert self._T_odom_cam0 is not None
         R_body_cam = T_body_cam[:3, :3]
@@ -280,11 +280,6 @@ def _up_from_imu(frame: FlightFrame) -> np.ndarray | None:
     return f / norm if norm > 1e-6 else None
 
 
-def _rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation (3x3) taking unit vector a onto unit vector b (a != -b)."""
-    v, c = np.cross(a, b), float(np.dot(a, b))
-    V = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + V + V @ V / (1 + c)
 
 
 def _truth_centroids_cam(frame: FlightFrame) -> list[tuple[str, np.ndarray]]:
