@@ -38,15 +38,17 @@ PHOTO_STYLE = 16.0
 
 N_DOOR_PATTERNS = 5  # raised panels x2, x4, vision panel, kick plate, vision slits (scene.frag.glsl)
 DOUBLE_DOOR_STYLE = 10.0  # styles 10 + pattern: two leaves; below: one leaf, pattern + 5 x (handle on the left)
-DOUBLE_DOOR_WIDTH_M = 1.2  # openings at least this wide get two leaves (most of the time)
+DOUBLE_DOOR_WIDTH_M = 1.2  # openings at least this wide are double doors, DOUBLE_SHARE_WIDE of the time
+NARROW_DOUBLE_WIDTH_M = 0.95  # from this width up to DOUBLE_DOOR_WIDTH_M, DOUBLE_SHARE_NARROW of the time
+DOUBLE_SHARE_WIDE, DOUBLE_SHARE_NARROW = 0.85, 0.2
 
 
 def door_style(width_m: float | None, rng: np.random.Generator) -> float:
     """A door's style for the shader: a wide opening is mostly a double door; a standard one has one leaf, and
     one in five standard-width (0.95-1.2 m) openings is a pair of narrow leaves."""
     pattern = int(rng.integers(N_DOOR_PATTERNS))
-    if width_m is not None and width_m >= 0.95:
-        share = 0.85 if width_m >= DOUBLE_DOOR_WIDTH_M else 0.2
+    if width_m is not None and width_m >= NARROW_DOUBLE_WIDTH_M:
+        share = DOUBLE_SHARE_WIDE if width_m >= DOUBLE_DOOR_WIDTH_M else DOUBLE_SHARE_NARROW
         if rng.random() < share:
             return DOUBLE_DOOR_STYLE + pattern
     return float(pattern + N_DOOR_PATTERNS * int(rng.integers(2)))
