@@ -218,10 +218,7 @@ def floor_points(points_body: np.ndarray, up_body: np.ndarray, below_m: float = 
     `max_points`, drawn evenly (seeded)."""
     p = np.asarray(points_body, float).reshape(-1, 3)
     up = np.asarray(up_body, float) / np.linalg.norm(up_body)
-    p = p[(p @ up < -below_m) & (np.linalg.norm(p, axis=1) <= max_range_m)]
-    if len(p) > max_points:
-        p = p[np.sort(np.random.default_rng(seed).choice(len(p), max_points, replace=False))]
-    return p
+    return _at_most(p[(p @ up < -below_m) & (np.linalg.norm(p, axis=1) <= max_range_m)], max_points, seed)
 
 
 def band_points(points_body: np.ndarray, up_body: np.ndarray, half_height_m: float = 0.5,
@@ -232,7 +229,11 @@ def band_points(points_body: np.ndarray, up_body: np.ndarray, half_height_m: flo
     p = np.asarray(points_body, float).reshape(-1, 3)
     up = np.asarray(up_body, float) / np.linalg.norm(up_body)
     keep = (np.abs(p @ up) <= half_height_m) & (np.linalg.norm(p, axis=1) <= max_range_m)
-    p = p[keep]
-    if len(p) > max_points:
-        p = p[np.sort(np.random.default_rng(seed).choice(len(p), max_points, replace=False))]
-    return p
+    return _at_most(p[keep], max_points, seed)
+
+
+def _at_most(points: np.ndarray, max_points: int, seed: int) -> np.ndarray:
+    """`points`, or `max_points` of them drawn at random (seeded), in their order."""
+    if len(points) <= max_points:
+        return points
+    return points[np.sort(np.random.default_rng(seed).choice(len(points), max_points, replace=False))]

@@ -17,7 +17,7 @@ import numpy as np
 
 from graph.errors import UserInputError
 from graph.localizer import Sighting
-from graph.rigid import apply, rotation_aligning, rotation_angle_rad
+from graph.rigid import apply, rot_z, rotation_aligning, rotation_angle_rad
 from service.recording import FlightFrame, matrix_from_pose
 
 if TYPE_CHECKING:
@@ -103,7 +103,7 @@ class TruthSource:
         if self._T_true_prev is None or self._T_odom is None:
             yaw0 = np.arctan2(T_cad_body[1, 0], T_cad_body[0, 0])
             self._T_odom = np.eye(4)
-            self._T_odom[:3, :3] = _rot_z(-yaw0) @ T_cad_body[:3, :3]  # odometry frame: level, starts here
+            self._T_odom[:3, :3] = rot_z(-yaw0) @ T_cad_body[:3, :3]  # odometry frame: level, starts here
         else:
             dT = np.linalg.inv(self._T_true_prev) @ T_cad_body
             step_m = float(np.linalg.norm(dT[:3, 3]))
@@ -113,7 +113,7 @@ class TruthSource:
             noisy[:3, 3] = (dT[:3, 3] * (1 + n.odom_scale_error)
                             + self.rng.normal(0, n.odom_trans_sigma_per_m * step_m, 3))
             dyaw = n.odom_yaw_bias_radps * dt_s + self.rng.normal(0, n.odom_rot_sigma_per_rad * angle + 1e-5)
-            noisy[:3, :3] = dT[:3, :3] @ _rot_z(dyaw)
+            noisy[:3, :3] = dT[:3, :3] @ rot_z(dyaw)
             self._T_odom = self._T_odom @ noisy
         self._T_true_prev, self._stamp_prev = T_cad_body, stamp_ns
         return self._T_odom.copy()
@@ -133,11 +133,6 @@ class TruthSource:
             corners_body = (T_body_cam[:3, :3] @ corners_cam.T).T + T_body_cam[:3, 3]
             out.append(Sighting(feat.type, corners_body, truth_id=feat.id))
         return out
-
-
-def _rot_z(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class VisualOdometry:
@@ -278,8 +273,6 @@ def _up_from_imu(frame: FlightFrame) -> np.ndarray | None:
     f = _specific_forces(frame).mean(axis=0)
     norm = float(np.linalg.norm(f))
     return f / norm if norm > 1e-6 else None
-
-
 
 
 def _truth_centroids_cam(frame: FlightFrame) -> list[tuple[str, np.ndarray]]:
