@@ -63,8 +63,11 @@ class LocalizerParams:
     surface_window_keyframes: int = 60  # the depth points of this many recent keyframes check a registration
     surface_min_points: int = 200  # fewer points than this: no check (the registration needs the landmarks above)
     surface_min_support: float = 0.9  # a pose must put this fraction of the points on the model's surfaces ...
-    surface_margin: float = 0.3  # ... and every other candidate pose this much less
+    surface_margin: float = 0.3  # ... and every other candidate pose this much less (of points on surfaces and in
+    #                               sight, with the model's walls: SurfaceCheck.score) ...
+    surface_max_seen_through: float = 0.1  # ... and let at most this fraction be seen through a wall
     surface_retry_s: float = 1.0  # with no new landmark, the check is retried this often as the walls come in view
+    surface_refine_m: float = 0.6  # each candidate pose is first fitted to the walls, moving the points at most this
     surface_fit: bool = True  # once localized, each keyframe's depth points fitted to the walls join the graph
     surface_fit_max_correction_m: float = 0.5  # a fit that moves the pose further is not trusted (wrong wall)
     surface_fit_sigma_m: float = 0.05  # a fitted point's distance to its wall, model against reality (m)
@@ -279,15 +282,22 @@ class Localizer:
     def _can_check_surfaces(self) -> bool:
         return self.surfaces is not None and self._n_points() >= self.params.surface_min_points
 
-    def _points_map(self, at_most: int = 2000) -> np.ndarray:
-        """The recent keyframes' depth points in the map frame, at the keyframes' current estimates; `at_most`
-        of them, evenly drawn (a support known to ~1 % is enough, and each point costs a k-d tree query)."""
-        parts = [apply(self.graph.T_map_body(i), p) for i, p, _ in self._points if len(p)]
-        points = np.vstack(parts) if parts else np.zeros((0, 3))
-        return points[:: int(np.ceil(len(points) / at_most))] if len(points) > at_most else points
+    def _points_map(self, at_most: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+        """The recent keyframes' depth points (N, 3) in the map frame, at the keyframes' current estimates, and
+        the camera each was seen from (N, 3); `at_most` of them, evenly drawn (a support known to ~1 % is
+        enough, and each point costs a k-d tree query and a line of sight)."""
+        points, origins = [np.zeros((0, 3))], [np.zeros((0, 3))]
+        for i, p, _ in self._points:
+            if len(p):
+                T_map_body = self.graph.T_map_body(i)
+                points.append(apply(T_map_body, p))
+                origins.append(np.repeat(apply(T_map_body, self.viewer_body[None]), len(p), axis=0))
+        every = max(1, int(np.ceil(sum(len(p) for p in points) / at_most)))
+        return np.vstack(points)[::every], np.vstack(origins)[::every]
 
-    def _choose_by_surfaces(self, result: Alignment, stamp_ns: int) -> np.ndarray | None:
-        """The pose to anchor the map with, or None: the registrar's answer, checked by the walls (graph.surfaces).
+    def _choose_by_surfaces(self, result: Alignment, stamp_ns: int) -> tuple[np.ndarray | None, bool]:
+        """The pose to anchor the map with, or None, and whether it is the registrar's answer (whose matches
+        then hold): the registrar's answer, checked by the walls (graph.surfaces).
 
         Without depth points only the registrar's own 'localized' counts. With them, a candidate pose is taken
         when it puts `surface_min_support` of the points on the model's surfaces and every other candidate
@@ -296,33 +306,54 @@ class Localizer:
         p = self.params
         T_reg = result.T_cad_map if result.status == "localized" else None
         if not self._can_check_surfaces():
-            return T_reg
+            return T_reg, T_reg is not None
         assert self.surfaces is not None
-        points_map = self._points_map()
-        candidates = [T for T, _ in result.candidates]
+        points_map, origins_map = self._points_map()
+        candidates = [self._refined(T, points_map) for T, _ in result.candidates]
         moved = [apply(T, points_map) for T in candidates]  # the points under each candidate, CAD frame
         if T_reg is not None:
+            T_reg = self._refined(T_reg, points_map)
             moved_reg = apply(T_reg, points_map)
             if all(_poses_differ(T, T_reg, m, moved_reg) for T, m in zip(candidates, moved, strict=True)):
                 candidates.insert(0, T_reg)
                 moved.insert(0, moved_reg)
         if not candidates:
-            return None
-        support = np.array([self.surfaces.support(m) for m in moved])
-        self.surface_checks.append((stamp_ns, support.round(3).tolist()))
+            return None, False
+        checks = [self.surfaces.check(m, apply(T, origins_map)) for T, m in zip(candidates, moved, strict=True)]
+        score = np.array([c.score for c in checks])
+        self.surface_checks.append((stamp_ns, score.round(3).tolist()))
         log.info("surface check of %d candidate poses (%d points): support %s", len(candidates), len(points_map),
-                 ", ".join(f"{s:.2f}" for s in support))
-        best = int(np.argmax(support))
-        others = [s for T, m, s in zip(candidates, moved, support, strict=True)
+                 ", ".join(f"{c.support:.2f}" + (f" ({c.seen_through:.2f} seen through walls)"
+                                                 if self.surfaces.walls is not None else "") for c in checks))
+        best = int(np.argmax(score))
+        others = [s for T, m, s in zip(candidates, moved, score, strict=True)
                   if _poses_differ(T, candidates[best], m, moved[best])]
-        confirmed = support[best] >= p.surface_min_support and all(s <= support[best] - p.surface_margin
-                                                                     for s in others)
+        confirmed = (checks[best].support >= p.surface_min_support
+                     and checks[best].seen_through <= p.surface_max_seen_through
+                     and all(s <= score[best] - p.surface_margin for s in others))
         if T_reg is not None:
             i_reg = next(k for k, (T, m) in enumerate(zip(candidates, moved, strict=True))
                          if not _poses_differ(T, T_reg, m, moved_reg))
-            beaten = support[best] >= support[i_reg] + p.surface_margin
-            return None if beaten or (confirmed and best != i_reg) else T_reg
-        return candidates[best] if confirmed else None
+            beaten = score[best] >= score[i_reg] + p.surface_margin
+            return (None, False) if beaten or (confirmed and best != i_reg) else (T_reg, True)
+        return (candidates[best] if confirmed else None), False
+
+    def _refined(self, T_cad_map: np.ndarray, points_map: np.ndarray) -> np.ndarray:
+        """A candidate pose fitted to the walls by the map's depth points (point-to-plane, roll and pitch held),
+        or as it was where the fit fails or moves the points further than `surface_refine_m`. A pose from two or
+        three doors' corners is off by tenths of a metre and a degree or two (their corners are coarse at range):
+        enough to put points beyond the check's tolerance of their walls, and lines of sight through a doorway
+        into its jambs. The check should judge the place a candidate stands for, not its error."""
+        if self.params.surface_refine_m <= 0:
+            return T_cad_map
+        assert self.surfaces is not None
+        # the points are in the map frame, not around one camera: no range-dependent noise in their weights
+        fit = align_to_surfaces(self.surfaces, points_map, T_cad_map, iterations=8, depth_sigma_per_m2=0.0,
+                                max_distance_m=self.params.surface_refine_m, sigma_m=self.params.surface_fit_sigma_m)
+        if fit is None:
+            return T_cad_map
+        moved = np.linalg.norm(apply(np.linalg.inv(T_cad_map) @ fit.T_cad_body, points_map) - points_map, axis=1)
+        return fit.T_cad_body if float(moved.mean()) <= self.params.surface_refine_m else T_cad_map
 
     def _register(self, stamp_ns: int) -> None:
         """Register the map's landmarks to the model; on success anchor the graph to the CAD frame."""
@@ -333,7 +364,7 @@ class Localizer:
         self._registered_with = len(keys)
         self._registered_at = (stamp_ns, self._n_points())
         self.inliers = result.inliers
-        T_cad_map = self._choose_by_surfaces(result, stamp_ns)
+        T_cad_map, registrars = self._choose_by_surfaces(result, stamp_ns)
         if T_cad_map is None:
             status = "exploring" if result.status == "not_localized" else "ambiguous"
             self.registrations.append((stamp_ns, status))
@@ -344,7 +375,7 @@ class Localizer:
         log.info("localized with %d inliers of %d landmarks (%d matches)", result.inliers, len(keys),
                  len(result.matches))
         self.graph.add_anchor(np.linalg.inv(T_cad_map))
-        if T_cad_map is result.T_cad_map:  # the registrar's own pose: its matches hold
+        if registrars:  # the registrar's own pose (fitted to the walls): its matches hold
             for j, fid in result.matches:
                 self._link(j, fid, T_cad_map)
         self.status = "localized"

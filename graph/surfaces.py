@@ -8,6 +8,13 @@ where on a storey one is) and answers, for a pose hypothesis, which fraction of 
 `tolerance_m` of a surface (`support`). The localizer uses it to choose among the registrar's candidate poses
 and to refuse a pose the walls contradict (graph.localizer).
 
+Support alone is a weak test in a building of look-alike rooms: a pose turned 90 deg in the next room puts 80 % of
+the points near some wall (Jasmin-Sun). What a camera measured also says where the walls are *not*: the line of
+sight from the camera to each point is free. `WallVoxels` holds the model's walls (without doors, windows and
+openings: a camera sees through doorways and glass) as occupied voxels, and `SurfaceIndex.check` counts the points
+whose line of sight crosses a wall well before the point (further than its depth noise): under a wrong pose most
+points are seen through a wall, under the right one almost none (`SurfaceCheck.score`).
+
 Once localized, `align_to_surfaces` fits a keyframe's points to the surfaces (point-to-plane) for a measured
 pose. The floors, sampled apart, take part there: a stereo camera sees the floor ahead, and its height is the
 one thing the walls cannot give and the doors' corners give worst (their bottoms hide behind the image's edge
@@ -35,6 +42,107 @@ class SurfaceParams:
     max_normal_z: float = 0.7  # triangles whose normal's |z| exceeds this (floors, ceilings, slabs) are left out
     tolerance_m: float = 0.2  # a point this close to a sample lies on the surface
     horizontal_spacing_m: float = 0.2  # the floors' samples (open above), for fitting heights (0: none)
+    depth_sigma_per_m2: float = 0.005  # the points' depth noise (stereo, ~ range^2), for the line-of-sight check ...
+    sight_margin_m: float = 0.2  # ... which lets a ray cross a wall this + 3 sigmas before its point
+
+
+class WallVoxels:
+    """The model's walls as occupied voxels (`voxel_m` cubes), for line-of-sight checks: sorted int64 keys of the
+    voxels a wall triangle passes through. Each triangle is sampled on a lattice at most half a voxel apart along
+    its edges, so a wall leaves no hole a line of sight slips through, however thin it is modelled. CAD frame,
+    metres."""
+
+    OFFSET = 1 << 20  # voxel indices are shifted positive: +-100 km at 0.1 m
+    SPAN = 1 << 21
+    CHUNK = 4_000_000  # lattice points per pass (memory)
+
+    def __init__(self, keys: np.ndarray, voxel_m: float = 0.1) -> None:
+        self.keys = np.unique(np.asarray(keys, np.int64))
+        self.voxel_m = voxel_m
+
+    @classmethod
+    def from_mesh(cls, vertices_cad: np.ndarray, faces: np.ndarray, voxel_m: float = 0.1,
+                  max_normal_z: float = 0.7) -> WallVoxels:
+        """The non-horizontal triangles (V, 3) / (F, 3) (walls, columns; not floors, ceilings or slabs, which
+        lines of sight at the camera's height do not cross) as voxels."""
+        tri = np.asarray(vertices_cad, float)[np.asarray(faces, np.int64)].reshape(-1, 3, 3)
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        area = 0.5 * np.linalg.norm(cross, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            nz = np.abs(cross[:, 2]) / (2.0 * area)
+        tri = tri[(area > 1e-9) & (nz <= max_normal_z)]
+        if len(tri) == 0:
+            return cls(np.zeros(0, np.int64), voxel_m)
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        n1 = np.ceil(np.linalg.norm(e1, axis=1) / (0.5 * voxel_m)).astype(np.int64)
+        n2 = np.ceil(np.linalg.norm(e2, axis=1) / (0.5 * voxel_m)).astype(np.int64)
+        count = (n1 + 1) * (n2 + 1)  # the parallelogram's lattice; the half beyond the triangle is dropped
+        keys, first = [], 0
+        ends = np.searchsorted(np.cumsum(count), np.arange(cls.CHUNK, count.sum() + cls.CHUNK, cls.CHUNK))
+        for last in np.unique(np.minimum(np.maximum(ends, 1), len(tri))):
+            k = np.arange(first, last)
+            first = last
+            t = np.repeat(k, count[k])
+            local = np.arange(len(t)) - np.repeat(np.cumsum(count[k]) - count[k], count[k])
+            u = (local // (n2[t] + 1)) / n1[t]
+            v = (local % (n2[t] + 1)) / n2[t]
+            inside = u + v <= 1.0 + 1e-9
+            t, u, v = t[inside], u[inside], v[inside]
+            points = tri[t, 0] + u[:, None] * e1[t] + v[:, None] * e2[t]
+            keys.append(np.unique(cls._key(points, voxel_m)))
+        return cls(np.concatenate(keys), voxel_m)
+
+    @classmethod
+    def _key(cls, points: np.ndarray, voxel_m: float) -> np.ndarray:
+        q = np.floor(points / voxel_m).astype(np.int64) + cls.OFFSET
+        return (q[:, 0] * cls.SPAN + q[:, 1]) * cls.SPAN + q[:, 2]
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def occupied(self, points_cad: np.ndarray) -> np.ndarray:
+        """(N,) bool: the points' voxels hold a wall."""
+        if len(self.keys) == 0 or len(points_cad) == 0:
+            return np.zeros(len(points_cad), bool)
+        k = self._key(np.asarray(points_cad, float).reshape(-1, 3), self.voxel_m)
+        i = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
+        return self.keys[i] == k
+
+    def seen_through(self, origins_cad: np.ndarray, points_cad: np.ndarray, depth_sigma_per_m2: float = 0.005,
+                     margin_m: float = 0.2, start_m: float = 0.2) -> np.ndarray:
+        """(N,) bool: the line of sight from each origin (N, 3) to its point (N, 3) crosses a wall (passes into a
+        wall voxel and out again) more than `margin_m` + 3 depth sigmas (`depth_sigma_per_m2` x range^2) before
+        the point: the point cannot have been seen from there. A line of sight that runs into a wall and stays in
+        it to the end is one grazing the wall it ends on. Sampled every half voxel from `start_m` (the camera's
+        own clearance). A line that passes a wall's edge within a voxel counts as crossing it."""
+        o = np.asarray(origins_cad, float).reshape(-1, 3)
+        d = np.asarray(points_cad, float).reshape(-1, 3) - o
+        rng = np.linalg.norm(d, axis=1)
+        free_to = rng - margin_m - 3.0 * depth_sigma_per_m2 * rng**2  # along the line, m
+        step = 0.5 * self.voxel_m
+        n = np.maximum(0, np.floor((free_to - start_m) / step).astype(np.int64) + 1)
+        ray = np.repeat(np.arange(len(o)), n)
+        if len(ray) == 0:
+            return np.zeros(len(o), bool)
+        k = np.arange(len(ray)) - np.repeat(np.cumsum(n) - n, n)  # the sample's index along its line
+        u = d[ray] / rng[ray, None]
+        hit = self.occupied(o[ray] + u * (start_m + step * k)[:, None])
+        first_hit = np.full(len(o), np.iinfo(np.int64).max)
+        np.minimum.at(first_hit, ray[hit], k[hit])
+        last_free = np.full(len(o), -1)
+        np.maximum.at(last_free, ray[~hit], k[~hit])
+        return first_hit < last_free
+
+
+@dataclass(frozen=True)
+class SurfaceCheck:
+    """A pose hypothesis against the model: `support`, the fraction of the points on a surface; `seen_through`,
+    the fraction whose line of sight crosses a wall (0 without walls or origins); `score`, the fraction on a
+    surface and in sight."""
+
+    support: float
+    seen_through: float
+    score: float
 
 
 class SurfaceIndex:
@@ -51,6 +159,7 @@ class SurfaceIndex:
         self.samples_cad = np.asarray(samples_cad, float).reshape(-1, 3)
         self.normals_cad = None if normals_cad is None else np.asarray(normals_cad, float).reshape(-1, 3)
         self.tree = cKDTree(self.samples_cad)
+        self.walls: WallVoxels | None = None  # for line-of-sight checks (`check`), when set
         self.horizontal: tuple[cKDTree, np.ndarray, np.ndarray] | None = None  # (tree, samples, normals)
         if horizontal_cad is not None and horizontal_normals_cad is not None and len(horizontal_cad):
             h = np.asarray(horizontal_cad, float).reshape(-1, 3)
@@ -89,6 +198,18 @@ class SurfaceIndex:
             return 0.0
         d, _ = self.tree.query(pts, distance_upper_bound=self.params.tolerance_m)
         return float(np.isfinite(d).mean())
+
+    def check(self, points_cad: np.ndarray, origins_cad: np.ndarray | None = None) -> SurfaceCheck:
+        """`support` of the points (N, 3) and, with `walls` and the cameras they were seen from (N, 3), the
+        fraction seen through a wall (see module doc)."""
+        pts = np.asarray(points_cad, float).reshape(-1, 3)
+        if len(pts) == 0 or len(self.samples_cad) == 0:
+            return SurfaceCheck(0.0, 0.0, 0.0)
+        on = np.isfinite(self.tree.query(pts, distance_upper_bound=self.params.tolerance_m)[0])
+        if self.walls is None or origins_cad is None:
+            return SurfaceCheck(float(on.mean()), 0.0, float(on.mean()))
+        through = self.walls.seen_through(origins_cad, pts, self.params.depth_sigma_per_m2, self.params.sight_margin_m)
+        return SurfaceCheck(float(on.mean()), float(through.mean()), float((on & ~through).mean()))
 
 
 def _open_above(samples: np.ndarray, spacing_m: float) -> np.ndarray:

@@ -26,12 +26,15 @@ import numpy as np
 from graph.bim import cache_dir, file_sha256
 
 if TYPE_CHECKING:
-    from graph.surfaces import SurfaceIndex
+    from graph.surfaces import SurfaceIndex, WallVoxels
 
 log = logging.getLogger(__name__)
 
 NOT_OBSTACLES = ("IfcDoor", "IfcWindow", "IfcOpeningElement", "IfcSpace", "IfcAnnotation", "IfcVirtualElement")
 NOT_SEEN = ("IfcOpeningElement", "IfcSpace", "IfcAnnotation", "IfcVirtualElement")  # no surface a camera sees
+# what no camera sees through (for line-of-sight checks): not furniture (between its legs), railings, curtain walls
+# and their plates (glass), doors or windows
+OPAQUE = ("IfcWall", "IfcWallStandardCase", "IfcWallElementedCase", "IfcColumn")
 MESH_CACHE_VERSION = 1
 
 
@@ -89,12 +92,15 @@ def _iterate_shapes(ifc_file, **filters):  # noqa: ANN001, ANN202 - ifcopenshell
             break
 
 
-def _read_solids(ifc_path: Path, exclude: tuple[str, ...] = NOT_OBSTACLES) -> BuildingSolids:
+def _read_solids(ifc_path: Path, exclude: tuple[str, ...] = NOT_OBSTACLES,
+                 include: tuple[str, ...] | None = None) -> BuildingSolids:
+    """The triangles of every element but `exclude`d ones (or of the `include`d ones only), and the spaces."""
     import ifcopenshell
 
     ifc_file = ifcopenshell.open(str(ifc_path))
     vertices, faces, offset = [], [], 0
-    for _, verts, tris in _iterate_shapes(ifc_file, exclude=list(exclude)):
+    filters = {"include": list(include)} if include else {"exclude": list(exclude)}
+    for _, verts, tris in _iterate_shapes(ifc_file, **filters):
         vertices.append(verts)
         faces.append(tris + offset)
         offset += len(verts)
@@ -122,8 +128,27 @@ def surfaces_for(building: Path) -> SurfaceIndex | None:
         return None
     seen = load_solids(Path(building), with_doors_and_windows=True)
     index = SurfaceIndex.from_mesh(seen.vertices_cad, seen.faces)
-    log.info("%s: %d surface samples for checking registrations", Path(building).name, len(index))
+    index.walls = wall_voxels(Path(building))
+    log.info("%s: %d surface samples and %d wall voxels for checking registrations", Path(building).name, len(index),
+             len(index.walls))
     return index
+
+
+def wall_voxels(ifc_path: Path) -> WallVoxels:
+    """The walls and columns of an IFC model (`OPAQUE`; their openings subtracted: a camera sees through doorways
+    and windows) as voxels for line-of-sight checks (graph.surfaces.WallVoxels); cached by the file's SHA-256
+    (reading the geometry takes seconds)."""
+    from graph.surfaces import WallVoxels
+
+    cached = cache_dir() / f"opaque-voxels-v{MESH_CACHE_VERSION}-{file_sha256(ifc_path)[:32]}.npy"
+    if cached.exists():
+        return WallVoxels(np.load(cached))
+    walls_only = _read_solids(ifc_path, include=OPAQUE)
+    walls = WallVoxels.from_mesh(walls_only.vertices_cad, walls_only.faces)
+    tmp = cached.with_name(f"{cached.stem}.tmp{os.getpid()}.npy")
+    np.save(tmp, walls.keys)
+    os.replace(tmp, cached)
+    return walls
 
 
 @dataclass

@@ -2,7 +2,8 @@
 
 The room: a 12 x 7 m box with a 4 m partition from one wall, walls 3 m tall, floor and ceiling; the walls are
 sampled for the check, the floor and ceiling apart, for fitting heights. Depth points are what a camera in the
-room sees of the walls (and of the floor).
+room sees of the walls (and of the floor); `seen_points` casts the camera's lines of sight, for the checks that
+ask what it could not have seen.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from graph.localizer import Localizer, LocalizerParams
 from graph.posegraph import PoseGraph
 from graph.relocalize import Alignment
 from graph.rigid import apply, rotation_angle_deg
-from graph.surfaces import SurfaceIndex, SurfaceParams, align_to_surfaces, band_points, floor_points
+from graph.surfaces import SurfaceIndex, SurfaceParams, WallVoxels, align_to_surfaces, band_points, floor_points
 from tests.graph.scenes import corridor_model, make_T, rot_z, sightings_from
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -44,6 +45,36 @@ def room_mesh() -> tuple[np.ndarray, np.ndarray]:
 @pytest.fixture(scope="module")
 def room() -> SurfaceIndex:
     return SurfaceIndex.from_mesh(*room_mesh(), SurfaceParams(spacing_m=0.05))
+
+
+@pytest.fixture(scope="module")
+def room_with_walls() -> SurfaceIndex:
+    index = SurfaceIndex.from_mesh(*room_mesh(), SurfaceParams(spacing_m=0.05))
+    index.walls = WallVoxels.from_mesh(*room_mesh())
+    return index
+
+
+# the room's walls seen from above: x0 y0 x1 y1
+WALL_SEGMENTS = np.array([[0, 0, 12, 0], [12, 0, 12, 7], [12, 7, 0, 7], [0, 7, 0, 0], [5, 0, 5, 4]], float)
+
+
+
+def seen_points(rng: np.random.Generator, camera_xy: np.ndarray, n: int = 150, z: float = 1.4) -> np.ndarray:
+    """What a camera at `camera_xy` in the room measures around it (CAD): the nearest wall along random
+    horizontal directions, at heights about its own."""
+    a = rng.uniform(0, 2 * np.pi, n)
+    d = np.column_stack([np.cos(a), np.sin(a)])
+    nearest = np.full(n, np.inf)
+    for x0, y0, x1, y1 in WALL_SEGMENTS:
+        e, w = np.array([x1 - x0, y1 - y0]), np.array([x0, y0]) - camera_xy
+        den = d[:, 0] * e[1] - d[:, 1] * e[0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (w[0] * e[1] - w[1] * e[0]) / den  # along the line of sight
+            s = (w[0] * d[:, 1] - w[1] * d[:, 0]) / den  # along the wall
+        hit = (np.abs(den) > 1e-12) & (t > 0) & (s >= 0) & (s <= 1) & (t < nearest)
+        nearest[hit] = t[hit]
+    xy = camera_xy + d * nearest[:, None]
+    return np.column_stack([xy, z + rng.uniform(-0.4, 0.4, n)])
 
 
 def wall_points(rng: np.random.Generator, n: int = 400, z: float = 1.4, n_walls: int = 5) -> np.ndarray:
@@ -93,6 +124,54 @@ def test_support_falls_when_the_pose_is_off(room: SurfaceIndex) -> None:
     half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))  # the outer walls onto themselves
     assert 0.7 < room.support(apply(half_turn, points)) < 0.95  # only the partition's points tell
     assert room.support(np.zeros((0, 3))) == 0.0
+
+
+def test_a_point_behind_a_wall_is_seen_through_it(room_with_walls: SurfaceIndex) -> None:
+    """Points on the far wall (x = 12 m) behind the partition (x = 5 m, y < 4 m): on a surface, but a camera in
+    the partition's pocket cannot see them; from the other side of the partition it can."""
+    walls = room_with_walls.walls
+    assert walls is not None
+    far = np.column_stack([np.full(50, 12.0), np.linspace(0.5, 3.5, 50), np.full(50, 1.4)])
+    pocket, open_side = np.array([2.0, 2.0, 1.4]), np.array([8.0, 2.0, 1.4])
+    assert walls.seen_through(np.tile(pocket, (50, 1)), far).all()
+    assert not walls.seen_through(np.tile(open_side, (50, 1)), far).any()
+    on_far = room_with_walls.check(far, np.tile(pocket, (50, 1)))
+    assert on_far.support == 1.0 and on_far.seen_through == 1.0 and on_far.score == 0.0
+    assert room_with_walls.check(far).score == 1.0  # without the cameras: support alone
+    # past the partition's end (y > 4 m) the line of sight is free
+    past = np.column_stack([np.linspace(8.0, 11.0, 20), np.full(20, 7.0), np.full(20, 1.4)])
+    assert not walls.seen_through(np.tile([2.0, 3.5, 1.4], (20, 1)), past).any()
+    # a point measured a little behind its wall (depth noise) is not seen through it; a metre behind, it is
+    camera = np.array([[10.0, 3.0, 1.4]])
+    assert not walls.seen_through(camera, np.array([[12.1, 3.0, 1.4]])).any()
+    assert walls.seen_through(camera, np.array([[13.0, 3.0, 1.4]])).all()
+
+
+@settings(max_examples=20, deadline=None)
+@given(x=st.floats(5.5, 11.5), y=st.floats(0.5, 6.5), noise=st.floats(0.0, 1.0), seed=st.integers(0, 1000))
+def test_what_a_camera_sees_is_never_seen_through_a_wall(room_with_walls: SurfaceIndex, x: float, y: float,
+                                                         noise: float, seed: int) -> None:
+    """Anywhere in the room, the points a camera measures (with up to one sigma of depth noise along the line of
+    sight) lie on surfaces and in sight, and a pose a metre off is seen through walls for some of them. (A line of
+    sight that passes the partition's end within a voxel, 0.1 m, is taken for one through it: a few in a hundred
+    at most.)"""
+    rng = np.random.default_rng(seed)
+    points = seen_points(rng, np.array([x, y]), 300)
+    origins = np.tile([x, y, 1.4], (len(points), 1))
+    check = room_with_walls.check(points, origins)
+    assert check.seen_through <= 0.02 and check.support > 0.95
+    off = make_T(rot_z(0.5), np.array([1.0, 0.5, 0.0]))
+    assert room_with_walls.check(apply(off, points), apply(off, origins)).score < check.score - 0.2
+    ray = points - origins
+    r = np.linalg.norm(ray, axis=1, keepdims=True)
+    sign = rng.choice([-1.0, 1.0], (len(points), 1))
+    noisy = points + ray / r * noise * room_with_walls.params.depth_sigma_per_m2 * r**2 * sign
+    assert room_with_walls.check(noisy, origins).seen_through <= 0.02  # (its support falls beyond 0.2 m of noise)
+
+
+def test_voxels_of_an_empty_model_block_nothing() -> None:
+    walls = WallVoxels.from_mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    assert len(walls) == 0 and not walls.seen_through(np.zeros((3, 3)), np.ones((3, 3))).any()
 
 
 def test_band_points_keep_the_camera_height_and_range() -> None:
@@ -176,6 +255,56 @@ def test_walls_that_cannot_tell_the_candidates_apart_leave_it_ambiguous() -> Non
     assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None
     same = T_TRUE @ make_T(np.eye(3), np.array([0.0, 0.0, 0.1]))  # 0.1 m apart: one pose, not a rival
     assert fly_in_room(box, CandidatesRegistrar([T_TRUE, same]), n_walls=4).status == "localized"
+
+
+def fly_seeing(room: SurfaceIndex, registrar: CandidatesRegistrar, cameras_cad: list[np.ndarray],
+               params: LocalizerParams | None = None) -> Localizer:
+    """Keyframes at `cameras_cad` (x, y; the map frame is T_TRUE's) with what a camera there sees of the room,
+    and two door sightings for the registrar (which ignores where they are)."""
+    model = corridor_model()
+    rng = np.random.default_rng(6)
+    loc = Localizer(model, PoseGraph(), registrar, params or LocalizerParams(surface_min_points=100), surfaces=room)
+    sightings = sightings_from(model, make_T(np.eye(3), np.array([1.0, 0.0, 1.4])))[:2]
+    for k, xy in enumerate(cameras_cad):
+        T_cad_body = make_T(np.eye(3), np.array([xy[0], xy[1], 1.4]))
+        T_map_body = np.linalg.inv(T_TRUE) @ T_cad_body
+        points_body = apply(np.linalg.inv(T_cad_body), seen_points(rng, np.asarray(xy, float)))
+        loc.add_keyframe(k * 100_000_000, T_map_body, sightings, UP, points_body=points_body)
+    return loc
+
+
+NEAR_THE_PARTITION_END = [np.array([6.5, 6.0]), np.array([6.8, 5.7]), np.array([7.1, 5.4])]
+
+
+def test_lines_of_sight_tell_apart_what_the_surfaces_cannot(room: SurfaceIndex,
+                                                            room_with_walls: SurfaceIndex) -> None:
+    """Near the partition's end, the half-turn about the room's centre puts >= 90 % of the points on walls too,
+    within the margin of the true pose: by the surfaces alone the status stays ambiguous. Under it the camera
+    would have seen a third of them through the partition, and the lines of sight settle it."""
+    half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))
+    loc = fly_seeing(room, CandidatesRegistrar([half_turn @ T_TRUE, T_TRUE]), NEAR_THE_PARTITION_END)
+    assert loc.status == "ambiguous" and min(loc.surface_checks[-1][1]) >= 0.9
+    loc = fly_seeing(room_with_walls, CandidatesRegistrar([half_turn @ T_TRUE, T_TRUE]), NEAR_THE_PARTITION_END)
+    assert loc.status == "localized"
+    T_cad_map = loc.graph.T_cad_map()
+    assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
+    half_turn_score, true_score = loc.surface_checks[-1][1]
+    assert true_score > 0.95 and half_turn_score < true_score - 0.3
+
+
+def test_a_candidate_a_little_off_is_fitted_to_the_walls_before_the_check(room_with_walls: SurfaceIndex) -> None:
+    """A pose from two doors' coarse corners, 0.3 m and 3 degrees off: a third of the points miss their walls,
+    and as it stands the check cannot confirm it; fitted to the walls first, it is the true pose."""
+    off = T_TRUE @ make_T(rot_z(np.radians(3.0)), np.array([0.3, -0.2, 0.0]))
+    cameras = [np.array([8.0, 2.0]), np.array([8.3, 2.5]), np.array([8.6, 3.0])]
+    unfitted = fly_seeing(room_with_walls, CandidatesRegistrar([off, T_WRONG]), cameras,
+                          LocalizerParams(surface_min_points=100, surface_refine_m=0.0))
+    assert unfitted.status == "ambiguous" and max(unfitted.surface_checks[-1][1]) < 0.9
+    fitted = fly_seeing(room_with_walls, CandidatesRegistrar([off, T_WRONG]), cameras)
+    assert fitted.status == "localized"
+    T_cad_map = fitted.graph.T_cad_map()
+    assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
+    assert rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T) < 1.0  # from 3 (the graph has moved it since)
 
 
 def test_a_localized_answer_the_walls_contradict_is_refused(room: SurfaceIndex) -> None:
