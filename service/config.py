@@ -137,7 +137,10 @@ class GraphConfig(BaseModel):
     surface_check: bool = Field(
         True, description="check registrations against the walls: with depth points (stereo), a pose from as "
         "few as verified_min_landmarks landmarks is taken when it puts most of the points on the model's "
-        "surfaces and no other candidate pose does (IFC models)")
+        "surfaces, in sight of the camera, and no other candidate pose does (IFC models)")
+    line_of_sight: bool = Field(
+        True, description="in that check, count against a pose the points it would have the camera see through "
+        "a wall or column of the model; turn off for a model whose glass partitions are modelled as walls")
     verified_min_landmarks: int = Field(
         2, ge=2, description="with the surface check, candidate poses are weighed from this many landmarks")
 

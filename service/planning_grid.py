@@ -118,9 +118,10 @@ def _read_solids(ifc_path: Path, exclude: tuple[str, ...] = NOT_OBSTACLES,
     return BuildingSolids(np.vstack(vertices), np.vstack(faces).astype(np.int64), spaces)
 
 
-def surfaces_for(building: Path) -> SurfaceIndex | None:
+def surfaces_for(building: Path, line_of_sight: bool = True) -> SurfaceIndex | None:
     """The model's surfaces for checking registrations against depth (graph.surfaces): every surface a camera
-    sees in an IFC model; None (logged) for other formats, whose registrations then go unchecked."""
+    sees in an IFC model, and (`line_of_sight`) its walls as voxels; None (logged) for other formats, whose
+    registrations then go unchecked."""
     from graph.surfaces import SurfaceIndex
 
     if Path(building).suffix.lower() != ".ifc":
@@ -128,9 +129,10 @@ def surfaces_for(building: Path) -> SurfaceIndex | None:
         return None
     seen = load_solids(Path(building), with_doors_and_windows=True)
     index = SurfaceIndex.from_mesh(seen.vertices_cad, seen.faces)
-    index.walls = wall_voxels(Path(building))
+    if line_of_sight:
+        index.walls = wall_voxels(Path(building))
     log.info("%s: %d surface samples and %d wall voxels for checking registrations", Path(building).name, len(index),
-             len(index.walls))
+             len(index.walls) if index.walls is not None else 0)
     return index
 
 

@@ -49,7 +49,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -
                                    storey_hint=model.checked_storey(cfg.graph.storey_hint))
     from service.planning_grid import surfaces_for
 
-    surfaces = surfaces_for(building) if cfg.graph.surface_check else None
+    surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight) if cfg.graph.surface_check else None
     backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, backend_params, surfaces)
     p = cfg.planning
     planner = Planner.for_building(building, p.cell_m, p.vehicle_radius_m, p.flight_height_m)

@@ -82,7 +82,7 @@ def register(app: typer.Typer) -> None:
         if cfg.graph.surface_check:
             from service.planning_grid import surfaces_for
 
-            surfaces = surfaces_for(building)
+            surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
         result = run_replay(flight, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
                             isam=isam, surfaces=surfaces)
         if save_map is not None:

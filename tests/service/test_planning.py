@@ -111,3 +111,24 @@ def test_seen_obstacles_change_the_plan(office_path) -> None:
     after = planner.plan(start, goal)
     cells = [grid.cell_of(p) for p in after.points_cad]
     assert all(line_of_sight(free, p, q) for p, q in zip(cells, cells[1:], strict=False))
+
+
+def test_lines_of_sight_pass_doorways_not_the_walls_beside_them(fzk_path) -> None:
+    """The model's walls as voxels for the surface check (service.planning_grid.surfaces_for): through every door
+    of FZK-Haus, 1.5 m either side of it, the line of sight is free (IFC openings are cut from the walls); 0.4 m
+    beside the door it crosses the wall. `line_of_sight=False` leaves the voxels out."""
+    from graph.bim import load_building
+    from service.planning_grid import surfaces_for
+
+    surfaces = surfaces_for(fzk_path)
+    assert surfaces is not None and surfaces.walls is not None and len(surfaces.walls) > 10_000
+    doors = [f for f in load_building(fzk_path).features if f.type == "door" and f.orientation == "vertical"]
+    assert len(doors) >= 5
+    for door in doors:
+        c, n = door.centroid_cad, door.normal_cad
+        along = np.cross([0.0, 0.0, 1.0], n) / np.linalg.norm(np.cross([0.0, 0.0, 1.0], n))
+        beside = c + (door.width_m / 2 + 0.4) * along
+        origins, points = np.array([c + 1.5 * n, beside + 1.5 * n]), np.array([c - 1.5 * n, beside - 1.5 * n])
+        assert surfaces.walls.seen_through(origins, points).tolist() == [False, True]
+    unchecked = surfaces_for(fzk_path, line_of_sight=False)
+    assert unchecked is not None and unchecked.walls is None
