@@ -347,6 +347,7 @@ class Localizer:
         if self.params.surface_refine_m <= 0:
             return T_cad_map
         assert self.surfaces is not None
+        points_map = points_map[:: max(1, int(np.ceil(len(points_map) / 500)))]  # a fit of 3 dof needs no more
         # the points are in the map frame, not around one camera: no range-dependent noise in their weights
         fit = align_to_surfaces(self.surfaces, points_map, T_cad_map, iterations=8, depth_sigma_per_m2=0.0,
                                 max_distance_m=self.params.surface_refine_m, sigma_m=self.params.surface_fit_sigma_m)
