@@ -2,9 +2,10 @@
 
 Per keyframe: predict the pose from odometry, level it with gravity, add the sightings of doors and windows
 as landmark factors (re-observations or new landmarks), update iSAM2 with the new factors only, register the
-map to the building model while exploring (the candidate poses checked against the model's walls where the
-keyframes bring depth points, graph.surfaces), link newly seen landmarks to their CAD features once localized
-and fit the keyframe's depth to the walls and the floor, and return the pose in the CAD frame with its status.
+map to the building model while exploring (the candidate poses checked against the model's walls, and the
+lines of sight through them, where the keyframes bring depth points, graph.surfaces), link newly seen landmarks
+to their CAD features once localized and fit the keyframe's depth to the walls and the floor, and return the
+pose in the CAD frame with its status.
 
 Frames: map = this flight's odometry frame with z up (gravity); body = x forward, y left, z up;
 cad = the model. Sightings arrive with their 4 corners in the body frame, metres.
@@ -129,7 +130,7 @@ class Localizer:
         self._depth: tuple[np.ndarray, np.ndarray] | None = None  # (T_odom_body, points_body): newest since it
         # (keyframe, points at the camera's height, points below it: the floor), body frame
         self._points: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
-        self.surface_checks: list[tuple[int, list[float]]] = []  # (stamp_ns, support of each candidate pose)
+        self.surface_checks: list[tuple[int, list[float]]] = []  # (stamp_ns, score of each candidate pose)
         self.surface_fits = 0  # keyframes whose depth was fitted to the walls (and floor)
 
     # --- the loop ---------------------------------------------------------------------------------------------
@@ -299,10 +300,13 @@ class Localizer:
         """The pose to anchor the map with, or None, and whether it is the registrar's answer (whose matches
         then hold): the registrar's answer, checked by the walls (graph.surfaces).
 
-        Without depth points only the registrar's own 'localized' counts. With them, a candidate pose is taken
-        when it puts `surface_min_support` of the points on the model's surfaces and every other candidate
-        `surface_margin` less; the registrar's 'localized' stands unless another candidate beats it by that
-        margin (the walls contradict it), and is refused where the walls confirm a different pose."""
+        Without depth points only the registrar's own 'localized' counts. With them, each candidate is fitted to
+        the walls (`_refined`) and scored by the points on the model's surfaces and, with the model's walls as
+        voxels, in sight of their cameras (SurfaceCheck.score); a candidate is taken when it puts
+        `surface_min_support` of the points on the surfaces, lets at most `surface_max_seen_through` be seen
+        through a wall, and every other candidate scores `surface_margin` less; the registrar's 'localized'
+        stands unless another candidate beats it by that margin (the walls contradict it), and is refused where
+        the walls confirm a different pose."""
         p = self.params
         T_reg = result.T_cad_map if result.status == "localized" else None
         if not self._can_check_surfaces():
@@ -347,7 +351,7 @@ class Localizer:
         if self.params.surface_refine_m <= 0:
             return T_cad_map
         assert self.surfaces is not None
-        points_map = points_map[:: max(1, int(np.ceil(len(points_map) / 500)))]  # a fit of 3 dof needs no more
+        points_map = points_map[:: max(1, int(np.ceil(len(points_map) / 500)))]  # a pose's fit needs no more
         # the points are in the map frame, not around one camera: no range-dependent noise in their weights
         fit = align_to_surfaces(self.surfaces, points_map, T_cad_map, iterations=8, depth_sigma_per_m2=0.0,
                                 max_distance_m=self.params.surface_refine_m, sigma_m=self.params.surface_fit_sigma_m)
