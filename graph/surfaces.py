@@ -261,7 +261,7 @@ def align_to_surfaces(index: SurfaceIndex, points_body: np.ndarray, T_cad_body: 
                       min_inliers: int = 50, tilt_sigma_rad: float = 0.01) -> SurfaceFit | None:
     """Point-to-plane ICP of the points (body frame) on the index's walls, and of `floor_body` (points below the
     camera, `floor_points`) on its horizontal surfaces when it has them, from the initial T_cad_body.
-    Gauss-Newton with Huber weights, in the CAD frame about the points' centroid; the steps' roll and pitch
+    Gauss-Newton with Huber weights, in the CAD frame about the points' centroid; roll and pitch
     are held near the initial pose's (gravity's) with `tilt_sigma_rad`, since points at camera height on
     vertical walls hardly see them, while the floor does. The information of the result is the points' alone
     (not that hold), for all 6 directions, in GTSAM's right perturbation T exp(xi). None when
@@ -288,8 +288,9 @@ def align_to_surfaces(index: SurfaceIndex, points_body: np.ndarray, T_cad_body: 
         assert index.horizontal is not None
         surfaces.append(index.horizontal)
     T = np.asarray(T_cad_body, float).copy()
+    R0 = T[:3, :3].copy()
     sigma = sigma_m + depth_sigma_per_m2 * np.einsum("ij,ij->i", p, p)  # per point, m
-    tilt_prior = 1.0 / tilt_sigma_rad**2  # the steps' roll and pitch stay near gravity's unless the points say
+    tilt_prior = 1.0 / tilt_sigma_rad**2  # roll and pitch stay near the initial pose's unless the points say
     for it in range(iterations + 1):
         q = p @ T[:3, :3].T + T[:3, 3]
         # every point on its nearest surface; the band's points count where that is a wall, the points below
@@ -314,8 +315,10 @@ def align_to_surfaces(index: SurfaceIndex, points_body: np.ndarray, T_cad_body: 
             break
         c = q[ok].mean(axis=0)
         J6 = np.hstack([np.cross(q[ok] - c, n), n])  # d r / d [rotation about c; translation], CAD frame
-        H6 = (J6 * w[:, None]).T @ J6 + np.diag([tilt_prior, tilt_prior, 1e-6, 1e-6, 1e-6, 1e-6])
-        step = -np.linalg.solve(H6, (J6 * w[:, None]).T @ r)
+        P = np.diag([tilt_prior, tilt_prior, 1e-6, 1e-6, 1e-6, 1e-6])
+        tilt = np.zeros(6)  # how far roll and pitch have moved from the initial pose's (CAD frame, rad)
+        tilt[:2] = Rotation.from_matrix(T[:3, :3] @ R0.T).as_rotvec()[:2]
+        step = -np.linalg.solve((J6 * w[:, None]).T @ J6 + P, (J6 * w[:, None]).T @ r + P @ tilt)
         delta = np.eye(4)
         delta[:3, :3] = Rotation.from_rotvec(step[:3]).as_matrix()
         delta[:3, 3] = c - delta[:3, :3] @ c + step[3:]
