@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from graph.localizer import Localizer, LocalizerParams
@@ -319,6 +319,7 @@ def test_a_localized_answer_the_walls_contradict_is_refused(room: SurfaceIndex) 
 
 @settings(max_examples=15, deadline=None)
 @given(dx=st.floats(-0.2, 0.2), dy=st.floats(-0.2, 0.2), dyaw_deg=st.floats(-3, 3), seed=st.integers(0, 1000))
+@example(dx=0.125, dy=0.0, dyaw_deg=3.0, seed=126)  # left 0.13 deg of pitch when each step's tilt was damped to 0
 def test_fit_to_the_walls_recovers_a_perturbed_pose(room: SurfaceIndex, dx: float, dy: float, dyaw_deg: float,
                                                     seed: int) -> None:
     T_cad_body = make_T(rot_z(0.3), np.array([3.0, 2.5, 1.4]))
