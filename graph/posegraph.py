@@ -10,7 +10,8 @@ Factors (all built-in, so the real-time path never calls Python):
   BetweenFactorPose3(X(i-1), X(i), T_prev_curr) odometry
   PriorFactorPose3(X(i)), roll/pitch only     gravity (yaw and translation free)
   BetweenFactorPose3(X(i), L(j), T_body_rect)  a sighting of landmark j from keyframe i
-  PriorFactorPose3(A(0)), weak                 keeps the anchor determined whatever its links
+  PriorFactorPose3(A(0))                       keeps the anchor level (both frames are gravity-aligned) and,
+                                               weakly, its yaw and position determined whatever its links
   BetweenFactorPose3(A(0), X(i), T_cad_body)   robust (Huber): keyframe i's depth fitted to the model's walls
   BetweenFactorPose3(A(0), L(j), T_cad_feature) robust (Cauchy): landmark j is the CAD feature
       (between(T_map_cad, T_map_rect) = T_cad_map T_map_rect = T_cad_rect, so the anchor is stored as
@@ -29,6 +30,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from graph.rigid import levelled
+
 log = logging.getLogger(__name__)
 
 X = gtsam.symbol_shorthand.X
@@ -37,11 +40,16 @@ A = gtsam.symbol_shorthand.A
 ANCHOR = A(0)
 
 # Pose3 sigmas are in GTSAM's tangent order [rot (rad) x3; trans (m) x3].
-FIRST_POSE_SIGMAS = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3])
+# The first keyframe fixes the map frame's yaw and origin; its roll and pitch are the odometry's first guess (one
+# frame's specific force, a few degrees off while the vehicle accelerates): loose, for gravity's priors to correct.
+FIRST_POSE_SIGMAS = np.array([0.2, 0.2, 1e-3, 1e-3, 1e-3, 1e-3])
 GRAVITY_SIGMAS = np.array([0.01, 0.01, 1e3, 1e4, 1e4, 1e4])  # roll, pitch from gravity; the rest free
 SIGHTING_SIGMAS = np.array([0.05, 0.05, 0.05, 0.05, 0.05, 0.05])  # 3 deg, 5 cm at 1 m (scaled by range)
 CAD_LINK_SIGMAS = np.array([0.05, 0.05, 0.05, 0.05, 0.05, 0.05])  # model vs. reality: 3 deg, 5 cm
-ANCHOR_PRIOR_SIGMAS = np.array([0.5, 0.5, 0.5, 5.0, 5.0, 5.0])  # weak: keeps A(0) determined at any time
+# The map's z is gravity's (the keyframes' gravity priors) and the model's z is up: T_map_cad turns about z only.
+# Its roll and pitch are held to 0 as tightly as one keyframe's gravity; yaw and position only weakly (A(0)
+# determined at any time): those are the links' and the wall fits' to say.
+ANCHOR_PRIOR_SIGMAS = np.array([0.01, 0.01, 0.5, 5.0, 5.0, 5.0])
 CAD_LINK_CAUCHY_K = 2.0  # whitened residual where the Cauchy loss halves a link's weight
 
 
@@ -122,9 +130,11 @@ class PoseGraph:
         self._add(gtsam.BetweenFactorPose3(X(i), L(j), pose3(T_body_rect), diagonal(sigmas)))
 
     def add_anchor(self, T_map_cad_guess: np.ndarray) -> None:
-        """The CAD anchor variable A(0) = T_map_cad, initialised from a registration."""
-        self._insert(ANCHOR, T_map_cad_guess)
-        self._add(gtsam.PriorFactorPose3(ANCHOR, pose3(T_map_cad_guess), diagonal(ANCHOR_PRIOR_SIGMAS)))
+        """The CAD anchor variable A(0) = T_map_cad, initialised from a registration, levelled (see
+        ANCHOR_PRIOR_SIGMAS)."""
+        T_level = levelled(T_map_cad_guess)
+        self._insert(ANCHOR, T_level)
+        self._add(gtsam.PriorFactorPose3(ANCHOR, pose3(T_level), diagonal(ANCHOR_PRIOR_SIGMAS)))
         self.has_anchor = True
 
     def add_cad_pose(self, i: int, T_cad_body: np.ndarray, information: np.ndarray, huber_k: float = 1.5) -> None:

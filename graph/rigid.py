@@ -78,6 +78,14 @@ def rot_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def levelled(T: np.ndarray) -> np.ndarray:
+    """T (4x4) between two z-up frames with its rotation's tilt removed: turned by the smallest rotation that
+    takes its z axis to z, keeping its heading and its translation."""
+    out = np.array(T, dtype=float)
+    out[:3, :3] = rotation_aligning(out[:3, 2], np.array([0.0, 0.0, 1.0])) @ out[:3, :3]
+    return out
+
+
 def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation R with R a_hat = b_hat (Rodrigues), for unit or non-unit 3-vectors."""
     a = np.asarray(a, dtype=float) / np.linalg.norm(a)

@@ -48,6 +48,12 @@ class StereoRig:
     def K(self) -> np.ndarray:
         return np.array([[self.fx_px, 0, self.cx_px], [0, self.fy_px, self.cy_px], [0, 0, 1]], np.float64)
 
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) (u right, v down) of points (N, 3) in the left camera's frame (z forward, in front)."""
+        p = np.asarray(points_cam, np.float64).reshape(-1, 3)
+        z = np.maximum(p[:, 2], 1e-9)
+        return np.stack([self.fx_px * p[:, 0] / z + self.cx_px, self.fy_px * p[:, 1] / z + self.cy_px], axis=1)
+
 
 def _matrix(fs: cv2.FileStorage, key: str, rows: int, cols: int, source: str) -> np.ndarray:
     node = fs.getNode(key)

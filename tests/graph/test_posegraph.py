@@ -229,3 +229,47 @@ def test_a_sighting_cut_by_the_image_border_barely_moves_its_landmark_along_that
 
     assert landmark_shift(flagged=False) > 0.1
     assert landmark_shift(flagged=True) < 0.1 * landmark_shift(flagged=False)
+
+
+def _tilt_deg(R: np.ndarray) -> float:
+    """Angle between R's z axis and z (deg): the tilt of a rotation between two z-up frames."""
+    return float(np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))))
+
+
+def test_the_first_frame_levelled_wrong_is_corrected_by_gravity(corridor) -> None:
+    """The odometry frame is levelled by the first frame's specific force, which is degrees off while the
+    vehicle accelerates: the whole odometry frame is tilted by 4 deg. The first keyframe fixes the map's yaw
+    and origin, not its tilt: gravity's priors level every keyframe, the first ones too."""
+    from graph.rigid import rotation_aligning
+
+    poses = straight_flight(40)
+    R_tilt = rotation_aligning(UP, [np.sin(np.radians(4.0)), 0.0, np.cos(np.radians(4.0))])
+    T_odom_cad = make_T(R_tilt @ rot_z(0.3), np.array([1.0, 2.0, 0.0]))
+    loc = fly(corridor, poses, [T_odom_cad @ T for T in poses])
+    assert loc.status == "localized"
+    T_cad_map = loc.graph.T_cad_map()
+    tilts = [_tilt_deg((T_cad_map @ loc.graph.T_map_body(i))[:3, :3]) for i in range(40)]
+    assert max(tilts) < 0.3, np.round(tilts, 2)
+    assert max(position_error(loc, poses, i) for i in range(40)) < 0.02
+
+
+def test_the_anchor_stays_level_against_tilted_links() -> None:
+    """Both the map and the model are z up, so T_cad_map turns about z only. A registration 2 deg off level
+    and four CAD links each tilted by 3 deg of noise (a door's corners are coarse) leave it within 0.2 deg of
+    level; with a free tilt it would follow the links' mean (~1.5 deg)."""
+    from graph.rigid import rotation_aligning
+
+    rng = np.random.default_rng(7)
+    graph = PoseGraph()
+    graph.add_first_keyframe(np.eye(4))
+    for j in range(4):
+        T_map_rect = make_T(rot_z(j * np.pi / 2), np.array([3.0 * np.cos(j), 3.0 * np.sin(j), 1.0]))
+        graph.add_landmark(j, T_map_rect)
+        graph.add_sighting(0, j, T_map_rect)
+        tilt = rotation_aligning(UP, UP + rng.normal(0.0, np.radians(3.0), 3) * [1, 1, 0])
+        graph.add_cad_link(j, make_T(tilt, np.zeros(3)) @ T_map_rect)
+    tilted = rotation_aligning(UP, [np.sin(np.radians(2.0)), 0.0, np.cos(np.radians(2.0))])
+    graph.add_anchor(make_T(tilted, np.zeros(3)))
+    graph.update(extra_iterations=3)
+    T_cad_map = graph.T_cad_map()
+    assert T_cad_map is not None and _tilt_deg(T_cad_map[:3, :3]) < 0.2

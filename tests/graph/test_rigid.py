@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.rigid import apply, invert, rotation_aligning, weighted_rigid_fit, yaw_rigid_fit
+from graph.rigid import apply, invert, levelled, rot_z, rotation_aligning, weighted_rigid_fit, yaw_rigid_fit
 from tests.graph.helpers import random_T
 
 seeds = st.integers(0, 2**32 - 1)
@@ -69,3 +69,20 @@ def test_rotation_aligning_maps_a_onto_b(v: list[float]) -> None:
     R = rotation_aligning(a, b)
     assert np.allclose(R @ (a / np.linalg.norm(a)), b / np.linalg.norm(b), atol=1e-9)
     assert np.isclose(np.linalg.det(R), 1.0) and np.allclose(R @ R.T, np.eye(3), atol=1e-12)
+
+
+@given(st.floats(-np.pi, np.pi), st.floats(0.0, np.radians(30.0)), st.floats(-np.pi, np.pi))
+@settings(max_examples=60, deadline=None)
+def test_levelled_removes_the_tilt_and_keeps_heading_and_position(yaw: float, tilt: float, tilt_dir: float) -> None:
+    """A yaw-only transform tilted by up to 30 deg (about any horizontal axis): levelled() gives back the
+    yaw-only one, its translation untouched."""
+    axis = np.array([np.cos(tilt_dir), np.sin(tilt_dir), 0.0])
+    tilted_z = np.cos(tilt) * np.array([0.0, 0.0, 1.0]) + np.sin(tilt) * np.cross(axis, [0.0, 0.0, 1.0])
+    T = np.eye(4)
+    T[:3, :3] = rotation_aligning(np.array([0.0, 0.0, 1.0]), tilted_z) @ rot_z(yaw)
+    T[:3, 3] = [1.0, -2.0, 3.0]
+    L = levelled(T)
+    assert np.allclose(L[:3, 2], [0.0, 0.0, 1.0], atol=1e-12)
+    assert np.isclose(np.linalg.det(L[:3, :3]), 1.0) and np.allclose(L[3], [0, 0, 0, 1])
+    assert np.allclose(L[:3, 3], T[:3, 3])
+    assert np.allclose(L[:3, :3], rot_z(yaw), atol=1e-9)

@@ -23,7 +23,9 @@ def test_chain_after_the_detector_recovers_a_door_on_a_wall(depth_m):
     assert np.abs(f.corners_cam - corners).max() < tol
     assert f.width_m == pytest.approx(0.9, abs=tol) and f.height_m == pytest.approx(2.0, abs=tol)
     assert set(result.timings_ms) == {"stereo", "lines", "reconstruct"}
-    assert f.truncated == (False, False)
+    # at 2.5 m the door's box ends 23 px above the image's bottom: within BORDER_MARGIN_FRACTION, so its
+    # bottom is taken as possibly cut; at 5 m it is well inside the image
+    assert f.truncated == (False, depth_m < 3.0)
 
 
 @pytest.mark.parametrize(("box", "expected"), [
@@ -32,11 +34,25 @@ def test_chain_after_the_detector_recovers_a_door_on_a_wall(depth_m):
     ((100.0, 50.0, 639.5, 400.0), (True, False)),
     ((100.0, 0.0, 200.0, 400.0), (False, True)),
     ((100.0, 50.0, 200.0, 480.0), (False, True)),
+    ((100.0, 50.0, 200.0, 460.0), (False, True)),  # a window running on below the image: the box stops short
+    ((620.0, 50.0, 630.0, 400.0), (True, False)),
 ])
-def test_a_box_touching_the_image_border_is_truncated_on_that_axis(box, expected):
+def test_a_box_at_the_image_border_is_truncated_on_that_axis(box, expected):
     from perception.pipeline import ObservedFeature
 
     assert ObservedFeature.truncation(box, 640, 480) == expected
+
+
+def test_corners_projected_past_the_border_truncate_a_box_that_stops_short():
+    from perception.pipeline import ObservedFeature
+
+    box = (200.0, 100.0, 300.0, 400.0)
+    inside = np.array([[200.0, 100.0], [300.0, 100.0], [300.0, 400.0], [200.0, 400.0]])
+    assert ObservedFeature.truncation(box, 640, 480, inside) == (False, False)
+    below = inside + np.array([[0, 0], [0, 0], [0, 70.0], [0, 70.0]])  # the bottom corners at 470 px
+    assert ObservedFeature.truncation(box, 640, 480, below) == (False, True)
+    assert RIG.project(np.array([[0.0, 0.0, 2.0], [1.0, -0.5, 2.0]])) == pytest.approx(
+        np.array([[RIG.cx_px, RIG.cy_px], [RIG.cx_px + RIG.fx_px / 2, RIG.cy_px - RIG.fy_px / 4]]))
 
 
 def test_implausible_shapes_are_rejected_with_a_reason():
