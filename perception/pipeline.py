@@ -78,7 +78,8 @@ class ObservedFeature:
     def to_json(self) -> dict[str, object]:
         return {"type": self.type, "score": round(self.score, 4), "box_xyxy": [round(v, 1) for v in self.box_xyxy],
                 "corners_cam": np.round(self.corners_cam, 4).tolist(), "width_m": round(self.width_m, 3),
-                "height_m": round(self.height_m, 3), "tilt_deg": round(self.tilt_deg, 2)}
+                "height_m": round(self.height_m, 3), "tilt_deg": round(self.tilt_deg, 2),
+                "truncated": {"sideways": bool(self.truncated[0]), "vertically": bool(self.truncated[1])}}
 
 
 @dataclass(frozen=True)

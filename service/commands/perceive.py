@@ -22,7 +22,9 @@ def register(app: typer.Typer) -> None:
         """Run the perception chain (detect, LSD sides, SGBM depth, 3D corners) on one rectified stereo pair.
 
         JSON: {"features": [{"type", "score", "box_xyxy", "corners_cam": [\\[x, y, z] x 4], ...}], "rejected": [...]};
-        corners in the left camera's optical frame (x right, y down, z forward), metres, TL, TR, BR, BL.
+        corners in the left camera's optical frame (x right, y down, z forward), metres, TL, TR, BR, BL;
+        "truncated": {"sideways", "vertically"} where the opening may run on past the image border (its corners on
+        that side are then the border's, not the opening's).
         """
         import cv2
         import numpy as np

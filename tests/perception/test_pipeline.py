@@ -26,6 +26,7 @@ def test_chain_after_the_detector_recovers_a_door_on_a_wall(depth_m):
     # at 2.5 m the door's box ends 23 px above the image's bottom: within BORDER_MARGIN_FRACTION, so its
     # bottom is taken as possibly cut; at 5 m it is well inside the image
     assert f.truncated == (False, depth_m < 3.0)
+    assert f.to_json()["truncated"] == {"sideways": False, "vertically": depth_m < 3.0}  # perceive --json says so
 
 
 @pytest.mark.parametrize(("box", "expected"), [
