@@ -1,11 +1,12 @@
-"""Pictures of a replay: the top-down view (model, true and estimated trajectories, matched features) and
-the per-frame figures (position error with its horizontal and height parts, tilt and yaw errors, status,
-sightings, iSAM2 update time), plus result.json."""
+"""Pictures of a replay: the top-down view (the model's walls cut at the flight's height, doors and windows, true and
+estimated trajectories, matched features) and the per-frame figures (position error with its horizontal and height
+parts, tilt and yaw errors, status, sightings, iSAM2 update time), plus result.json."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -15,26 +16,33 @@ from service.replay import ReplayResult
 STATUS_LEVEL = {"exploring": 0, "ambiguous": 1, "localized": 2, "degraded": 3, "lost": 4}
 
 
-def write_report(result: ReplayResult, model: BuildingModel, out_dir: Path) -> list[Path]:
-    """Write topdown.png, frames.png and result.json into `out_dir`; returns their paths."""
+def write_report(result: ReplayResult, model: BuildingModel, out_dir: Path, wall_mesh: Any = None) -> list[Path]:
+    """Write topdown.png, frames.png and result.json into `out_dir`; returns their paths. `wall_mesh`: the
+    model's walls (service.plots.load_wall_mesh), drawn as a floor plan cut at the flight's height."""
     import matplotlib
 
     matplotlib.use("Agg")
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [_topdown(result, model, out_dir / "topdown.png"), _frames(result, out_dir / "frames.png")]
+    paths = [_topdown(result, model, out_dir / "topdown.png", wall_mesh), _frames(result, out_dir / "frames.png")]
     doc = out_dir / "result.json"
     doc.write_text(json.dumps(result.to_json(), indent=2))
     return [*paths, doc]
 
 
-def _topdown(result: ReplayResult, model: BuildingModel, path: Path) -> Path:
+def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: Any = None) -> Path:
     import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    from service.plots import WALL_COLOUR, wall_segments_xy
 
     tr = result.trace
     true_xyz = np.array([T[:3, 3] for T in tr.T_true])
     z = np.nanmedian(true_xyz[:, 2]) if np.isfinite(true_xyz).any() else 0.0
     feats = [f for f in model.features if abs(f.centroid_cad[2] - z) < 2.5] or model.features
     fig, ax = plt.subplots(figsize=(10, 8))
+    walls = wall_segments_xy(wall_mesh, float(z))  # cut at the camera's height: through doors and windows
+    if len(walls):
+        ax.add_collection(LineCollection(list(walls), colors=WALL_COLOUR, linewidths=0.8, zorder=0, label="walls"))
     for kind, colour in (("door", "tab:red"), ("window", "tab:blue")):
         xy = np.array([f.centroid_cad[:2] for f in feats if f.type == kind]).reshape(-1, 2)
         ax.scatter(xy[:, 0], xy[:, 1], s=14, c=colour, marker="s" if kind == "window" else "o", label=kind)
@@ -46,6 +54,8 @@ def _topdown(result: ReplayResult, model: BuildingModel, path: Path) -> Path:
     est = np.array([T[:3, 3] if T is not None else [np.nan] * 3 for T in tr.T_est])
     ax.plot(est[:, 0], est[:, 1], "-", color="tab:orange", lw=1.0, label="estimate (CAD frame)")
     ax.set_aspect("equal")
+    ax.set_xlabel("x (m, CAD)")
+    ax.set_ylabel("y (m, CAD)")
     ax.legend(loc="best", fontsize=8)
     j = result.to_json()
     ax.set_title(f"localized after {j['time_to_localize_s']} s, APE RMSE {j['ape_rmse_m']} m")

@@ -88,9 +88,10 @@ def register(app: typer.Typer) -> None:
         if save_map is not None:
             result.localizer.stored_map().save(save_map)
         if report is not None:
+            from service.plots import load_wall_mesh
             from service.replay_report import write_report
 
-            write_report(result, model, report)
+            write_report(result, model, report, load_wall_mesh(building))
         doc = result.to_json()
         if json_out:
             print_json(doc)

@@ -45,7 +45,14 @@ def test_the_truth_flight_holds_what_the_contract_says(flight: Path) -> None:
 
 
 def test_replay_prints_the_contract_writes_a_report_and_a_map(flight: Path, fzk_path: Path, tmp_path: Path,
-                                                             capsys: pytest.CaptureFixture[str]) -> None:
+                                                             capsys: pytest.CaptureFixture[str],
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    import matplotlib.axes
+
+    drawn: list = []  # the top-down picture is a floor plan: the walls, cut at the flight's height, under the rest
+    add_collection = matplotlib.axes.Axes.add_collection
+    monkeypatch.setattr(matplotlib.axes.Axes, "add_collection",
+                        lambda self, c, *a, **k: (drawn.append(c), add_collection(self, c, *a, **k))[1])
     rc, doc, err = run(["replay", str(flight), "--building", str(fzk_path), "--json", "--report",
                         str(tmp_path / "report"), "--save-map", str(tmp_path / "map.json")], capsys)
     assert rc == 0, err
@@ -55,6 +62,8 @@ def test_replay_prints_the_contract_writes_a_report_and_a_map(flight: Path, fzk_
     assert doc["ape_rmse_m"] < 0.15
     for name in ("topdown.png", "frames.png", "result.json"):
         assert (tmp_path / "report" / name).stat().st_size > 0
+    walls = [c for c in drawn if c.get_label() == "walls"]
+    assert len(walls) == 1 and len(walls[0].get_segments()) >= 20  # FZK-Haus: its outer and inner walls
     stored = json.loads((tmp_path / "map.json").read_text())
     assert any(lm["feature"] for lm in stored["landmarks"])
 
