@@ -25,7 +25,7 @@ from graph.mapstore import StoredLandmark, StoredMap
 from graph.posegraph import PoseGraph
 from graph.registrar import ModelRegistrar, Registrar
 from graph.relocalize import Alignment, ObservedRect
-from graph.rigid import apply, rotation_aligning, rotation_angle_deg
+from graph.rigid import apply, levelled, rotation_angle_deg
 from graph.surfaces import SurfaceIndex, align_to_surfaces, band_points, floor_points
 
 log = logging.getLogger(__name__)
@@ -207,9 +207,7 @@ class Localizer:
         if up_body is None:
             return T_map_body[:3, :3].T @ Z_UP
         up_body = np.asarray(up_body, float) / np.linalg.norm(up_body)
-        T_level = T_map_body.copy()
-        T_level[:3, :3] = rotation_aligning(T_map_body[:3, :3] @ up_body, Z_UP) @ T_map_body[:3, :3]
-        self.graph.add_gravity(i, T_level)
+        self.graph.add_gravity(i, levelled(T_map_body, up_body))
         return up_body
 
     def _add_sightings(self, i: int, T_map_body: np.ndarray, sightings: list[Sighting], up_body: np.ndarray,

@@ -78,11 +78,13 @@ def rot_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def levelled(T: np.ndarray) -> np.ndarray:
-    """T (4x4) between two z-up frames with its rotation's tilt removed: turned by the smallest rotation that
-    takes its z axis to z, keeping its heading and its translation."""
+def levelled(T: np.ndarray, up_child: np.ndarray | None = None) -> np.ndarray:
+    """T_parent_child (4x4, the parent z up) turned by the smallest rotation that takes the child's up
+    (`up_child`, unit or not; default its z axis) to z, keeping its heading and its translation: between two
+    z-up frames, its tilt removed; with a measured up (gravity), the child's attitude made that up's."""
     out = np.array(T, dtype=float)
-    out[:3, :3] = rotation_aligning(out[:3, 2], np.array([0.0, 0.0, 1.0])) @ out[:3, :3]
+    up = out[:3, 2] if up_child is None else out[:3, :3] @ np.asarray(up_child, float)
+    out[:3, :3] = rotation_aligning(up, np.array([0.0, 0.0, 1.0])) @ out[:3, :3]
     return out
 
 

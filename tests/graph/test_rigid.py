@@ -86,3 +86,15 @@ def test_levelled_removes_the_tilt_and_keeps_heading_and_position(yaw: float, ti
     assert np.isclose(np.linalg.det(L[:3, :3]), 1.0) and np.allclose(L[3], [0, 0, 0, 1])
     assert np.allclose(L[:3, 3], T[:3, 3])
     assert np.allclose(L[:3, :3], rot_z(yaw), atol=1e-9)
+
+
+@given(st.lists(st.floats(-0.3, 0.3), min_size=3, max_size=3), st.floats(-np.pi, np.pi))
+@settings(max_examples=40, deadline=None)
+def test_levelled_to_a_measured_up_puts_that_up_on_z(tilt: list[float], yaw: float) -> None:
+    """With a measured up in the child frame (gravity), the child is turned until that up is the parent's z."""
+    up_child = np.array([tilt[0], tilt[1], 1.0 + tilt[2]])
+    T = np.eye(4)
+    T[:3, :3] = rot_z(yaw) @ rotation_aligning(np.array([0.0, 0.0, 1.0]), np.array([0.1, -0.2, 1.0]))
+    L = levelled(T, up_child)
+    assert np.allclose(L[:3, :3] @ (up_child / np.linalg.norm(up_child)), [0.0, 0.0, 1.0], atol=1e-9)
+    assert np.allclose(L[:3, 3], T[:3, 3]) and np.isclose(np.linalg.det(L[:3, :3]), 1.0)
