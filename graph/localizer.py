@@ -60,7 +60,7 @@ class LocalizerParams:
     min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
     registration_tolerance_m: float = 0.6  # the model registrar's inlier / ambiguity tolerance (see GraphConfig)
     registration_min_landmarks: int = 4  # the model registrar answers 'localized' from this many landmarks ...
-    verified_min_landmarks: int = 2  # ... and offers candidate poses from this many, for the surface check
+    verified_min_landmarks: int = 1  # ... and offers candidate poses from this many, for the surface check
     surface_window_keyframes: int = 60  # the depth points of this many recent keyframes check a registration
     surface_min_points: int = 200  # fewer points than this: no check (the registration needs the landmarks above)
     surface_min_support: float = 0.9  # a pose must put this fraction of the points on the model's surfaces ...
@@ -69,6 +69,8 @@ class LocalizerParams:
     surface_max_seen_through: float = 0.1  # ... and let at most this fraction be seen through a wall
     surface_retry_s: float = 1.0  # with no new landmark, the check is retried this often as the walls come in view
     surface_refine_m: float = 0.6  # each candidate pose is first fitted to the walls, moving the points at most this
+    surface_screen_top: int = 8  # of more candidates (one door: every alike door of the model, from both sides),
+    surface_screen_points: int = 200  # only the best this many by these many points, unfitted, are fitted and checked
     surface_fit: bool = True  # once localized, each keyframe's depth points fitted to the walls join the graph
     surface_fit_max_correction_m: float = 0.5  # a fit that moves the pose further is not trusted (wrong wall)
     surface_fit_sigma_m: float = 0.05  # a fitted point's distance to its wall, model against reality (m)
@@ -131,6 +133,7 @@ class Localizer:
         # (keyframe, points at the camera's height, points below it: the floor), body frame
         self._points: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
         self.surface_checks: list[tuple[int, list[float]]] = []  # (stamp_ns, score of each candidate pose)
+        self.surface_screens: list[tuple[int, list[float]]] = []  # (candidates, their screening scores, best first)
         self.surface_fits = 0  # keyframes whose depth was fitted to the walls (and floor)
 
     # --- the loop ---------------------------------------------------------------------------------------------
@@ -311,7 +314,7 @@ class Localizer:
             return T_reg, T_reg is not None
         assert self.surfaces is not None
         points_map, origins_map = self._points_map()
-        candidates = [self._refined(T, points_map) for T, _ in result.candidates]
+        candidates = [self._refined(T, points_map) for T in self._screened(result.candidates, points_map, origins_map)]
         moved = [apply(T, points_map) for T in candidates]  # the points under each candidate, CAD frame
         if T_reg is not None:
             T_reg = self._refined(T_reg, points_map)
@@ -339,6 +342,32 @@ class Localizer:
             beaten = score[best] >= score[i_reg] + p.surface_margin
             return (None, False) if beaten or (confirmed and best != i_reg) else (T_reg, True)
         return (candidates[best] if confirmed else None), False
+
+    def _screened(self, candidates: list[tuple[np.ndarray, int]], points_map: np.ndarray,
+                  origins_map: np.ndarray) -> list[np.ndarray]:
+        """The candidate poses worth fitting to the walls: all of a few; of more (one door: each alike door of the
+        building, from either side, most of them in rooms whose walls stand nowhere near the points), the
+        `surface_screen_top` that score best by `surface_screen_points` points as they are, unfitted. The points'
+        support under every pose is one k-d tree query; only the best supported 3 x `surface_screen_top` have
+        their lines of sight checked (most of a check's cost)."""
+        p = self.params
+        poses = [T for T, _ in candidates]
+        if len(poses) <= p.surface_screen_top:
+            return poses
+        assert self.surfaces is not None
+        every = max(1, int(np.ceil(len(points_map) / p.surface_screen_points)))
+        pts, origins = points_map[::every], origins_map[::every]
+        R = np.stack([T[:3, :3] for T in poses])
+        t = np.stack([T[:3, 3] for T in poses])
+        support = self.surfaces.supports(np.einsum("hij,nj->hni", R, pts) + t[:, None, :])
+        supported = np.argsort(-support, kind="stable")[: 3 * p.surface_screen_top]
+        score = np.array([self.surfaces.check(apply(poses[k], pts), apply(poses[k], origins)).score
+                          for k in supported])
+        order = supported[np.argsort(-score, kind="stable")]
+        log.debug("screened %d candidate poses by %d points: best %s", len(poses), len(pts),
+                  np.sort(score)[::-1][: p.surface_screen_top].round(2).tolist())
+        self.surface_screens.append((len(poses), np.sort(score)[::-1].round(3).tolist()))
+        return [poses[k] for k in order[: p.surface_screen_top]]
 
     def _refined(self, T_cad_map: np.ndarray, points_map: np.ndarray) -> np.ndarray:
         """A candidate pose fitted to the walls by the map's depth points (point-to-plane, roll and pitch held),

@@ -54,8 +54,8 @@ class ModelRegistrar:
         self.candidates_from = min(min_landmarks, candidates_from or min_landmarks) if method == "robust" \
             else min_landmarks
         self.register_params = dict(register_params)
-        if method == "robust":
-            self.register_params.setdefault("min_inliers", self.candidates_from)
+        if method == "robust":  # from one landmark the candidates are its alike features' (`_one_landmark`)
+            self.register_params.setdefault("min_inliers", max(2, self.candidates_from))
         if tolerance_m is not None:
             self.register_params["inlier_threshold_m"] = tolerance_m
             if method == "robust":
@@ -78,6 +78,8 @@ class ModelRegistrar:
             return align_rectangles(landmarks, self._known, min_inliers=self.min_landmarks)
         from graph.observations import Observation, ObservationSet
 
+        if len(landmarks) == 1:
+            return self._one_landmark(landmarks[0], corners_map[0])
         obs = [Observation(type=lm.type, centroid_map=lm.T_map_rect[:3, 3], corners_map=c)
                for lm, c in zip(landmarks, corners_map, strict=True)]
         gravity_map = np.array([0.0, 0.0, -1.0])  # the map frame's z is up
@@ -88,6 +90,21 @@ class ModelRegistrar:
         if status == "localized" and result.inliers < self.min_landmarks:  # a candidate, not an answer
             status, matches = "ambiguous", []
         return Alignment(status, result.T_cad_map, matches, int(result.inliers), result.candidates)
+
+    def _one_landmark(self, landmark: ObservedRect, corners_map: np.ndarray | None) -> Alignment:
+        """One door or window: a candidate pose for every alike feature of the model, from either side
+        (`graph.robust.single_rectangle_poses`), for the walls to choose among; never an answer by itself."""
+        from graph.model_index import index_for
+        from graph.robust import RobustParams, single_rectangle_poses
+
+        if corners_map is None:
+            return Alignment("not_localized", None)
+        index = index_for(self.model).for_storey(self.storey_hint)
+        tolerance = float(self.register_params.get("size_tolerance_m", RobustParams.size_tolerance_m))
+        poses = single_rectangle_poses(index, landmark.type, corners_map, RobustParams(size_tolerance_m=tolerance))
+        if not poses:
+            return Alignment("not_localized", None)
+        return Alignment("ambiguous", None, [], 1, [(T, 1) for T in poses])
 
 
 class StoredMapRegistrar:

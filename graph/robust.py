@@ -23,7 +23,15 @@ from graph.features import FEATURE_TYPES
 from graph.model_index import TYPE_SEPARATION_M, ModelIndex
 from graph.observations import Observation, ObservationSet
 from graph.registration import RegistrationResult, corner_correspondences, majority_storey
-from graph.rigid import apply, make_T, rotation_aligning, rotation_angle_deg, weighted_rigid_fit, yaw_rigid_fit
+from graph.rigid import (
+    apply,
+    levelled,
+    make_T,
+    rotation_aligning,
+    rotation_angle_deg,
+    weighted_rigid_fit,
+    yaw_rigid_fit,
+)
 
 GRAVITY_CAD = np.array([0.0, 0.0, -1.0])
 
@@ -112,6 +120,25 @@ def _seed_hypotheses(rect: _Rect, cand: np.ndarray, index: ModelIndex, params: R
     if not Rs:
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
     return np.concatenate(Rs), np.concatenate(ts)
+
+
+def single_rectangle_poses(index: ModelIndex, kind: str, corners_map: np.ndarray,
+                           params: RobustParams | None = None) -> list[np.ndarray]:
+    """Every level T_cad_map that puts one observed rectangle (corners (4, 3) in a map frame whose z is up) onto a
+    CAD feature of its type and size: with gravity, one door or window fixes the pose up to which of the alike
+    features it is and from which side it is seen (two poses per feature). Nothing here can tell them apart; the
+    walls can (graph.localizer's surface check)."""
+    params = params or RobustParams()
+    if not index.has_type(kind):
+        return []
+    rect = rectangle_edges(corners_map)
+    R, t = _seed_hypotheses(rect, index.type_indices[kind], index, params, gravity_known=True)
+    poses = []
+    for r, v in zip(R, t, strict=True):
+        T = levelled(make_T(r, v))  # levelled about the rectangle's centre, which stays on its feature's
+        T[:3, 3] = r @ rect.centre + v - T[:3, :3] @ rect.centre
+        poses.append(T)
+    return poses
 
 
 def _nearest_same_type(points: np.ndarray, types: np.ndarray, index: ModelIndex,

@@ -189,6 +189,14 @@ class SurfaceIndex:
         """Fraction of the points within `tolerance_m` of a surface (0 for no points)."""
         return self.check(points_cad).support
 
+    def supports(self, points_cad: np.ndarray) -> np.ndarray:
+        """`support` of each of H point sets (H, N, 3) at once, (H,): one k-d tree query for all."""
+        pts = np.asarray(points_cad, float)
+        if pts.size == 0 or len(self.samples_cad) == 0:
+            return np.zeros(len(pts))
+        d = self.tree.query(pts.reshape(-1, 3), distance_upper_bound=self.params.tolerance_m)[0]
+        return np.isfinite(d).reshape(pts.shape[:2]).mean(axis=1)
+
     def check(self, points_cad: np.ndarray, origins_cad: np.ndarray | None = None) -> SurfaceCheck:
         """`support` of the points (N, 3) and, with `walls` and the cameras they were seen from (N, 3), the
         fraction seen through a wall (see module doc)."""

@@ -142,7 +142,9 @@ class GraphConfig(BaseModel):
         True, description="in that check, count against a pose the points it would have the camera see through "
         "a wall or column of the model; turn off for a model whose glass partitions are modelled as walls")
     verified_min_landmarks: int = Field(
-        2, ge=2, description="with the surface check, candidate poses are weighed from this many landmarks")
+        1, ge=1, description="with the surface check, candidate poses are weighed from this many landmarks. "
+        "From one door or window (gravity known) they are every alike feature of the model, seen from either side; "
+        "the walls must single one out")
 
 
 class MacrolocConfig(BaseSettings):

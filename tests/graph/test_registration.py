@@ -143,3 +143,53 @@ def test_default_beats_the_paper_on_the_same_scenarios(office_model) -> None:
         for m in wins:
             wins[m] += score(s, register(office_model, s.obs, method=m), False).outcome == "success"
     assert wins["robust"] >= 9 and wins["robust"] > wins["paper"]
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.floats(0.0, 0.03))
+def test_one_rectangle_gives_a_level_pose_per_alike_feature_and_side(seed: int, noise_m: float) -> None:
+    """With gravity one door or window fixes the pose up to which alike feature it is and from which side: two
+    level poses per CAD feature of its type and size, one of them the truth (to the corners' noise)."""
+    from graph.model_index import ModelIndex
+    from graph.robust import RobustParams, rectangle_edges, single_rectangle_poses
+
+    rng = np.random.default_rng(seed)
+    model = BuildingModel(source="t", sha256=f"one-rect-{seed}", features=random_building(rng), storeys=["L1"])
+    index = ModelIndex.build(model.features)
+    T_map_cad = random_T(rng, yaw_only=True)
+    seen = model.features[int(rng.integers(len(model.features)))]
+    corners_map = apply(T_map_cad, seen.corners_cad[[2, 0, 3, 1]]) + rng.normal(0.0, noise_m, (4, 3))
+    poses = single_rectangle_poses(index, seen.type, corners_map)
+    edges = rectangle_edges(corners_map)
+    horizontal_first = abs(edges.a[2]) < abs(edges.b[2])
+    w_seen, h_seen = (edges.la, edges.lb) if horizontal_first else (edges.lb, edges.la)
+    tol = RobustParams().size_tolerance_m
+    alike = [f for f in model.features if f.type == seen.type and abs(f.width_m - w_seen) < tol
+             and abs(f.height_m - h_seen) < tol]
+    assert len(poses) == 2 * len(alike)
+    assert all(abs(T[2, 2] - 1.0) < 1e-9 and abs(np.linalg.det(T[:3, :3]) - 1.0) < 1e-9 for T in poses)
+    # levelled about the rectangle: its centre stays on the feature's, however noisy its tilt; facing it
+    # from the side it was seen from, the pose is the truth (to the corners' noise)
+    centre_miss = [np.linalg.norm(apply(T, corners_map.mean(axis=0)[None])[0] - seen.centroid_cad) for T in poses]
+    R_cad_map = invert(T_map_cad)[:3, :3]
+    turned_deg = min(rotation_angle_deg(T[:3, :3] @ R_cad_map.T) for T, miss in zip(poses, centre_miss, strict=True)
+                     if miss < 1e-6)
+    assert turned_deg < 1e-4 + 250.0 * noise_m  # 0 without noise, ~2 deg at 3 cm on a 0.9 m edge
+
+
+def test_one_landmark_is_never_an_answer_by_itself(office_model) -> None:
+    """The registrar offers one landmark's candidate poses (for the walls to choose among) but never 'localized',
+    even where the door is one of a kind."""
+    from graph.landmarks import feature_frame_cad
+    from graph.registrar import ModelRegistrar
+    from graph.relocalize import ObservedRect
+
+    registrar = ModelRegistrar(office_model, min_landmarks=4, candidates_from=1)
+    assert registrar.candidates_from == 1 and registrar.register_params["min_inliers"] == 2
+    for f in office_model.features[:5]:
+        result = registrar([ObservedRect(0, f.type, feature_frame_cad(f))], [f.corners_cad])
+        assert result.status == "ambiguous" and result.matches == [] and result.T_cad_map is None
+        moved = [np.linalg.norm(apply(T, f.corners_cad) - f.corners_cad, axis=1).max() for T, _ in result.candidates]
+        assert min(moved) < 1e-6  # the identity (the door is where the model has it) is one of them
+    assert registrar(
+        [ObservedRect(0, "door", np.eye(4))], [None]).status == "not_localized"  # no corners: no pose from one

@@ -13,12 +13,14 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
+from graph.features import BuildingModel
 from graph.localizer import Localizer, LocalizerParams
 from graph.posegraph import PoseGraph
+from graph.registrar import ModelRegistrar
 from graph.relocalize import Alignment
 from graph.rigid import apply, rotation_angle_deg
 from graph.surfaces import SurfaceIndex, SurfaceParams, WallVoxels, align_to_surfaces, band_points, floor_points
-from tests.graph.scenes import corridor_model, make_T, rot_z, sightings_from
+from tests.graph.scenes import corridor_model, door, make_T, rot_z, sightings_from
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -113,6 +115,16 @@ def test_support_is_full_at_the_true_pose_in_any_map_frame(room: SurfaceIndex, y
     T_map_cad = make_T(rot_z(yaw), np.array([tx, ty, 0.3]))
     points_map = apply(T_map_cad, points_cad)
     assert room.support(apply(np.linalg.inv(T_map_cad), points_map)) == 1.0
+
+
+def test_supports_of_many_poses_at_once_are_each_poses_support(room: SurfaceIndex) -> None:
+    rng = np.random.default_rng(4)
+    points = wall_points(rng, 300)
+    poses = [make_T(rot_z(a), np.array([dx, 0.0, 0.0])) for a, dx in ((0.0, 0.0), (0.2, 0.5), (1.0, 2.0))]
+    sets = np.stack([apply(T, points) for T in poses])
+    assert room.supports(sets) == pytest.approx([room.support(s) for s in sets])
+    assert room.supports(sets)[0] == 1.0 and room.supports(sets)[2] < 0.9
+    assert room.supports(np.zeros((0, 5, 3))).shape == (0,)
 
 
 def test_support_falls_when_the_pose_is_off(room: SurfaceIndex) -> None:
@@ -421,3 +433,57 @@ def test_the_check_is_retried_as_the_walls_come_into_view(room: SurfaceIndex) ->
     assert registrar.calls >= 2  # retried with the same two landmarks
     T_cad_map = loc.graph.T_cad_map()  # the true pose, not the half-turn 10 m away (the graph has moved it a
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.1  # few cm since)
+
+
+def doors_on_the_room(centres_normals: list[tuple[tuple[float, float], tuple[float, float]]]) -> BuildingModel:
+    """Alike 0.9 x 2.1 m doors on the room's walls (centre xy, normal xy into the room)."""
+    feats = [door(f"D{k:02d}", c, n) for k, (c, n) in enumerate(centres_normals)]
+    return BuildingModel(source="room", sha256=f"room-doors-{len(feats)}-{feats[0].centroid_cad[0]}",
+                         features=feats, storeys=["L1"])
+
+
+def fly_facing_one_door(model: BuildingModel, room: SurfaceIndex, seen: str,
+                        camera_xy: tuple[float, float], yaw: float) -> Localizer:
+    """Three keyframes (the map frame is T_TRUE's) at `camera_xy` facing `yaw`, with what a camera there sees
+    of the room all around and a sighting of door `seen` alone (no other door in view); the real registrar."""
+    registrar = ModelRegistrar(model, min_landmarks=4, candidates_from=1)
+    loc = Localizer(model, PoseGraph(), registrar, LocalizerParams(surface_min_points=100), surfaces=room)
+    rng = np.random.default_rng(8)
+    for k in range(3):
+        xy = np.array(camera_xy) + np.array([0.1 * k, 0.0])
+        T_cad_body = make_T(rot_z(yaw), np.array([xy[0], xy[1], 1.4]))
+        sightings = [s for s in sightings_from(model, T_cad_body) if s.truth_id == seen]
+        assert len(sightings) == 1
+        points_body = apply(np.linalg.inv(T_cad_body), seen_points(rng, xy))
+        loc.add_keyframe(k * 500_000_000, np.linalg.inv(T_TRUE) @ T_cad_body, sightings, UP,
+                         points_body=points_body)
+    return loc
+
+
+def test_one_door_and_the_walls_localize(room_with_walls: SurfaceIndex) -> None:
+    """Fourteen alike doors on the room's walls: one door in view gives 28 candidate poses (each door, from
+    either side). The 8 that the points fit best unfitted are fitted to the walls and checked, and the walls
+    single out the true one: localized from one landmark."""
+    model = doors_on_the_room([((x, 0.0), (0, 1)) for x in (1.0, 3.0, 7.0, 9.0, 11.0)]
+                              + [((x, 7.0), (0, -1)) for x in (1.5, 4.0, 6.5, 9.0, 11.0)]
+                              + [((12.0, y), (-1, 0)) for y in (2.0, 5.0)] + [((0.0, y), (1, 0)) for y in (3.0, 6.0)])
+    loc = fly_facing_one_door(model, room_with_walls, "D03", (9.0, 3.5), -np.pi / 2)
+    assert loc.surface_screens and loc.surface_screens[0][0] == 28
+    assert loc.status == "localized" and len(loc.landmarks) == 1
+    T_cad_map = loc.graph.T_cad_map()
+    assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
+    assert rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T) < 0.5
+    assert loc.links == {0: "D03"}
+
+
+def test_one_door_in_a_room_alike_after_a_half_turn_stays_ambiguous() -> None:
+    """The box room (no partition) with two doors placed alike after a half-turn about its centre: the walls
+    fit both of the door's candidate poses, and one landmark is no answer."""
+    v, f = room_mesh()
+    box = SurfaceIndex.from_mesh(v, f[:8], SurfaceParams(spacing_m=0.05))  # the 4 outer walls
+    box.walls = WallVoxels.from_mesh(v, f[:8])
+    model = doors_on_the_room([((9.0, 0.0), (0, 1)), ((3.0, 7.0), (0, -1))])
+    loc = fly_facing_one_door(model, box, "D00", (9.0, 3.5), -np.pi / 2)
+    second, best = sorted(loc.surface_checks[-1][1])[-2:]
+    assert best - second < 0.05  # the half-turn fits as well
+    assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None and not loc.links
