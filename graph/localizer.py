@@ -72,7 +72,8 @@ class LocalizerParams:
     surface_screen_top: int = 8  # of more candidates (one door: every alike door of the model, from both sides),
     surface_screen_points: int = 200  # only the best this many by these many points, unfitted, are fitted and checked
     surface_fit: bool = True  # once localized, each keyframe's depth points fitted to the walls join the graph
-    surface_fit_max_correction_m: float = 0.5  # a fit that moves the pose further is not trusted (wrong wall)
+    surface_fit_max_correction_m: float = 0.5  # a fit that moves the pose further is not trusted (wrong wall) ...
+    surface_fit_max_turn_deg: float = 10.0  # ... nor one that turns it further (a door seen alone can be 6 deg off)
     surface_fit_sigma_m: float = 0.05  # a fitted point's distance to its wall, model against reality (m)
     degraded_after_s: float = 10.0  # localized but no CAD-linked sighting for this long
     lost_after_s: float = 30.0
@@ -429,7 +430,7 @@ class Localizer:
             return
         step = np.linalg.inv(T_guess) @ fit.T_cad_body
         if np.linalg.norm(step[:3, 3]) > self.params.surface_fit_max_correction_m or \
-                rotation_angle_deg(step[:3, :3]) > 5.0:
+                rotation_angle_deg(step[:3, :3]) > self.params.surface_fit_max_turn_deg:
             return
         self.graph.add_cad_pose(i, fit.T_cad_body, fit.information)
         self.graph.update()
