@@ -59,6 +59,8 @@ class OdometryConfig:
     rekey_rotation_rad: float = 0.35
     max_step_m: float = 0.15  # a frame-to-frame jump beyond this (4.5 m/s at 30 Hz) is a wrong PnP solution
     max_step_rad: float = 0.25
+    max_step_change_m: float = 0.03  # a pose from fewer than rekey_inliers this far off the last step's velocity
+    #                                  (27 m/s^2 at 30 Hz) is a wrong PnP solution (a wall filling the view)
     gyro_tolerance_rad: float = 0.035  # a PnP rotation this far from the gyro's is replaced by the gyro's
     pnp_rotation_gain: float = 0.2  # with a gyro: the share of PnP's rotation taken per frame (see _agree_with_gyro)
 
@@ -110,7 +112,7 @@ class StereoOdometry:
         if T_ref_cam is not None and R_prev_cur is not None:
             T_ref_cam = self._agree_with_gyro(T_ref_cam, self._ref.T_odom_cam[:3, :3].T @ self._T_last[:3, :3]
                                               @ R_prev_cur)
-        if T_ref_cam is None or not self._plausible(self._ref.T_odom_cam @ T_ref_cam):
+        if T_ref_cam is None or not self._plausible(self._ref.T_odom_cam @ T_ref_cam, inliers):
             T = self._T_last @ (np.linalg.inv(self._T_prev) @ self._T_last)  # constant velocity
             if R_prev_cur is not None:
                 T[:3, :3] = self._T_last[:3, :3] @ R_prev_cur
@@ -155,11 +157,16 @@ class StereoOdometry:
         valid = points[:, 2] > 0
         return _Keyframe(T_odom_cam, desc[valid], points[valid])
 
-    def _plausible(self, T: np.ndarray) -> bool:
-        """Is the motion since the last frame one a drone can make?"""
+    def _plausible(self, T: np.ndarray, inliers: int) -> bool:
+        """Is the motion since the last frame one a drone can make? Few inliers (a textureless view) also have
+        to keep the velocity about as it was: their PnP solutions stray by centimetres a frame."""
+        c = self.config
         step = np.linalg.inv(self._T_last) @ T
-        angle = rotation_angle_rad(step[:3, :3])
-        return bool(np.linalg.norm(step[:3, 3]) <= self.config.max_step_m and angle <= self.config.max_step_rad)
+        if inliers < c.rekey_inliers and c.max_step_change_m > 0:
+            predicted = 2.0 * self._T_last[:3, 3] - self._T_prev[:3, 3]  # at the last step's velocity
+            if np.linalg.norm(T[:3, 3] - predicted) > c.max_step_change_m:
+                return False
+        return bool(np.linalg.norm(step[:3, 3]) <= c.max_step_m and rotation_angle_rad(step[:3, :3]) <= c.max_step_rad)
 
     def _advance(self, T: np.ndarray) -> None:
         self._T_prev, self._T_last = self._T_last, T
