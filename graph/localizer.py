@@ -73,7 +73,9 @@ class LocalizerParams:
     surface_screen_points: int = 200  # only the best this many by these many points, unfitted, are fitted and checked
     surface_fit: bool = True  # once localized, each keyframe's depth points fitted to the walls join the graph
     surface_fit_max_correction_m: float = 0.5  # a fit that moves the pose further is not trusted (wrong wall) ...
-    surface_fit_max_turn_deg: float = 10.0  # ... nor one that turns it further (a door seen alone can be 6 deg off)
+    surface_fit_max_turn_deg: float = 5.0  # ... nor one that turns it further ...
+    surface_fit_settling_turn_deg: float = 10.0  # ... but this far in the first keyframes after localizing, while the
+    surface_fit_settling_keyframes: int = 10  # pose's heading is the few doors' it was found by (one: ~6 deg off)
     surface_fit_sigma_m: float = 0.05  # a fitted point's distance to its wall, model against reality (m)
     degraded_after_s: float = 10.0  # localized but no CAD-linked sighting for this long
     lost_after_s: float = 30.0
@@ -128,6 +130,7 @@ class Localizer:
         self._T_odom_prev: np.ndarray | None = None
         self._last_link_ns: int | None = None
         self._registered_with = 0
+        self._anchored_at: int | None = None  # the keyframe at which the graph was anchored to the model
         self._registered_at: tuple[int, int] = (0, 0)  # (stamp_ns, depth points) of the last registration
         self._carried: list[tuple[np.ndarray, list[Sighting]]] = []  # (T_odom_body, sightings) since the keyframe
         self._depth: tuple[np.ndarray, np.ndarray] | None = None  # (T_odom_body, points_body): newest since it
@@ -408,6 +411,7 @@ class Localizer:
         log.info("localized with %d inliers of %d landmarks (%d matches)", result.inliers, len(keys),
                  len(result.matches))
         self.graph.add_anchor(np.linalg.inv(T_cad_map))
+        self._anchored_at = self.graph.n_keyframes - 1
         if registrars:  # the registrar's own pose (fitted to the walls): its matches hold
             for j, fid in result.matches:
                 self._link(j, fid, T_cad_map)
@@ -430,11 +434,19 @@ class Localizer:
             return
         step = np.linalg.inv(T_guess) @ fit.T_cad_body
         if np.linalg.norm(step[:3, 3]) > self.params.surface_fit_max_correction_m or \
-                rotation_angle_deg(step[:3, :3]) > self.params.surface_fit_max_turn_deg:
+                rotation_angle_deg(step[:3, :3]) > self._max_fit_turn_deg(i):
             return
         self.graph.add_cad_pose(i, fit.T_cad_body, fit.information)
         self.graph.update()
         self.surface_fits += 1
+
+    def _max_fit_turn_deg(self, i: int) -> float:
+        """How far a fit to the walls may turn keyframe i's pose: further while the pose settles after localizing
+        (a pose found by one door carries that door's orientation error, a few degrees, until the walls turn it
+        back), less once it is held by the walls and more doors (a larger turn is then a fit to a wrong wall)."""
+        p = self.params
+        settling = self._anchored_at is not None and i - self._anchored_at < p.surface_fit_settling_keyframes
+        return p.surface_fit_settling_turn_deg if settling else p.surface_fit_max_turn_deg
 
     def _link_new_landmarks(self, stamp_ns: int) -> None:
         """Landmarks not yet linked that lie within `cad_link_m` of a same-type CAD feature are linked."""

@@ -8,6 +8,8 @@ ask what it could not have seen.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import example, given, settings
@@ -492,16 +494,18 @@ def test_one_door_in_a_room_alike_after_a_half_turn_stays_ambiguous() -> None:
 def test_the_walls_turn_back_a_pose_localized_degrees_off(room_with_walls: SurfaceIndex) -> None:
     """A pose localized from one door carries the detector's error in that door's orientation (5.5 deg on
     Office_A seed 9, where every later fit to the walls turned the pose more than the 5 deg then allowed and was
-    refused: 2.2 m off after 30 s). The walls' fits must be allowed to turn it back."""
+    refused: 2.2 m off after 30 s). While the pose settles after localizing, the walls' fits may turn it back;
+    later a turn that large is a fit to a wrong wall (Jasmin-Sun seed 11 had 6-28 deg ones mid-flight)."""
     pivot = np.array([8.0, 3.5, 0.0])
     R = rot_z(np.radians(8.0))
     T_off = make_T(R, pivot - R @ pivot) @ T_TRUE  # 8 deg off about the flight's start
     cameras = [np.array([8.0 + 0.2 * k, 3.5 - 0.1 * k]) for k in range(10)]
-    errors = {}
-    for max_turn_deg in (10.0, 5.0):
-        params = LocalizerParams(surface_min_points=100, surface_refine_m=0.0, surface_fit_max_turn_deg=max_turn_deg)
+    base = LocalizerParams(surface_min_points=100, surface_refine_m=0.0)
+    errors = []
+    never_settling = replace(base, surface_fit_settling_keyframes=0)
+    for params in (base, replace(base, surface_fit_settling_turn_deg=5.0), never_settling):
         loc = fly_seeing(room_with_walls, CandidatesRegistrar([T_off], localized=True), cameras, params)
         T_cad_map = loc.graph.T_cad_map()
         assert loc.status == "localized" and T_cad_map is not None
-        errors[max_turn_deg] = rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T)
-    assert errors[10.0] < 1.0 and errors[5.0] > 7.0
+        errors.append(rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T))
+    assert errors[0] < 1.0 and errors[1] > 7.0 and errors[2] > 7.0
