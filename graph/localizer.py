@@ -367,11 +367,11 @@ class Localizer:
         supported = np.argsort(-support, kind="stable")[: 3 * p.surface_screen_top]
         score = np.array([self.surfaces.check(apply(poses[k], pts), apply(poses[k], origins)).score
                           for k in supported])
-        order = supported[np.argsort(-score, kind="stable")]
+        ranked = np.argsort(-score, kind="stable")
         log.debug("screened %d candidate poses by %d points: best %s", len(poses), len(pts),
-                  np.sort(score)[::-1][: p.surface_screen_top].round(2).tolist())
-        self.surface_screens.append((len(poses), np.sort(score)[::-1].round(3).tolist()))
-        return [poses[k] for k in order[: p.surface_screen_top]]
+                  score[ranked[: p.surface_screen_top]].round(2).tolist())
+        self.surface_screens.append((len(poses), score[ranked].round(3).tolist()))
+        return [poses[k] for k in supported[ranked[: p.surface_screen_top]]]
 
     def _refined(self, T_cad_map: np.ndarray, points_map: np.ndarray) -> np.ndarray:
         """A candidate pose fitted to the walls by the map's depth points (point-to-plane, roll and pitch held),

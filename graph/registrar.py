@@ -76,10 +76,10 @@ class ModelRegistrar:
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
         if self._register is None:
             return align_rectangles(landmarks, self._known, min_inliers=self.min_landmarks)
-        from graph.observations import Observation, ObservationSet
-
         if len(landmarks) == 1:
             return self._one_landmark(landmarks[0], corners_map[0])
+        from graph.observations import Observation, ObservationSet
+
         obs = [Observation(type=lm.type, centroid_map=lm.T_map_rect[:3, 3], corners_map=c)
                for lm, c in zip(landmarks, corners_map, strict=True)]
         gravity_map = np.array([0.0, 0.0, -1.0])  # the map frame's z is up
