@@ -99,11 +99,21 @@ class Estimate:
 
 @dataclass
 class Landmark:
+    """A door or window of this flight; its pose is the graph's (T_map_rect). Its corners (4, 3), map frame,
+    metres, are the first sighting's, unless that sighting was cut by the image border: a later sighting cut on
+    fewer sides replaces them (the registration takes the rectangle's size from them, and a cut side is short)."""
+
     key: int
     type: str
-    corners_map: np.ndarray  # (4, 3) at first sighting, metres
+    corners_map: np.ndarray
+    cut_sides: int = 0  # of the sighting the corners are from: 0, 1 (sideways or vertically) or 2
     n_sightings: int = 1
     truth_id: str | None = None  # scoring only
+
+    def add_sighting(self, corners_map: np.ndarray, truncated: tuple[bool, bool]) -> None:
+        self.n_sightings += 1
+        if sum(truncated) < self.cut_sides:
+            self.corners_map, self.cut_sides = corners_map, int(sum(truncated))
 
 
 class Localizer:
@@ -229,13 +239,13 @@ class Localizer:
                 continue
             T_map_rect = T_map_body @ T_body_rect
             j = self._associate(s.type, T_map_rect)
+            corners_map = apply(T_map_body, s.corners_body)
             if j is None:
                 j = len(self.landmarks)
-                corners_map = (T_map_body[:3, :3] @ s.corners_body.T).T + T_map_body[:3, 3]
-                self.landmarks[j] = Landmark(j, s.type, corners_map, truth_id=s.truth_id)
+                self.landmarks[j] = Landmark(j, s.type, corners_map, int(sum(s.truncated)), truth_id=s.truth_id)
                 self.graph.add_landmark(j, T_map_rect)
             else:
-                self.landmarks[j].n_sightings += 1
+                self.landmarks[j].add_sighting(corners_map, s.truncated)
                 T_body_rect = np.linalg.inv(T_map_body) @ closer_flip(T_map_rect, self.graph.T_map_rect(j))
                 if j in self.links:
                     self._last_link_ns = stamp_ns

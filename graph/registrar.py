@@ -56,6 +56,8 @@ class ModelRegistrar:
         self.register_params = dict(register_params)
         if method == "robust":  # from one landmark the candidates are its alike features' (`_one_landmark`)
             self.register_params.setdefault("min_inliers", max(2, self.candidates_from))
+            if self.candidates_from < min_landmarks:  # below min_landmarks the walls choose: offer them every pose
+                self.register_params.setdefault("complete_below", min_landmarks)
         if tolerance_m is not None:
             self.register_params["inlier_threshold_m"] = tolerance_m
             if method == "robust":

@@ -64,6 +64,10 @@ class RobustParams:
     cross_type_weight: float = 0.5  # an observation on a feature of the other type (door/window confusion) counts half
     min_inliers: int = 3
     min_inliers_without_gravity: int = 4  # 6 DoF from few noisy rectangles: ask for more support
+    # Below this many inliers the answer is only candidates for other evidence (the walls) to choose among: then
+    # they are every distinct hypothesis that explains as many observations as the best, not the refined few (a
+    # building with many alike door pairs offers dozens, and the truth must be among them). 0: the refined few.
+    complete_below: int = 0
     seed: int = 0
 
 
@@ -439,6 +443,10 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
         if p.inliers.sum() >= min_inliers and all(_distinct(q, p, anchor, params) for q in distinct):
             distinct.append(p)
     candidate_poses = [(q.T @ prep.T_mp_m, int(q.inliers.sum())) for q in distinct]
+    if n_best < params.complete_below:
+        kept = [(q.T[:3, :3], apply(q.T, prep.centroids)) for q in distinct]
+        candidate_poses += [(make_T(hyps.R[h], hyps.t[h]) @ prep.T_mp_m, n_best)
+                            for h in _alike_hypotheses(hyps, n_best, kept, prep, index, params)]
     storey = majority_storey(index, [j for _, j in pairs])
     matches = [(i, index.features[j].id) for i, j in pairs]
     if rival is not None and ll_rival >= max(ll) - params.ambiguity_loglik_margin:
@@ -448,6 +456,33 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
                                   alternatives=[rival.T @ prep.T_mp_m], diagnostics=diag, candidates=candidate_poses)
     return RegistrationResult("localized", T_cad_map, matches, n_best, storey, diagnostics=diag,
                               candidates=candidate_poses)
+
+
+def _alike_hypotheses(hyps: _Hypotheses, n_explained: int, kept: list[tuple[np.ndarray, np.ndarray]],
+                      prep: _Prepared, index: ModelIndex, params: RobustParams) -> list[int]:
+    """Every hypothesis that explains `n_explained` observations (same type, within ambiguity_tau_m) and differs
+    from the poses `kept` (rotation (3, 3), moved observations (N, 3)) and from each other, best supported first.
+    Differ: the observations move more than distinct_m / 2, or the rotation turns more than distinct_deg (two
+    doors in one wall, seen from either side, stay where they are)."""
+    if len(hyps.R) == 0:
+        return []
+    d, _ = _nearest_same_type(hyps.moved, prep.types, index, upper_m=params.ambiguity_tau_m)
+    order = np.argsort(-hyps.coarse, kind="stable")
+    order = order[np.isfinite(d[order]).sum(axis=1) >= n_explained]
+    R_kept = [R for R, _ in kept]
+    moved_kept = [m for _, m in kept]
+    chosen: list[int] = []
+    cos_max = np.cos(np.radians(params.distinct_deg))
+    for h in order:
+        if moved_kept:
+            apart = np.linalg.norm(np.stack(moved_kept) - hyps.moved[h][None], axis=2).mean(axis=1)
+            cos = (np.einsum("kij,ij->k", np.stack(R_kept), hyps.R[h]) - 1.0) / 2.0
+            if np.any((apart <= params.distinct_m / 2) & (cos >= cos_max)):
+                continue
+        chosen.append(int(h))
+        R_kept.append(hyps.R[h])
+        moved_kept.append(hyps.moved[h])
+    return chosen
 
 
 def _loglik(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams, s2: float) -> float:

@@ -231,6 +231,35 @@ def test_a_sighting_cut_by_the_image_border_barely_moves_its_landmark_along_that
     assert landmark_shift(flagged=True) < 0.1 * landmark_shift(flagged=False)
 
 
+def test_a_door_first_seen_cut_by_the_border_takes_its_corners_from_an_uncut_sighting(corridor) -> None:
+    """A door entering the image from its side: the first sighting's corners stop at the border, 0.4 m short of
+    the door's edge. The registration takes the door's size from the landmark's corners, so the first uncut
+    sighting's replace them (Office_A seed 10: the cut sighting's 0.61 m wide corners kept the door from matching
+    its 1.07 m CAD door); a sighting cut again does not."""
+    from graph.localizer import Sighting
+
+    T_cad_body = make_T(np.eye(3), np.array([0.0, 0.0, 1.4]))
+    target = next(f for f in corridor.features if f.type == "door")
+    T_body_cad = np.linalg.inv(T_cad_body)
+    corners = (T_body_cad[:3, :3] @ target.corners_cad.T).T + T_body_cad[:3, 3]
+    u = np.cross([0.0, 0.0, 1.0], target.normal_cad / np.linalg.norm(target.normal_cad))
+    along = (corners - corners.mean(axis=0)) @ u
+    cut = corners - np.where(along > 0, 0.4, 0.0)[:, None] * u  # the corners on one side stop 0.4 m short
+    loc = Localizer(corridor, PoseGraph(), model_registrar(corridor, min_landmarks=99))
+
+    def width_m() -> float:  # the map frame is the CAD frame here
+        (lm,) = loc.landmarks.values()
+        return float(np.ptp((lm.corners_map - lm.corners_map.mean(axis=0)) @ u))
+
+    loc.add_keyframe(0, T_cad_body, [Sighting("door", cut, truncated=(True, False))], UP)
+    assert width_m() == pytest.approx(target.width_m - 0.4, abs=1e-6)
+    loc.add_keyframe(100_000_000, T_cad_body, [Sighting("door", corners)], UP)
+    assert width_m() == pytest.approx(target.width_m, abs=1e-6)
+    loc.add_keyframe(200_000_000, T_cad_body, [Sighting("door", cut, truncated=(True, False))], UP)
+    (lm,) = loc.landmarks.values()
+    assert width_m() == pytest.approx(target.width_m, abs=1e-6) and lm.n_sightings == 3
+
+
 def _tilt_deg(R: np.ndarray) -> float:
     """Angle between R's z axis and z (deg): the tilt of a rotation between two z-up frames."""
     return float(np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))))

@@ -19,6 +19,13 @@ from graph.rigid import apply, invert, rotation_angle_deg
 from tests.graph.helpers import random_building, random_T
 
 
+def make_T_yaw(yaw: float, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    T[:3, 3] = t
+    return T
+
+
 def observe(model: BuildingModel, T_map_cad: np.ndarray, features=None, gravity: bool = True,
             corners: bool = True) -> ObservationSet:
     feats = model.features if features is None else features
@@ -175,6 +182,45 @@ def test_one_rectangle_gives_a_level_pose_per_alike_feature_and_side(seed: int, 
     turned_deg = min(rotation_angle_deg(T[:3, :3] @ R_cad_map.T) for T, miss in zip(poses, centre_miss, strict=True)
                      if miss < 1e-6)
     assert turned_deg < 1e-4 + 250.0 * noise_m  # 0 without noise, ~2 deg at 3 cm on a 0.9 m edge
+
+
+def test_two_doors_offer_every_alike_pair_to_the_walls(office_model) -> None:
+    """Two neighbouring doors of Office_A, seen 0.25 m closer together than the model has them (Office_A seed 10,
+    perception): the building has dozens of door pairs alike to them, and the registrar's candidates (for the walls
+    to choose among) must hold every pose that puts both doors on CAD doors, the truth among them; the few
+    refined poses alone missed it, and the walls then took a wrong one."""
+    from graph.landmarks import feature_frame_cad
+    from graph.model_index import index_for
+    from graph.registrar import ModelRegistrar
+    from graph.relocalize import ObservedRect
+    from graph.robust import RobustParams, single_rectangle_poses
+
+    doors = {f.id: f for f in office_model.features}
+    a, b = doors["2N3oFtM8X6lO2dN1$77xv3"], doors["2N3oFtM8X6lO2dN1$77xzD"]
+    closer = 0.25 * (a.centroid_cad - b.centroid_cad) / np.linalg.norm(a.centroid_cad - b.centroid_cad)
+    T_map_cad = make_T_yaw(0.7, np.array([3.0, -2.0, 0.0]))
+    corners = [apply(T_map_cad, a.corners_cad), apply(T_map_cad, b.corners_cad + closer)]
+    observed = [ObservedRect(k, "door", T_map_cad @ feature_frame_cad(f)) for k, f in enumerate((a, b))]
+    observed[1].T_map_rect[:3, 3] = corners[1].mean(axis=0)
+    registrar = ModelRegistrar(office_model, min_landmarks=4, candidates_from=1)
+    result = registrar(observed, corners)
+    assert result.status == "ambiguous" and result.T_cad_map is not None
+    T_cad_map = invert(T_map_cad)
+
+    def covered(T: np.ndarray) -> bool:  # a candidate puts the two doors where T does, turned the same way
+        return any(np.linalg.norm(apply(C, np.stack([c.mean(axis=0) for c in corners]))
+                                  - apply(T, np.stack([c.mean(axis=0) for c in corners])), axis=1).mean() < 0.25
+                   and rotation_angle_deg(C[:3, :3] @ T[:3, :3].T) < 5.0 for C, _ in result.candidates)
+
+    assert covered(T_cad_map)
+    # every pose one door gives (each alike door, either side) that also puts the other on a CAD door
+    index = index_for(office_model)
+    tau = RobustParams().ambiguity_tau_m
+    centroids = index.centroids[index.type_indices["door"]]
+    expected = [T for k in (0, 1) for T in single_rectangle_poses(index, "door", corners[k])
+                if np.linalg.norm(centroids - apply(T, corners[1 - k].mean(axis=0)[None]), axis=1).min() < tau]
+    assert len(expected) > RobustParams().refine_top + RobustParams().rival_candidates  # more than the refined few
+    assert all(covered(T) for T in expected)
 
 
 def test_one_landmark_is_never_an_answer_by_itself(office_model) -> None:
