@@ -15,6 +15,7 @@ Frames: observations in `map`, features in `cad`; gravity-aligned `map'` = R_g m
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -223,14 +224,31 @@ def _one_to_one(pairs: list[tuple[int, int]], d: np.ndarray) -> list[tuple[int, 
     return sorted((i, j) for j, i in best.items())
 
 
-def _distinct_top(order: np.ndarray, moved: np.ndarray, params: RobustParams) -> list[int]:
-    """The best hypotheses (in `order`) that differ pairwise: mean displacement of the observations > distinct_m/2."""
+def _distinct_top(order: np.ndarray, moved: np.ndarray, params: RobustParams, rotations: np.ndarray | None = None,
+                  kept: Sequence[tuple[np.ndarray, np.ndarray]] = (), limit: int | None = None) -> list[int]:
+    """The best hypotheses (in `order`; at most `limit`, default refine_top) that differ from each other and from the
+    poses `kept` ((rotation (3, 3), moved observations (N, 3)) pairs): the mean displacement of the observations
+    (`moved`, (H, N, 3)) exceeds distinct_m / 2, or, given the hypotheses' `rotations` (H, 3, 3), they turn more than
+    distinct_deg (two doors in one wall, seen from either side, stay where they are)."""
+    limit = params.refine_top if limit is None else limit
+    cos_max = np.cos(np.radians(params.distinct_deg))
     chosen: list[int] = []
+    chosen_R = [R for R, _ in kept]
+    chosen_moved = [m for _, m in kept]
     for h in order:
-        if all(np.linalg.norm(moved[h] - moved[c], axis=1).mean() > params.distinct_m / 2 for c in chosen):
-            chosen.append(int(h))
-            if len(chosen) == params.refine_top:
-                break
+        if len(chosen) == limit:
+            break
+        if chosen_moved:
+            apart = np.linalg.norm(np.stack(chosen_moved) - moved[h][None], axis=2).mean(axis=1)
+            alike = apart <= params.distinct_m / 2
+            if rotations is not None:
+                alike &= (np.einsum("kij,ij->k", np.stack(chosen_R), rotations[h]) - 1.0) / 2.0 >= cos_max
+            if alike.any():
+                continue
+        chosen.append(int(h))
+        chosen_moved.append(moved[h])
+        if rotations is not None:
+            chosen_R.append(rotations[h])
     return chosen
 
 
@@ -461,28 +479,13 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
 def _alike_hypotheses(hyps: _Hypotheses, n_explained: int, kept: list[tuple[np.ndarray, np.ndarray]],
                       prep: _Prepared, index: ModelIndex, params: RobustParams) -> list[int]:
     """Every hypothesis that explains `n_explained` observations (same type, within ambiguity_tau_m) and differs
-    from the poses `kept` (rotation (3, 3), moved observations (N, 3)) and from each other, best supported first.
-    Differ: the observations move more than distinct_m / 2, or the rotation turns more than distinct_deg (two
-    doors in one wall, seen from either side, stay where they are)."""
+    (`_distinct_top`, by displacement or turn) from the poses `kept` and from each other, best supported first."""
     if len(hyps.R) == 0:
         return []
     d, _ = _nearest_same_type(hyps.moved, prep.types, index, upper_m=params.ambiguity_tau_m)
     order = np.argsort(-hyps.coarse, kind="stable")
     order = order[np.isfinite(d[order]).sum(axis=1) >= n_explained]
-    R_kept = [R for R, _ in kept]
-    moved_kept = [m for _, m in kept]
-    chosen: list[int] = []
-    cos_max = np.cos(np.radians(params.distinct_deg))
-    for h in order:
-        if moved_kept:
-            apart = np.linalg.norm(np.stack(moved_kept) - hyps.moved[h][None], axis=2).mean(axis=1)
-            cos = (np.einsum("kij,ij->k", np.stack(R_kept), hyps.R[h]) - 1.0) / 2.0
-            if np.any((apart <= params.distinct_m / 2) & (cos >= cos_max)):
-                continue
-        chosen.append(int(h))
-        R_kept.append(hyps.R[h])
-        moved_kept.append(hyps.moved[h])
-    return chosen
+    return _distinct_top(order, hyps.moved, params, rotations=hyps.R, kept=kept, limit=len(order))
 
 
 def _loglik(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams, s2: float) -> float:
