@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 from collections import deque
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -23,10 +24,10 @@ from graph.features import BuildingModel
 from graph.landmarks import closer_flip, feature_frame_cad, is_vertical, observed_frame
 from graph.mapstore import StoredLandmark, StoredMap
 from graph.posegraph import PoseGraph
-from graph.registrar import ModelRegistrar, Registrar
-from graph.relocalize import Alignment, ObservedRect
+from graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
+from graph.relocalize import Alignment, KnownRect, ObservedRect
 from graph.rigid import apply, levelled, rotation_angle_deg
-from graph.surfaces import SurfaceIndex, align_to_surfaces, band_points, floor_points
+from graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surfaces, band_points, floor_points
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +68,7 @@ class LocalizerParams:
     surface_margin: float = 0.3  # ... and every other candidate pose this much less (of points on surfaces and in
     #                               sight, with the model's walls: SurfaceCheck.score) ...
     surface_max_seen_through: float = 0.1  # ... and let at most this fraction be seen through a wall
+    surface_refuse_seen_through: float = 0.25  # a registrar's own answer is refused where more are seen through one
     surface_retry_s: float = 1.0  # with no new landmark, the check is retried this often as the walls come in view
     surface_refine_m: float = 0.6  # each candidate pose is first fitted to the walls, moving the points at most this
     surface_screen_top: int = 8  # of more candidates (one door: every alike door of the model, from both sides),
@@ -147,6 +149,9 @@ class Localizer:
         # (keyframe, points at the camera's height, points below it: the floor), body frame
         self._points: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
         self.surface_checks: list[tuple[int, list[float]]] = []  # (stamp_ns, score of each candidate pose)
+        # within one registration attempt: the poses fitted to the walls and checked (T in, T out / its check)
+        self._attempt_refined: list[tuple[np.ndarray, np.ndarray]] = []
+        self._attempt_checks: list[tuple[np.ndarray, SurfaceCheck]] = []
         self.surface_screens: list[tuple[int, list[float]]] = []  # (candidates, their screening scores, best first)
         self.surface_fits = 0  # keyframes whose depth was fitted to the walls (and floor)
 
@@ -311,7 +316,7 @@ class Localizer:
         every = max(1, int(np.ceil(sum(len(p) for p in points) / at_most)))
         return np.vstack(points)[::every], np.vstack(origins)[::every]
 
-    def _choose_by_surfaces(self, result: Alignment, stamp_ns: int) -> tuple[np.ndarray | None, bool]:
+    def _choose_by_surfaces(self, result: Alignment, stamp_ns: int) -> _Choice:
         """The pose to anchor the map with, or None, and whether it is the registrar's answer (whose matches
         then hold): the registrar's answer, checked by the walls (graph.surfaces).
 
@@ -320,25 +325,28 @@ class Localizer:
         voxels, in sight of their cameras (SurfaceCheck.score); a candidate is taken when it puts
         `surface_min_support` of the points on the surfaces, lets at most `surface_max_seen_through` be seen
         through a wall, and every other candidate scores `surface_margin` less; the registrar's 'localized'
-        stands unless another candidate beats it by that margin (the walls contradict it), and is refused where
-        the walls confirm a different pose."""
+        stands unless another candidate beats it by that margin or more than `surface_refuse_seen_through` of the
+        points would have been seen through a wall (the walls contradict it), and is refused where the walls
+        confirm a different pose. Few points on the surfaces alone do not refuse it: a true pose among furniture
+        the model lacks puts only half of them there."""
         p = self.params
         T_reg = result.T_cad_map if result.status == "localized" else None
         if not self._can_check_surfaces():
-            return T_reg, T_reg is not None
+            return _Choice(T_reg, T_reg is not None)
         assert self.surfaces is not None
         points_map, origins_map = self._points_map()
-        candidates = [self._refined(T, points_map) for T in self._screened(result.candidates, points_map, origins_map)]
+        candidates = [self._refined_once(T, points_map)
+                      for T in self._screened(result.candidates, points_map, origins_map)]
         moved = [apply(T, points_map) for T in candidates]  # the points under each candidate, CAD frame
         if T_reg is not None:
-            T_reg = self._refined(T_reg, points_map)
+            T_reg = self._refined_once(T_reg, points_map)
             moved_reg = apply(T_reg, points_map)
             if all(_poses_differ(T, T_reg, m, moved_reg) for T, m in zip(candidates, moved, strict=True)):
                 candidates.insert(0, T_reg)
                 moved.insert(0, moved_reg)
         if not candidates:
-            return None, False
-        checks = [self.surfaces.check(m, apply(T, origins_map)) for T, m in zip(candidates, moved, strict=True)]
+            return _Choice(None, False)
+        checks = [self._checked_once(T, m, origins_map) for T, m in zip(candidates, moved, strict=True)]
         score = np.array([c.score for c in checks])
         self.surface_checks.append((stamp_ns, score.round(3).tolist()))
         log.info("surface check of %d candidate poses (%d points): support %s", len(candidates), len(points_map),
@@ -347,15 +355,17 @@ class Localizer:
         best = int(np.argmax(score))
         others = [s for T, m, s in zip(candidates, moved, score, strict=True)
                   if _poses_differ(T, candidates[best], m, moved[best])]
-        confirmed = (checks[best].support >= p.surface_min_support
-                     and checks[best].seen_through <= p.surface_max_seen_through
-                     and all(s <= score[best] - p.surface_margin for s in others))
+        fits = checks[best].support >= p.surface_min_support and checks[best].seen_through <= p.surface_max_seen_through
+        rivalled = any(s > score[best] - p.surface_margin for s in others)
+        confirmed = fits and not rivalled
         if T_reg is not None:
             i_reg = next(k for k, (T, m) in enumerate(zip(candidates, moved, strict=True))
                          if not _poses_differ(T, T_reg, m, moved_reg))
             beaten = score[best] >= score[i_reg] + p.surface_margin
-            return (None, False) if beaten or (confirmed and best != i_reg) else (T_reg, True)
-        return (candidates[best] if confirmed else None), False
+            contradicted = checks[i_reg].seen_through > p.surface_refuse_seen_through
+            return _Choice(None, False, fits and rivalled) if beaten or contradicted or (confirmed and best != i_reg) \
+                else _Choice(T_reg, True)
+        return _Choice(candidates[best] if confirmed else None, False, fits and rivalled)
 
     def _screened(self, candidates: list[tuple[np.ndarray, int]], points_map: np.ndarray,
                   origins_map: np.ndarray) -> list[np.ndarray]:
@@ -383,9 +393,31 @@ class Localizer:
         self.surface_screens.append((len(poses), score[ranked].round(3).tolist()))
         return [poses[k] for k in supported[ranked[: p.surface_screen_top]]]
 
+    def _refined_once(self, T_cad_map: np.ndarray, points_map: np.ndarray) -> np.ndarray:
+        """`_refined`, once per pose in one registration attempt (a stored map's candidates and the model's after
+        them share poses)."""
+        for T_in, T_out in self._attempt_refined:
+            if _same_pose(T_in, T_cad_map):
+                return T_out
+        T_out = self._refined(T_cad_map, points_map)
+        self._attempt_refined.append((T_cad_map, T_out))
+        return T_out
+
+    def _checked_once(self, T_cad_map: np.ndarray, moved: np.ndarray, origins_map: np.ndarray) -> SurfaceCheck:
+        """The surface check of a (refined) pose, once per pose in one registration attempt."""
+        assert self.surfaces is not None
+        for T, check in self._attempt_checks:
+            if _same_pose(T, T_cad_map):
+                return check
+        check = self.surfaces.check(moved, apply(T_cad_map, origins_map))
+        self._attempt_checks.append((T_cad_map, check))
+        return check
+
     def _refined(self, T_cad_map: np.ndarray, points_map: np.ndarray) -> np.ndarray:
-        """A candidate pose fitted to the walls by the map's depth points (point-to-plane, roll and pitch held),
-        or as it was where the fit fails or moves the points further than `surface_refine_m`. A pose from two or
+        """A candidate pose fitted to the walls by the map's depth points (point-to-plane, roll, pitch and height
+        held: the walls hardly see the height, and a few sloped faces would set it alone; the floor fits after
+        localizing take it from the doors'), or as it was where the fit fails or moves the points further than
+        `surface_refine_m`. A pose from two or
         three doors' corners is off by tenths of a metre and a degree or two (their corners are coarse at range):
         enough to put points beyond the check's tolerance of their walls, and lines of sight through a doorway
         into its jambs. The check should judge the place a candidate stands for, not its error."""
@@ -395,7 +427,8 @@ class Localizer:
         points_map = points_map[:: max(1, int(np.ceil(len(points_map) / 500)))]  # a pose's fit needs no more
         # the points are in the map frame, not around one camera: no range-dependent noise in their weights
         fit = align_to_surfaces(self.surfaces, points_map, T_cad_map, iterations=8, depth_sigma_per_m2=0.0,
-                                max_distance_m=self.params.surface_refine_m, sigma_m=self.params.surface_fit_sigma_m)
+                                max_distance_m=self.params.surface_refine_m, sigma_m=self.params.surface_fit_sigma_m,
+                                hold_height=True)
         if fit is None:
             return T_cad_map
         moved = np.linalg.norm(apply(np.linalg.inv(T_cad_map) @ fit.T_cad_body, points_map) - points_map, axis=1)
@@ -407,10 +440,20 @@ class Localizer:
         observed = [ObservedRect(j, self.landmarks[j].type, self.graph.T_map_rect(j)) for j in keys]
         corners = [self.landmarks[j].corners_map for j in keys]
         result = self.registrar(observed, corners)
+        self._attempt_refined, self._attempt_checks = [], []
+        choice = self._choose_by_surfaces(result, stamp_ns)
+        # the walls confirm none of the candidates: the next registrar's, unless two of these fit the walls alike
+        # and the next one's candidates hold them (`Alignment.fallback_holds_these`): it cannot tell them apart
+        # either. Otherwise a fuller registrar may (the model's doors that a stored map lacks), or may answer
+        # 'localized' by itself.
+        while choice.T_cad_map is None and not (choice.rivals_fit and result.fallback_holds_these) \
+                and result.fallback is not None:
+            result = result.fallback()
+            choice = self._choose_by_surfaces(result, stamp_ns)
+        T_cad_map, registrars = choice.T_cad_map, choice.registrars
         self._registered_with = len(keys)
         self._registered_at = (stamp_ns, self._n_points())
         self.inliers = result.inliers
-        T_cad_map, registrars = self._choose_by_surfaces(result, stamp_ns)
         if T_cad_map is None:
             status = "exploring" if result.status == "not_localized" else "ambiguous"
             self.registrations.append((stamp_ns, status))
@@ -534,6 +577,28 @@ def model_registrar(model: BuildingModel, params: LocalizerParams, storey_hint: 
     return ModelRegistrar(model, method=method, storey_hint=storey_hint,
                           min_landmarks=params.registration_min_landmarks, tolerance_m=params.registration_tolerance_m,
                           candidates_from=params.verified_min_landmarks if with_surfaces else None)
+
+
+class _Choice(NamedTuple):
+    """The walls' verdict on a registration (`Localizer._choose_by_surfaces`): the pose to anchor with or None,
+    whether it is the registrar's own answer, and whether two different candidates fit the walls alike."""
+
+    T_cad_map: np.ndarray | None
+    registrars: bool
+    rivals_fit: bool = False
+
+
+def _same_pose(A: np.ndarray, B: np.ndarray, tol_m: float = 1e-3, tol_rad: float = 1e-4) -> bool:
+    """Two T_cad_map equal to rounding (the same candidate offered by two registrars)."""
+    return bool(np.abs(A[:3, 3] - B[:3, 3]).max() <= tol_m and np.abs(A[:3, :3] - B[:3, :3]).max() <= tol_rad)
+
+
+def stored_registrar(model: BuildingModel, known: list[KnownRect], params: LocalizerParams,
+                     with_surfaces: bool = False) -> StoredMapRegistrar:
+    """The registrar against a stored map's CAD-linked features (re-localization): localized from two agreeing
+    landmarks; with the surface check, candidate poses from `verified_min_landmarks` on, for the walls."""
+    return StoredMapRegistrar(known, min_landmarks=2, model=model,
+                              candidates_from=params.verified_min_landmarks if with_surfaces else None)
 
 
 def _poses_differ(A: np.ndarray, B: np.ndarray, moved_A: np.ndarray, moved_B: np.ndarray, apart_m: float = 0.5,

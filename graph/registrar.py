@@ -110,23 +110,49 @@ class ModelRegistrar:
 
 
 class StoredMapRegistrar:
-    """Re-localization against the CAD-linked landmarks of a stored map (T_cad_rect of each)."""
+    """Re-localization against the CAD-linked landmarks of a stored map (T_cad_rect of each). With
+    `candidates_from` below `min_landmarks` (the localizer checks poses against the walls), fewer landmarks, or
+    more that the stored map explains more than one way (a nearly symmetric building), come back as candidate
+    poses: one per stored feature a landmark may be, from either side (one landmark: only features of its size,
+    with `model`). The stored map holds a few of the building's doors, so the walls choose among a few poses, not
+    among every alike door of the building."""
 
-    def __init__(self, known: list[KnownRect], min_landmarks: int = 3) -> None:
+    def __init__(self, known: list[KnownRect], min_landmarks: int = 3, candidates_from: int | None = None,
+                 model: BuildingModel | None = None) -> None:
         self.known = known
         self.min_landmarks = min_landmarks
-        self.candidates_from = min_landmarks
+        self.candidates_from = min(min_landmarks, candidates_from or min_landmarks)
+        self._offer = candidates_from is not None
+        self._model = model
 
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
-        return align_rectangles(landmarks, self.known, min_inliers=self.min_landmarks)
+        if len(landmarks) == 1 and self._offer and self._model is not None:
+            return self._one_landmark(landmarks[0], corners_map[0])
+        return align_rectangles(landmarks, self.known, min_inliers=self.min_landmarks,
+                                candidates_from=self.candidates_from if self._offer else None)
+
+    def _one_landmark(self, landmark: ObservedRect, corners_map: np.ndarray | None) -> Alignment:
+        """As `ModelRegistrar._one_landmark`, among the stored features only."""
+        from graph.model_index import index_for
+        from graph.robust import single_rectangle_poses
+
+        assert self._model is not None
+        if corners_map is None:
+            return Alignment("not_localized", None)
+        poses = single_rectangle_poses(index_for(self._model), landmark.type, corners_map,
+                                       among={k.id for k in self.known})
+        return Alignment("ambiguous", None, [], 1, [(T, 1) for T in poses]) if poses \
+            else Alignment("not_localized", None)
 
 
 class FirstOfRegistrar:
     """Tries each registrar in turn (when the map holds enough landmarks for it); the first 'localized' answer
     wins. A stored map first, the whole model after: re-localization falls back to a fresh localization when
     the new flight starts outside the stored map, or when the stored map's few landmarks leave it ambiguous.
-    Without a 'localized' answer, the first 'ambiguous' one that offers candidate poses (for the localizer's
-    surface check) is returned, else the first 'ambiguous' one."""
+    A 'localized' answer, or an 'ambiguous' one with candidate poses, is returned with the later registrars'
+    answer as its `fallback`: the localizer asks for that only where the walls refuse the answer or confirm none
+    of the candidates, so a stored map's few candidates are checked first and the whole model is searched only
+    when they fail. Without candidates, the first 'ambiguous' answer is returned."""
 
     def __init__(self, registrars: list[Registrar]) -> None:
         self.registrars = registrars
@@ -134,14 +160,25 @@ class FirstOfRegistrar:
         self.candidates_from = min(r.candidates_from for r in registrars)
 
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
+        return self._from(0, landmarks, corners_map)
+
+    def _from(self, first: int, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
         ambiguous: list[Alignment] = []
-        for registrar in self.registrars:
+        for k in range(first, len(self.registrars)):
+            registrar = self.registrars[k]
             if len(landmarks) < registrar.candidates_from:
                 continue
             result = registrar(landmarks, corners_map)
-            if result.status == "localized":
+            if result.status == "localized" or result.candidates:
+                later = self.registrars[k + 1:]
+                if later:  # asked for where the walls refuse this answer or confirm none of these candidates
+                    result.fallback = lambda k=k: self._from(k + 1, landmarks, corners_map)
+                    # every candidate explains every landmark, and too few landmarks for a later registrar's own
+                    # answer: a later one's candidates (all poses explaining as many) hold these
+                    result.fallback_holds_these = result.status != "localized" and \
+                        all(n == len(landmarks) for _, n in result.candidates) and \
+                        all(len(landmarks) < r.min_landmarks for r in later)
                 return result
             if result.status == "ambiguous":
                 ambiguous.append(result)
-        with_candidates = [a for a in ambiguous if a.candidates]
-        return (with_candidates or ambiguous or [Alignment("not_localized", None)])[0]
+        return (ambiguous or [Alignment("not_localized", None)])[0]

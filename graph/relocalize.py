@@ -13,6 +13,7 @@ flight linked to the model), and a stand-in registration against a whole model w
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,12 +52,22 @@ class Alignment:
     # distinct poses that explain the landmarks (T_cad_map, landmarks explained), best first; the localizer's
     # surface check chooses among them (graph.surfaces)
     candidates: list[tuple[np.ndarray, int]] = field(default_factory=list)
+    # where the surface check confirms none of the candidates: the next registrar's answer, asked only then
+    # (graph.registrar.FirstOfRegistrar: a stored map's few candidates first, the whole model's after)
+    fallback: Callable[[], Alignment] | None = None
+    # the fallback's candidates would hold these (it cannot tell apart what these leave apart)
+    fallback_holds_these: bool = False
 
 
 def align_rectangles(observed: list[ObservedRect], known: list[KnownRect], inlier_m: float = 0.35,
-                     min_inliers: int = 3, ambiguity_ratio: float = 0.8, max_seeds: int = 12) -> Alignment:
-    """Best gravity-aligned T_cad_map explaining `observed` by `known`, with its matches; see module doc."""
-    if len(observed) < min_inliers or not known:
+                     min_inliers: int = 3, ambiguity_ratio: float = 0.8, max_seeds: int = 12,
+                     candidates_from: int | None = None, max_candidates: int = 64) -> Alignment:
+    """Best gravity-aligned T_cad_map explaining `observed` by `known`, with its matches; see module doc.
+    `candidates_from` (<= min_inliers; None: min_inliers): from this many observed rectangles on, an answer
+    short of 'localized' carries as candidates every distinct hypothesis explaining as many of them as the
+    best (at most `max_candidates`), for other evidence (the walls) to choose among."""
+    fewest = min_inliers if candidates_from is None else min(candidates_from, min_inliers)
+    if len(observed) < fewest or not known:
         return Alignment("not_localized", None)
     known_xyz = np.array([k.T_cad_rect[:3, 3] for k in known])
     known_n = np.array([k.T_cad_rect[:3, 1] for k in known])
@@ -80,14 +91,20 @@ def align_rectangles(observed: list[ObservedRect], known: list[KnownRect], inlie
     support = np.array([len(set(best_k[n][hit[n]].tolist())) for n in range(len(H))])
     order = np.argsort(-support, kind="stable")
     best = int(order[0])
-    if support[best] < min_inliers:
+    if support[best] < fewest:
         return Alignment("not_localized", None, inliers=int(support[best]))
+    candidates = [] if candidates_from is None else _distinct(H, order[support[order] == support[best]],
+                                                              max_candidates)
+    if support[best] < min_inliers:
+        return Alignment("ambiguous" if candidates else "not_localized", None, inliers=int(support[best]),
+                         candidates=[(T, int(support[best])) for T in candidates])
     matches = [(observed[o].key, known[int(best_k[best, o])].id) for o in np.flatnonzero(hit[best])]
     for n in order[1:]:
         if support[n] < ambiguity_ratio * support[best]:
             break
         if _differs(H[n], H[best]):
-            return Alignment("ambiguous", H[best], matches, int(support[best]))
+            return Alignment("ambiguous", H[best], matches, int(support[best]),
+                             [(T, int(support[best])) for T in candidates])
     return Alignment("localized", H[best], matches, int(support[best]))
 
 
@@ -101,6 +118,17 @@ def _nearest_known(H: np.ndarray, obs_T: np.ndarray, same_type: np.ndarray, know
     ok = (dist < inlier_m) & same_type[None] & (np.abs(nrm @ known_n.T) > NORMAL_COS_MIN)
     dist = np.where(ok, dist, np.inf)
     return dist.argmin(axis=2), np.isfinite(dist.min(axis=2))
+
+
+def _distinct(H: np.ndarray, order: np.ndarray, limit: int) -> list[np.ndarray]:
+    """The hypotheses H[order], best first, less those that do not differ from one kept before (`_differs`)."""
+    kept: list[np.ndarray] = []
+    for n in order:
+        if len(kept) >= limit:
+            break
+        if all(_differs(H[n], T) for T in kept):
+            kept.append(H[n])
+    return kept
 
 
 def _differs(T_a: np.ndarray, T_b: np.ndarray, trans_m: float = 1.0, angle_rad: float = np.radians(15.0)) -> bool:

@@ -128,16 +128,21 @@ def _seed_hypotheses(rect: _Rect, cand: np.ndarray, index: ModelIndex, params: R
 
 
 def single_rectangle_poses(index: ModelIndex, kind: str, corners_map: np.ndarray,
-                           params: RobustParams | None = None) -> list[np.ndarray]:
+                           params: RobustParams | None = None, among: set[str] | None = None) -> list[np.ndarray]:
     """Every level T_cad_map that puts one observed rectangle (corners (4, 3) in a map frame whose z is up) onto a
-    CAD feature of its type and size: with gravity, one door or window fixes the pose up to which of the alike
-    features it is and from which side it is seen (two poses per feature). Nothing here can tell them apart; the
-    walls can (graph.localizer's surface check)."""
+    CAD feature of its type and size (`among`: only the features of these ids): with gravity, one door or window
+    fixes the pose up to which of the alike features it is and from which side it is seen (two poses per
+    feature). Nothing here can tell them apart; the walls can (graph.localizer's surface check)."""
     params = params or RobustParams()
     if not index.has_type(kind):
         return []
+    cand = index.type_indices[kind]
+    if among is not None:
+        cand = np.array([i for i in cand if index.features[i].id in among], dtype=int)
+        if not len(cand):
+            return []
     rect = rectangle_edges(corners_map)
-    R, t = _seed_hypotheses(rect, index.type_indices[kind], index, params, gravity_known=True)
+    R, t = _seed_hypotheses(rect, cand, index, params, gravity_known=True)
     poses = []
     for r, v in zip(R, t, strict=True):
         T = levelled(make_T(r, v))  # levelled about the rectangle's centre, which stays on its feature's

@@ -44,6 +44,7 @@ class SurfaceParams:
     horizontal_spacing_m: float = 0.2  # the floors' samples (open above), for fitting heights (0: none)
     depth_sigma_per_m2: float = 0.005  # the points' depth noise (stereo, ~ range^2), for the line-of-sight check ...
     sight_margin_m: float = 0.2  # ... which lets a ray cross a wall this + 3 sigmas before its point
+    hidden_gap_m: float = 0.45  # with the walls' voxels, faces of slots narrower than this are not sampled (0: all)
 
 
 class WallVoxels:
@@ -106,6 +107,26 @@ class WallVoxels:
         i = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
         return self.keys[i] == k
 
+    def enclosed(self, points_cad: np.ndarray, normals_cad: np.ndarray, gap_m: float,
+                 chunk: int = 500_000) -> np.ndarray:
+        """(N,) bool: a wall voxel lies within `gap_m` of each point (N, 3) along its surface's normal (N, 3) on
+        both sides (probed every voxel from 1.5 voxels out, past the point's own surface): a face of a slot
+        narrower than `gap_m` (a wall's face behind a panel standing in front of it, the inner faces of a double
+        wall), which no camera sees. The normals' sign does not matter (the solids' winding is not reliable)."""
+        pts = np.asarray(points_cad, float).reshape(-1, 3)
+        nrm = np.asarray(normals_cad, float).reshape(-1, 3)
+        offsets = np.arange(1.5 * self.voxel_m, gap_m + 1e-9, self.voxel_m)
+        def closed(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+            probes = p[:, None, :] + offsets[None, :, None] * n[:, None, :]  # (n, K, 3)
+            return np.asarray(self.occupied(probes.reshape(-1, 3)).reshape(len(p), -1).any(axis=1))
+
+        out = np.zeros(len(pts), bool)
+        for lo in range(0, len(pts), chunk):
+            p, n = pts[lo:lo + chunk], nrm[lo:lo + chunk]
+            one = np.flatnonzero(closed(p, n))  # most faces are open on one side: the other side only for the rest
+            out[lo + one[closed(p[one], -n[one])]] = True
+        return out
+
     def seen_through(self, origins_cad: np.ndarray, points_cad: np.ndarray, depth_sigma_per_m2: float = 0.005,
                      margin_m: float = 0.2, start_m: float = 0.2) -> np.ndarray:
         """(N,) bool: the line of sight from each origin (N, 3) to its point (N, 3) crosses a wall (passes into a
@@ -165,22 +186,29 @@ class SurfaceIndex:
 
     @classmethod
     def from_mesh(cls, vertices_cad: np.ndarray, faces: np.ndarray, params: SurfaceParams | None = None,
-                  seed: int = 0) -> SurfaceIndex:
+                  seed: int = 0, walls: WallVoxels | None = None) -> SurfaceIndex:
         """Samples on the triangles (V, 3) / (F, 3) at about `spacing_m` (the horizontal ones at
-        `horizontal_spacing_m`), area-weighted, seeded."""
+        `horizontal_spacing_m`), area-weighted, seeded. With `walls` (set as the index's `walls`), the samples
+        of faces no camera sees, in slots narrower than `hidden_gap_m` (`WallVoxels.enclosed`), are left out: a
+        pose that puts the points on such a face would otherwise fit them as well as the true one."""
         p = params or SurfaceParams()
         tri, cross, area, nz = _triangles(vertices_cad, faces)
         if len(tri) == 0:
             return cls(np.zeros((0, 3)), p)
         rng = np.random.default_rng(seed)
         samples, normals = _sample(tri, cross, area, (area > 1e-9) & (nz <= p.max_normal_z), p.spacing_m, rng)
+        if walls is not None and p.hidden_gap_m > 0:
+            seen = ~walls.enclosed(samples, normals, p.hidden_gap_m)
+            samples, normals = samples[seen], normals[seen]
         horizontal = (None, None)
         if p.horizontal_spacing_m > 0:
             h, h_normals = _sample(tri, cross, area, (area > 1e-9) & (nz > p.max_normal_z), p.horizontal_spacing_m,
                                    rng)
             open_above = _open_above(h, p.horizontal_spacing_m)
             horizontal = (h[open_above], h_normals[open_above])
-        return cls(samples, p, normals, *horizontal)
+        index = cls(samples, p, normals, *horizontal)
+        index.walls = walls
+        return index
 
     def __len__(self) -> int:
         return len(self.samples_cad)
@@ -267,15 +295,17 @@ class SurfaceFit:
 def align_to_surfaces(index: SurfaceIndex, points_body: np.ndarray, T_cad_body: np.ndarray,
                       floor_body: np.ndarray | None = None, iterations: int = 6, max_distance_m: float = 0.3,
                       sigma_m: float = 0.05, depth_sigma_per_m2: float = 0.005, independent_points: int = 30,
-                      min_inliers: int = 50, tilt_sigma_rad: float = 0.01) -> SurfaceFit | None:
+                      min_inliers: int = 50, tilt_sigma_rad: float = 0.01,
+                      hold_height: bool = False) -> SurfaceFit | None:
     """Point-to-plane ICP of the points (body frame) on the index's walls, and of `floor_body` (points below the
     camera, `floor_points`) on its horizontal surfaces when it has them, from the initial T_cad_body.
     Gauss-Newton with Huber weights, in the CAD frame about the points' centroid; roll and pitch
     are held near the initial pose's (gravity's) with `tilt_sigma_rad`, since points at camera height on
-    vertical walls hardly see them, while the floor does. The information of the result is the points' alone
-    (not that hold), for all 6 directions, in GTSAM's right perturbation T exp(xi). None when
-    fewer than `min_inliers` of the wall points (or half of them) find a wall within `max_distance_m`: the floor
-    alone says only the height.
+    vertical walls hardly see them, while the floor does; with `hold_height`, the height stays the initial
+    pose's (without the floor the walls hardly see it either: a few sloped or bounded faces would set it
+    alone). The information of the result is the points' alone (not that hold), for all 6 directions, in
+    GTSAM's right perturbation T exp(xi). None when fewer than `min_inliers` of the wall points (or half of
+    them) find a wall within `max_distance_m`: the floor alone says only the height.
 
     A point's distance to its surface has sigma `sigma_m` (the model against reality) + `depth_sigma_per_m2`
     times its range squared (stereo depth); residuals beyond 1.5 sigma are down-weighted (Huber).
@@ -297,7 +327,8 @@ def align_to_surfaces(index: SurfaceIndex, points_body: np.ndarray, T_cad_body: 
         assert index.horizontal is not None
         surfaces.append(index.horizontal)
     T = np.asarray(T_cad_body, float).copy()
-    R0 = T[:3, :3].copy()
+    R0, z0 = T[:3, :3].copy(), float(T[2, 3])
+    height_prior = 1e12 if hold_height else 1e-6
     sigma = sigma_m + depth_sigma_per_m2 * np.einsum("ij,ij->i", p, p)  # per point, m
     tilt_prior = 1.0 / tilt_sigma_rad**2  # roll and pitch stay near the initial pose's unless the points say
     for it in range(iterations + 1):
@@ -324,7 +355,7 @@ def align_to_surfaces(index: SurfaceIndex, points_body: np.ndarray, T_cad_body: 
             break
         c = q[ok].mean(axis=0)
         J6 = np.hstack([np.cross(q[ok] - c, n), n])  # d r / d [rotation about c; translation], CAD frame
-        P = np.diag([tilt_prior, tilt_prior, 1e-6, 1e-6, 1e-6, 1e-6])
+        P = np.diag([tilt_prior, tilt_prior, 1e-6, 1e-6, 1e-6, height_prior])
         tilt = np.zeros(6)  # how far roll and pitch have moved from the initial pose's (CAD frame, rad)
         tilt[:2] = Rotation.from_matrix(T[:3, :3] @ R0.T).as_rotvec()[:2]
         step = -np.linalg.solve((J6 * w[:, None]).T @ J6 + P, (J6 * w[:, None]).T @ r + P @ tilt)
@@ -332,6 +363,8 @@ def align_to_surfaces(index: SurfaceIndex, points_body: np.ndarray, T_cad_body: 
         delta[:3, :3] = Rotation.from_rotvec(step[:3]).as_matrix()
         delta[:3, 3] = c - delta[:3, :3] @ c + step[3:]
         T = delta @ T
+        if hold_height:  # the body's height, which a tilt about the points' centroid would move too
+            T[2, 3] = z0
         if np.abs(step).max() < 1e-5:
             break
     m = n @ T[:3, :3]  # the normals in the body frame

@@ -25,9 +25,9 @@ import numpy as np
 from graph.features import BuildingModel
 from graph.keyframes import KeyframePolicy
 from graph.landmarks import feature_frame_cad
-from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar
+from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
 from graph.posegraph import PoseGraph
-from graph.registrar import Registrar, StoredMapRegistrar
+from graph.registrar import FirstOfRegistrar, Registrar
 from graph.relocalize import Alignment, KnownRect, ObservedRect
 from graph.surfaces import SurfaceIndex
 from perception.gravity import GravityEstimator
@@ -51,10 +51,12 @@ class RestoredRegistrar:
     candidates_from = 1
 
     def __init__(self, model: BuildingModel, T_cad_map_saved: np.ndarray | None, linked: list[KnownRect],
-                 fallback: Registrar, agree_m: float = 0.4) -> None:
+                 fallback: Registrar, agree_m: float = 0.4, params: LocalizerParams | None = None,
+                 with_surfaces: bool = False) -> None:
         self.T_cad_map_saved = T_cad_map_saved
-        self.stored = StoredMapRegistrar(linked) if linked else None
-        self.fallback = fallback
+        stored = stored_registrar(model, linked, params or LocalizerParams(), with_surfaces) if linked else None
+        # the saved landmarks' few poses first (checked by the walls), the whole model's where they fail
+        self.chain: Registrar = FirstOfRegistrar([stored, fallback]) if stored is not None else fallback
         self.agree_m = agree_m
         self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
                        if f.orientation == "vertical"]
@@ -64,13 +66,14 @@ class RestoredRegistrar:
         if self.T_cad_map_saved is not None:
             matches = self._agreeing(landmarks)
             if len(matches) >= max(1, int(np.ceil(0.6 * len(landmarks)))):
-                return Alignment("localized", self.T_cad_map_saved, matches, len(matches))
-        if self.stored is not None and len(landmarks) >= self.stored.min_landmarks:
-            found = self.stored(landmarks, corners_map)
-            if found.status == "localized":
-                return found
-        if len(landmarks) >= self.fallback.candidates_from:
-            return self.fallback(landmarks, corners_map)
+                saved = Alignment("localized", self.T_cad_map_saved, matches, len(matches))
+                saved.fallback = lambda: self._registered(landmarks, corners_map)  # where the walls refuse it
+                return saved
+        return self._registered(landmarks, corners_map)
+
+    def _registered(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
+        if len(landmarks) >= self.chain.candidates_from:
+            return self.chain(landmarks, corners_map)
         return Alignment("not_localized", None)
 
     def _agreeing(self, landmarks: list[ObservedRect]) -> list[tuple[int, str]]:
@@ -134,7 +137,8 @@ class LocalizerBackend:
         saved_T = matrix_from_pose(snapshot.T_cad_map) if snapshot.status == pb.PoseEstimate.LOCALIZED else None
         log.info("restoring a saved map: %d linked landmarks, T_cad_map %s", len(linked),
                  "saved" if saved_T is not None else "absent")
-        return cls(model, RestoredRegistrar(model, saved_T, linked, fallback), params, surfaces=surfaces)
+        return cls(model, RestoredRegistrar(model, saved_T, linked, fallback, params=localizer,
+                                             with_surfaces=surfaces is not None), params, surfaces=surfaces)
 
     # --- inputs -------------------------------------------------------------------------------------------------
 

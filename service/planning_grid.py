@@ -128,9 +128,8 @@ def surfaces_for(building: Path, line_of_sight: bool = True) -> SurfaceIndex | N
         log.info("%s: no surface check of registrations (IFC models only)", Path(building).name)
         return None
     seen = load_solids(Path(building), with_doors_and_windows=True)
-    index = SurfaceIndex.from_mesh(seen.vertices_cad, seen.faces)
-    if line_of_sight:
-        index.walls = wall_voxels(Path(building))
+    index = SurfaceIndex.from_mesh(seen.vertices_cad, seen.faces,
+                                   walls=wall_voxels(Path(building)) if line_of_sight else None)
     log.info("%s: %d surface samples and %d wall voxels for checking registrations", Path(building).name, len(index),
              len(index.walls) if index.walls is not None else 0)
     return index

@@ -18,10 +18,10 @@ import numpy as np
 
 from graph.features import BuildingModel
 from graph.keyframes import KeyframePolicy
-from graph.localizer import Estimate, Localizer, LocalizerParams, model_registrar
+from graph.localizer import Estimate, Localizer, LocalizerParams, model_registrar, stored_registrar
 from graph.mapstore import StoredMap
 from graph.posegraph import IsamSettings, PoseGraph
-from graph.registrar import FirstOfRegistrar, Registrar, StoredMapRegistrar
+from graph.registrar import FirstOfRegistrar, Registrar
 from graph.rigid import rotation_angle_deg
 from graph.surfaces import SurfaceIndex
 from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
@@ -114,7 +114,8 @@ def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey
     p = params or LocalizerParams()
     registrar: Registrar = model_registrar(model, p, storey_hint, surfaces is not None)
     if stored is not None:
-        registrar = FirstOfRegistrar([StoredMapRegistrar(stored.known_rects(model), min_landmarks=2), registrar])
+        registrar = FirstOfRegistrar([stored_registrar(model, stored.known_rects(model), p, surfaces is not None),
+                                      registrar])
     return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam, surfaces=surfaces)
 
 
