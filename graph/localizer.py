@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import NamedTuple
+from functools import partial
+from typing import Generic, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -30,6 +32,7 @@ from graph.rigid import apply, levelled, rotation_angle_deg
 from graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surfaces, band_points, floor_points
 
 log = logging.getLogger(__name__)
+V = TypeVar("V")
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 
@@ -149,9 +152,9 @@ class Localizer:
         # (keyframe, points at the camera's height, points below it: the floor), body frame
         self._points: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
         self.surface_checks: list[tuple[int, list[float]]] = []  # (stamp_ns, score of each candidate pose)
-        # within one registration attempt: the poses fitted to the walls and checked (T in, T out / its check)
-        self._attempt_refined: list[tuple[np.ndarray, np.ndarray]] = []
-        self._attempt_checks: list[tuple[np.ndarray, SurfaceCheck]] = []
+        # within one registration attempt: each candidate fitted to the walls, each fitted pose's check, once
+        self._fitted: _PerPose[np.ndarray] = _PerPose()
+        self._checked: _PerPose[SurfaceCheck] = _PerPose()
         self.surface_screens: list[tuple[int, list[float]]] = []  # (candidates, their screening scores, best first)
         self.surface_fits = 0  # keyframes whose depth was fitted to the walls (and floor)
 
@@ -335,18 +338,19 @@ class Localizer:
             return _Choice(T_reg, T_reg is not None)
         assert self.surfaces is not None
         points_map, origins_map = self._points_map()
-        candidates = [self._refined_once(T, points_map)
+        candidates = [self._fitted.get(T, lambda T: self._refined(T, points_map))
                       for T in self._screened(result.candidates, points_map, origins_map)]
         moved = [apply(T, points_map) for T in candidates]  # the points under each candidate, CAD frame
         if T_reg is not None:
-            T_reg = self._refined_once(T_reg, points_map)
+            T_reg = self._fitted.get(T_reg, lambda T: self._refined(T, points_map))
             moved_reg = apply(T_reg, points_map)
             if all(_poses_differ(T, T_reg, m, moved_reg) for T, m in zip(candidates, moved, strict=True)):
                 candidates.insert(0, T_reg)
                 moved.insert(0, moved_reg)
         if not candidates:
             return _Choice(None, False)
-        checks = [self._checked_once(T, m, origins_map) for T, m in zip(candidates, moved, strict=True)]
+        checks = [self._checked.get(T, partial(self._check, m, origins_map))
+                  for T, m in zip(candidates, moved, strict=True)]
         score = np.array([c.score for c in checks])
         self.surface_checks.append((stamp_ns, score.round(3).tolist()))
         log.info("surface check of %d candidate poses (%d points): support %s", len(candidates), len(points_map),
@@ -393,25 +397,10 @@ class Localizer:
         self.surface_screens.append((len(poses), score[ranked].round(3).tolist()))
         return [poses[k] for k in supported[ranked[: p.surface_screen_top]]]
 
-    def _refined_once(self, T_cad_map: np.ndarray, points_map: np.ndarray) -> np.ndarray:
-        """`_refined`, once per pose in one registration attempt (a stored map's candidates and the model's after
-        them share poses)."""
-        for T_in, T_out in self._attempt_refined:
-            if _same_pose(T_in, T_cad_map):
-                return T_out
-        T_out = self._refined(T_cad_map, points_map)
-        self._attempt_refined.append((T_cad_map, T_out))
-        return T_out
-
-    def _checked_once(self, T_cad_map: np.ndarray, moved: np.ndarray, origins_map: np.ndarray) -> SurfaceCheck:
-        """The surface check of a (refined) pose, once per pose in one registration attempt."""
+    def _check(self, moved: np.ndarray, origins_map: np.ndarray, T_cad_map: np.ndarray) -> SurfaceCheck:
+        """The surface check of the points `moved` by T_cad_map, seen from `origins_map`."""
         assert self.surfaces is not None
-        for T, check in self._attempt_checks:
-            if _same_pose(T, T_cad_map):
-                return check
-        check = self.surfaces.check(moved, apply(T_cad_map, origins_map))
-        self._attempt_checks.append((T_cad_map, check))
-        return check
+        return self.surfaces.check(moved, apply(T_cad_map, origins_map))
 
     def _refined(self, T_cad_map: np.ndarray, points_map: np.ndarray) -> np.ndarray:
         """A candidate pose fitted to the walls by the map's depth points (point-to-plane, roll, pitch and height
@@ -440,7 +429,7 @@ class Localizer:
         observed = [ObservedRect(j, self.landmarks[j].type, self.graph.T_map_rect(j)) for j in keys]
         corners = [self.landmarks[j].corners_map for j in keys]
         result = self.registrar(observed, corners)
-        self._attempt_refined, self._attempt_checks = [], []
+        self._fitted, self._checked = _PerPose(), _PerPose()
         choice = self._choose_by_surfaces(result, stamp_ns)
         # the walls confirm none of the candidates: the next registrar's, unless two of these fit the walls alike
         # and the next one's candidates hold them (`Alignment.fallback_holds_these`): it cannot tell them apart
@@ -577,6 +566,23 @@ def model_registrar(model: BuildingModel, params: LocalizerParams, storey_hint: 
     return ModelRegistrar(model, method=method, storey_hint=storey_hint,
                           min_landmarks=params.registration_min_landmarks, tolerance_m=params.registration_tolerance_m,
                           candidates_from=params.verified_min_landmarks if with_surfaces else None)
+
+
+class _PerPose(Generic[V]):
+    """Values computed once per pose (T_cad_map, equal to rounding) within one registration attempt: a stored
+    map's candidates and the model's after them share poses."""
+
+    def __init__(self) -> None:
+        self._items: list[tuple[np.ndarray, V]] = []
+
+    def get(self, T: np.ndarray, compute: Callable[[np.ndarray], V]) -> V:
+        """`compute(T)`, or its value for an equal pose computed before."""
+        for T_known, value in self._items:
+            if _same_pose(T_known, T):
+                return value
+        value = compute(T)
+        self._items.append((T, value))
+        return value
 
 
 class _Choice(NamedTuple):

@@ -94,19 +94,11 @@ class ModelRegistrar:
         return Alignment(status, result.T_cad_map, matches, int(result.inliers), result.candidates)
 
     def _one_landmark(self, landmark: ObservedRect, corners_map: np.ndarray | None) -> Alignment:
-        """One door or window: a candidate pose for every alike feature of the model, from either side
-        (`graph.robust.single_rectangle_poses`), for the walls to choose among; never an answer by itself."""
-        from graph.model_index import index_for
-        from graph.robust import RobustParams, single_rectangle_poses
+        """One door or window: a candidate pose for every alike feature of the model (`_one_rectangle`)."""
+        from graph.robust import RobustParams
 
-        if corners_map is None:
-            return Alignment("not_localized", None)
-        index = index_for(self.model).for_storey(self.storey_hint)
         tolerance = float(self.register_params.get("size_tolerance_m", RobustParams.size_tolerance_m))
-        poses = single_rectangle_poses(index, landmark.type, corners_map, RobustParams(size_tolerance_m=tolerance))
-        if not poses:
-            return Alignment("not_localized", None)
-        return Alignment("ambiguous", None, [], 1, [(T, 1) for T in poses])
+        return _one_rectangle(self.model, landmark, corners_map, self.storey_hint, tolerance)
 
 
 class StoredMapRegistrar:
@@ -133,16 +125,8 @@ class StoredMapRegistrar:
 
     def _one_landmark(self, landmark: ObservedRect, corners_map: np.ndarray | None) -> Alignment:
         """As `ModelRegistrar._one_landmark`, among the stored features only."""
-        from graph.model_index import index_for
-        from graph.robust import single_rectangle_poses
-
         assert self._model is not None
-        if corners_map is None:
-            return Alignment("not_localized", None)
-        poses = single_rectangle_poses(index_for(self._model), landmark.type, corners_map,
-                                       among={k.id for k in self.known})
-        return Alignment("ambiguous", None, [], 1, [(T, 1) for T in poses]) if poses \
-            else Alignment("not_localized", None)
+        return _one_rectangle(self._model, landmark, corners_map, among={k.id for k in self.known})
 
 
 class FirstOfRegistrar:
@@ -182,3 +166,22 @@ class FirstOfRegistrar:
             if result.status == "ambiguous":
                 ambiguous.append(result)
         return (ambiguous or [Alignment("not_localized", None)])[0]
+
+
+def _one_rectangle(model: BuildingModel, landmark: ObservedRect, corners_map: np.ndarray | None,
+                   storey_hint: str | None = None, size_tolerance_m: float | None = None,
+                   among: set[str] | None = None) -> Alignment:
+    """One door or window: a candidate pose for every feature of the model alike to it (of `storey_hint`; among
+    the ids `among`), from either side (`graph.robust.single_rectangle_poses`), for the walls to choose among;
+    never an answer by itself."""
+    from graph.model_index import index_for
+    from graph.robust import RobustParams, single_rectangle_poses
+
+    if corners_map is None:
+        return Alignment("not_localized", None)
+    index = index_for(model).for_storey(storey_hint)
+    params = RobustParams() if size_tolerance_m is None else RobustParams(size_tolerance_m=size_tolerance_m)
+    poses = single_rectangle_poses(index, landmark.type, corners_map, params, among=among)
+    if not poses:
+        return Alignment("not_localized", None)
+    return Alignment("ambiguous", None, [], 1, [(T, 1) for T in poses])
