@@ -24,7 +24,7 @@ import numpy as np
 
 from graph.features import BuildingModel
 from graph.landmarks import closer_flip, feature_frame_cad, is_vertical, observed_frame
-from graph.mapstore import StoredLandmark, StoredMap
+from graph.mapstore import KeyframeView, StoredLandmark, StoredMap
 from graph.posegraph import PoseGraph
 from graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
 from graph.relocalize import Alignment, KnownRect, ObservedRect
@@ -82,6 +82,8 @@ class LocalizerParams:
     surface_fit_settling_turn_deg: float = 10.0  # ... but this far in the first keyframes after localizing, while the
     surface_fit_settling_keyframes: int = 10  # pose's heading is the few doors' it was found by (one: ~6 deg off)
     surface_fit_sigma_m: float = 0.05  # a fitted point's distance to its wall, model against reality (m)
+    placed_sigma_m: float = 0.15  # a keyframe placed in a stored map (place recognition): its pose's sigmas in
+    placed_sigma_deg: float = 2.0  # the CAD frame, the stored keyframe's error and PnP's together
     degraded_after_s: float = 10.0  # localized but no CAD-linked sighting for this long
     lost_after_s: float = 30.0
 
@@ -142,6 +144,7 @@ class Localizer:
         self.inliers = 0
         self.registrations: list[tuple[int, str]] = []  # (stamp_ns, status) of every registration attempt
         self.keyframe_stamps_ns: list[int] = []
+        self.views: dict[int, KeyframeView] = {}  # keyframe -> what place recognition keeps of it, where given
         self._T_odom_prev: np.ndarray | None = None
         self._last_link_ns: int | None = None
         self._registered_with = 0
@@ -162,22 +165,29 @@ class Localizer:
 
     def add_keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting],
                      up_body: np.ndarray | None = None, with_covariance: bool = False,
-                     points_body: np.ndarray | None = None) -> Estimate:
+                     points_body: np.ndarray | None = None, T_cad_body_placed: np.ndarray | None = None,
+                     view: KeyframeView | None = None) -> Estimate:
         """One keyframe: odometry pose T_odom_body (4x4, odometry frame z up), sightings, gravity's up (body),
         and optionally 3-D points (N, 3) the camera measured at this keyframe, body frame (stereo depth); without
-        them, the newest given to `add_depth` since the last keyframe."""
+        them, the newest given to `add_depth` since the last keyframe. `T_cad_body_placed`: this keyframe's pose
+        in the CAD frame as place recognition in a stored map found it (perception.place), when it did; `view`:
+        what place recognition keeps of it, for the map this flight saves (`stored_map`)."""
         carried = self._carry_to(T_odom_body)
         depth, self._depth = self._depth, None
         if points_body is None and depth is not None:  # into this keyframe's body frame, by the odometry
             points_body = apply(np.linalg.inv(T_odom_body) @ depth[0], depth[1])
         i, T_map_body = self._predict(T_odom_body)
         self.keyframe_stamps_ns.append(stamp_ns)
+        if view is not None:
+            self.views[i] = view
         up_body = self._add_gravity(i, T_map_body, up_body)
         if points_body is not None and self.surfaces is not None and len(points_body):
             self._points.append((i, band_points(points_body, up_body, seed=i),
                                  floor_points(points_body, up_body, seed=i)))
         self._add_sightings(i, T_map_body, carried + list(sightings), up_body, stamp_ns)
         self.graph.update()
+        if T_cad_body_placed is not None:
+            self._add_placed(i, stamp_ns, T_cad_body_placed)
         if self._should_register(stamp_ns):
             self._register(stamp_ns)
         elif self.graph.has_anchor:
@@ -462,6 +472,32 @@ class Localizer:
         self.graph.update(extra_iterations=2)
         self._link_new_landmarks(stamp_ns)
 
+    def _add_placed(self, i: int, stamp_ns: int, T_cad_body: np.ndarray) -> None:
+        """Keyframe i placed in a stored map (its pose there times the map's T_cad_map): before the graph is
+        anchored, it anchors it, unless more than `surface_refuse_seen_through` of the depth points would be seen
+        through a wall; then (and once anchored) it enters the graph as a measured T_cad_body, robustly, and
+        counts as a CAD-linked sighting for the status: the stored map's keyframes were linked to the model."""
+        p = self.params
+        if not self.graph.has_anchor:
+            T_cad_map = T_cad_body @ np.linalg.inv(self.graph.T_map_body(i))
+            if self._can_check_surfaces():
+                points_map, origins_map = self._points_map()
+                check = self._check(apply(T_cad_map, points_map), origins_map, T_cad_map)
+                log.info("placed in the stored map: %.2f of %d points on surfaces, %.2f seen through walls",
+                         check.support, len(points_map), check.seen_through)
+                if check.seen_through > p.surface_refuse_seen_through:
+                    return
+            log.info("localized by place recognition in the stored map")
+            self.graph.add_anchor(np.linalg.inv(T_cad_map))
+            self._anchored_at = i
+            self.registrations.append((stamp_ns, "localized"))
+            self.status = "localized"
+        sigmas = np.r_[np.full(3, np.radians(p.placed_sigma_deg)), np.full(3, p.placed_sigma_m)]  # [rot; trans]
+        self.graph.add_cad_pose(i, T_cad_body, np.diag(sigmas**-2.0))
+        self._last_link_ns = stamp_ns
+        self.graph.update(extra_iterations=2)
+        self._link_new_landmarks(stamp_ns)
+
     def _fit_to_surfaces(self, i: int, points_body: np.ndarray, floor_body: np.ndarray) -> None:
         """Keyframe i's depth points fitted to the model's walls and floors (point-to-plane) enter the graph as a
         measured T_cad_body with the fit's information: the walls hold the pose where the doors' corners are
@@ -541,7 +577,7 @@ class Localizer:
         keyframes = [(s, self.graph.T_map_body(i)) for i, s in enumerate(self.keyframe_stamps_ns)]
         landmarks = [StoredLandmark(j, lm.type, self.graph.T_map_rect(j), lm.corners_map, self.links.get(j))
                      for j, lm in self.landmarks.items()]
-        return StoredMap(self.model.sha256, T_cad_map, keyframes, landmarks)
+        return StoredMap(self.model.sha256, T_cad_map, keyframes, landmarks, dict(self.views))
 
     # --- output -----------------------------------------------------------------------------------------------
 

@@ -1,13 +1,19 @@
 """A flight's map, saved and loaded: keyframes, landmarks (with their CAD links) and T_cad_map.
 
-JSON, one document: {"version", "building_sha256", "T_cad_map": 4x4, "keyframes": [{"stamp_ns", "T_map_body"}],
-"landmarks": [{"key", "type", "T_map_rect", "corners_map", "feature"}]}. Frames as in graph.localizer.
-What place recognition needs here is the landmarks themselves: a new flight re-localizes by aligning its
-first sightings to the stored CAD-linked rectangles (graph.relocalize).
+JSON, one document: {"version", "building_sha256", "T_cad_map": 4x4, "keyframes": [{"stamp_ns", "T_map_body",
+"view"?}], "landmarks": [{"key", "type", "T_map_rect", "corners_map", "feature"}]}. Frames as in graph.localizer.
+
+Place recognition has two things to go on here. The landmarks: a new flight's first sightings aligned to the
+stored CAD-linked rectangles (graph.relocalize). And, where the flight that made the map kept them, its
+keyframes' views (`KeyframeView`: image features with their 3D points, perception.place): a new flight's
+first keyframe matched to them is placed in the stored map before it sees any door. A view is stored as
+base64 of its little-endian arrays ("points_body": float32 (N, 3), "descriptors": uint8 (N, 32)).
+Version 1 maps (no views) load as they are.
 """
 
 from __future__ import annotations
 
+import base64
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +25,31 @@ from graph.features import BuildingModel
 from graph.landmarks import feature_frame_cad
 from graph.relocalize import KnownRect
 
-MAP_VERSION = 1
+MAP_VERSION = 2
+
+
+@dataclass(frozen=True)
+class KeyframeView:
+    """What place recognition keeps of a keyframe: image features' 3D points (N, 3, body frame, metres) and
+    their binary descriptors (N, 32 bytes: ORB), row for row."""
+
+    points_body: np.ndarray
+    descriptors: np.ndarray
+
+    def to_json(self) -> dict:
+        return {"points_body": _b64(self.points_body.astype("<f4")), "descriptors": _b64(self.descriptors)}
+
+    @classmethod
+    def from_json(cls, doc: dict) -> KeyframeView:
+        points = np.frombuffer(base64.b64decode(doc["points_body"]), "<f4").reshape(-1, 3).astype(np.float64)
+        descriptors = np.frombuffer(base64.b64decode(doc["descriptors"]), np.uint8).reshape(-1, 32)
+        if len(points) != len(descriptors):
+            raise ValueError("a keyframe view's points and descriptors differ in number")
+        return cls(points, descriptors)
+
+
+def _b64(a: np.ndarray) -> str:
+    return base64.b64encode(np.ascontiguousarray(a).tobytes()).decode("ascii")
 
 
 @dataclass
@@ -37,6 +67,11 @@ class StoredMap:
     T_cad_map: np.ndarray | None
     keyframes: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (stamp_ns, T_map_body)
     landmarks: list[StoredLandmark] = field(default_factory=list)
+    views: dict[int, KeyframeView] = field(default_factory=dict)  # keyframe index -> its view, where kept
+
+    def placed_views(self) -> list[tuple[np.ndarray, KeyframeView]]:
+        """(T_map_body, view) of every keyframe with a view: what place recognition matches a new flight to."""
+        return [(self.keyframes[i][1], v) for i, v in sorted(self.views.items()) if i < len(self.keyframes)]
 
     def known_rects(self, model: BuildingModel) -> list[KnownRect]:
         """The model's frames of every feature this map linked: what a new flight re-localizes against."""
@@ -49,7 +84,9 @@ class StoredMap:
         path.parent.mkdir(parents=True, exist_ok=True)
         doc = {"version": MAP_VERSION, "building_sha256": self.building_sha256,
                "T_cad_map": None if self.T_cad_map is None else self.T_cad_map.tolist(),
-               "keyframes": [{"stamp_ns": s, "T_map_body": T.tolist()} for s, T in self.keyframes],
+               "keyframes": [{"stamp_ns": s, "T_map_body": T.tolist(),
+                              **({"view": self.views[i].to_json()} if i in self.views else {})}
+                             for i, (s, T) in enumerate(self.keyframes)],
                "landmarks": [{"key": lm.key, "type": lm.type, "T_map_rect": lm.T_map_rect.tolist(),
                               "corners_map": lm.corners_map.tolist(), "feature": lm.feature}
                              for lm in self.landmarks]}
@@ -67,8 +104,9 @@ class StoredMap:
             out = cls(doc["building_sha256"], None if doc["T_cad_map"] is None else np.array(doc["T_cad_map"]),
                       [(int(k["stamp_ns"]), np.array(k["T_map_body"])) for k in doc["keyframes"]],
                       [StoredLandmark(int(d["key"]), d["type"], np.array(d["T_map_rect"]), np.array(d["corners_map"]),
-                                      d["feature"]) for d in doc["landmarks"]])
-        except (ValueError, KeyError, TypeError) as exc:
+                                      d["feature"]) for d in doc["landmarks"]],
+                      {i: KeyframeView.from_json(k["view"]) for i, k in enumerate(doc["keyframes"]) if "view" in k})
+        except (ValueError, KeyError, TypeError) as exc:  # a bad base64 view is a ValueError too
             raise UserInputError(f"stored map {path} is not a macroloc map: {exc}") from None
         if model is not None and out.building_sha256 != model.sha256:
             raise UserInputError(f"stored map {path} was made in another building")

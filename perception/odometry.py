@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from graph.rigid import rotation_angle_rad
 from perception.calib import StereoRig
-from perception.stereo import SgbmConfig, SgbmMatcher, to_gray
+from perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -174,24 +174,10 @@ class StereoOdometry:
     def _keypoint_points(self, left: np.ndarray, right: np.ndarray, kp: list) -> np.ndarray:
         """(N, 3) points in the camera frame of the keypoints (z = 0: no reliable depth)."""
         c = self.config
-        points = np.zeros((len(kp), 3))
         if not kp:
-            return points
-        disparity = self.sgbm.disparity_px(left, right)  # NaN where unknown
-        h, w = disparity.shape
-        uv = np.array([k.pt for k in kp])
-        u = np.clip(np.rint(uv[:, 0]).astype(np.int64), 1, w - 2)
-        v = np.clip(np.rint(uv[:, 1]).astype(np.int64), 1, h - 2)
-        window = np.stack([disparity[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)
-        d = disparity[v, u]
-        ok = np.isfinite(window).all(axis=1) & (d > c.min_disparity_px)
-        ok[ok] &= np.ptp(window[ok], axis=1) <= c.edge_disparity_px
-        z = np.zeros(len(kp))
-        z[ok] = self.rig.fx_px * self.rig.baseline_m / d[ok]  # eq. 2
-        ok &= z < c.max_depth_m
-        points[ok] = np.column_stack([(uv[ok, 0] - self.rig.cx_px) * z[ok] / self.rig.fx_px,
-                                      (uv[ok, 1] - self.rig.cy_px) * z[ok] / self.rig.fy_px, z[ok]])
-        return points
+            return np.zeros((0, 3))
+        return keypoint_points(self.sgbm.disparity_px(left, right), np.array([k.pt for k in kp]), self.rig,
+                               c.min_disparity_px, c.edge_disparity_px, c.max_depth_m)
 
     def _pnp(self, kp: list, desc: np.ndarray) -> tuple[np.ndarray | None, int]:
         """T_ref_cam from matches of this frame's keypoints to the reference's 3D points, and the inlier count."""

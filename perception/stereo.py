@@ -111,3 +111,27 @@ def sample_depth_m(depth_m: np.ndarray, uv_px: np.ndarray, half_width_px: int = 
     has = np.isfinite(values).any(axis=1)
     out[has] = np.nanmedian(values[has], axis=1)
     return out
+
+
+def keypoint_points(disparity_px: np.ndarray, uv_px: np.ndarray, rig: StereoRig, min_disparity_px: float = 1.0,
+                    edge_disparity_px: float = 1.0, max_depth_m: float = 15.0) -> np.ndarray:
+    """(N, 3) points in the camera frame of keypoints at pixels `uv_px` (N, 2), by eq. 2 from SGBM's sub-pixel
+    disparity there; z = 0 where the depth is unreliable: no disparity in the 3 x 3 pixels around it, a disparity
+    below `min_disparity_px`, a spread above `edge_disparity_px` in that window (a depth edge), or beyond
+    `max_depth_m`."""
+    uv = np.asarray(uv_px, np.float64).reshape(-1, 2)
+    points = np.zeros((len(uv), 3))
+    if not len(uv):
+        return points
+    h, w = disparity_px.shape
+    u = np.clip(np.rint(uv[:, 0]).astype(np.int64), 1, w - 2)
+    v = np.clip(np.rint(uv[:, 1]).astype(np.int64), 1, h - 2)
+    window = np.stack([disparity_px[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)
+    d = disparity_px[v, u]
+    ok = np.isfinite(window).all(axis=1) & (d > min_disparity_px)
+    ok[ok] &= np.ptp(window[ok], axis=1) <= edge_disparity_px
+    z = np.zeros(len(uv))
+    z[ok] = rig.fx_px * rig.baseline_m / d[ok]  # eq. 2
+    ok &= z < max_depth_m
+    points[ok] = back_project(uv[ok], z[ok], rig)
+    return points

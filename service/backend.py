@@ -8,8 +8,10 @@ acceleration, gives "up" in the body frame (perception.gravity).
 
 Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cam_left, cad. Metres.
 
-Restarting from a saved map (`MapSnapshot`): `RestoredRegistrar` first checks the saved T_cad_map against the
-first sightings (the vehicle's odometry usually outlives a service restart), then falls back to the landmarks
+Restarting from a saved map (`MapSnapshot`): where it holds keyframe views and was localized, the service's
+stereo frames are placed in them by place recognition (`restored`, service.places, in service.node) from the
+first frame on, before any door is seen. Otherwise `RestoredRegistrar` first checks the saved T_cad_map against
+the first sightings (the vehicle's odometry usually outlives a service restart), then falls back to the landmarks
 the previous run linked to the model (`StoredMapRegistrar`), then to the whole model.
 """
 
@@ -26,12 +28,14 @@ from graph.features import BuildingModel
 from graph.keyframes import KeyframePolicy
 from graph.landmarks import feature_frame_cad
 from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
+from graph.mapstore import KeyframeView, StoredMap
 from graph.posegraph import PoseGraph
 from graph.registrar import FirstOfRegistrar, Registrar
 from graph.relocalize import Alignment, KnownRect, ObservedRect
 from graph.surfaces import SurfaceIndex
 from perception.gravity import GravityEstimator
 from service.inputs import ImuIn, Observation, ObservationsIn, OdometryIn
+from service.places import Placed
 from service.recording import matrix_from_pose, pose_from_matrix, vector3
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 
@@ -120,6 +124,7 @@ class LocalizerBackend:
         self._keyframe_policy = KeyframePolicy(p.keyframe_min_translation_m, p.keyframe_min_rotation_rad,
                                                p.keyframe_max_interval_s)
         self.last: Estimate | None = None
+        self.restored: StoredMap | None = None  # a saved map's keyframe views and T_cad_map, for place recognition
 
     @classmethod
     def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None, method: str = "robust",
@@ -135,10 +140,15 @@ class LocalizerBackend:
         linked = [KnownRect(lm.id, features[lm.id].type, feature_frame_cad(features[lm.id]))
                   for lm in snapshot.landmarks_map if lm.id in features and features[lm.id].orientation == "vertical"]
         saved_T = matrix_from_pose(snapshot.T_cad_map) if snapshot.status == pb.PoseEstimate.LOCALIZED else None
-        log.info("restoring a saved map: %d linked landmarks, T_cad_map %s", len(linked),
-                 "saved" if saved_T is not None else "absent")
-        return cls(model, RestoredRegistrar(model, saved_T, linked, fallback, params=localizer,
-                                             with_surfaces=surfaces is not None), params, surfaces=surfaces)
+        log.info("restoring a saved map: %d linked landmarks, %d keyframe views, T_cad_map %s", len(linked),
+                 len(snapshot.views), "saved" if saved_T is not None else "absent")
+        backend = cls(model, RestoredRegistrar(model, saved_T, linked, fallback, params=localizer,
+                                               with_surfaces=surfaces is not None), params, surfaces=surfaces)
+        if saved_T is not None and snapshot.views:
+            views = [view_from_wire(v) for v in snapshot.views]
+            backend.restored = StoredMap(model.sha256, saved_T, [(0, T) for T, _ in views],
+                                         views={i: v for i, (_, v) in enumerate(views)})
+        return backend
 
     # --- inputs -------------------------------------------------------------------------------------------------
 
@@ -188,9 +198,13 @@ class LocalizerBackend:
         return self.sightings(ev.stamp_ns, T_odom_body, [self._to_body(o, ev.frame_id, T_odom_body)
                                                          for o in ev.features if o.corners is not None])
 
-    def sightings(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
+    def sightings(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting],
+                  placed: Placed | None = None) -> Estimate:
         """A keyframe with the sightings when the vehicle moved or time passed enough (or it is still exploring),
-        else only the tracked pose: the graph grows with the flight, not with the time spent hovering."""
+        else only the tracked pose: the graph grows with the flight, not with the time spent hovering. A frame
+        placed in the saved map, or whose view is kept (`placed`, service.places), is always a keyframe."""
+        if placed is not None and (placed.T_cad_body is not None or placed.view is not None):
+            return self._keyframe(stamp_ns, T_odom_body, sightings, placed)
         if not sightings or not self._keyframe_due(stamp_ns, T_odom_body):
             return self._track(stamp_ns, T_odom_body, sightings)
         return self._keyframe(stamp_ns, T_odom_body, sightings)
@@ -226,10 +240,14 @@ class LocalizerBackend:
         corners_body = obs.corners @ T_body_x[:3, :3].T + T_body_x[:3, 3]
         return Sighting(obs.type, corners_body, obs.id or None)
 
-    def _keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
+    def _keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting],
+                  placed: Placed | None = None) -> Estimate:
         self._last_keyframe_ns = stamp_ns
         self._T_last_keyframe = T_odom_body
-        return self._remember(self.localizer.add_keyframe(stamp_ns, T_odom_body, sightings, self._up_body))
+        return self._remember(self.localizer.add_keyframe(
+            stamp_ns, T_odom_body, sightings, self._up_body,
+            T_cad_body_placed=None if placed is None else placed.T_cad_body,
+            view=None if placed is None else placed.view))
 
     def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting] | None = None) -> Estimate:
         """The pose between keyframes; sightings given here enter the graph with the next keyframe."""
@@ -249,8 +267,14 @@ class LocalizerBackend:
     def status(self) -> str:
         return self.localizer.status
 
-    def snapshot(self, building: str, sha256: str) -> pb.MapSnapshot:
-        """The map as saved and served: landmarks (odom frame) with their CAD links, T_cad_map, last pose."""
+    @property
+    def up_body(self) -> np.ndarray | None:
+        """Gravity's up in the body frame at the newest odometry sample (perception.gravity), when known."""
+        return self._up_body
+
+    def snapshot(self, building: str, sha256: str, with_views: bool = False) -> pb.MapSnapshot:
+        """The map as saved and served: landmarks (odom frame) with their CAD links, T_cad_map, last pose; with
+        `with_views` (the saved state), the keyframe views of place recognition too."""
         loc = self.localizer
         snap = pb.MapSnapshot(building=building, building_sha256=sha256, status=STATUS_TO_WIRE[loc.status],
                               keyframes=loc.graph.n_keyframes)
@@ -265,7 +289,45 @@ class LocalizerBackend:
         for j, lm in loc.landmarks.items():
             f = snap.landmarks_map.add(type=lm.type, id=loc.links.get(j, ""))
             f.corners.extend(vector3(c) for c in lm.corners_map)
+        if with_views:
+            own = [(loc.graph.T_map_body(i), v) for i, v in sorted(loc.views.items())]
+            snap.views.extend(view_to_wire(T, v) for T, v in own)
+            if self.restored is not None and T_cad_map is not None and self.restored.T_cad_map is not None:
+                # the saved map's views, carried into this map's frame where this run has none near: what a later
+                # restart can be placed by, without piling up views of the same places restart after restart
+                T_map_old = np.linalg.inv(T_cad_map) @ self.restored.T_cad_map
+                carried = [(T_map_old @ T, v) for T, v in self.restored.placed_views()]
+                covered = _covered([T for T, _ in carried], [T for T, _ in own])
+                snap.views.extend(view_to_wire(T, v) for (T, v), c in zip(carried, covered, strict=True) if not c)
         return snap
+
+
+def _covered(poses: list[np.ndarray], by: list[np.ndarray], apart_m: float = 0.5,
+             apart_deg: float = 15.0) -> np.ndarray:
+    """For each pose, whether one of `by` lies within `apart_m` and `apart_deg` of it (KeyframePlaces' spacing:
+    one view of the place will do)."""
+    if not poses or not by:
+        return np.zeros(len(poses), bool)
+    A, B = np.array(poses), np.array(by)
+    near = np.linalg.norm(A[:, None, :3, 3] - B[None, :, :3, 3], axis=2) < apart_m
+    cos = (np.einsum("aij,bij->ab", A[:, :3, :3], B[:, :3, :3]) - 1.0) / 2.0  # trace(Ra^T Rb) = cos of the angle
+    return (near & (cos > np.cos(np.radians(apart_deg)))).any(axis=1)
+
+
+def view_to_wire(T_map_body: np.ndarray, view: KeyframeView) -> pb.KeyframeView:
+    return pb.KeyframeView(T_map_body=pose_from_matrix(T_map_body),
+                           points_body=np.ascontiguousarray(view.points_body, "<f4").tobytes(),
+                           descriptors=np.ascontiguousarray(view.descriptors, np.uint8).tobytes())
+
+
+def view_from_wire(msg: pb.KeyframeView) -> tuple[np.ndarray, KeyframeView]:
+    """(T_map_body, view); a malformed view (sizes that disagree) becomes an empty one."""
+    points = np.frombuffer(msg.points_body, "<f4")
+    descriptors = np.frombuffer(msg.descriptors, np.uint8)
+    if len(points) % 3 or len(descriptors) % 32 or len(points) // 3 != len(descriptors) // 32:
+        return matrix_from_pose(msg.T_map_body), KeyframeView(np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
+    return matrix_from_pose(msg.T_map_body), KeyframeView(points.reshape(-1, 3).astype(np.float64),
+                                                          descriptors.reshape(-1, 32))
 
 
 def _storey_of(model: BuildingModel, matches: dict[int, str]) -> str:

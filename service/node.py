@@ -26,6 +26,7 @@ from service.backend import STATUS_TO_WIRE, LocalizerBackend, pose_message
 from service.frames import FramePipeline, NullPipeline
 from service.health import DropCounter, LatencyWindow, RateMeter
 from service.inputs import GoalIn, ImuIn, InputParser, Observation, ObservationsIn, OdometryIn, StereoIn
+from service.places import KeyframePlaces, Placed
 from service.planning import GoalSpec, Planner, PlanningError
 from service.recording import matrix_from_pose
 from service.state import MapStore
@@ -62,6 +63,7 @@ class LocalizationService:
         self.store = store
         self.params = params
         self.pipeline = pipeline or NullPipeline()
+        self.places = KeyframePlaces(backend.restored, keep_views=True)  # place recognition on stereo frames
         self.keys = Keys(params.vehicle)
         self.drops = DropCounter()
         self.parser = InputParser(params.cameras, self.drops)
@@ -192,6 +194,10 @@ class LocalizationService:
         until that odometry arrives); the frame's pose goes out at once, from the latest odometry."""
         sightings = self.pipeline(ev.frame)
         points_body = self.pipeline.points_body  # the pipeline's own stereo depth, when it measured some
+        with self._lock:
+            T_odom_body, status, up_body = self.backend.odometry_at(ev.stamp_ns), self.backend.status, \
+                self.backend.up_body
+        placed = self._place(ev, T_odom_body, up_body, status)
         if ev.frame.HasField("depth") and self.backend.localizer.surfaces is not None:
             from service.frames import depth_points_body
 
@@ -200,7 +206,9 @@ class LocalizationService:
             if points_body is not None:
                 self.backend.depth(ev.stamp_ns, points_body)
             est = None
-            if sightings:
+            if placed is not None and T_odom_body is not None:  # a keyframe at this frame's odometry pose
+                est = self.backend.sightings(ev.stamp_ns, T_odom_body, sightings, placed)
+            elif sightings:
                 est = self.backend.observations(ObservationsIn(ev.stamp_ns, "body", [
                     Observation(s.type, s.corners_body, s.corners_body.mean(axis=0)) for s in sightings]))
             if est is None and self.backend.last is not None:
@@ -214,6 +222,25 @@ class LocalizationService:
         self.latency["frame_to_pose"].add_ms((time.monotonic_ns() - ev.received_ns) * 1e-6)
         if est.T_cad_body is not None and ev.frame.HasField("depth"):
             self._add_obstacles(ev.frame, est.T_cad_body)
+
+    def _place(self, ev: StereoIn, T_odom_body: np.ndarray | None, up_body: np.ndarray | None,
+               status: str) -> Placed | None:
+        """Place recognition on the frame (service.places): its pose in the saved map while not localized, its
+        view to keep for the next one; None where neither applies (no odometry for the frame yet, no
+        calibration, or nothing due)."""
+        info = ev.frame.info
+        if T_odom_body is None or not self.places.active or info.fx <= 0 or not ev.frame.right.data:
+            return None
+        from perception.calib import StereoRig
+        from service.frames import forward_T_body_cam
+        from service.recording import decode_image
+
+        T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_T_body_cam()
+        rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, ev.frame.left.width,
+                        ev.frame.left.height)
+        placed = self.places.at_keyframe(ev.stamp_ns, T_odom_body, decode_image(ev.frame.left),
+                                         decode_image(ev.frame.right), rig, T_body_cam, up_body, status)
+        return placed if placed.T_cad_body is not None or placed.view is not None else None
 
     def _add_obstacles(self, frame: pb.StereoFrame, T_cad_body: np.ndarray) -> None:
         """Depth seen by the vehicle (CAD frame) into the planner's obstacle layer of the current storey."""
@@ -342,5 +369,5 @@ class LocalizationService:
 
     def _save(self) -> None:
         with self._lock:
-            snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
+            snap = self.backend.snapshot(self.params.building, self.params.building_sha256, with_views=True)
         self.store.save(snap)

@@ -25,10 +25,12 @@ from graph.registrar import FirstOfRegistrar, Registrar
 from graph.rigid import rotation_angle_deg
 from graph.surfaces import SurfaceIndex
 from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
+from service.places import KeyframePlaces, Placed
 from service.replay_sources import FrameInput, ObservationSource, TruthSource
 
 if TYPE_CHECKING:
     from service.config import GraphConfig
+    from service.recording import FlightFrame
 
 log = logging.getLogger(__name__)
 
@@ -122,8 +124,10 @@ def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey
 def replay(flight: Path, model: BuildingModel, source: ObservationSource | None = None,
            stored: StoredMap | None = None, storey_hint: str | None = None, policy: KeyframePolicy | None = None,
            sink: FrameSink = null_sink, params: LocalizerParams | None = None,
-           isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None) -> ReplayResult:
-    """Run `flight` (MCAP) through a new localizer in `model`; see module doc."""
+           isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None,
+           places: KeyframePlaces | None = None) -> ReplayResult:
+    """Run `flight` (MCAP) through a new localizer in `model`; see module doc. `places`: place recognition at
+    keyframes (service.places: views kept for the saved map, keyframes placed in the stored map's views)."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
     from service.recording import matrix_from_pose, read_flight
@@ -147,7 +151,9 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
         if inputs.points_body is not None:
             localizer.add_depth(inputs.T_odom_body, inputs.points_body)  # given with the next keyframe
         if is_kf:
-            est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body)
+            placed = _place(places, frame, inputs, localizer.status)
+            est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body,
+                                         T_cad_body_placed=placed.T_cad_body, view=placed.view)
             T_kf, t_kf = inputs.T_odom_body, t_s
         else:
             est = localizer.track(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings)
@@ -162,6 +168,20 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
 
         raise UserInputError(f"recording {flight} holds no stereo frames")
     return _score(trace, localizer, busy_s, busy_at_localized)
+
+
+def _place(places: KeyframePlaces | None, frame: FlightFrame, inputs: FrameInput, status: str) -> Placed:
+    """Place recognition at a keyframe, on the recorded stereo pair (nothing without `places`, or on a recording
+    without images: a ground-truth flight, service.truth_flight)."""
+    if places is None or not places.active or not frame.stereo.left.data:
+        return Placed(None, None)
+    from perception.calib import StereoRig
+    from service.recording import decode_image
+
+    info = frame.stereo.info
+    rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
+    return places.at_keyframe(inputs.stamp_ns, inputs.T_odom_body, decode_image(frame.stereo.left),
+                              decode_image(frame.stereo.right), rig, inputs.T_body_cam, inputs.up_body, status)
 
 
 def _record(trace: ReplayTrace, t_s: float, est: Estimate, T_true: np.ndarray | None, is_kf: bool,

@@ -48,6 +48,8 @@ def forward_camera_T_body_cam(baseline_m: float, forward_m: float = 0.10) -> np.
 @dataclass
 class SimulationParams:
     seed: int = 0
+    appearance_seed: int | None = None  # the building's look (textures, dressing, lights); None: `seed`. The same
+    #                                     look with another `seed` is the same building flown along another path
     storey: str | None = None  # default: the storey with the most features
     camera: CameraModel = field(default_factory=CameraModel)
     camera_rate_hz: float = 30.0
@@ -109,17 +111,18 @@ class Simulator:
                                                        ceiling, self.features)
         self.ceiling_z_m = ceiling if ceiling is not None else self.floor_z_m + DEFAULT_STOREY_HEIGHT_M
         self.T_body_cam = forward_camera_T_body_cam(params.camera.baseline_m)
-        rng = np.random.default_rng([params.seed, 0x5CE])
+        look = params.seed if params.appearance_seed is None else params.appearance_seed
+        rng = np.random.default_rng([look, 0x5CE])
         self.lighting = make_lighting(self.free_space, self.ceiling_z_m, rng)
         self._exposure_phase = rng.uniform(0, 2 * np.pi, 2)
         self.open_doors = doors_crossed(self.trajectory, self.features)
-        layers = make_texture_layers(params.seed)
-        doors_rgb, windows_rgb = (facade_crops(params.facade_photos, params.seed) if params.facade_photos is not None
+        layers = make_texture_layers(look)
+        doors_rgb, windows_rgb = (facade_crops(params.facade_photos, look) if params.facade_photos is not None
                                   else (layers[:0], layers[:0]))
         n0 = len(layers)
         photo_doors = tuple(range(n0, n0 + len(doors_rgb)))
         photo_windows = tuple(range(n0 + len(doors_rgb), n0 + len(doors_rgb) + len(windows_rgb)))
-        vertices = dress_scene(self.scene, self.features, params.seed, ground_z_m=self._ground_z(),
+        vertices = dress_scene(self.scene, self.features, look, ground_z_m=self._ground_z(),
                                open_doors=self.open_doors,
                                floor_levels_m=tuple(self.model.storey_elevations_m.values()),
                                photo_door_layers=photo_doors, photo_window_layers=photo_windows,

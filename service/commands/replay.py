@@ -18,8 +18,12 @@ def register(app: typer.Typer) -> None:
                                          "same doors/windows, but the stereo visual odometry on the recorded "
                                          "images; perception: the perception chain and the visual odometry."),
         stored_map: Path | None = typer.Option(None, "--map", help="A stored map (from --save-map) of this "
-                                               "building to re-localize into from the first frames."),
-        save_map: Path | None = typer.Option(None, "--save-map", help="Write this flight's map here at the end."),
+                                               "building to re-localize into from the first frames: by its "
+                                               "keyframes' views (place recognition, before any door is seen), "
+                                               "else by its doors."),
+        save_map: Path | None = typer.Option(None, "--save-map", help="Write this flight's map here at the end, "
+                                             "with a view (ORB features with stereo depth) every 0.5 m or 15 deg "
+                                             "of the flight's keyframes, for place recognition."),
         report: Path | None = typer.Option(None, "--report", help="Write a top-down picture, per-frame figures "
                                            "and result.json into this folder."),
         storey: str | None = typer.Option(None, "--storey", help="Register against this storey's doors and "
@@ -83,8 +87,11 @@ def register(app: typer.Typer) -> None:
             from service.planning_grid import surfaces_for
 
             surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
+        from service.places import KeyframePlaces
+
+        places = KeyframePlaces(stored, keep_views=save_map is not None)
         result = run_replay(flight, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
-                            isam=isam, surfaces=surfaces)
+                            isam=isam, surfaces=surfaces, places=places)
         if save_map is not None:
             result.localizer.stored_map().save(save_map)
         if report is not None:

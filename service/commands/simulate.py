@@ -27,6 +27,10 @@ def register(app: typer.Typer) -> None:
         building: Path = typer.Argument(..., help="IFC file, or a mesh (OBJ, GLB, DAE, ...) of the building."),
         out: Path = typer.Option(..., "--out", "-o", help="The recording to write (MCAP)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the flight, appearance, lights and noise."),
+        appearance_seed: int | None = typer.Option(None, "--appearance-seed", help="Seed of the building's look "
+                                                   "alone (textures, furniture, lights; default: --seed). The same "
+                                                   "look with another --seed: the same building flown along "
+                                                   "another path, e.g. to re-localize into a stored map."),
         duration: float | None = typer.Option(None, "--duration", help="Flight duration, s (config sim.duration_s)."),
         storey: str | None = typer.Option(None, "--storey", help="Storey to fly (default: most doors/windows)."),
         speed: float | None = typer.Option(None, "--speed", help="Cruise speed, m/s (config sim.speed_mps)."),
@@ -60,7 +64,7 @@ def register(app: typer.Typer) -> None:
         cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update=sim_overrides)})
         sheet = contact_sheet if contact_sheet is not None else out.with_suffix(".png")
         summary = simulate_to_mcap(building, out, cfg, seed=seed, storey=storey, contact_sheet=sheet,
-                                   yolo_dir=yolo, yolo_every=yolo_every)
+                                   yolo_dir=yolo, yolo_every=yolo_every, appearance_seed=appearance_seed)
         if json_out:
             print_json(summary)
         else:
@@ -68,7 +72,8 @@ def register(app: typer.Typer) -> None:
                        f"{summary['render_fps']:.1f} stereo pairs/s rendered -> {out} (contact sheet {sheet})")
 
 
-def simulation_params(cfg: MacrolocConfig, seed: int, storey: str | None):  # noqa: ANN201 - SimulationParams
+def simulation_params(cfg: MacrolocConfig, seed: int, storey: str | None,  # noqa: ANN201 - SimulationParams
+                      appearance_seed: int | None = None):
     from sim.flight import FlightParams
     from sim.render import CameraModel
     from sim.simulator import SimulationParams
@@ -83,13 +88,14 @@ def simulation_params(cfg: MacrolocConfig, seed: int, storey: str | None):  # no
         from graph.errors import UserInputError
 
         raise UserInputError(f"sim.facade_photos: {photos} has no images/ folder")
-    return SimulationParams(seed=seed, storey=storey, camera=camera, camera_rate_hz=c.rate_hz, flight=flight,
+    return SimulationParams(seed=seed, appearance_seed=appearance_seed, storey=storey, camera=camera,
+                            camera_rate_hz=c.rate_hz, flight=flight,
                             facade_photos=photos)
 
 
 def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int = 0, storey: str | None = None,
                      contact_sheet: Path | None = None, yolo_dir: Path | None = None,
-                     yolo_every: int = 10) -> dict[str, Any]:
+                     yolo_every: int = 10, appearance_seed: int | None = None) -> dict[str, Any]:
     """Simulate and record one flight; returns {"frames", "duration_s", "render_fps", "channels", "storey", ...}.
 
     contact_sheet: a PNG of sampled frames with their ground truth drawn; yolo_dir: also export every
@@ -103,7 +109,7 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
     from sim.simulator import Simulator
 
     t_start = time.perf_counter()
-    sim = Simulator(building, simulation_params(cfg, seed, storey))
+    sim = Simulator(building, simulation_params(cfg, seed, storey, appearance_seed))
     exporter = None
     if yolo_dir is not None:
         from sim.export import YoloExporter
@@ -116,7 +122,8 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
     meta = FlightMetadata(building=building.name, building_sha256=sim.model.sha256, seed=seed, storey=sim.storey,
                           duration_s=float(times[-1]) if len(times) else 0.0,
                           extra={"camera_rate_hz": str(cfg.camera.rate_hz), "imu_rate_hz": str(cfg.sim.imu_rate_hz),
-                                 "generator": "macroloc simulate"})
+                                 "generator": "macroloc simulate",
+                                 **({"appearance_seed": str(appearance_seed)} if appearance_seed is not None else {})})
     render_s = 0.0
     k_imu = 0
     imu_ns = np.round(imu.stamps_s * 1e9).astype(np.int64)

@@ -3,6 +3,8 @@ correction by the joint refinement, robustness to injected wrong matches, save -
 
 from __future__ import annotations
 
+import json
+
 import gtsam
 import numpy as np
 import pytest
@@ -147,6 +149,35 @@ def test_save_load_relocalize_round_trip(corridor, tmp_path) -> None:
     assert est.status == "localized" and k <= 4  # two landmarks, each seen twice
     assert est.T_cad_body is not None
     assert np.linalg.norm(est.T_cad_body[:3, 3] - poses[k][:3, 3]) < 0.1
+
+
+def test_keyframe_views_survive_save_and_load(corridor, tmp_path) -> None:
+    from graph.errors import UserInputError
+    from graph.mapstore import KeyframeView
+
+    poses = straight_flight(5)
+    loc = Localizer(corridor, PoseGraph(), model_registrar(corridor), LocalizerParams())
+    rng = np.random.default_rng(2)
+    views = {k: KeyframeView(rng.uniform(-5, 5, (7 + k, 3)), rng.integers(0, 256, (7 + k, 32), dtype=np.uint8))
+             for k in (0, 3)}
+    for k, T in enumerate(poses):
+        loc.add_keyframe(k, T, [], UP, view=views.get(k))
+    path = loc.stored_map().save(tmp_path / "map.json")
+    stored = StoredMap.load(path, corridor)
+    assert sorted(stored.views) == [0, 3]
+    for k, (T_map_body, view) in zip((0, 3), stored.placed_views(), strict=True):
+        assert np.allclose(T_map_body, loc.graph.T_map_body(k))
+        assert np.array_equal(view.descriptors, views[k].descriptors)
+        assert np.allclose(view.points_body, views[k].points_body, atol=1e-5)  # stored as float32
+    doc = json.loads(path.read_text())
+    for kf in doc["keyframes"]:  # a version 1 map: no views
+        kf.pop("view", None)
+    path.write_text(json.dumps(doc))
+    assert StoredMap.load(path, corridor).views == {}
+    doc["keyframes"][0]["view"] = {"points_body": "AAAA", "descriptors": "not base64!"}
+    path.write_text(json.dumps(doc))
+    with pytest.raises(UserInputError, match="is not a macroloc map"):
+        StoredMap.load(path, corridor)
 
 
 def test_a_map_from_another_building_is_refused(corridor, tmp_path) -> None:

@@ -643,3 +643,61 @@ def test_the_walls_turn_back_a_pose_localized_degrees_off(room_with_walls: Surfa
         assert loc.status == "localized" and T_cad_map is not None
         errors.append(rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T))
     assert errors[0] < 1.0 and errors[1] > 7.0 and errors[2] > 7.0
+
+
+class SilentRegistrar:
+    """Never answers: what a flight that has seen no door yet gets from registration."""
+
+    min_landmarks = 4
+    candidates_from = 2
+
+    def __call__(self, landmarks, corners_map) -> Alignment:  # noqa: ANN001
+        return Alignment("not_localized", None)
+
+
+def fly_placed(room: SurfaceIndex, cameras_cad: list[np.ndarray], placed_T_cad_map: np.ndarray | None,
+               params: LocalizerParams | None = None, every_s: float = 1.0) -> Localizer:
+    """Keyframes at `cameras_cad` (map frame T_TRUE's), `every_s` apart, seeing the room's walls and no door;
+    each placed in a stored map as if by place recognition at T_cad_map = `placed_T_cad_map` (None: never)."""
+    rng = np.random.default_rng(8)
+    loc = Localizer(corridor_model(), PoseGraph(), SilentRegistrar(), params or LocalizerParams(surface_min_points=100),
+                    surfaces=room)
+    for k, xy in enumerate(cameras_cad):
+        T_cad_body = make_T(np.eye(3), np.array([xy[0], xy[1], 1.4]))
+        T_map_body = np.linalg.inv(T_TRUE) @ T_cad_body
+        points_body = apply(np.linalg.inv(T_cad_body), seen_points(rng, np.asarray(xy, float)))
+        placed = None if placed_T_cad_map is None else placed_T_cad_map @ T_map_body
+        loc.add_keyframe(int(k * every_s * 1e9), T_map_body, [], UP, points_body=points_body,
+                         T_cad_body_placed=placed)
+    return loc
+
+
+def test_a_keyframe_placed_in_a_stored_map_localizes_before_any_door(room_with_walls: SurfaceIndex) -> None:
+    assert fly_placed(room_with_walls, NEAR_THE_PARTITION_END, None).status == "exploring"
+    loc = fly_placed(room_with_walls, NEAR_THE_PARTITION_END[:1], T_TRUE)
+    assert loc.status == "localized" and not loc.landmarks
+    T_cad_map = loc.graph.T_cad_map()
+    assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.01
+
+
+def test_a_placement_the_walls_see_through_is_refused(room_with_walls: SurfaceIndex) -> None:
+    """Placed half a turn off (a stored view matched in the room's twin): a third of the points would have been
+    seen through the partition. Not anchored."""
+    half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0])) @ T_TRUE
+    loc = fly_placed(room_with_walls, NEAR_THE_PARTITION_END, half_turn)
+    assert loc.status == "exploring" and loc.graph.T_cad_map() is None
+
+
+def test_placements_hold_the_pose_and_keep_the_status_alive(room_with_walls: SurfaceIndex) -> None:
+    """Placed keyframes are CAD-linked measurements: 12 s with no door leaves the status `localized`, where
+    one placement only would let it degrade (after `degraded_after_s`)."""
+    cameras = [np.array([6.5 + 0.1 * k, 6.0 - 0.1 * k]) for k in range(13)]
+    params = LocalizerParams(surface_min_points=100, surface_fit=False)
+    once = Localizer(corridor_model(), PoseGraph(), SilentRegistrar(), params, surfaces=room_with_walls)
+    always = fly_placed(room_with_walls, cameras, T_TRUE, params)
+    for k, xy in enumerate(cameras):
+        T_map_body = np.linalg.inv(T_TRUE) @ make_T(np.eye(3), np.array([xy[0], xy[1], 1.4]))
+        once.add_keyframe(int(k * 1e9), T_map_body, [], UP, T_cad_body_placed=T_TRUE @ T_map_body if k == 0 else None)
+    assert once.status == "degraded" and always.status == "localized"
+    T_cad_map = always.graph.T_cad_map()
+    assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.01

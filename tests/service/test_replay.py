@@ -149,3 +149,62 @@ def test_the_backend_hands_depth_to_the_next_keyframe() -> None:
     backend.odometry(OdometryIn(100_000_000, make_T(np.eye(3), np.array([1.5, 0.0, 0.0]))))  # a keyframe (> 1 m)
     (i, points, below), = list(backend.localizer._points)
     assert i == 1 and np.allclose(points, [[1.5, 0.0, 0.1], [2.5, 1.0, -0.2]]) and len(below) == 0
+
+
+def test_a_map_with_views_relocalizes_at_the_first_frame(rendered_office_flight: Path, office_path: Path,
+                                                          tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Place recognition in the stored map's keyframe views: localized at the first frame, before any door is in
+    range; the same map without its views waits for the doors, as a fresh flight does."""
+    map_path = tmp_path / "map.json"
+    rc, first, err = run(["replay", str(rendered_office_flight), "--building", str(office_path), "--json", "--save-map",
+                          str(map_path)], capsys)
+    assert rc == 0 and first is not None and first["localized"], err
+    rc, again, err = run(["replay", str(rendered_office_flight), "--building", str(office_path), "--json", "--map",
+                          str(map_path), "--seed", "7"], capsys)
+    assert rc == 0 and again is not None, err
+    assert again["time_to_localize_s"] == 0.0 and again["wrong_localizations"] == 0
+    assert again["ape_rmse_m"] < 0.1
+    doc = json.loads(map_path.read_text())
+    assert sum("view" in kf for kf in doc["keyframes"]) >= 5
+    for kf in doc["keyframes"]:
+        kf.pop("view", None)
+    map_path.write_text(json.dumps(doc))
+    rc, blind, err = run(["replay", str(rendered_office_flight), "--building", str(office_path), "--json", "--map",
+                          str(map_path), "--seed", "7"], capsys)
+    assert rc == 0 and blind is not None, err
+    assert blind["time_to_localize_s"] is None or blind["time_to_localize_s"] > 3.0
+
+
+def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none() -> None:
+    """A saved map with views: the restarted backend is placed by them (a keyframe placed at the saved pose) and
+    its next saved map holds its own views plus those saved views it has none near, in its own map frame."""
+    from graph.mapstore import KeyframeView
+    from service.backend import LocalizerBackend, view_from_wire, view_to_wire
+    from service.places import Placed
+    from service.recording import pose_from_matrix
+    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from tests.graph.scenes import corridor_model, make_T, rot_z
+
+    model = corridor_model()
+    rng = np.random.default_rng(0)
+
+    def view() -> KeyframeView:
+        return KeyframeView(rng.uniform(1, 5, (30, 3)), rng.integers(0, 256, (30, 32), dtype=np.uint8))
+
+    T_cad_map_old = make_T(rot_z(0.4), np.array([1.0, -2.0, 0.0]))
+    here, far = make_T(np.eye(3), np.array([0.5, 0.0, 1.4])), make_T(rot_z(1.0), np.array([6.0, 1.0, 1.4]))
+    saved = pb.MapSnapshot(building_sha256=model.sha256, status=pb.PoseEstimate.LOCALIZED,
+                           T_cad_map=pose_from_matrix(T_cad_map_old))
+    saved.views.extend([view_to_wire(here, view()), view_to_wire(far, view())])
+    backend = LocalizerBackend.fresh_or_restored(model, saved)
+    assert backend.restored is not None and len(backend.restored.views) == 2
+    T_odom_body = make_T(rot_z(-0.7), np.array([3.0, 4.0, 1.4]))  # the new run's odometry frame is another one
+    est = backend.sightings(10, T_odom_body, [], Placed(T_cad_map_old @ here, view()))
+    assert est.status == "localized" and est.T_cad_body is not None
+    assert np.allclose(est.T_cad_body, T_cad_map_old @ here, atol=1e-6)
+    snap = backend.snapshot("corridor", model.sha256, with_views=True)
+    assert len(backend.snapshot("corridor", model.sha256).views) == 0  # the map query's reply carries none
+    poses = [view_from_wire(v)[0] for v in snap.views]
+    assert len(poses) == 2 and np.allclose(poses[0], T_odom_body, atol=1e-6)  # its own; `here` is covered by it
+    T_cad_map_new = T_cad_map_old @ here @ np.linalg.inv(T_odom_body)
+    assert np.allclose(poses[1], np.linalg.inv(T_cad_map_new) @ T_cad_map_old @ far, atol=1e-5)

@@ -53,3 +53,33 @@ def test_replay_over_zenoh_localizes_and_scores(office_path, office_model, tmp_p
     assert result.frames == 45 and result.poses > 0
     assert result.localized and result.ape_rmse_m is not None and result.ape_rmse_m < 0.3
     assert result.latency_ms["n"] > 0
+
+
+def test_a_restarted_service_is_placed_by_its_saved_maps_views(rendered_office_flight, office_path,
+                                                               tmp_path) -> None:
+    """The service keeps keyframe views in its saved map; restarted, it places the first frames in them and is
+    localized before any door is in range. The same saved map stripped of its views waits for the doors."""
+    from service.replay_sources import TruthSource
+    from service.replay_zenoh import replay_over_zenoh
+
+    def fly(seed: int):  # noqa: ANN202 - ZenohReplayResult
+        port = free_port()
+        cfg = service_config(office_path, tmp_path, port)
+        with running_service(cfg):
+            return replay_over_zenoh(rendered_office_flight, loopback(connect=[f"tcp/127.0.0.1:{port}"]), "t1",
+                                     TruthSource(seed=seed), speed=1.0)
+
+    first = fly(0)
+    assert first.localized and first.time_to_localize_s is not None and first.time_to_localize_s > 3.0
+    map_file = tmp_path / "t1" / "map.pb"
+    saved = pb.MapSnapshot.FromString(map_file.read_bytes())
+    assert saved.status == pb.PoseEstimate.LOCALIZED and len(saved.views) >= 5
+    with_views = map_file.read_bytes()
+    saved.ClearField("views")
+    map_file.write_bytes(saved.SerializeToString())
+    blind = fly(7)
+    assert blind.time_to_localize_s is None or blind.time_to_localize_s > 3.0
+    map_file.write_bytes(with_views)
+    again = fly(7)
+    assert again.localized and again.time_to_localize_s is not None and again.time_to_localize_s < 0.5
+    assert again.ape_rmse_m is not None and again.ape_rmse_m < 0.15

@@ -114,3 +114,24 @@ def test_bad_inputs_exit_2_with_one_line(tmp_path: Path, duplex_path: Path, caps
     assert main(["simulate", str(duplex_path), "--out", str(tmp_path / "f.txt")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 4 and all(line.startswith("macroloc: error:") for line in err)
+
+
+def test_the_appearance_seed_keeps_the_path_and_changes_only_the_look(duplex_path: Path) -> None:
+    """`--appearance-seed`: the same building flown along another path. Seed 2 with the look of seed 1 flies seed
+    2's path under seed 1's lights and textures."""
+    from sim.simulator import SimulationParams, Simulator
+
+    sims = {}
+    for name, seed, look in (("path 2 look 1", 2, 1), ("path 2", 2, None), ("path 1", 1, None)):
+        sims[name] = Simulator(duplex_path, SimulationParams(seed=seed, appearance_seed=look))
+    try:
+        t = np.linspace(0.0, 3.0, 7)
+        poses = {name: np.array([sim.trajectory.T_cad_body(s) for s in t]) for name, sim in sims.items()}
+        assert np.allclose(poses["path 2 look 1"], poses["path 2"])
+        assert not np.allclose(poses["path 2"], poses["path 1"])
+        lights = {name: sim.lighting.colours for name, sim in sims.items()}
+        assert np.array_equal(lights["path 2 look 1"], lights["path 1"])
+        assert not np.array_equal(lights["path 2 look 1"], lights["path 2"])
+    finally:
+        for sim in sims.values():
+            sim.close()

@@ -272,7 +272,7 @@ class ServiceStatus(_message.Message):
     def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., version: _Optional[str] = ..., vehicle: _Optional[str] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., building: _Optional[str] = ..., keyframes: _Optional[int] = ..., landmarks: _Optional[int] = ...) -> None: ...
 
 class MapSnapshot(_message.Message):
-    __slots__ = ("header", "building", "building_sha256", "status", "T_cad_map", "storey", "landmarks_map", "T_map_body", "keyframes")
+    __slots__ = ("header", "building", "building_sha256", "status", "T_cad_map", "storey", "landmarks_map", "T_map_body", "keyframes", "views")
     HEADER_FIELD_NUMBER: _ClassVar[int]
     BUILDING_FIELD_NUMBER: _ClassVar[int]
     BUILDING_SHA256_FIELD_NUMBER: _ClassVar[int]
@@ -282,6 +282,7 @@ class MapSnapshot(_message.Message):
     LANDMARKS_MAP_FIELD_NUMBER: _ClassVar[int]
     T_MAP_BODY_FIELD_NUMBER: _ClassVar[int]
     KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    VIEWS_FIELD_NUMBER: _ClassVar[int]
     header: Header
     building: str
     building_sha256: str
@@ -291,7 +292,18 @@ class MapSnapshot(_message.Message):
     landmarks_map: _containers.RepeatedCompositeFieldContainer[ObservedFeature]
     T_map_body: Pose
     keyframes: int
-    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., building: _Optional[str] = ..., building_sha256: _Optional[str] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., T_cad_map: _Optional[_Union[Pose, _Mapping]] = ..., storey: _Optional[str] = ..., landmarks_map: _Optional[_Iterable[_Union[ObservedFeature, _Mapping]]] = ..., T_map_body: _Optional[_Union[Pose, _Mapping]] = ..., keyframes: _Optional[int] = ...) -> None: ...
+    views: _containers.RepeatedCompositeFieldContainer[KeyframeView]
+    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., building: _Optional[str] = ..., building_sha256: _Optional[str] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., T_cad_map: _Optional[_Union[Pose, _Mapping]] = ..., storey: _Optional[str] = ..., landmarks_map: _Optional[_Iterable[_Union[ObservedFeature, _Mapping]]] = ..., T_map_body: _Optional[_Union[Pose, _Mapping]] = ..., keyframes: _Optional[int] = ..., views: _Optional[_Iterable[_Union[KeyframeView, _Mapping]]] = ...) -> None: ...
+
+class KeyframeView(_message.Message):
+    __slots__ = ("T_map_body", "points_body", "descriptors")
+    T_MAP_BODY_FIELD_NUMBER: _ClassVar[int]
+    POINTS_BODY_FIELD_NUMBER: _ClassVar[int]
+    DESCRIPTORS_FIELD_NUMBER: _ClassVar[int]
+    T_map_body: Pose
+    points_body: bytes
+    descriptors: bytes
+    def __init__(self, T_map_body: _Optional[_Union[Pose, _Mapping]] = ..., points_body: _Optional[bytes] = ..., descriptors: _Optional[bytes] = ...) -> None: ...
 
 class GroundTruth(_message.Message):
     __slots__ = ("header", "T_cad_body", "T_body_cam", "features_cam", "corner_visible", "depth")

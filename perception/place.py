@@ -1,0 +1,142 @@
+"""Visual place recognition in a stored map: a new flight placed where an earlier one flew, before it sees a door.
+
+A stored keyframe keeps a `KeyframeView` (graph.mapstore): up to `n_features` ORB features of its left image
+with a reliable stereo depth (SGBM's sub-pixel disparity at the keypoint, perception.stereo.keypoint_points),
+as 3D points in its body frame. To place a new keyframe, its ORB features are matched to every stored view
+at once (the `vote_features` strongest against each view's `vote_per_view` strongest: the nearest descriptor
+within `vote_distance` votes for its view); the `top_views` views with the most such matches are
+matched again one by one with Lowe's ratio test (per view: across views, the same corner seen twice would fail
+it), and PnP-RANSAC on their 3D points, in the stored map's frame, gives the camera's pose there. A pose is
+kept only with `min_inliers` inliers and at most `max_tilt_deg` between its up and the IMU's: both frames are
+levelled by gravity, so a pose tilted from it is a wrong one.
+
+The answer is T_map_body in the stored map's frame; times the stored map's T_cad_map it is the body's pose in
+the CAD frame (the localizer checks it against the walls before anchoring with it).
+
+Frames: `map` = the stored flight's map frame (z up); `body` and `cam` as in graph.localizer / perception.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from graph.mapstore import KeyframeView
+from perception.calib import StereoRig
+from perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
+
+
+@dataclass(frozen=True)
+class PlaceConfig:
+    n_features: int = 1000  # ORB features of the image to place
+    stored_features: int = 400  # ... and at most this many kept per stored view (those with a depth, strongest)
+    fast_threshold: int = 7  # as the visual odometry's: rendered walls are low in contrast
+    num_disparities: int = 128  # SGBM's search range for a stored view's depths (down to 0.45 m)
+    max_depth_m: float = 12.0
+    vote_features: int = 300  # the image's strongest features that vote for stored views ...
+    vote_per_view: int = 150  # ... against each view's strongest (a view's features are stored strongest first)
+    vote_distance: int = 40  # Hamming distance (of 256 bits) under which a nearest descriptor votes for its view
+    top_views: int = 3
+    ratio: float = 0.8
+    ransac_reprojection_px: float = 3.0
+    min_inliers: int = 40
+    max_tilt_deg: float = 5.0
+
+
+@dataclass(frozen=True)
+class PlaceMatch:
+    T_map_body: np.ndarray  # 4x4, the stored map's frame
+    inliers: int
+    view: int  # index (into the views given) of the view with the most inliers
+
+
+class PlaceRecognizer:
+    """Describes keyframes for a stored map and places new ones in it (see module doc)."""
+
+    def __init__(self, rig: StereoRig, T_body_cam: np.ndarray, config: PlaceConfig | None = None) -> None:
+        self.rig = rig
+        self.T_body_cam = np.asarray(T_body_cam, float)
+        self.config = c = config or PlaceConfig()
+        self._orb = cv2.ORB_create(nfeatures=c.n_features, fastThreshold=c.fast_threshold)  # type: ignore[attr-defined]
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self._sgbm: SgbmMatcher | None = None
+        self._views: list[tuple[np.ndarray, KeyframeView]] = []
+        self._database = np.zeros((0, 32), np.uint8)  # every stored descriptor, stacked
+        self._owner = np.zeros(0, np.int64)  # the view of each row
+
+    # --- storing ----------------------------------------------------------------------------------------------
+
+    def describe(self, left: np.ndarray, right: np.ndarray) -> KeyframeView:
+        """A keyframe's view: its strongest ORB features with a reliable stereo depth, body frame."""
+        c = self.config
+        kp, desc = self._orb.detectAndCompute(to_gray(left), None)
+        if desc is None or not kp:
+            return KeyframeView(np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
+        if self._sgbm is None:
+            self._sgbm = SgbmMatcher(SgbmConfig(num_disparities=c.num_disparities))
+        points_cam = keypoint_points(self._sgbm.disparity_px(left, right), np.array([k.pt for k in kp]), self.rig,
+                                     max_depth_m=c.max_depth_m)
+        ok = np.flatnonzero(points_cam[:, 2] > 0)
+        ok = ok[np.argsort([-kp[i].response for i in ok], kind="stable")][:c.stored_features]
+        points_body = points_cam[ok] @ self.T_body_cam[:3, :3].T + self.T_body_cam[:3, 3]
+        return KeyframeView(points_body, desc[ok])
+
+    # --- placing ----------------------------------------------------------------------------------------------
+
+    def use(self, views: list[tuple[np.ndarray, KeyframeView]]) -> None:
+        """The stored views to place new keyframes among: (T_map_body, view) each (StoredMap.placed_views)."""
+        self._views = [(np.asarray(T, float), v) for T, v in views if len(v.descriptors)]
+        n = self.config.vote_per_view
+        self._database = (np.vstack([v.descriptors[:n] for _, v in self._views]) if self._views
+                          else np.zeros((0, 32), np.uint8))
+        self._owner = np.repeat(np.arange(len(self._views)), [len(v.descriptors[:n]) for _, v in self._views])
+
+    @property
+    def has_views(self) -> bool:
+        return bool(self._views)
+
+    def place(self, left: np.ndarray, up_body: np.ndarray | None = None) -> PlaceMatch | None:
+        """The body's pose in the stored map from its left image, or None (too few consistent matches)."""
+        c = self.config
+        if not self._views:
+            return None
+        kp, desc = self._orb.detectAndCompute(to_gray(left), None)
+        if desc is None or len(kp) < c.min_inliers:
+            return None
+        uv = np.array([k.pt for k in kp], np.float64)
+        strongest = np.argsort([-k.response for k in kp], kind="stable")[:c.vote_features]
+        nearest = [m for m in self._matcher.match(desc[strongest], self._database) if m.distance < c.vote_distance]
+        votes = np.bincount(self._owner[[m.trainIdx for m in nearest]], minlength=len(self._views))
+        top = [int(v) for v in np.argsort(-votes, kind="stable")[:c.top_views] if votes[v] >= c.min_inliers // 2]
+        obj, img, of_view = [], [], []
+        for v in top:
+            T_map_body, view = self._views[v]
+            pairs = [m for m, n in (p for p in self._matcher.knnMatch(desc, view.descriptors, k=2) if len(p) == 2)
+                     if m.distance < c.ratio * n.distance]
+            obj += [T_map_body[:3, :3] @ view.points_body[m.trainIdx] + T_map_body[:3, 3] for m in pairs]
+            img += [uv[m.queryIdx] for m in pairs]
+            of_view += [v] * len(pairs)
+        if len(obj) < c.min_inliers:
+            return None
+        obj_a, img_a = np.array(obj, np.float64), np.array(img, np.float64)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj_a, img_a, self.rig.K, None, iterationsCount=300,
+                                                 reprojectionError=c.ransac_reprojection_px, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inl is None or len(inl) < c.min_inliers:
+            return None
+        idx = inl[:, 0]
+        rvec, tvec = cv2.solvePnPRefineLM(obj_a[idx], img_a[idx], self.rig.K, None, rvec, tvec)
+        T_cam_map = np.eye(4)
+        T_cam_map[:3, :3], T_cam_map[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        T_map_body = np.linalg.inv(T_cam_map) @ np.linalg.inv(self.T_body_cam)
+        if up_body is not None and _tilt_deg(T_map_body, up_body) > c.max_tilt_deg:
+            return None
+        return PlaceMatch(T_map_body, len(idx), int(np.bincount(np.array(of_view)[idx]).argmax()))
+
+
+def _tilt_deg(T_map_body: np.ndarray, up_body: np.ndarray) -> float:
+    """Angle between the map's up seen from the body (the pose's) and the IMU's up, degrees."""
+    up = np.asarray(up_body, float) / np.linalg.norm(up_body)
+    return float(np.degrees(np.arccos(np.clip(T_map_body[2, :3] @ up, -1.0, 1.0))))  # row 2: the map's z, in body
