@@ -1,13 +1,15 @@
 """A flight's map, saved and loaded: keyframes, landmarks (with their CAD links) and T_cad_map.
 
 JSON, one document: {"version", "building_sha256", "T_cad_map": 4x4, "keyframes": [{"stamp_ns", "T_map_body",
-"view"?}], "landmarks": [{"key", "type", "T_map_rect", "corners_map", "feature"}]}. Frames as in graph.localizer.
+"view"?}], "landmarks": [{"key", "type", "T_map_rect", "corners_map", "feature"}], "carried_views"?: [{"T_map_body",
+"view"}]}. Frames as in graph.localizer.
 
 Place recognition has two things to go on here. The landmarks: a new flight's first sightings aligned to the
 stored CAD-linked rectangles (graph.relocalize). And, where the flight that made the map kept them, its
 keyframes' views (`KeyframeView`: image features with their 3D points, perception.place): a new flight's
 first keyframe matched to them is placed in the stored map before it sees any door. A view is stored as
-base64 of its little-endian arrays ("points_body": float32 (N, 3), "descriptors": uint8 (N, 32)).
+base64 of its little-endian arrays ("points_body": float32 (N, 3), "descriptors": uint8 (N, 32)); "carried_views"
+[{"T_map_body", "view"}] are an earlier map's, where this flight made none near (`carried_views`).
 Version 1 maps (no views) load as they are.
 """
 
@@ -48,6 +50,9 @@ class KeyframeView:
         return cls(points, descriptors)
 
 
+PlacedView = tuple[np.ndarray, KeyframeView]  # (T_map_body, view)
+
+
 def _b64(a: np.ndarray) -> str:
     return base64.b64encode(np.ascontiguousarray(a).tobytes()).decode("ascii")
 
@@ -68,10 +73,13 @@ class StoredMap:
     keyframes: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (stamp_ns, T_map_body)
     landmarks: list[StoredLandmark] = field(default_factory=list)
     views: dict[int, KeyframeView] = field(default_factory=dict)  # keyframe index -> its view, where kept
+    carried: list[PlacedView] = field(default_factory=list)  # an earlier map's views, this map's frame
 
-    def placed_views(self) -> list[tuple[np.ndarray, KeyframeView]]:
-        """(T_map_body, view) of every keyframe with a view: what place recognition matches a new flight to."""
-        return [(self.keyframes[i][1], v) for i, v in sorted(self.views.items()) if i < len(self.keyframes)]
+    def placed_views(self) -> list[PlacedView]:
+        """(T_map_body, view) of every keyframe with a view, then the carried views: what place recognition
+        matches a new flight to."""
+        own = [(self.keyframes[i][1], v) for i, v in sorted(self.views.items()) if i < len(self.keyframes)]
+        return own + self.carried
 
     def known_rects(self, model: BuildingModel) -> list[KnownRect]:
         """The model's frames of every feature this map linked: what a new flight re-localizes against."""
@@ -89,7 +97,8 @@ class StoredMap:
                              for i, (s, T) in enumerate(self.keyframes)],
                "landmarks": [{"key": lm.key, "type": lm.type, "T_map_rect": lm.T_map_rect.tolist(),
                               "corners_map": lm.corners_map.tolist(), "feature": lm.feature}
-                             for lm in self.landmarks]}
+                             for lm in self.landmarks],
+               "carried_views": [{"T_map_body": T.tolist(), "view": v.to_json()} for T, v in self.carried]}
         path.write_text(json.dumps(doc))
         return path
 
@@ -105,9 +114,30 @@ class StoredMap:
                       [(int(k["stamp_ns"]), np.array(k["T_map_body"])) for k in doc["keyframes"]],
                       [StoredLandmark(int(d["key"]), d["type"], np.array(d["T_map_rect"]), np.array(d["corners_map"]),
                                       d["feature"]) for d in doc["landmarks"]],
-                      {i: KeyframeView.from_json(k["view"]) for i, k in enumerate(doc["keyframes"]) if "view" in k})
+                      {i: KeyframeView.from_json(k["view"]) for i, k in enumerate(doc["keyframes"]) if "view" in k},
+                      [(np.array(d["T_map_body"]), KeyframeView.from_json(d["view"]))
+                       for d in doc.get("carried_views", [])])
         except (ValueError, KeyError, TypeError) as exc:  # a bad base64 view is a ValueError too
             raise UserInputError(f"stored map {path} is not a macroloc map: {exc}") from None
         if model is not None and out.building_sha256 != model.sha256:
             raise UserInputError(f"stored map {path} was made in another building")
         return out
+
+
+def carried_views(own: list[PlacedView], T_cad_map: np.ndarray, earlier: StoredMap, apart_m: float = 0.5,
+                  apart_deg: float = 15.0) -> list[PlacedView]:
+    """The `earlier` map's views (`placed_views`) moved into the frame of a map with `T_cad_map`, less those within
+    `apart_m` and `apart_deg` of one of its `own` (T_map_body, view): the places it has no view of, for a later
+    flight to be placed by, without piling up views of the same places flight after flight. None where the
+    earlier map was not localized."""
+    if earlier.T_cad_map is None:
+        return []
+    T_map_earlier = np.linalg.inv(T_cad_map) @ earlier.T_cad_map
+    moved = [(T_map_earlier @ T, v) for T, v in earlier.placed_views()]
+    if not moved or not own:
+        return moved
+    A, B = np.array([T for T, _ in moved]), np.array([T for T, _ in own])
+    near = np.linalg.norm(A[:, None, :3, 3] - B[None, :, :3, 3], axis=2) < apart_m
+    cos = (np.einsum("aij,bij->ab", A[:, :3, :3], B[:, :3, :3]) - 1.0) / 2.0  # trace(Ra^T Rb) = 1 + 2 cos(angle)
+    covered = (near & (cos > np.cos(np.radians(apart_deg)))).any(axis=1)
+    return [m for m, c in zip(moved, covered, strict=True) if not c]

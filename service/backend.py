@@ -28,7 +28,7 @@ from graph.features import BuildingModel
 from graph.keyframes import KeyframePolicy
 from graph.landmarks import feature_frame_cad
 from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
-from graph.mapstore import KeyframeView, StoredMap
+from graph.mapstore import KeyframeView, StoredMap, carried_views
 from graph.posegraph import PoseGraph
 from graph.registrar import FirstOfRegistrar, Registrar
 from graph.relocalize import Alignment, KnownRect, ObservedRect
@@ -292,26 +292,9 @@ class LocalizerBackend:
         if with_views:
             own = [(loc.graph.T_map_body(i), v) for i, v in sorted(loc.views.items())]
             snap.views.extend(view_to_wire(T, v) for T, v in own)
-            if self.restored is not None and T_cad_map is not None and self.restored.T_cad_map is not None:
-                # the saved map's views, carried into this map's frame where this run has none near: what a later
-                # restart can be placed by, without piling up views of the same places restart after restart
-                T_map_old = np.linalg.inv(T_cad_map) @ self.restored.T_cad_map
-                carried = [(T_map_old @ T, v) for T, v in self.restored.placed_views()]
-                covered = _covered([T for T, _ in carried], [T for T, _ in own])
-                snap.views.extend(view_to_wire(T, v) for (T, v), c in zip(carried, covered, strict=True) if not c)
+            if self.restored is not None and T_cad_map is not None:  # what a later restart can be placed by
+                snap.views.extend(view_to_wire(T, v) for T, v in carried_views(own, T_cad_map, self.restored))
         return snap
-
-
-def _covered(poses: list[np.ndarray], by: list[np.ndarray], apart_m: float = 0.5,
-             apart_deg: float = 15.0) -> np.ndarray:
-    """For each pose, whether one of `by` lies within `apart_m` and `apart_deg` of it (KeyframePlaces' spacing:
-    one view of the place will do)."""
-    if not poses or not by:
-        return np.zeros(len(poses), bool)
-    A, B = np.array(poses), np.array(by)
-    near = np.linalg.norm(A[:, None, :3, 3] - B[None, :, :3, 3], axis=2) < apart_m
-    cos = (np.einsum("aij,bij->ab", A[:, :3, :3], B[:, :3, :3]) - 1.0) / 2.0  # trace(Ra^T Rb) = cos of the angle
-    return (near & (cos > np.cos(np.radians(apart_deg)))).any(axis=1)
 
 
 def view_to_wire(T_map_body: np.ndarray, view: KeyframeView) -> pb.KeyframeView:

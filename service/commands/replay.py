@@ -50,7 +50,7 @@ def register(app: typer.Typer) -> None:
         """
         from graph.bim import load_building
         from graph.errors import UserInputError
-        from graph.mapstore import StoredMap
+        from graph.mapstore import StoredMap, carried_views
         from service.commands._io import existing_file, print_json
         from service.config import load_config
         from service.replay import replay as run_replay
@@ -93,7 +93,10 @@ def register(app: typer.Typer) -> None:
         result = run_replay(flight, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
                             isam=isam, surfaces=surfaces, places=places)
         if save_map is not None:
-            result.localizer.stored_map().save(save_map)
+            new_map = result.localizer.stored_map()
+            if stored is not None and new_map.T_cad_map is not None:  # the stored map's places this flight missed
+                new_map.carried = carried_views(new_map.placed_views(), new_map.T_cad_map, stored)
+            new_map.save(save_map)
         if report is not None:
             from service.plots import load_wall_mesh
             from service.replay_report import write_report

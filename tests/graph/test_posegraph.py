@@ -4,6 +4,7 @@ correction by the joint refinement, robustness to injected wrong matches, save -
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -170,6 +171,7 @@ def test_keyframe_views_survive_save_and_load(corridor, tmp_path) -> None:
         assert np.array_equal(view.descriptors, views[k].descriptors)
         assert np.allclose(view.points_body, views[k].points_body, atol=1e-5)  # stored as float32
     doc = json.loads(path.read_text())
+    doc.pop("carried_views")
     for kf in doc["keyframes"]:  # a version 1 map: no views
         kf.pop("view", None)
     path.write_text(json.dumps(doc))
@@ -178,6 +180,35 @@ def test_keyframe_views_survive_save_and_load(corridor, tmp_path) -> None:
     path.write_text(json.dumps(doc))
     with pytest.raises(UserInputError, match="is not a macroloc map"):
         StoredMap.load(path, corridor)
+
+
+def test_an_earlier_maps_views_are_carried_where_the_new_map_has_none(corridor, tmp_path) -> None:
+    """carried_views: the earlier map's views moved into the new map's frame (both linked to the CAD frame),
+    less those near one of the new map's own; they survive save and load and are placed by, after its own."""
+    from graph.mapstore import KeyframeView, carried_views
+
+    rng = np.random.default_rng(4)
+
+    def view() -> KeyframeView:
+        return KeyframeView(rng.uniform(1, 5, (9, 3)), rng.integers(0, 256, (9, 32), dtype=np.uint8))
+
+    T_cad_earlier, T_cad_new = make_T(rot_z(0.3), np.array([2.0, 1.0, 0.0])), make_T(rot_z(-1.0), np.array([5.0, 0, 0]))
+    seen = make_T(rot_z(0.2), np.array([1.0, 2.0, 1.4]))  # a place both flights saw (CAD frame), and one only the first
+    missed = make_T(rot_z(2.0), np.array([9.0, -3.0, 1.4]))
+    earlier = StoredMap(corridor.sha256, T_cad_earlier, [(0, np.linalg.inv(T_cad_earlier) @ seen),
+                                                         (1, np.linalg.inv(T_cad_earlier) @ missed)], [],
+                        {0: view(), 1: view()})
+    turned = seen @ make_T(rot_z(np.radians(10.0)), np.array([0.3, 0.0, 0.0]))  # within 0.5 m and 15 deg of it
+    own = [(np.linalg.inv(T_cad_new) @ turned, view())]
+    carried = carried_views(own, T_cad_new, earlier)
+    assert len(carried) == 1 and np.allclose(T_cad_new @ carried[0][0], missed)
+    assert carried[0][1] is earlier.views[1]
+    assert len(carried_views(own, T_cad_new, replace(earlier, T_cad_map=None))) == 0
+    new = StoredMap(corridor.sha256, T_cad_new, [(0, own[0][0])], [], {0: own[0][1]}, carried)
+    loaded = StoredMap.load(new.save(tmp_path / "map.json"), corridor)
+    poses = [T for T, _ in loaded.placed_views()]
+    assert len(poses) == 2 and np.allclose(poses[0], own[0][0]) and np.allclose(poses[1], carried[0][0])
+    assert np.array_equal(loaded.placed_views()[1][1].descriptors, earlier.views[1].descriptors)
 
 
 def test_a_map_from_another_building_is_refused(corridor, tmp_path) -> None:
@@ -238,8 +269,6 @@ def test_a_sighting_cut_by_the_image_border_barely_moves_its_landmark_along_that
     """Three clean sightings of a door and three cut by the image border, whose corners stop at the border
     and so put the door 0.3 m off along the cut axis. Flagged as truncated, they must move the landmark less
     than a tenth as far as the same sightings unflagged."""
-    from dataclasses import replace
-
     from graph.localizer import Sighting
 
     T_cad_body = make_T(np.eye(3), np.array([0.0, 0.0, 1.4]))
