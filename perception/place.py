@@ -3,12 +3,13 @@
 A stored keyframe keeps a `KeyframeView` (graph.mapstore): up to `n_features` ORB features of its left image
 with a reliable stereo depth (SGBM's sub-pixel disparity at the keypoint, perception.stereo.keypoint_points),
 as 3D points in its body frame. To place a new keyframe, its ORB features are matched to every stored view
-at once (the `vote_features` strongest against each view's `vote_per_view` strongest: the nearest descriptor
-within `vote_distance` votes for its view); the `top_views` views with the most such matches are
+at once (the `vote_features` strongest against each view's `vote_per_view` strongest: the two nearest descriptors
+within `vote_distance` vote for their views); the `top_views` views with the most such matches are
 matched again one by one with Lowe's ratio test (per view: across views, the same corner seen twice would fail
 it), and PnP-RANSAC on their 3D points, in the stored map's frame, gives the camera's pose there. A pose is
 kept only with `min_inliers` inliers and at most `max_tilt_deg` between its up and the IMU's: both frames are
-levelled by gravity, so a pose tilted from it is a wrong one.
+levelled by gravity, so a pose tilted from it is a wrong one. And where the matches left over put the camera in a
+second place, with half as many inliers or more (twin rooms that look alike), there is no answer: never a guess.
 
 The answer is T_map_body in the stored map's frame; times the stored map's T_cad_map it is the body's pose in
 the CAD frame (the localizer checks it against the walls before anchoring with it).
@@ -38,11 +39,13 @@ class PlaceConfig:
     vote_features: int = 300  # the image's strongest features that vote for stored views ...
     vote_per_view: int = 150  # ... against each view's strongest (a view's features are stored strongest first)
     vote_distance: int = 40  # Hamming distance (of 256 bits) under which a nearest descriptor votes for its view
-    top_views: int = 3
+    top_views: int = 4
     ratio: float = 0.8
     ransac_reprojection_px: float = 3.0
     min_inliers: int = 40
     max_tilt_deg: float = 5.0
+    rival_ratio: float = 0.5  # a second place explaining the leftover matches with this share of the inliers ...
+    rival_apart_m: float = 1.0  # ... this far from the first: the place is ambiguous (no answer)
 
 
 @dataclass(frozen=True)
@@ -107,7 +110,8 @@ class PlaceRecognizer:
             return None
         uv = np.array([k.pt for k in kp], np.float64)
         strongest = np.argsort([-k.response for k in kp], kind="stable")[:c.vote_features]
-        nearest = [m for m in self._matcher.match(desc[strongest], self._database) if m.distance < c.vote_distance]
+        nearest = [m for pair in self._matcher.knnMatch(desc[strongest], self._database, k=2) for m in pair
+                   if m.distance < c.vote_distance]  # the two nearest: a twin place a bit or two further gets its vote
         votes = np.bincount(self._owner[[m.trainIdx for m in nearest]], minlength=len(self._views))
         top = [int(v) for v in np.argsort(-votes, kind="stable")[:c.top_views] if votes[v] >= c.min_inliers // 2]
         obj, img, of_view = [], [], []
@@ -127,13 +131,34 @@ class PlaceRecognizer:
         if not ok or inl is None or len(inl) < c.min_inliers:
             return None
         idx = inl[:, 0]
-        rvec, tvec = cv2.solvePnPRefineLM(obj_a[idx], img_a[idx], self.rig.K, None, rvec, tvec)
-        T_cam_map = np.eye(4)
-        T_cam_map[:3, :3], T_cam_map[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
-        T_map_body = np.linalg.inv(T_cam_map) @ np.linalg.inv(self.T_body_cam)
+        T_map_body = self._body_pose(*cv2.solvePnPRefineLM(obj_a[idx], img_a[idx], self.rig.K, None, rvec, tvec))
         if up_body is not None and _tilt_deg(T_map_body, up_body) > c.max_tilt_deg:
             return None
+        if self._rival(obj_a, img_a, idx, T_map_body):
+            return None
         return PlaceMatch(T_map_body, len(idx), int(np.bincount(np.array(of_view)[idx]).argmax()))
+
+    def _body_pose(self, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+        T_cam_map = np.eye(4)
+        T_cam_map[:3, :3], T_cam_map[:3, 3] = cv2.Rodrigues(rvec)[0], np.ravel(tvec)
+        return np.linalg.inv(T_cam_map) @ np.linalg.inv(self.T_body_cam)
+
+    def _rival(self, obj: np.ndarray, img: np.ndarray, inliers: np.ndarray, T_map_body: np.ndarray) -> bool:
+        """Does a second place explain the matches left over, with `rival_ratio` as many inliers and at least
+        `min_inliers`, `rival_apart_m` away? Two places that look alike (a symmetric building's twin rooms): no
+        guess."""
+        c = self.config
+        rest = np.setdiff1d(np.arange(len(obj)), inliers)
+        need = max(c.min_inliers, int(np.ceil(c.rival_ratio * len(inliers))))
+        if len(rest) < need:
+            return False
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj[rest], img[rest], self.rig.K, None, iterationsCount=300,
+                                                 reprojectionError=c.ransac_reprojection_px, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inl is None or len(inl) < need:
+            return False
+        other = self._body_pose(rvec, tvec)
+        return bool(np.linalg.norm(other[:3, 3] - T_map_body[:3, 3]) > c.rival_apart_m)
 
 
 def _tilt_deg(T_map_body: np.ndarray, up_body: np.ndarray) -> float:

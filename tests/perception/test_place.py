@@ -103,3 +103,26 @@ def test_without_stored_views_nothing_is_placed(room) -> None:  # noqa: ANN001
     recognizer = PlaceRecognizer(RIG, T_body_cam)
     recognizer.use([(np.eye(4), KeyframeView(np.zeros((0, 3)), np.zeros((0, 32), np.uint8)))])
     assert not recognizer.has_views and recognizer.place(views["between"][1], UP) is None
+
+
+def test_twin_places_that_look_alike_are_not_guessed(room) -> None:  # noqa: ANN001
+    """The stored views again, as if seen in a twin room 12 m away and half a turn about (a symmetric building
+    whose halves look alike; a few bits of each descriptor differ, as no two places look the same to the bit).
+    Both explain the image: no answer. Either room alone is placed."""
+    T_body_cam, stored, views = room
+    rng = np.random.default_rng(1)
+    T_twin = make_T(rot_z(np.pi), np.array([12.0, 0.0, 0.0]))
+    twins = []
+    for T_map_body, view in stored:
+        flips = np.zeros(view.descriptors.shape, np.uint8)
+        byte = rng.integers(0, 32, (len(flips), 2))
+        flips[np.arange(len(flips))[:, None], byte] = 1 << rng.integers(0, 8, byte.shape).astype(np.uint8)
+        twins.append((T_twin @ T_map_body, KeyframeView(view.points_body, view.descriptors ^ flips)))
+    left = views["between"][1]
+    for alone in (stored, twins):
+        recognizer = PlaceRecognizer(RIG, T_body_cam)
+        recognizer.use(alone)
+        assert recognizer.place(left, UP) is not None
+    recognizer = PlaceRecognizer(RIG, T_body_cam)
+    recognizer.use(stored + twins)
+    assert recognizer.place(left, UP) is None
