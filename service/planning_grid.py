@@ -121,15 +121,33 @@ def _read_solids(ifc_path: Path, exclude: tuple[str, ...] = NOT_OBSTACLES,
 def surfaces_for(building: Path, line_of_sight: bool = True) -> SurfaceIndex | None:
     """The model's surfaces for checking registrations against depth (graph.surfaces): every surface a camera
     sees in an IFC model, and (`line_of_sight`) its walls as voxels; None (logged) for other formats, whose
-    registrations then go unchecked."""
-    from graph.surfaces import SurfaceIndex
+    registrations then go unchecked. Cached by the file's SHA-256 and the surface parameters."""
+    import hashlib
+
+    from graph.surfaces import SurfaceIndex, SurfaceParams
 
     if Path(building).suffix.lower() != ".ifc":
         log.info("%s: no surface check of registrations (IFC models only)", Path(building).name)
         return None
-    seen = load_solids(Path(building), with_doors_and_windows=True)
-    index = SurfaceIndex.from_mesh(seen.vertices_cad, seen.faces,
-                                   walls=wall_voxels(Path(building)) if line_of_sight else None)
+    walls = wall_voxels(Path(building)) if line_of_sight else None
+    params = SurfaceParams()
+    # the samples are seeded, so a cached index is the one built: ~2 s of sampling and hidden-face tests saved
+    settings = hashlib.sha256(f"{params!r} walls={line_of_sight}".encode()).hexdigest()[:12]
+    cached = cache_dir() / f"surfaces-v{MESH_CACHE_VERSION}-{file_sha256(Path(building))[:32]}-{settings}.npz"
+    if cached.exists():
+        with np.load(cached) as a:
+            index = SurfaceIndex(a["samples"], params, a["normals"], a["horizontal"], a["horizontal_normals"])
+        index.walls = walls
+    else:
+        seen = load_solids(Path(building), with_doors_and_windows=True)
+        index = SurfaceIndex.from_mesh(seen.vertices_cad, seen.faces, params, walls=walls)
+        h_samples, h_normals = (index.horizontal[1], index.horizontal[2]) if index.horizontal is not None \
+            else (np.zeros((0, 3)), np.zeros((0, 3)))
+        assert index.normals_cad is not None  # from_mesh gives every sample its normal
+        tmp = cached.with_name(f"{cached.stem}.tmp{os.getpid()}.npz")
+        np.savez(tmp, samples=index.samples_cad, normals=index.normals_cad, horizontal=h_samples,
+                 horizontal_normals=h_normals)
+        os.replace(tmp, cached)
     log.info("%s: %d surface samples and %d wall voxels for checking registrations", Path(building).name, len(index),
              len(index.walls) if index.walls is not None else 0)
     return index

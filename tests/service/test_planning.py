@@ -132,3 +132,30 @@ def test_lines_of_sight_pass_doorways_not_the_walls_beside_them(fzk_path) -> Non
         assert surfaces.walls.seen_through(origins, points).tolist() == [False, True]
     unchecked = surfaces_for(fzk_path, line_of_sight=False)
     assert unchecked is not None and unchecked.walls is None
+
+
+def test_the_surfaces_read_from_the_cache_are_those_built(fzk_path, tmp_path, monkeypatch) -> None:
+    """surfaces_for caches the seeded samples per file and parameters: the second call reads them (the hidden-face
+    test and the sampling are not repeated) and gets the same index, sample for sample; another setting (no lines
+    of sight, so no hidden faces dropped) is cached apart."""
+    import graph.bim
+    import graph.surfaces
+    from service.planning_grid import surfaces_for
+
+    monkeypatch.setattr(graph.bim, "cache_dir", lambda: tmp_path)
+    monkeypatch.setattr("service.planning_grid.cache_dir", lambda: tmp_path)
+    built = surfaces_for(fzk_path)
+    assert built is not None and len(list(tmp_path.glob("surfaces-*.npz"))) == 1
+    monkeypatch.setattr(graph.surfaces.SurfaceIndex, "from_mesh", None)  # a rebuild would fail
+    cached = surfaces_for(fzk_path)
+    assert cached is not None and cached.walls is not None and cached.horizontal is not None
+    assert built.horizontal is not None and built.normals_cad is not None and cached.normals_cad is not None
+    assert np.array_equal(cached.samples_cad, built.samples_cad) and np.array_equal(cached.normals_cad,
+                                                                                   built.normals_cad)
+    assert np.array_equal(cached.horizontal[1], built.horizontal[1])
+    assert np.array_equal(cached.walls.keys, built.walls.keys)
+    monkeypatch.undo()
+    monkeypatch.setattr("service.planning_grid.cache_dir", lambda: tmp_path)
+    unchecked = surfaces_for(fzk_path, line_of_sight=False)
+    assert unchecked is not None and len(unchecked) > len(built)  # its hidden faces are kept
+    assert len(list(tmp_path.glob("surfaces-*.npz"))) == 2
