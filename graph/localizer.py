@@ -145,6 +145,7 @@ class Localizer:
         self.registrations: list[tuple[int, str]] = []  # (stamp_ns, status) of every registration attempt
         self.keyframe_stamps_ns: list[int] = []
         self.views: dict[int, KeyframeView] = {}  # keyframe -> what place recognition keeps of it, where given
+        self.placed: list[int] = []  # keyframes placed in a stored map (place recognition) and taken
         self._T_odom_prev: np.ndarray | None = None
         self._last_link_ns: int | None = None
         self._registered_with = 0
@@ -494,6 +495,7 @@ class Localizer:
             self.status = "localized"
         sigmas = np.r_[np.full(3, np.radians(p.placed_sigma_deg)), np.full(3, p.placed_sigma_m)]  # [rot; trans]
         self.graph.add_cad_pose(i, T_cad_body, np.diag(sigmas**-2.0))
+        self.placed.append(i)
         self._last_link_ns = stamp_ns
         self.graph.update(extra_iterations=2)
         self._link_new_landmarks(stamp_ns)

@@ -1,5 +1,6 @@
 """Pictures of a replay: the top-down view (the model's walls cut at the flight's height, doors and windows, true and
-estimated trajectories, matched features) and the per-frame figures (position error with its horizontal and height
+estimated trajectories, matched features; a stored map's keyframe views and the keyframes placed in them) and the
+per-frame figures (position error with its horizontal and height
 parts, tilt and yaw errors, status, sightings, iSAM2 update time), plus result.json."""
 
 from __future__ import annotations
@@ -11,25 +12,30 @@ from typing import Any
 import numpy as np
 
 from graph.features import BuildingModel
+from graph.mapstore import StoredMap
 from service.replay import ReplayResult
 
 STATUS_LEVEL = {"exploring": 0, "ambiguous": 1, "localized": 2, "degraded": 3, "lost": 4}
 
 
-def write_report(result: ReplayResult, model: BuildingModel, out_dir: Path, wall_mesh: Any = None) -> list[Path]:
+def write_report(result: ReplayResult, model: BuildingModel, out_dir: Path, wall_mesh: Any = None,
+                 stored: StoredMap | None = None) -> list[Path]:
     """Write topdown.png, frames.png and result.json into `out_dir`; returns their paths. `wall_mesh`: the
-    model's walls (service.plots.load_wall_mesh), drawn as a floor plan cut at the flight's height."""
+    model's walls (service.plots.load_wall_mesh), drawn as a floor plan cut at the flight's height; `stored`: the
+    map the flight re-localized into, whose keyframe views are drawn with the keyframes placed in them."""
     import matplotlib
 
     matplotlib.use("Agg")
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [_topdown(result, model, out_dir / "topdown.png", wall_mesh), _frames(result, out_dir / "frames.png")]
+    paths = [_topdown(result, model, out_dir / "topdown.png", wall_mesh, stored),
+             _frames(result, out_dir / "frames.png")]
     doc = out_dir / "result.json"
     doc.write_text(json.dumps(result.to_json(), indent=2))
     return [*paths, doc]
 
 
-def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: Any = None) -> Path:
+def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: Any = None,
+             stored: StoredMap | None = None) -> Path:
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
 
@@ -50,9 +56,14 @@ def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: 
     linked = np.array([matched[fid].centroid_cad[:2] for fid in result.localizer.links.values() if fid in matched])
     if len(linked):
         ax.scatter(linked[:, 0], linked[:, 1], s=90, facecolors="none", edgecolors="tab:green", label="matched")
+    _stored_views(ax, stored)
     ax.plot(true_xyz[:, 0], true_xyz[:, 1], "k-", lw=1.2, label="truth")
     est = np.array([T[:3, 3] if T is not None else [np.nan] * 3 for T in tr.T_est])
     ax.plot(est[:, 0], est[:, 1], "-", color="tab:orange", lw=1.0, label="estimate (CAD frame)")
+    T_cad_map = result.localizer.graph.T_cad_map()
+    if result.localizer.placed and T_cad_map is not None:
+        xy = np.array([(T_cad_map @ result.localizer.graph.T_map_body(i))[:2, 3] for i in result.localizer.placed])
+        ax.scatter(xy[:, 0], xy[:, 1], s=70, marker="*", c="tab:purple", zorder=5, label="placed in the stored map")
     ax.set_aspect("equal")
     ax.set_xlabel("x (m, CAD)")
     ax.set_ylabel("y (m, CAD)")
@@ -62,6 +73,15 @@ def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: 
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
+
+
+def _stored_views(ax: Any, stored: StoredMap | None) -> None:
+    """The stored map's keyframe views in the CAD frame, each an arrow along its camera's heading."""
+    if stored is None or stored.T_cad_map is None or not stored.placed_views():
+        return
+    T = np.array([stored.T_cad_map @ T_map_body for T_map_body, _ in stored.placed_views()])
+    ax.quiver(T[:, 0, 3], T[:, 1, 3], T[:, 0, 0], T[:, 1, 0], color="tab:gray", alpha=0.6, width=0.002, scale=60,
+              zorder=1, label="stored views")
 
 
 def _frames(result: ReplayResult, path: Path) -> Path:

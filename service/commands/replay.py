@@ -101,7 +101,7 @@ def register(app: typer.Typer) -> None:
             from service.plots import load_wall_mesh
             from service.replay_report import write_report
 
-            write_report(result, model, report, load_wall_mesh(building))
+            write_report(result, model, report, load_wall_mesh(building), stored)
         doc = result.to_json()
         if json_out:
             print_json(doc)

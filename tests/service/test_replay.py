@@ -152,17 +152,26 @@ def test_the_backend_hands_depth_to_the_next_keyframe() -> None:
 
 
 def test_a_map_with_views_relocalizes_at_the_first_frame(rendered_office_flight: Path, office_path: Path,
-                                                          tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+                                                          tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """Place recognition in the stored map's keyframe views: localized at the first frame, before any door is in
     range; the same map without its views waits for the doors, as a fresh flight does."""
     map_path = tmp_path / "map.json"
     rc, first, err = run(["replay", str(rendered_office_flight), "--building", str(office_path), "--json", "--save-map",
                           str(map_path)], capsys)
     assert rc == 0 and first is not None and first["localized"], err
+    import matplotlib.axes
+
+    drawn: list[str] = []  # the report's floor plan shows the stored views and where the flight was placed
+    for name in ("quiver", "scatter"):
+        original = getattr(matplotlib.axes.Axes, name)
+        monkeypatch.setattr(matplotlib.axes.Axes, name, lambda self, *a, _f=original, **k: (
+            drawn.append(k.get("label", "")), _f(self, *a, **k))[1])
     rc, again, err = run(["replay", str(rendered_office_flight), "--building", str(office_path), "--json", "--map",
-                          str(map_path), "--seed", "7"], capsys)
+                          str(map_path), "--seed", "7", "--report", str(tmp_path / "report")], capsys)
     assert rc == 0 and again is not None, err
     assert again["time_to_localize_s"] == 0.0 and again["wrong_localizations"] == 0
+    assert {"stored views", "placed in the stored map"} <= set(drawn)
     assert again["ape_rmse_m"] < 0.1
     doc = json.loads(map_path.read_text())
     assert sum("view" in kf for kf in doc["keyframes"]) >= 5
