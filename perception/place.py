@@ -1,6 +1,6 @@
 """Visual place recognition in a stored map: a new flight placed where an earlier one flew, before it sees a door.
 
-A stored keyframe keeps a `KeyframeView` (graph.mapstore): up to `n_features` ORB features of its left image
+A stored keyframe keeps a `KeyframeView` (graph.mapstore): up to `stored_features` ORB features of its left image
 with a reliable stereo depth (SGBM's sub-pixel disparity at the keypoint, perception.stereo.keypoint_points),
 as 3D points in its body frame. To place a new keyframe, its ORB features are matched to every stored view
 at once (the `vote_features` strongest against each view's `vote_per_view` strongest: the two nearest descriptors
@@ -101,7 +101,8 @@ class PlaceRecognizer:
         return bool(self._views)
 
     def place(self, left: np.ndarray, up_body: np.ndarray | None = None) -> PlaceMatch | None:
-        """The body's pose in the stored map from its left image, or None (too few consistent matches)."""
+        """The body's pose in the stored map from its left image, or None (too few consistent matches, a pose tilted
+        from gravity, or two places alike)."""
         c = self.config
         if not self._views:
             return None

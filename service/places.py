@@ -29,13 +29,15 @@ class Placed:
 
 class KeyframePlaces:
     """See module doc. `stored`: the map to place keyframes in (only one with views and a T_cad_map can);
-    `keep_views`: describe every keyframe for the map this flight will save."""
+    `keep_views`: keep views of the keyframes (every `view_every_m` / `view_every_deg`) for the map this flight
+    will save."""
 
     def __init__(self, stored: StoredMap | None, keep_views: bool, config: PlaceConfig | None = None,
                  every_s: float = 1.0, view_every_m: float = 0.5, view_every_deg: float = 15.0) -> None:
         """`every_s`: placing is tried at most this often (flight time); a view is kept for a keyframe this far
         (`view_every_m` or `view_every_deg`, by the odometry) from the last keyframe that kept one."""
-        self.stored = stored if stored is not None and stored.views and stored.T_cad_map is not None else None
+        self.stored = stored if stored is not None and stored.placed_views() and stored.T_cad_map is not None \
+            else None
         self.keep_views = keep_views
         self.config = config
         self.every_s = every_s
@@ -58,7 +60,7 @@ class KeyframePlaces:
             self._recognizer = PlaceRecognizer(rig, T_body_cam, self.config)
             if self.stored is not None:
                 self._recognizer.use(self.stored.placed_views())
-                log.info("place recognition: %d stored views", len(self.stored.views))
+                log.info("place recognition: %d stored views", len(self.stored.placed_views()))
         T_cad_body = None
         due = self._last_try_ns is None or (stamp_ns - self._last_try_ns) * 1e-9 >= self.every_s
         if self.stored is not None and status != "localized" and due:

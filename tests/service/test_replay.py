@@ -217,3 +217,17 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
     assert len(poses) == 2 and np.allclose(poses[0], T_odom_body, atol=1e-6)  # its own; `here` is covered by it
     T_cad_map_new = T_cad_map_old @ here @ np.linalg.inv(T_odom_body)
     assert np.allclose(poses[1], np.linalg.inv(T_cad_map_new) @ T_cad_map_old @ far, atol=1e-5)
+
+
+def test_only_a_localized_map_with_views_is_placed_in_carried_ones_included() -> None:
+    from dataclasses import replace
+
+    from graph.mapstore import KeyframeView, StoredMap
+    from service.places import KeyframePlaces
+
+    view = KeyframeView(np.ones((30, 3)), np.zeros((30, 32), np.uint8))
+    carried_only = StoredMap("sha", np.eye(4), [(0, np.eye(4))], [], {}, [(np.eye(4), view)])
+    assert KeyframePlaces(carried_only, keep_views=False).active
+    assert not KeyframePlaces(replace(carried_only, carried=[]), keep_views=False).active
+    assert not KeyframePlaces(replace(carried_only, T_cad_map=None), keep_views=False).active
+    assert KeyframePlaces(None, keep_views=True).active and not KeyframePlaces(None, keep_views=False).active
