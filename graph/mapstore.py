@@ -28,6 +28,7 @@ from graph.landmarks import feature_frame_cad
 from graph.relocalize import KnownRect
 
 MAP_VERSION = 2
+VIEW_SPACING_M, VIEW_SPACING_DEG = 0.5, 15.0  # one view of a place will do within this of another
 
 
 @dataclass(frozen=True)
@@ -38,23 +39,32 @@ class KeyframeView:
     points_body: np.ndarray
     descriptors: np.ndarray
 
+    def to_bytes(self) -> tuple[bytes, bytes]:
+        """(points as little-endian float32, descriptors as uint8), row for row."""
+        return (np.ascontiguousarray(self.points_body, "<f4").tobytes(),
+                np.ascontiguousarray(self.descriptors, np.uint8).tobytes())
+
+    @classmethod
+    def from_bytes(cls, points_body: bytes, descriptors: bytes) -> KeyframeView:
+        """`to_bytes`' inverse; ValueError where the sizes do not make whole rows of equal number."""
+        points = np.frombuffer(points_body, "<f4").reshape(-1, 3).astype(np.float64)
+        rows = np.frombuffer(descriptors, np.uint8).reshape(-1, 32)
+        if len(points) != len(rows):
+            raise ValueError("a keyframe view's points and descriptors differ in number")
+        return cls(points, rows)
+
     def to_json(self) -> dict:
-        return {"points_body": _b64(self.points_body.astype("<f4")), "descriptors": _b64(self.descriptors)}
+        points, descriptors = self.to_bytes()
+        return {"points_body": base64.b64encode(points).decode("ascii"),
+                "descriptors": base64.b64encode(descriptors).decode("ascii")}
 
     @classmethod
     def from_json(cls, doc: dict) -> KeyframeView:
-        points = np.frombuffer(base64.b64decode(doc["points_body"]), "<f4").reshape(-1, 3).astype(np.float64)
-        descriptors = np.frombuffer(base64.b64decode(doc["descriptors"]), np.uint8).reshape(-1, 32)
-        if len(points) != len(descriptors):
-            raise ValueError("a keyframe view's points and descriptors differ in number")
-        return cls(points, descriptors)
+        return cls.from_bytes(base64.b64decode(doc["points_body"]), base64.b64decode(doc["descriptors"]))
 
 
 PlacedView = tuple[np.ndarray, KeyframeView]  # (T_map_body, view)
 
-
-def _b64(a: np.ndarray) -> str:
-    return base64.b64encode(np.ascontiguousarray(a).tobytes()).decode("ascii")
 
 
 @dataclass
@@ -124,8 +134,8 @@ class StoredMap:
         return out
 
 
-def carried_views(own: list[PlacedView], T_cad_map: np.ndarray, earlier: StoredMap, apart_m: float = 0.5,
-                  apart_deg: float = 15.0) -> list[PlacedView]:
+def carried_views(own: list[PlacedView], T_cad_map: np.ndarray, earlier: StoredMap,
+                  apart_m: float = VIEW_SPACING_M, apart_deg: float = VIEW_SPACING_DEG) -> list[PlacedView]:
     """The `earlier` map's views (`placed_views`) moved into the frame of a map with `T_cad_map`, less those within
     `apart_m` and `apart_deg` of one of its `own` (T_map_body, view): the places it has no view of, for a later
     flight to be placed by, without piling up views of the same places flight after flight. None where the

@@ -126,18 +126,27 @@ class PlaceRecognizer:
         if len(obj) < c.min_inliers:
             return None
         obj_a, img_a = np.array(obj, np.float64), np.array(img, np.float64)
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj_a, img_a, self.rig.K, None, iterationsCount=300,
-                                                 reprojectionError=c.ransac_reprojection_px, confidence=0.999,
-                                                 flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inl is None or len(inl) < c.min_inliers:
+        found = self._pnp(obj_a, img_a, c.min_inliers)
+        if found is None:
             return None
-        idx = inl[:, 0]
+        rvec, tvec, idx = found
         T_map_body = self._body_pose(*cv2.solvePnPRefineLM(obj_a[idx], img_a[idx], self.rig.K, None, rvec, tvec))
         if up_body is not None and _tilt_deg(T_map_body, up_body) > c.max_tilt_deg:
             return None
         if self._rival(obj_a, img_a, idx, T_map_body):
             return None
         return PlaceMatch(T_map_body, len(idx), int(np.bincount(np.array(of_view)[idx]).argmax()))
+
+    def _pnp(self, obj: np.ndarray, img: np.ndarray,
+             need: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """PnP-RANSAC of image points (N, 2) on map points (N, 3): (rvec, tvec, inlier indices), or None with fewer
+        than `need` inliers."""
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, self.rig.K, None, iterationsCount=300,
+                                                 reprojectionError=self.config.ransac_reprojection_px,
+                                                 confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inl is None or len(inl) < need:
+            return None
+        return rvec, tvec, inl[:, 0]
 
     def _body_pose(self, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
         T_cam_map = np.eye(4)
@@ -153,12 +162,10 @@ class PlaceRecognizer:
         need = max(c.min_inliers, int(np.ceil(c.rival_ratio * len(inliers))))
         if len(rest) < need:
             return False
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj[rest], img[rest], self.rig.K, None, iterationsCount=300,
-                                                 reprojectionError=c.ransac_reprojection_px, confidence=0.999,
-                                                 flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inl is None or len(inl) < need:
+        found = self._pnp(obj[rest], img[rest], need)
+        if found is None:
             return False
-        other = self._body_pose(rvec, tvec)
+        other = self._body_pose(*found[:2])
         return bool(np.linalg.norm(other[:3, 3] - T_map_body[:3, 3]) > c.rival_apart_m)
 
 

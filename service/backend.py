@@ -298,19 +298,17 @@ class LocalizerBackend:
 
 
 def view_to_wire(T_map_body: np.ndarray, view: KeyframeView) -> pb.KeyframeView:
-    return pb.KeyframeView(T_map_body=pose_from_matrix(T_map_body),
-                           points_body=np.ascontiguousarray(view.points_body, "<f4").tobytes(),
-                           descriptors=np.ascontiguousarray(view.descriptors, np.uint8).tobytes())
+    points, descriptors = view.to_bytes()
+    return pb.KeyframeView(T_map_body=pose_from_matrix(T_map_body), points_body=points, descriptors=descriptors)
 
 
 def view_from_wire(msg: pb.KeyframeView) -> tuple[np.ndarray, KeyframeView]:
     """(T_map_body, view); a malformed view (sizes that disagree) becomes an empty one."""
-    points = np.frombuffer(msg.points_body, "<f4")
-    descriptors = np.frombuffer(msg.descriptors, np.uint8)
-    if len(points) % 3 or len(descriptors) % 32 or len(points) // 3 != len(descriptors) // 32:
-        return matrix_from_pose(msg.T_map_body), KeyframeView(np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
-    return matrix_from_pose(msg.T_map_body), KeyframeView(points.reshape(-1, 3).astype(np.float64),
-                                                          descriptors.reshape(-1, 32))
+    try:
+        view = KeyframeView.from_bytes(msg.points_body, msg.descriptors)
+    except ValueError:
+        view = KeyframeView(np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
+    return matrix_from_pose(msg.T_map_body), view
 
 
 def _storey_of(model: BuildingModel, matches: dict[int, str]) -> str:

@@ -228,18 +228,13 @@ class LocalizationService:
         """Place recognition on the frame (service.places): its pose in the saved map while not localized, its
         view to keep for the next one; None where neither applies (no odometry for the frame yet, no
         calibration, or nothing due)."""
-        info = ev.frame.info
-        if T_odom_body is None or not self.places.active or info.fx <= 0 or not ev.frame.right.data:
+        if T_odom_body is None:
             return None
-        from perception.calib import StereoRig
         from service.frames import forward_T_body_cam
-        from service.recording import decode_image
 
+        info = ev.frame.info
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_T_body_cam()
-        rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, ev.frame.left.width,
-                        ev.frame.left.height)
-        placed = self.places.at_keyframe(ev.stamp_ns, T_odom_body, decode_image(ev.frame.left),
-                                         decode_image(ev.frame.right), rig, T_body_cam, up_body, status)
+        placed = self.places.at_frame(ev.frame, ev.stamp_ns, T_odom_body, T_body_cam, up_body, status)
         return placed if placed.T_cad_body is not None or placed.view is not None else None
 
     def _add_obstacles(self, frame: pb.StereoFrame, T_cad_body: np.ndarray) -> None:

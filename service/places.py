@@ -13,10 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graph.mapstore import KeyframeView, StoredMap
+from graph.mapstore import VIEW_SPACING_DEG, VIEW_SPACING_M, KeyframeView, StoredMap
 from graph.rigid import rotation_angle_deg
 from perception.calib import StereoRig
 from perception.place import PlaceConfig, PlaceRecognizer
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +33,11 @@ class KeyframePlaces:
     `keep_views`: keep views of the keyframes (every `view_every_m` / `view_every_deg`) for the map this flight
     will save."""
 
+    MIN_VIEW_POINTS = 20  # a view with fewer (a blank wall, a dark frame) has nothing to place by: not kept
+
     def __init__(self, stored: StoredMap | None, keep_views: bool, config: PlaceConfig | None = None,
-                 every_s: float = 1.0, view_every_m: float = 0.5, view_every_deg: float = 15.0) -> None:
+                 every_s: float = 1.0, view_every_m: float = VIEW_SPACING_M,
+                 view_every_deg: float = VIEW_SPACING_DEG) -> None:
         """`every_s`: placing is tried at most this often (flight time); a view is kept for a keyframe this far
         (`view_every_m` or `view_every_deg`, by the odometry) from the last keyframe that kept one."""
         self.stored = stored if stored is not None and stored.placed_views() and stored.T_cad_map is not None \
@@ -42,10 +46,7 @@ class KeyframePlaces:
         self.config = config
         self.every_s = every_s
         self.view_every_m, self.view_every_deg = view_every_m, view_every_deg
-        self.min_view_points = 20
         self._T_odom_viewed: np.ndarray | None = None
-        self.tries = 0
-        self.placed = 0
         self._recognizer: PlaceRecognizer | None = None
         self._last_try_ns: int | None = None
 
@@ -53,32 +54,49 @@ class KeyframePlaces:
     def active(self) -> bool:
         return self.stored is not None or self.keep_views
 
-    def at_keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, left: np.ndarray, right: np.ndarray,
-                    rig: StereoRig, T_body_cam: np.ndarray, up_body: np.ndarray | None, status: str) -> Placed:
-        """This keyframe's place in the stored map (while not localized) and its view (when kept)."""
+    def at_frame(self, frame: pb.StereoFrame, stamp_ns: int, T_odom_body: np.ndarray, T_body_cam: np.ndarray,
+                 up_body: np.ndarray | None, status: str) -> Placed:
+        """A keyframe's stereo frame: its place in the stored map (while not localized, at most every `every_s`)
+        and its view (when kept and due). Only the images that work needs are decoded: none after localizing
+        between views. Nothing from a frame without images or calibration (a ground-truth flight's)."""
+        info = frame.info
+        if not self.active or info.fx <= 0 or not frame.left.data or not frame.right.data:
+            return Placed(None, None)
+        place = self.stored is not None and status != "localized" and \
+            (self._last_try_ns is None or (stamp_ns - self._last_try_ns) * 1e-9 >= self.every_s)
+        describe = self.keep_views and self._view_due(T_odom_body)
+        if not place and not describe:
+            return Placed(None, None)
+        from service.recording import decode_image
+
+        recognizer = self._recognizer_for(frame, T_body_cam)
+        left = decode_image(frame.left)
+        T_cad_body = None
+        if place:
+            assert self.stored is not None and self.stored.T_cad_map is not None
+            self._last_try_ns = stamp_ns
+            match = recognizer.place(left, up_body)
+            if match is not None:
+                T_cad_body = self.stored.T_cad_map @ match.T_map_body
+                log.info("keyframe placed in the stored map: %d inliers (stored view %d)", match.inliers, match.view)
+        view = None
+        if describe:
+            view = recognizer.describe(left, decode_image(frame.right))
+            self._T_odom_viewed = T_odom_body
+            if len(view.descriptors) < self.MIN_VIEW_POINTS:
+                view = None
+        return Placed(T_cad_body, view)
+
+    def _recognizer_for(self, frame: pb.StereoFrame, T_body_cam: np.ndarray) -> PlaceRecognizer:
+        """The recognizer, made for the first frame's camera (the stored views loaded into it)."""
         if self._recognizer is None:
+            info = frame.info
+            rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
             self._recognizer = PlaceRecognizer(rig, T_body_cam, self.config)
             if self.stored is not None:
                 self._recognizer.use(self.stored.placed_views())
                 log.info("place recognition: %d stored views", len(self.stored.placed_views()))
-        T_cad_body = None
-        due = self._last_try_ns is None or (stamp_ns - self._last_try_ns) * 1e-9 >= self.every_s
-        if self.stored is not None and status != "localized" and due:
-            self._last_try_ns = stamp_ns
-            self.tries += 1
-            match = self._recognizer.place(left, up_body)
-            if match is not None:
-                assert self.stored.T_cad_map is not None
-                T_cad_body = self.stored.T_cad_map @ match.T_map_body
-                self.placed += 1
-                log.info("keyframe placed in the stored map: %d inliers (stored view %d)", match.inliers, match.view)
-        view = None
-        if self.keep_views and self._view_due(T_odom_body):
-            view = self._recognizer.describe(left, right)
-            self._T_odom_viewed = T_odom_body
-            if len(view.descriptors) < self.min_view_points:  # a blank wall, a dark frame: nothing to place by
-                view = None
-        return Placed(T_cad_body, view)
+        return self._recognizer
 
     def _view_due(self, T_odom_body: np.ndarray) -> bool:
         if self._T_odom_viewed is None:

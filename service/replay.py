@@ -30,7 +30,6 @@ from service.replay_sources import FrameInput, ObservationSource, TruthSource
 
 if TYPE_CHECKING:
     from service.config import GraphConfig
-    from service.recording import FlightFrame
 
 log = logging.getLogger(__name__)
 
@@ -151,7 +150,8 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
         if inputs.points_body is not None:
             localizer.add_depth(inputs.T_odom_body, inputs.points_body)  # given with the next keyframe
         if is_kf:
-            placed = _place(places, frame, inputs, localizer.status)
+            placed = places.at_frame(frame.stereo, inputs.stamp_ns, inputs.T_odom_body, inputs.T_body_cam,
+                                     inputs.up_body, localizer.status) if places is not None else Placed(None, None)
             est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body,
                                          T_cad_body_placed=placed.T_cad_body, view=placed.view)
             T_kf, t_kf = inputs.T_odom_body, t_s
@@ -168,20 +168,6 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
 
         raise UserInputError(f"recording {flight} holds no stereo frames")
     return _score(trace, localizer, busy_s, busy_at_localized)
-
-
-def _place(places: KeyframePlaces | None, frame: FlightFrame, inputs: FrameInput, status: str) -> Placed:
-    """Place recognition at a keyframe, on the recorded stereo pair (nothing without `places`, or on a recording
-    without images: a ground-truth flight, service.truth_flight)."""
-    if places is None or not places.active or not frame.stereo.left.data:
-        return Placed(None, None)
-    from perception.calib import StereoRig
-    from service.recording import decode_image
-
-    info = frame.stereo.info
-    rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
-    return places.at_keyframe(inputs.stamp_ns, inputs.T_odom_body, decode_image(frame.stereo.left),
-                              decode_image(frame.stereo.right), rig, inputs.T_body_cam, inputs.up_body, status)
 
 
 def _record(trace: ReplayTrace, t_s: float, est: Estimate, T_true: np.ndarray | None, is_kf: bool,
