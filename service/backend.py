@@ -144,10 +144,8 @@ class LocalizerBackend:
                  len(snapshot.views), "saved" if saved_T is not None else "absent")
         backend = cls(model, RestoredRegistrar(model, saved_T, linked, fallback, params=localizer,
                                                with_surfaces=surfaces is not None), params, surfaces=surfaces)
-        if saved_T is not None and snapshot.views:
-            views = [view_from_wire(v) for v in snapshot.views]
-            backend.restored = StoredMap(model.sha256, saved_T, [(0, T) for T, _ in views],
-                                         views={i: v for i, (_, v) in enumerate(views)})
+        if saved_T is not None and snapshot.views:  # views with their poses, as a map carries an earlier one's
+            backend.restored = StoredMap(model.sha256, saved_T, carried=[view_from_wire(v) for v in snapshot.views])
         return backend
 
     # --- inputs -------------------------------------------------------------------------------------------------

@@ -206,7 +206,7 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
                            T_cad_map=pose_from_matrix(T_cad_map_old))
     saved.views.extend([view_to_wire(here, view()), view_to_wire(far, view())])
     backend = LocalizerBackend.fresh_or_restored(model, saved)
-    assert backend.restored is not None and len(backend.restored.views) == 2
+    assert backend.restored is not None and len(backend.restored.placed_views()) == 2
     T_odom_body = make_T(rot_z(-0.7), np.array([3.0, 4.0, 1.4]))  # the new run's odometry frame is another one
     est = backend.sightings(10, T_odom_body, [], Placed(T_cad_map_old @ here, view()))
     assert est.status == "localized" and est.T_cad_body is not None
