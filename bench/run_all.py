@@ -10,7 +10,7 @@ import subprocess
 import sys
 
 BENCHMARKS = ("bench_localize", "bench_posegraph", "bench_perception", "bench_zenoh", "bench_render",
-              "bench_obstacles", "bench_place")
+              "bench_obstacles", "bench_place", "bench_state")
 
 
 def main() -> int:

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from graph.errors import UserInputError
 from graph.features import BuildingModel
@@ -147,7 +148,9 @@ def carried_views(own: list[PlacedView], T_cad_map: np.ndarray, earlier: StoredM
     if not moved or not own:
         return moved
     A, B = np.array([T for T, _ in moved]), np.array([T for T, _ in own])
-    near = np.linalg.norm(A[:, None, :3, 3] - B[None, :, :3, 3], axis=2) < apart_m
-    cos = (np.einsum("aij,bij->ab", A[:, :3, :3], B[:, :3, :3]) - 1.0) / 2.0  # trace(Ra^T Rb) = 1 + 2 cos(angle)
-    covered = (near & (cos > np.cos(np.radians(apart_deg)))).any(axis=1)
+    near = cKDTree(B[:, :3, 3]).query_ball_point(A[:, :3, 3], r=apart_m)  # own views within apart_m of each
+    cos_apart = np.cos(np.radians(apart_deg))
+    # trace(Ra^T Rb) = 1 + 2 cos(angle between them)
+    covered = [bool(nb) and bool(((np.einsum("ij,bij->b", A[a, :3, :3], B[nb, :3, :3]) - 1.0) / 2.0 > cos_apart).any())
+               for a, nb in enumerate(near)]
     return [m for m, c in zip(moved, covered, strict=True) if not c]

@@ -37,6 +37,7 @@ from perception.gravity import GravityEstimator
 from service.inputs import ImuIn, Observation, ObservationsIn, OdometryIn
 from service.places import Placed
 from service.recording import matrix_from_pose, pose_from_matrix, vector3
+from service.state import view_from_wire
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
@@ -125,6 +126,7 @@ class LocalizerBackend:
                                                p.keyframe_max_interval_s)
         self.last: Estimate | None = None
         self.restored: StoredMap | None = None  # a saved map's keyframe views and T_cad_map, for place recognition
+        self.restored_localized = False  # restarted from a saved map that was localized (see `supersedes_saved`)
 
     @classmethod
     def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None, method: str = "robust",
@@ -144,6 +146,7 @@ class LocalizerBackend:
                  len(snapshot.views), "saved" if saved_T is not None else "absent")
         backend = cls(model, RestoredRegistrar(model, saved_T, linked, fallback, params=localizer,
                                                with_surfaces=surfaces is not None), params, surfaces=surfaces)
+        backend.restored_localized = saved_T is not None
         if saved_T is not None and snapshot.views:  # views with their poses, as a map carries an earlier one's
             backend.restored = StoredMap(model.sha256, saved_T, carried=[view_from_wire(v) for v in snapshot.views])
         return backend
@@ -270,9 +273,9 @@ class LocalizerBackend:
         """Gravity's up in the body frame at the newest odometry sample (perception.gravity), when known."""
         return self._up_body
 
-    def snapshot(self, building: str, sha256: str, with_views: bool = False) -> pb.MapSnapshot:
-        """The map as saved and served: landmarks (odom frame) with their CAD links, T_cad_map, last pose; with
-        `with_views` (the saved state), the keyframe views of place recognition too."""
+    def snapshot(self, building: str, sha256: str) -> pb.MapSnapshot:
+        """The map as saved and served: landmarks (odom frame) with their CAD links, T_cad_map, last pose (the
+        saved state adds `saved_views`)."""
         loc = self.localizer
         snap = pb.MapSnapshot(building=building, building_sha256=sha256, status=STATUS_TO_WIRE[loc.status],
                               keyframes=loc.graph.n_keyframes)
@@ -287,26 +290,23 @@ class LocalizerBackend:
         for j, lm in loc.landmarks.items():
             f = snap.landmarks_map.add(type=lm.type, id=loc.links.get(j, ""))
             f.corners.extend(vector3(c) for c in lm.corners_map)
-        if with_views:
-            own = [(loc.graph.T_map_body(i), v) for i, v in sorted(loc.views.items())]
-            snap.views.extend(view_to_wire(T, v) for T, v in own)
-            if self.restored is not None and T_cad_map is not None:  # what a later restart can be placed by
-                snap.views.extend(view_to_wire(T, v) for T, v in carried_views(own, T_cad_map, self.restored))
         return snap
 
+    def supersedes_saved(self) -> bool:
+        """Whether this run's map should replace the saved one it was restarted from: not before this run is
+        localized, where that one was (a restart that is stopped before it finds itself would otherwise lose
+        the saved map, its links to the model and its views)."""
+        return not self.restored_localized or self.localizer.graph.has_anchor
 
-def view_to_wire(T_map_body: np.ndarray, view: KeyframeView) -> pb.KeyframeView:
-    points, descriptors = view.to_bytes()
-    return pb.KeyframeView(T_map_body=pose_from_matrix(T_map_body), points_body=points, descriptors=descriptors)
-
-
-def view_from_wire(msg: pb.KeyframeView) -> tuple[np.ndarray, KeyframeView]:
-    """(T_map_body, view); a malformed view (sizes that disagree) becomes an empty one."""
-    try:
-        view = KeyframeView.from_bytes(msg.points_body, msg.descriptors)
-    except ValueError:
-        view = KeyframeView(np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
-    return matrix_from_pose(msg.T_map_body), view
+    def saved_views(self) -> list[tuple[np.ndarray, KeyframeView]]:
+        """The keyframe views a saved map keeps for place recognition, (T_map_body, view): this run's, and the
+        restored map's where this run has none near, in this run's map frame, once it is localized."""
+        loc = self.localizer
+        own = [(loc.graph.T_map_body(i), v) for i, v in sorted(loc.views.items())]
+        T_cad_map = loc.graph.T_cad_map()
+        if self.restored is not None and T_cad_map is not None:  # what a later restart can be placed by
+            return own + carried_views(own, T_cad_map, self.restored)
+        return own
 
 
 def _storey_of(model: BuildingModel, matches: dict[int, str]) -> str:

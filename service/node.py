@@ -130,7 +130,10 @@ class LocalizationService:
             for pub in self._pubs.values():
                 pub.undeclare()
             token.undeclare()
-            log.info("stopped; map saved to %s", self.store.path)
+            if self.backend.supersedes_saved():
+                log.info("stopped; map saved to %s", self.store.path)
+            else:
+                log.info("stopped before localizing; the saved map %s is kept as it was", self.store.path)
 
     def _intake(self, sub: zenoh.Subscriber, parse: Callable[[bytes], Any], name: str, heavy: bool) -> None:
         for sample in sub:
@@ -364,5 +367,9 @@ class LocalizationService:
 
     def _save(self) -> None:
         with self._lock:
-            snap = self.backend.snapshot(self.params.building, self.params.building_sha256, with_views=True)
-        self.store.save(snap)
+            if not self.backend.supersedes_saved():
+                log.debug("not localized yet: the saved map this run restarted from is kept")
+                return
+            snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
+            views = self.backend.saved_views()
+        self.store.save(snap, views)  # off the lock: the worker goes on meanwhile

@@ -52,6 +52,18 @@ def pose_from_matrix(T_a_b: np.ndarray) -> pb.Pose:
     return pb.Pose(position=pb.Vector3(x=t[0], y=t[1], z=t[2]), qw=qw, qx=qx, qy=qy, qz=qz)
 
 
+def poses_from_matrices(T_a_b: np.ndarray) -> list[pb.Pose]:
+    """`pose_from_matrix` of each of N transforms (N, 4, 4), the rotations converted at once."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.asarray(T_a_b, float).reshape(-1, 4, 4)
+    if len(T) == 0:
+        return []
+    q = Rotation.from_matrix(T[:, :3, :3]).as_quat()  # scipy: x, y, z, w
+    return [pb.Pose(position=pb.Vector3(x=t[0], y=t[1], z=t[2]), qw=qk[3], qx=qk[0], qy=qk[1], qz=qk[2])
+            for t, qk in zip(T[:, :3, 3].tolist(), q.tolist(), strict=True)]
+
+
 def matrix_from_pose(pose: pb.Pose) -> np.ndarray:
     """The 4x4 transform T_a_b of a Pose (inverse of `pose_from_matrix`)."""
     from scipy.spatial.transform import Rotation

@@ -1,32 +1,125 @@
-"""The saved map: one `MapSnapshot` per vehicle under the state directory, written atomically."""
+"""The saved map: one `MapSnapshot` per vehicle under the state directory, written atomically, and its keyframe
+views in an append-only view log beside it.
+
+A view (perception.place: ~17 KB of ORB features and their points) never changes once made; only its keyframe's
+pose does, as the graph is optimized. So `map.pb` holds each view's pose and its record number in the log
+(`ViewPose`), and a view's bytes are written once, at the first save that holds it: a long mission's save costs
+its new views and the poses, not every view again (3000 views: 53 MB a save otherwise, every 5 s).
+
+Each run writes a log of its own (`views-<time>.bin`), starting with the views it carries from the saved map it
+was restarted from; once `map.pb` names the new log, the others are deleted. A record is a 4-byte little-endian
+length and a `KeyframeView` message (its pose unset); the log is flushed to disk before the `map.pb` that refers
+to its records replaces the old one, so a kill at any point leaves a saved map whose views are all readable (a
+half-written last record is never referred to, and is ignored).
+"""
 
 from __future__ import annotations
 
 import logging
 import os
+import struct
+import time
+from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 from google.protobuf.message import DecodeError
 
+from graph.mapstore import KeyframeView
+from service.recording import matrix_from_pose, pose_from_matrix, poses_from_matrices
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 
+RECORD_HEADER = struct.Struct("<I")
+VIEW_LOG_GLOB = "views-*.bin"
+
+
+class ViewLog:
+    """An append-only file of `KeyframeView` records (see module doc)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.records = 0
+
+    def append(self, views: Sequence[KeyframeView]) -> int:
+        """Write the views as records, flushed to disk; returns the first one's record number."""
+        first = self.records
+        if views:
+            with open(self.path, "ab") as f:
+                for view in views:
+                    data = view_to_wire(view).SerializeToString()
+                    f.write(RECORD_HEADER.pack(len(data)) + data)
+                f.flush()
+                os.fsync(f.fileno())
+            self.records += len(views)
+        return first
+
+    @staticmethod
+    def read(path: Path) -> list[bytes]:
+        """The complete records of the log at `path`, in order (a half-written last one is left out)."""
+        data = path.read_bytes()
+        records, at = [], 0
+        while at + RECORD_HEADER.size <= len(data):
+            (n,) = RECORD_HEADER.unpack_from(data, at)
+            if at + RECORD_HEADER.size + n > len(data):
+                break
+            records.append(data[at + RECORD_HEADER.size: at + RECORD_HEADER.size + n])
+            at += RECORD_HEADER.size + n
+        return records
+
+
+def view_to_wire(view: KeyframeView, T_map_body: np.ndarray | None = None) -> pb.KeyframeView:
+    """A keyframe view as its message; with its pose, where given (a view log's record has none)."""
+    points, descriptors = view.to_bytes()
+    msg = pb.KeyframeView(points_body=points, descriptors=descriptors)
+    if T_map_body is not None:
+        msg.T_map_body.CopyFrom(pose_from_matrix(T_map_body))
+    return msg
+
+
+def view_from_wire(msg: pb.KeyframeView) -> tuple[np.ndarray, KeyframeView]:
+    """(T_map_body, view); a malformed view (sizes that disagree) becomes an empty one."""
+    try:
+        view = KeyframeView.from_bytes(msg.points_body, msg.descriptors)
+    except ValueError:
+        view = KeyframeView(np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
+    return matrix_from_pose(msg.T_map_body), view
+
 
 class MapStore:
-    """state_dir/<vehicle>/map.pb; a snapshot of another building (by SHA-256) is ignored on load."""
+    """state_dir/<vehicle>/map.pb and its view log; a snapshot of another building (by SHA-256) is ignored on
+    load."""
 
     def __init__(self, state_dir: Path, vehicle: str) -> None:
         self.path = Path(state_dir).expanduser() / vehicle / "map.pb"
+        self._log: ViewLog | None = None  # this run's, from its first save with views
+        self._records: dict[int, tuple[KeyframeView, int]] = {}  # id(view) -> (the view, its record number)
 
-    def save(self, snapshot: pb.MapSnapshot) -> Path:
+    def save(self, snapshot: pb.MapSnapshot, views: Sequence[tuple[np.ndarray, KeyframeView]] = ()) -> Path:
+        """Write `snapshot` (its view fields are set here) with the keyframe views (T_map_body, view): the views
+        not saved before are appended to this run's log, every view's pose goes into the snapshot."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        if views:
+            if self._log is None:
+                self._log = ViewLog(self.path.with_name(f"views-{time.time_ns():x}.bin"))
+            new = list({id(v): v for _, v in views if id(v) not in self._records}.values())
+            first = self._log.append(new)
+            self._records.update((id(v), (v, first + k)) for k, v in enumerate(new))
+            snapshot.view_log = self._log.path.name
+            poses = poses_from_matrices(np.array([T for T, _ in views]))
+            snapshot.view_poses.extend(pb.ViewPose(record=self._records[id(v)][1], T_map_body=pose)
+                                       for (_, v), pose in zip(views, poses, strict=True))
         tmp = self.path.with_name(f"map.pb.tmp{os.getpid()}")
         tmp.write_bytes(snapshot.SerializeToString())
         os.replace(tmp, self.path)  # atomic: a kill mid-write leaves the previous map intact
+        for other in self.path.parent.glob(VIEW_LOG_GLOB):  # logs the saved map no longer refers to
+            if other.name != snapshot.view_log:
+                other.unlink(missing_ok=True)
         return self.path
 
     def load(self, building_sha256: str) -> pb.MapSnapshot | None:
+        """The saved map with its views (`views`, with their poses) read back from the view log, or None."""
         if not self.path.exists():
             return None
         try:
@@ -37,7 +130,27 @@ class MapStore:
         if snapshot.building_sha256 != building_sha256:
             log.warning("ignoring saved map %s: made for another building model", self.path)
             return None
+        if snapshot.view_log:
+            self._read_views(snapshot)
         return snapshot
+
+    def _read_views(self, snapshot: pb.MapSnapshot) -> None:
+        log_path = self.path.with_name(snapshot.view_log)
+        records = ViewLog.read(log_path) if log_path.exists() else []
+        lost = 0
+        for vp in snapshot.view_poses:
+            try:
+                view = pb.KeyframeView.FromString(records[vp.record])
+            except (IndexError, DecodeError):
+                lost += 1
+                continue
+            view.T_map_body.CopyFrom(vp.T_map_body)
+            snapshot.views.append(view)
+        if lost:
+            log.warning("saved map %s: %d of %d keyframe views missing from %s", self.path, lost,
+                        len(snapshot.view_poses), log_path.name)
+        snapshot.ClearField("view_poses")
+        snapshot.ClearField("view_log")
 
 
 class NullMapStore(MapStore):
@@ -46,7 +159,7 @@ class NullMapStore(MapStore):
     def __init__(self) -> None:
         self.path = Path(os.devnull)
 
-    def save(self, snapshot: pb.MapSnapshot) -> Path:
+    def save(self, snapshot: pb.MapSnapshot, views: Sequence[tuple[np.ndarray, KeyframeView]] = ()) -> Path:
         return self.path
 
     def load(self, building_sha256: str) -> pb.MapSnapshot | None:

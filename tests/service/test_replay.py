@@ -188,9 +188,10 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
     """A saved map with views: the restarted backend is placed by them (a keyframe placed at the saved pose) and
     its next saved map holds its own views plus those saved views it has none near, in its own map frame."""
     from graph.mapstore import KeyframeView
-    from service.backend import LocalizerBackend, view_from_wire, view_to_wire
+    from service.backend import LocalizerBackend
     from service.places import Placed
     from service.recording import pose_from_matrix
+    from service.state import view_to_wire
     from service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.graph.scenes import corridor_model, make_T, rot_z
 
@@ -204,16 +205,17 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
     here, far = make_T(np.eye(3), np.array([0.5, 0.0, 1.4])), make_T(rot_z(1.0), np.array([6.0, 1.0, 1.4]))
     saved = pb.MapSnapshot(building_sha256=model.sha256, status=pb.PoseEstimate.LOCALIZED,
                            T_cad_map=pose_from_matrix(T_cad_map_old))
-    saved.views.extend([view_to_wire(here, view()), view_to_wire(far, view())])
+    saved.views.extend([view_to_wire(view(), here), view_to_wire(view(), far)])
     backend = LocalizerBackend.fresh_or_restored(model, saved)
     assert backend.restored is not None and len(backend.restored.placed_views()) == 2
+    assert not backend.supersedes_saved()  # not localized yet: the saved map is kept
     T_odom_body = make_T(rot_z(-0.7), np.array([3.0, 4.0, 1.4]))  # the new run's odometry frame is another one
     est = backend.sightings(10, T_odom_body, [], Placed(T_cad_map_old @ here, view()))
     assert est.status == "localized" and est.T_cad_body is not None
     assert np.allclose(est.T_cad_body, T_cad_map_old @ here, atol=1e-6)
-    snap = backend.snapshot("corridor", model.sha256, with_views=True)
+    assert backend.supersedes_saved()
     assert len(backend.snapshot("corridor", model.sha256).views) == 0  # the map query's reply carries none
-    poses = [view_from_wire(v)[0] for v in snap.views]
+    poses = [T for T, _ in backend.saved_views()]
     assert len(poses) == 2 and np.allclose(poses[0], T_odom_body, atol=1e-6)  # its own; `here` is covered by it
     T_cad_map_new = T_cad_map_old @ here @ np.linalg.inv(T_odom_body)
     assert np.allclose(poses[1], np.linalg.inv(T_cad_map_new) @ T_cad_map_old @ far, atol=1e-5)

@@ -170,6 +170,20 @@ def test_restart_from_the_saved_map_relocalizes_at_once(office_path, office_mode
         wait_for(lambda: _localized_at(poses, T), what="re-localized from the saved map")
 
 
+def test_a_restart_stopped_before_localizing_keeps_the_saved_map(office_path, office_model, start_pose,
+                                                                 tmp_path) -> None:
+    port = free_port()
+    with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
+        poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        T = fly(s, FakeFlight(office_model, np.eye(4)), start_pose, 30)
+        wait_for(lambda: _localized_at(poses, T), what="localized before the restart")
+    saved = (tmp_path / "t1" / "map.pb").read_bytes()
+    assert pb.MapSnapshot.FromString(saved).status == pb.PoseEstimate.LOCALIZED
+    with running_service(service_config(office_path, tmp_path, free_port())):
+        pass  # stopped before it saw anything
+    assert (tmp_path / "t1" / "map.pb").read_bytes() == saved
+
+
 def test_through_a_router(office_path, office_model, start_pose, tmp_path) -> None:
     """Service and vehicle both connect to a router (a Python session in router mode), never to each other."""
     from service.zenoh_io import session_config

@@ -272,7 +272,7 @@ class ServiceStatus(_message.Message):
     def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., version: _Optional[str] = ..., vehicle: _Optional[str] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., building: _Optional[str] = ..., keyframes: _Optional[int] = ..., landmarks: _Optional[int] = ...) -> None: ...
 
 class MapSnapshot(_message.Message):
-    __slots__ = ("header", "building", "building_sha256", "status", "T_cad_map", "storey", "landmarks_map", "T_map_body", "keyframes", "views")
+    __slots__ = ("header", "building", "building_sha256", "status", "T_cad_map", "storey", "landmarks_map", "T_map_body", "keyframes", "views", "view_poses", "view_log")
     HEADER_FIELD_NUMBER: _ClassVar[int]
     BUILDING_FIELD_NUMBER: _ClassVar[int]
     BUILDING_SHA256_FIELD_NUMBER: _ClassVar[int]
@@ -283,6 +283,8 @@ class MapSnapshot(_message.Message):
     T_MAP_BODY_FIELD_NUMBER: _ClassVar[int]
     KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     VIEWS_FIELD_NUMBER: _ClassVar[int]
+    VIEW_POSES_FIELD_NUMBER: _ClassVar[int]
+    VIEW_LOG_FIELD_NUMBER: _ClassVar[int]
     header: Header
     building: str
     building_sha256: str
@@ -293,7 +295,17 @@ class MapSnapshot(_message.Message):
     T_map_body: Pose
     keyframes: int
     views: _containers.RepeatedCompositeFieldContainer[KeyframeView]
-    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., building: _Optional[str] = ..., building_sha256: _Optional[str] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., T_cad_map: _Optional[_Union[Pose, _Mapping]] = ..., storey: _Optional[str] = ..., landmarks_map: _Optional[_Iterable[_Union[ObservedFeature, _Mapping]]] = ..., T_map_body: _Optional[_Union[Pose, _Mapping]] = ..., keyframes: _Optional[int] = ..., views: _Optional[_Iterable[_Union[KeyframeView, _Mapping]]] = ...) -> None: ...
+    view_poses: _containers.RepeatedCompositeFieldContainer[ViewPose]
+    view_log: str
+    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., building: _Optional[str] = ..., building_sha256: _Optional[str] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., T_cad_map: _Optional[_Union[Pose, _Mapping]] = ..., storey: _Optional[str] = ..., landmarks_map: _Optional[_Iterable[_Union[ObservedFeature, _Mapping]]] = ..., T_map_body: _Optional[_Union[Pose, _Mapping]] = ..., keyframes: _Optional[int] = ..., views: _Optional[_Iterable[_Union[KeyframeView, _Mapping]]] = ..., view_poses: _Optional[_Iterable[_Union[ViewPose, _Mapping]]] = ..., view_log: _Optional[str] = ...) -> None: ...
+
+class ViewPose(_message.Message):
+    __slots__ = ("record", "T_map_body")
+    RECORD_FIELD_NUMBER: _ClassVar[int]
+    T_MAP_BODY_FIELD_NUMBER: _ClassVar[int]
+    record: int
+    T_map_body: Pose
+    def __init__(self, record: _Optional[int] = ..., T_map_body: _Optional[_Union[Pose, _Mapping]] = ...) -> None: ...
 
 class KeyframeView(_message.Message):
     __slots__ = ("T_map_body", "points_body", "descriptors")
