@@ -161,6 +161,7 @@ class Localizer:
         self._checked: _PerPose[SurfaceCheck] = _PerPose()
         self.surface_screens: list[tuple[int, list[float]]] = []  # (candidates, their screening scores, best first)
         self.surface_fits = 0  # keyframes whose depth was fitted to the walls (and floor)
+        self.duplicates = 0  # sightings dropped: their landmark was seen in the same frame already
 
     # --- the loop ---------------------------------------------------------------------------------------------
 
@@ -185,7 +186,7 @@ class Localizer:
         if points_body is not None and self.surfaces is not None and len(points_body):
             self._points.append((i, band_points(points_body, up_body, seed=i),
                                  floor_points(points_body, up_body, seed=i)))
-        self._add_sightings(i, T_map_body, carried + list(sightings), up_body, stamp_ns)
+        self._add_sightings(i, T_map_body, [*carried, list(sightings)], up_body, stamp_ns)
         self.graph.update()
         if T_cad_body_placed is not None:
             self._add_placed(i, stamp_ns, T_cad_body_placed)
@@ -216,12 +217,13 @@ class Localizer:
 
     # --- steps ------------------------------------------------------------------------------------------------
 
-    def _carry_to(self, T_odom_kf: np.ndarray) -> list[Sighting]:
-        """The sightings kept since the last keyframe, in the body frame of the keyframe at T_odom_kf."""
-        carried: list[Sighting] = []
+    def _carry_to(self, T_odom_kf: np.ndarray) -> list[list[Sighting]]:
+        """The sightings kept since the last keyframe, frame by frame, in the body frame of the keyframe at
+        T_odom_kf."""
+        carried: list[list[Sighting]] = []
         for T_odom_body, sightings in self._carried:
             T_kf_body = np.linalg.inv(T_odom_kf) @ T_odom_body
-            carried += [replace(s, corners_body=apply(T_kf_body, s.corners_body)) for s in sightings]
+            carried.append([replace(s, corners_body=apply(T_kf_body, s.corners_body)) for s in sightings])
         self._carried = []
         return carried
 
@@ -246,29 +248,47 @@ class Localizer:
         self.graph.add_gravity(i, levelled(T_map_body, up_body))
         return up_body
 
-    def _add_sightings(self, i: int, T_map_body: np.ndarray, sightings: list[Sighting], up_body: np.ndarray,
+    def _add_sightings(self, i: int, T_map_body: np.ndarray, frames: list[list[Sighting]], up_body: np.ndarray,
                        stamp_ns: int) -> None:
+        """The sightings of the frames since the last keyframe and of the keyframe's own, frame by frame. A frame
+        sees a door once: a second detection of the same landmark in one frame (overlapping boxes of one door)
+        is dropped, so that it neither counts as a second sighting (`min_sightings_to_register`) nor doubles the
+        weight of its factor."""
+        for sightings in frames:
+            seen: set[int] = set()
+            for s in sightings:
+                j = self._add_sighting(i, T_map_body, s, up_body, stamp_ns, seen)
+                if j is not None:
+                    seen.add(j)
+
+    def _add_sighting(self, i: int, T_map_body: np.ndarray, s: Sighting, up_body: np.ndarray, stamp_ns: int,
+                      seen: set[int]) -> int | None:
+        """One sighting into the graph (a new landmark or a re-observation); its landmark's key, or None where it
+        was not taken (not upright, out of range, or its landmark `seen` in the same frame already)."""
         p = self.params
-        for s in sightings:
-            if not is_vertical(s.corners_body, up_body):
-                continue
-            T_body_rect = observed_frame(s.corners_body, up_body, self.viewer_body)
-            rng = float(np.linalg.norm(T_body_rect[:3, 3] - self.viewer_body))
-            if rng > p.max_range_m:
-                continue
-            T_map_rect = T_map_body @ T_body_rect
-            j = self._associate(s.type, T_map_rect)
-            corners_map = apply(T_map_body, s.corners_body)
-            if j is None:
-                j = len(self.landmarks)
-                self.landmarks[j] = Landmark(j, s.type, corners_map, int(sum(s.truncated)), truth_id=s.truth_id)
-                self.graph.add_landmark(j, T_map_rect)
-            else:
-                self.landmarks[j].add_sighting(corners_map, s.truncated)
-                T_body_rect = np.linalg.inv(T_map_body) @ closer_flip(T_map_rect, self.graph.T_map_rect(j))
-                if j in self.links:
-                    self._last_link_ns = stamp_ns
-            self.graph.add_sighting(i, j, T_body_rect, self._sighting_sigmas(s, rng))
+        if not is_vertical(s.corners_body, up_body):
+            return None
+        T_body_rect = observed_frame(s.corners_body, up_body, self.viewer_body)
+        rng = float(np.linalg.norm(T_body_rect[:3, 3] - self.viewer_body))
+        if rng > p.max_range_m:
+            return None
+        T_map_rect = T_map_body @ T_body_rect
+        j = self._associate(s.type, T_map_rect)
+        corners_map = apply(T_map_body, s.corners_body)
+        if j is None:
+            j = len(self.landmarks)
+            self.landmarks[j] = Landmark(j, s.type, corners_map, int(sum(s.truncated)), truth_id=s.truth_id)
+            self.graph.add_landmark(j, T_map_rect)
+        elif j in seen:
+            self.duplicates += 1
+            return None
+        else:
+            self.landmarks[j].add_sighting(corners_map, s.truncated)
+            T_body_rect = np.linalg.inv(T_map_body) @ closer_flip(T_map_rect, self.graph.T_map_rect(j))
+            if j in self.links:
+                self._last_link_ns = stamp_ns
+        self.graph.add_sighting(i, j, T_body_rect, self._sighting_sigmas(s, rng))
+        return j
 
     def _sighting_sigmas(self, s: Sighting, range_m: float) -> np.ndarray:
         """[rot; trans] sigmas of a sighting, the translation along the rectangle's own axes (u along the wall,

@@ -283,7 +283,8 @@ def test_a_sighting_cut_by_the_image_border_barely_moves_its_landmark_along_that
     def landmark_shift(flagged: bool) -> float:
         loc = Localizer(corridor, PoseGraph(), model_registrar(corridor, min_landmarks=99))
         sightings = [clean] * 3 + [cut if flagged else replace(cut, truncated=(False, False))] * 3
-        loc.add_keyframe(0, T_cad_body, sightings, UP)
+        for k, s in enumerate(sightings):  # six frames from the same place (a frame sees a door once)
+            loc.add_keyframe(k * 100_000_000, T_cad_body, [s], UP)
         (j,) = loc.landmarks
         return float(np.linalg.norm(loc.graph.T_map_rect(j)[:3, 3] - (T_cad_body[:3, 3] + corners.mean(axis=0))))
 
@@ -318,6 +319,27 @@ def test_a_door_first_seen_cut_by_the_border_takes_its_corners_from_an_uncut_sig
     loc.add_keyframe(200_000_000, T_cad_body, [Sighting("door", cut, truncated=(True, False))], UP)
     (lm,) = loc.landmarks.values()
     assert width_m() == pytest.approx(target.width_m, abs=1e-6) and lm.n_sightings == 3
+
+
+def test_a_door_detected_twice_in_one_frame_is_one_sighting(corridor) -> None:
+    """Two overlapping boxes of one door in one frame (the detector's duplicates, 19 of 252 frames with
+    detections on Office_A seed 1) are one sighting: the landmark is not confirmed by a single frame
+    (`min_sightings_to_register`), and its factor is not counted twice. A second frame confirms it."""
+    from graph.localizer import Sighting
+
+    T_cad_body = make_T(np.eye(3), np.array([0.0, 0.0, 1.4]))
+    target = next(f for f in corridor.features if f.type == "door")
+    T_body_cad = np.linalg.inv(T_cad_body)
+    corners = (T_body_cad[:3, :3] @ target.corners_cad.T).T + T_body_cad[:3, 3]
+    loc = Localizer(corridor, PoseGraph(), model_registrar(corridor, min_landmarks=99))
+    twice = [Sighting("door", corners), Sighting("door", corners + [0.0, 0.05, 0.0])]
+    loc.add_keyframe(0, T_cad_body, twice, UP)
+    (lm,) = loc.landmarks.values()
+    assert lm.n_sightings == 1 and loc._confirmed() == [] and loc.duplicates == 1
+    assert loc.graph.batch_graph()[0].size() == 3  # the first pose's prior, gravity and one sighting
+    loc.track(50_000_000, T_cad_body, twice)  # a frame between keyframes: its duplicate is dropped too
+    loc.add_keyframe(100_000_000, T_cad_body, [], UP)
+    assert lm.n_sightings == 2 and loc._confirmed() == [lm.key] and loc.duplicates == 2
 
 
 def _tilt_deg(R: np.ndarray) -> float:
