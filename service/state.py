@@ -8,9 +8,10 @@ its new views and the poses, not every view again (3000 views: 53 MB a save othe
 
 Each run writes a log of its own (`views-<time>.bin`), starting with the views it carries from the saved map it
 was restarted from; once `map.pb` names the new log, the others are deleted. A record is a 4-byte little-endian
-length and a `KeyframeView` message (its pose unset); the log is flushed to disk before the `map.pb` that refers
-to its records replaces the old one, so a kill at any point leaves a saved map whose views are all readable (a
-half-written last record is never referred to, and is ignored).
+length and a `KeyframeView` message (its pose unset). The log is flushed to disk (fsync) before the `map.pb` that
+refers to its records replaces the old one, and `map.pb` itself before the rename: a kill or a power cut at any
+point leaves a saved map whose views are all readable (a half-written last record is never referred to, and is
+ignored).
 """
 
 from __future__ import annotations
@@ -111,8 +112,12 @@ class MapStore:
             snapshot.view_poses.extend(pb.ViewPose(record=self._records[id(v)][1], T_map_body=pose)
                                        for (_, v), pose in zip(views, poses, strict=True))
         tmp = self.path.with_name(f"map.pb.tmp{os.getpid()}")
-        tmp.write_bytes(snapshot.SerializeToString())
+        with open(tmp, "wb") as f:
+            f.write(snapshot.SerializeToString())
+            f.flush()
+            os.fsync(f.fileno())  # on disk before it replaces the old one: a power cut leaves one or the other
         os.replace(tmp, self.path)  # atomic: a kill mid-write leaves the previous map intact
+        _fsync_dir(self.path.parent)
         for other in self.path.parent.glob(VIEW_LOG_GLOB):  # logs the saved map no longer refers to
             if other.name != snapshot.view_log:
                 other.unlink(missing_ok=True)
@@ -151,6 +156,20 @@ class MapStore:
                         len(snapshot.view_poses), log_path.name)
         snapshot.ClearField("view_poses")
         snapshot.ClearField("view_log")
+
+
+def _fsync_dir(path: Path) -> None:
+    """Make a rename in `path` durable (POSIX; a no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 class NullMapStore(MapStore):
