@@ -45,11 +45,7 @@ MESSAGE_TYPES: dict[str, Any] = {
 
 def pose_from_matrix(T_a_b: np.ndarray) -> pb.Pose:
     """A 4x4 rigid transform T_a_b as a Pose (position in metres, unit quaternion w, x, y, z)."""
-    from scipy.spatial.transform import Rotation
-
-    qx, qy, qz, qw = Rotation.from_matrix(np.asarray(T_a_b, float)[:3, :3]).as_quat()  # scipy: x, y, z, w
-    t = np.asarray(T_a_b, float)[:3, 3]
-    return pb.Pose(position=pb.Vector3(x=t[0], y=t[1], z=t[2]), qw=qw, qx=qx, qy=qy, qz=qz)
+    return poses_from_matrices(np.asarray(T_a_b, float)[None])[0]
 
 
 def poses_from_matrices(T_a_b: np.ndarray) -> list[pb.Pose]:

@@ -48,11 +48,16 @@ class ViewLog:
         first = self.records
         if views:
             with open(self.path, "ab") as f:
-                for view in views:
-                    data = view_to_wire(view).SerializeToString()
-                    f.write(RECORD_HEADER.pack(len(data)) + data)
-                f.flush()
-                os.fsync(f.fileno())
+                end = f.tell()
+                try:
+                    for view in views:
+                        data = view_to_wire(view).SerializeToString()
+                        f.write(RECORD_HEADER.pack(len(data)) + data)
+                    f.flush()
+                    os.fsync(f.fileno())
+                except OSError:  # a full disk: no half-written records before the next save's, whose numbers
+                    f.truncate(end)  # count from `records`
+                    raise
             self.records += len(views)
         return first
 
@@ -95,7 +100,8 @@ class MapStore:
     def __init__(self, state_dir: Path, vehicle: str) -> None:
         self.path = Path(state_dir).expanduser() / vehicle / "map.pb"
         self._log: ViewLog | None = None  # this run's, from its first save with views
-        self._records: dict[int, tuple[KeyframeView, int]] = {}  # id(view) -> (the view, its record number)
+        # id(view) -> (the view, kept alive so that its id is not reused; its record number)
+        self._records: dict[int, tuple[KeyframeView, int]] = {}
 
     def save(self, snapshot: pb.MapSnapshot, views: Sequence[tuple[np.ndarray, KeyframeView]] = ()) -> Path:
         """Write `snapshot` (its view fields are set here) with the keyframe views (T_map_body, view): the views

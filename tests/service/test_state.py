@@ -116,3 +116,31 @@ def test_a_map_saved_with_its_views_inline_still_loads(tmp_path: Path) -> None:
 def test_a_map_of_another_building_is_ignored(tmp_path: Path) -> None:
     MapStore(tmp_path, "d1").save(_snapshot(), _views(1))
     assert MapStore(tmp_path, "d1").load("another-building") is None
+
+
+def test_a_failed_append_leaves_no_half_record_behind(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    """A write that fails (a full disk) is undone: the next save's records keep the numbers map.pb gives them."""
+    import service.state as state
+
+    store = MapStore(tmp_path, "d1")
+    views = _views(3)
+    store.save(_snapshot(), views[:1])
+    (log,) = _logs(tmp_path)
+    size = log.stat().st_size
+
+    def full_disk(fd: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(state.os, "fsync", full_disk)
+        try:
+            store.save(_snapshot(), views[:2])
+        except OSError:
+            pass
+        else:
+            raise AssertionError("the failed write was not reported")
+    assert log.stat().st_size == size
+    store.save(_snapshot(), views)
+    loaded = MapStore(tmp_path, "d1").load(SHA)
+    assert loaded is not None
+    _same(loaded, views)
