@@ -3,7 +3,8 @@
 Per keyframe: predict the pose from odometry, level it with gravity, add the sightings of doors and windows
 as landmark factors (re-observations or new landmarks), update iSAM2 with the new factors only, register the
 map to the building model while exploring (the candidate poses checked against the model's walls, and the
-lines of sight through them, where the keyframes bring depth points, graph.surfaces), link newly seen landmarks
+lines of sight through them, where the keyframes bring depth points, graph.surfaces, and against the bearings of
+the doors seen beyond the sighting range), link newly seen landmarks
 to their CAD features once localized and fit the keyframe's depth to the walls and the floor, and return the
 pose in the CAD frame with its status.
 
@@ -60,7 +61,13 @@ class LocalizerParams:
     sighting_sigma_m: tuple[float, float] = (0.03, 0.004)  # sigma = a + b * range^2 (stereo) of a sighting's position
     sighting_sigma_rad: tuple[float, float] = (0.03, 0.012)  # same for its orientation (plane of noisy corners)
     truncated_sigma_m: float = 0.5  # position sigma along an axis on which the sighting is cut by the image border
-    max_range_m: float = 7.0  # sightings further away are ignored
+    max_range_m: float = 7.0  # sightings further away are no landmarks: their corners are too coarse ...
+    far_range_m: float = 20.0  # ... but up to this range their bearings check candidate poses (`_far_explained`):
+    far_bearing_deg: float = 3.0  # a far sighting is explained where a same-type CAD feature lies within this
+    #                               bearing of it, seen from the keyframe's camera, and 3 sigmas of its range
+    far_min_sightings: int = 10  # with this many far sightings in the window, a candidate pose explaining
+    far_min_explained: float = 0.8  # at least this fraction of them is not rivalled by one explaining
+    far_margin: float = 0.4  # this much less (the surfaces' margin aside)
     min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
     registration_tolerance_m: float = 0.6  # the model registrar's inlier / ambiguity tolerance (see GraphConfig)
     registration_min_landmarks: int = 4  # the model registrar answers 'localized' from this many landmarks ...
@@ -138,6 +145,7 @@ class Localizer:
         self.params = params or LocalizerParams()
         self.viewer_body = (np.eye(4) if T_body_cam is None else T_body_cam)[:3, 3]
         self.features = {f.id: f for f in model.features}
+        self._feature_centroids: dict[str, np.ndarray] = {}  # type -> centroids (N, 3), CAD frame
         self.landmarks: dict[int, Landmark] = {}
         self.links: dict[int, str] = {}  # landmark key -> CAD feature id
         self.status = "exploring"
@@ -155,6 +163,8 @@ class Localizer:
         self._depth: tuple[np.ndarray, np.ndarray] | None = None  # (T_odom_body, points_body): newest since it
         # (keyframe, points at the camera's height, points below it: the floor), body frame
         self._points: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
+        # (keyframe, types (K,), centroids (K, 3) body frame) of the sightings beyond max_range_m, recent keyframes'
+        self._far: deque[tuple[int, list[str], np.ndarray]] = deque(maxlen=self.params.surface_window_keyframes)
         self.surface_checks: list[tuple[int, list[float]]] = []  # (stamp_ns, score of each candidate pose)
         # within one registration attempt: each candidate fitted to the walls, each fitted pose's check, once
         self._fitted: _PerPose[np.ndarray] = _PerPose()
@@ -254,23 +264,29 @@ class Localizer:
         sees a door once: a second detection of the same landmark in one frame (overlapping boxes of one door)
         is dropped, so that it neither counts as a second sighting (`min_sightings_to_register`) nor doubles the
         weight of its factor."""
+        far: list[Sighting] = []
         for sightings in frames:
             seen: set[int] = set()
             for s in sightings:
-                j = self._add_sighting(i, T_map_body, s, up_body, stamp_ns, seen)
+                j = self._add_sighting(i, T_map_body, s, up_body, stamp_ns, seen, far)
                 if j is not None:
                     seen.add(j)
+        if far and not self.graph.has_anchor:
+            self._far.append((i, [s.type for s in far], np.array([s.corners_body.mean(axis=0) for s in far])))
 
     def _add_sighting(self, i: int, T_map_body: np.ndarray, s: Sighting, up_body: np.ndarray, stamp_ns: int,
-                      seen: set[int]) -> int | None:
+                      seen: set[int], far: list[Sighting]) -> int | None:
         """One sighting into the graph (a new landmark or a re-observation); its landmark's key, or None where it
-        was not taken (not upright, out of range, or its landmark `seen` in the same frame already)."""
+        was not taken (not upright, out of range: then into `far` up to `far_range_m`, or its landmark `seen` in
+        the same frame already)."""
         p = self.params
         if not is_vertical(s.corners_body, up_body):
             return None
         T_body_rect = observed_frame(s.corners_body, up_body, self.viewer_body)
         rng = float(np.linalg.norm(T_body_rect[:3, 3] - self.viewer_body))
         if rng > p.max_range_m:
+            if rng <= p.far_range_m:
+                far.append(s)
             return None
         T_map_rect = T_map_body @ T_body_rect
         j = self._associate(s.type, T_map_rect)
@@ -388,10 +404,12 @@ class Localizer:
                  ", ".join(f"{c.support:.2f}" + (f" ({c.seen_through:.2f} seen through walls)"
                                                  if self.surfaces.walls is not None else "") for c in checks))
         best = int(np.argmax(score))
-        others = [s for T, m, s in zip(candidates, moved, score, strict=True)
-                  if _poses_differ(T, candidates[best], m, moved[best])]
+        rivals = [T for T, m, s in zip(candidates, moved, score, strict=True)
+                  if s > score[best] - p.surface_margin and _poses_differ(T, candidates[best], m, moved[best])]
         fits = checks[best].support >= p.surface_min_support and checks[best].seen_through <= p.surface_max_seen_through
-        rivalled = any(s > score[best] - p.surface_margin for s in others)
+        if fits and rivals:
+            rivals = self._not_contradicted_by_far(candidates[best], rivals)
+        rivalled = bool(rivals)
         confirmed = fits and not rivalled
         if T_reg is not None:
             i_reg = next(k for k, (T, m) in enumerate(zip(candidates, moved, strict=True))
@@ -401,6 +419,49 @@ class Localizer:
             return _Choice(None, False, fits and rivalled) if beaten or contradicted or (confirmed and best != i_reg) \
                 else _Choice(T_reg, True)
         return _Choice(candidates[best] if confirmed else None, False, fits and rivalled)
+
+    def _not_contradicted_by_far(self, T_best: np.ndarray, rivals: list[np.ndarray]) -> list[np.ndarray]:
+        """The rival poses that the far sightings do not contradict: all of them unless the best pose explains
+        `far_min_explained` of the far sightings; then those explaining at least `far_margin` less are dropped."""
+        p = self.params
+        f_best = self._far_explained(T_best)
+        if f_best is None or f_best < p.far_min_explained:
+            return rivals
+        f_rivals = [self._far_explained(T) or 0.0 for T in rivals]
+        log.info("far sightings: the best candidate pose explains %.2f of them, its rivals on the walls %s",
+                 f_best, ", ".join(f"{f:.2f}" for f in f_rivals))
+        return [T for T, f in zip(rivals, f_rivals, strict=True) if f > f_best - p.far_margin]
+
+    def _far_explained(self, T_cad_map: np.ndarray) -> float | None:
+        """The fraction of the window's far sightings (beyond `max_range_m`) that the pose T_cad_map explains:
+        a same-type CAD feature lies within `far_bearing_deg` of the sighting's bearing from its keyframe's camera
+        and within 3 of its sigmas (`sighting_sigma_m`) of its range. None with fewer than `far_min_sightings`.
+        A stereo pair places a door 15 m away to a metre along its line of sight but to a fraction of a degree
+        across it: the bearings tell apart poses that the walls near by fit alike."""
+        p = self.params
+        n = sum(len(kinds) for _, kinds, _ in self._far)
+        if n < p.far_min_sightings:
+            return None
+        cos_tol = float(np.cos(np.radians(p.far_bearing_deg)))
+        explained = 0
+        for i, kinds, centroids_body in self._far:
+            T_cad_body = T_cad_map @ self.graph.T_map_body(i)
+            camera = apply(T_cad_body, self.viewer_body[None])[0]
+            rays = apply(T_cad_body, centroids_body) - camera
+            for kind, ray in zip(kinds, rays, strict=True):
+                r = float(np.linalg.norm(ray))
+                to_features = self._centroids_cad(kind) - camera
+                d = np.linalg.norm(to_features, axis=1)
+                sigma_m = p.sighting_sigma_m[0] + p.sighting_sigma_m[1] * r**2
+                explained += bool(np.any((to_features @ ray >= cos_tol * d * r) & (np.abs(d - r) <= 3 * sigma_m)))
+        return explained / n
+
+    def _centroids_cad(self, kind: str) -> np.ndarray:
+        """The centroids (N, 3) of the model's features of a type, CAD frame."""
+        if kind not in self._feature_centroids:
+            self._feature_centroids[kind] = np.array([f.centroid_cad for f in self.features.values()
+                                                      if f.type == kind]).reshape(-1, 3)
+        return self._feature_centroids[kind]
 
     def _screened(self, candidates: list[tuple[np.ndarray, int]], points_map: np.ndarray,
                   origins_map: np.ndarray) -> list[np.ndarray]:

@@ -5,8 +5,9 @@ the same distances (the chance that a wrong pose lines up three of them within 0
 walls, furniture and door frames around the doors are far more specific. `SurfaceIndex` samples the model's
 non-horizontal surfaces (walls, door and window frames, furniture sides; floors and ceilings say nothing about
 where on a storey one is) and answers, for a pose hypothesis, which fraction of the observed points lies within
-`tolerance_m` of a surface (`support`). The localizer uses it to choose among the registrar's candidate poses
-and to refuse a pose the walls contradict (graph.localizer).
+`tolerance_m` of a surface (`support`; a point seen from a known camera also within `range_sigmas` of its stereo
+depth noise, which grows with range squared: a wall 8 m away is measured to +-0.3 m). The localizer uses it to
+choose among the registrar's candidate poses and to refuse a pose the walls contradict (graph.localizer).
 
 Support alone is a weak test in a building of look-alike rooms: a pose turned 90 deg in the next room puts 80 % of
 the points near some wall (Jasmin-Sun). What a camera measured also says where the walls are *not*: the line of
@@ -40,7 +41,8 @@ COVERED_M = 0.5  # a horizontal surface with another this little above it is a s
 class SurfaceParams:
     spacing_m: float = 0.1  # distance between surface samples
     max_normal_z: float = 0.7  # triangles whose normal's |z| exceeds this (floors, ceilings, slabs) are left out
-    tolerance_m: float = 0.2  # a point this close to a sample lies on the surface
+    tolerance_m: float = 0.2  # a point this close to a sample lies on the surface ...
+    range_sigmas: float = 2.0  # ... or, seen from a known camera, this many sigmas of its depth noise (below)
     horizontal_spacing_m: float = 0.2  # the floors' samples (open above), for fitting heights (0: none)
     depth_sigma_per_m2: float = 0.005  # the points' depth noise (stereo, ~ range^2), for the line-of-sight check ...
     sight_margin_m: float = 0.2  # ... which lets a ray cross a wall this + 3 sigmas before its point
@@ -227,15 +229,23 @@ class SurfaceIndex:
 
     def check(self, points_cad: np.ndarray, origins_cad: np.ndarray | None = None) -> SurfaceCheck:
         """`support` of the points (N, 3) and, with `walls` and the cameras they were seen from (N, 3), the
-        fraction seen through a wall (see module doc)."""
+        fraction seen through a wall (see module doc). With the cameras, `support` allows for each point's depth
+        noise (is the pose consistent with what was measured?) and `score` does not: it compares poses, as
+        sharply as the near points allow (a looser tolerance lifts the rivals' scores more than the true one's)."""
         pts = np.asarray(points_cad, float).reshape(-1, 3)
         if len(pts) == 0 or len(self.samples_cad) == 0:
             return SurfaceCheck(0.0, 0.0, 0.0)
-        on = np.isfinite(self.tree.query(pts, distance_upper_bound=self.params.tolerance_m)[0])
-        if self.walls is None or origins_cad is None:
+        p = self.params
+        if origins_cad is None:
+            on = np.isfinite(self.tree.query(pts, distance_upper_bound=p.tolerance_m)[0])
             return SurfaceCheck(float(on.mean()), 0.0, float(on.mean()))
-        through = self.walls.seen_through(origins_cad, pts, self.params.depth_sigma_per_m2, self.params.sight_margin_m)
-        return SurfaceCheck(float(on.mean()), float(through.mean()), float((on & ~through).mean()))
+        range_m = np.linalg.norm(pts - np.asarray(origins_cad, float).reshape(-1, 3), axis=1)
+        tolerance_m = np.hypot(p.tolerance_m, p.range_sigmas * p.depth_sigma_per_m2 * range_m**2)
+        d = self.tree.query(pts, distance_upper_bound=float(tolerance_m.max()))[0]
+        within_noise, near = d <= tolerance_m, d <= p.tolerance_m
+        through = np.zeros(len(pts), bool) if self.walls is None else \
+            self.walls.seen_through(origins_cad, pts, p.depth_sigma_per_m2, p.sight_margin_m)
+        return SurfaceCheck(float(within_noise.mean()), float(through.mean()), float((near & ~through).mean()))
 
 
 def _triangles(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

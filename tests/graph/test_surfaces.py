@@ -63,13 +63,14 @@ WALL_SEGMENTS = np.array([[0, 0, 12, 0], [12, 0, 12, 7], [12, 7, 0, 7], [0, 7, 0
 
 
 
-def seen_points(rng: np.random.Generator, camera_xy: np.ndarray, n: int = 150, z: float = 1.4) -> np.ndarray:
-    """What a camera at `camera_xy` in the room measures around it (CAD): the nearest wall along random
-    horizontal directions, at heights about its own."""
+def seen_points(rng: np.random.Generator, camera_xy: np.ndarray, n: int = 150, z: float = 1.4,
+                segments: np.ndarray = WALL_SEGMENTS) -> np.ndarray:
+    """What a camera at `camera_xy` in the room (or the walls `segments`) measures around it (CAD): the nearest
+    wall along random horizontal directions, at heights about its own."""
     a = rng.uniform(0, 2 * np.pi, n)
     d = np.column_stack([np.cos(a), np.sin(a)])
     nearest = np.full(n, np.inf)
-    for x0, y0, x1, y1 in WALL_SEGMENTS:
+    for x0, y0, x1, y1 in segments:
         e, w = np.array([x1 - x0, y1 - y0]), np.array([x0, y0]) - camera_xy
         den = d[:, 0] * e[1] - d[:, 1] * e[0]
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -159,6 +160,28 @@ def test_a_point_behind_a_wall_is_seen_through_it(room_with_walls: SurfaceIndex)
     camera = np.array([[10.0, 3.0, 1.4]])
     assert not walls.seen_through(camera, np.array([[12.1, 3.0, 1.4]])).any()
     assert walls.seen_through(camera, np.array([[13.0, 3.0, 1.4]])).all()
+
+
+def test_support_allows_for_the_depth_noise_of_far_points_and_the_score_does_not(room_with_walls: SurfaceIndex) -> None:
+    """A far wall measured 1.5 sigmas of stereo depth noise short (11 m away: sigma 0.6 m) is still on the model's
+    surface by `support` (the check's absolute test: is this pose consistent with what was measured?), not by
+    `score` (its comparison of poses, as sharp as the near points allow). A near point as far off its wall is off
+    by both."""
+    p = room_with_walls.params
+    camera = np.array([1.0, 5.5, 1.4])
+    wall_points = np.column_stack([np.full(30, 12.0), np.linspace(4.6, 6.4, 30), np.full(30, 1.4)])
+    ray = wall_points - camera
+    r = np.linalg.norm(ray, axis=1, keepdims=True)
+    short = wall_points - ray / r * 1.5 * p.depth_sigma_per_m2 * r**2
+    origins = np.tile(camera, (len(short), 1))
+    far = room_with_walls.check(short, origins)
+    assert far.support == 1.0 and far.seen_through == 0.0 and far.score == 0.0
+    assert room_with_walls.check(wall_points, origins).score == 1.0
+    assert room_with_walls.check(short).support == 0.0  # without the cameras no range is known: the fixed tolerance
+    near_camera = np.array([10.0, 5.5, 1.4])
+    off = np.column_stack([np.full(30, 11.4), np.linspace(4.6, 6.4, 30), np.full(30, 1.4)])  # 0.6 m short of x = 12
+    near = room_with_walls.check(off, np.tile(near_camera, (len(off), 1)))
+    assert near.support == 0.0 and near.score == 0.0
 
 
 @settings(max_examples=20, deadline=None)
@@ -623,6 +646,48 @@ def test_one_door_in_a_room_alike_after_a_half_turn_stays_ambiguous() -> None:
     second, best = sorted(loc.surface_checks[-1][1])[-2:]
     assert best - second < 0.05  # the half-turn fits as well
     assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None and not loc.links
+
+
+def fly_seeing_a_far_door(model: BuildingModel, room: SurfaceIndex, params: LocalizerParams) -> Localizer:
+    """Ten keyframes, 0.5 s apart, at (10.5, 3.5) in the box room facing -x and drifting back 5 cm each: door D00
+    4.9 m away and door D02 10.5 m away (beyond the 7 m sighting range) in view, the walls all around; the real
+    registrar, from one landmark."""
+    registrar = ModelRegistrar(model, min_landmarks=4, candidates_from=1)
+    loc = Localizer(model, PoseGraph(), registrar, params, surfaces=room)
+    rng = np.random.default_rng(5)
+    for k in range(10):
+        xy = np.array([10.5 + 0.05 * k, 3.5])
+        T_cad_body = make_T(rot_z(np.pi), np.array([xy[0], xy[1], 1.4]))
+        sightings = [s for s in sightings_from(model, T_cad_body, max_range_m=12.0) if s.truth_id in ("D00", "D02")]
+        assert len(sightings) == 2
+        points_body = apply(np.linalg.inv(T_cad_body), seen_points(rng, xy, segments=WALL_SEGMENTS[:4]))
+        loc.add_keyframe(k * 500_000_000, np.linalg.inv(T_TRUE) @ T_cad_body, sightings, UP, points_body=points_body)
+    return loc
+
+
+def test_a_far_doors_bearing_tells_apart_poses_the_walls_fit_alike() -> None:
+    """The box room is the same after a half-turn, and so are its near doors (D00, D01). A door 10.5 m away
+    (D02), too far to be a landmark, is where the true pose puts a door of the model and where the half-turn
+    puts none: its bearing settles what the walls cannot. Without far sightings, or where the far door has its
+    half-turned twin too, the status stays ambiguous."""
+    v, f = room_mesh()
+    box = SurfaceIndex.from_mesh(v, f[:8], SurfaceParams(spacing_m=0.05))  # the 4 outer walls
+    box.walls = WallVoxels.from_mesh(v, f[:8])
+    near = [((7.0, 0.0), (0, 1)), ((5.0, 7.0), (0, -1))]  # D00 and its half-turned twin D01
+    model = doors_on_the_room([*near, ((0.0, 3.5), (1, 0))])
+    params = LocalizerParams(surface_min_points=100)
+    loc = fly_seeing_a_far_door(model, box, params)
+    assert loc.status == "localized" and len(loc.landmarks) == 1
+    T_cad_map = loc.graph.T_cad_map()
+    assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.1
+    assert loc.links == {0: "D00"}
+    assert loc._far_explained(T_cad_map) == 1.0
+    second, best = sorted(loc.surface_checks[-1][1])[-2:]
+    assert best - second < 0.05  # the walls alone fit the half-turn as well
+    without_far = fly_seeing_a_far_door(model, box, replace(params, far_range_m=params.max_range_m))
+    assert without_far.status == "ambiguous" and without_far.graph.T_cad_map() is None
+    twins = doors_on_the_room([*near, ((0.0, 3.5), (1, 0)), ((12.0, 3.5), (-1, 0))])
+    assert fly_seeing_a_far_door(twins, box, params).status == "ambiguous"
 
 
 def test_the_walls_turn_back_a_pose_localized_degrees_off(room_with_walls: SurfaceIndex) -> None:
