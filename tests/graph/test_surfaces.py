@@ -648,18 +648,21 @@ def test_one_door_in_a_room_alike_after_a_half_turn_stays_ambiguous() -> None:
     assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None and not loc.links
 
 
-def fly_seeing_a_far_door(model: BuildingModel, room: SurfaceIndex, params: LocalizerParams) -> Localizer:
+def fly_seeing_a_far_door(model: BuildingModel, room: SurfaceIndex, params: LocalizerParams,
+                          far_lift_m: float = 0.0) -> Localizer:
     """Ten keyframes, 0.5 s apart, at (10.5, 3.5) in the box room facing -x and drifting back 5 cm each: door D00
     4.9 m away and door D02 10.5 m away (beyond the 7 m sighting range) in view, the walls all around; the real
-    registrar, from one landmark."""
+    registrar, from one landmark. `far_lift_m`: D02 is seen this much higher than it is."""
     registrar = ModelRegistrar(model, min_landmarks=4, candidates_from=1)
     loc = Localizer(model, PoseGraph(), registrar, params, surfaces=room)
     rng = np.random.default_rng(5)
+    lift = np.array([0.0, 0.0, far_lift_m])
     for k in range(10):
         xy = np.array([10.5 + 0.05 * k, 3.5])
         T_cad_body = make_T(rot_z(np.pi), np.array([xy[0], xy[1], 1.4]))
         sightings = [s for s in sightings_from(model, T_cad_body, max_range_m=12.0) if s.truth_id in ("D00", "D02")]
         assert len(sightings) == 2
+        sightings = [replace(s, corners_body=s.corners_body + lift) if s.truth_id == "D02" else s for s in sightings]
         points_body = apply(np.linalg.inv(T_cad_body), seen_points(rng, xy, segments=WALL_SEGMENTS[:4]))
         loc.add_keyframe(k * 500_000_000, np.linalg.inv(T_TRUE) @ T_cad_body, sightings, UP, points_body=points_body)
     return loc
@@ -688,6 +691,10 @@ def test_a_far_doors_bearing_tells_apart_poses_the_walls_fit_alike() -> None:
     assert without_far.status == "ambiguous" and without_far.graph.T_cad_map() is None
     twins = doors_on_the_room([*near, ((0.0, 3.5), (1, 0)), ((12.0, 3.5), (-1, 0))])
     assert fly_seeing_a_far_door(twins, box, params).status == "ambiguous"
+    # a candidate's height is coarse (one door's corners): 0.8 m at 10.5 m (4.4 deg of elevation) still explains
+    # the far door; 3 m (a storey, 16 deg) does not
+    assert fly_seeing_a_far_door(model, box, params, far_lift_m=0.8).status == "localized"
+    assert fly_seeing_a_far_door(model, box, params, far_lift_m=3.0).status == "ambiguous"
 
 
 def test_the_walls_turn_back_a_pose_localized_degrees_off(room_with_walls: SurfaceIndex) -> None:
