@@ -121,7 +121,7 @@ def _pose_error(T_est: np.ndarray | None, T_true: np.ndarray) -> np.ndarray:
         return np.full(5, np.nan)
     d = T_est[:3, 3] - T_true[:3, 3]
     up_est, up_true = T_est[:3, :3] @ [0.0, 0.0, 1.0], T_true[:3, :3] @ [0.0, 0.0, 1.0]
-    tilt = np.degrees(np.arccos(np.clip(up_est @ up_true, -1.0, 1.0)))
+    tilt = np.degrees(np.arctan2(np.linalg.norm(np.cross(up_est, up_true)), up_est @ up_true))  # exact near 0 deg
     R = T_true[:3, :3].T @ T_est[:3, :3]
     yaw = abs(np.degrees(np.arctan2(R[1, 0], R[0, 0])))
     return np.array([np.linalg.norm(d), np.linalg.norm(d[:2]), d[2], tilt, yaw])
