@@ -311,13 +311,18 @@ class Localizer:
         """[rot; trans] sigmas of a sighting, the translation along the rectangle's own axes (u along the wall,
         n its normal, z up): stereo noise grows with range squared; a side cut by the image border is loose."""
         p = self.params
-        sigma_m = p.sighting_sigma_m[0] + p.sighting_sigma_m[1] * range_m**2
+        sigma_m = self._sighting_sigma_m(range_m)
         trans = np.full(3, sigma_m)
         if s.truncated[0]:
             trans[0] = max(sigma_m, p.truncated_sigma_m)
         if s.truncated[1]:
             trans[2] = max(sigma_m, p.truncated_sigma_m)
         return np.r_[np.full(3, p.sighting_sigma_rad[0] + p.sighting_sigma_rad[1] * range_m**2), trans]
+
+    def _sighting_sigma_m(self, range_m: float) -> float:
+        """A sighting's position sigma at a range (stereo: it grows with range squared), metres."""
+        a, b = self.params.sighting_sigma_m
+        return a + b * range_m**2
 
     def _associate(self, kind: str, T_map_rect: np.ndarray) -> int | None:
         """The same-type landmark nearest to the sighting within `associate_m`, or None (a new landmark)."""
@@ -458,7 +463,7 @@ class Localizer:
                 r = float(np.linalg.norm(ray[:2]))
                 to_features = self._centroids_cad(kind) - camera
                 d = np.linalg.norm(to_features[:, :2], axis=1)
-                sigma_m = p.sighting_sigma_m[0] + p.sighting_sigma_m[1] * r**2
+                sigma_m = self._sighting_sigma_m(r)
                 aside = to_features[:, :2] @ ray[:2] >= cos_tol * d * r  # horizontal bearing
                 up = np.abs(np.arctan2(to_features[:, 2], d) - np.arctan2(ray[2], r)) <= elevation_tol  # elevation
                 explained += bool(np.any(aside & up & (np.abs(d - r) <= 3 * sigma_m)))
