@@ -46,6 +46,7 @@ FIRST_POSE_SIGMAS = np.array([0.2, 0.2, 1e-3, 1e-3, 1e-3, 1e-3])
 GRAVITY_SIGMAS = np.array([0.01, 0.01, 1e3, 1e4, 1e4, 1e4])  # roll, pitch from gravity; the rest free
 SIGHTING_SIGMAS = np.array([0.05, 0.05, 0.05, 0.05, 0.05, 0.05])  # 3 deg, 5 cm at 1 m (scaled by range)
 CAD_LINK_SIGMAS = np.array([0.05, 0.05, 0.05, 0.05, 0.05, 0.05])  # model vs. reality: 3 deg, 5 cm
+CAD_LINK_POSITION_SIGMAS = np.array([1e3, 1e3, 1e3, 0.05, 0.05, 0.05])  # a link of the position only
 # The map's z is gravity's (the keyframes' gravity priors) and the model's z is up: T_map_cad turns about z only.
 # Its roll and pitch are held to 0 as tightly as one keyframe's gravity; yaw and position only weakly (A(0)
 # determined at any time): those are the links' and the wall fits' to say.

@@ -118,6 +118,10 @@ class GraphConfig(BaseModel):
     keyframe_interval_s: float = Field(0.34, description="... or this much time, s")
     associate_m: float = Field(0.6, description="a sighting this close to a same-type landmark re-observes it, m")
     cad_link_m: float = Field(0.5, description="once localized, a landmark this close to a CAD feature is linked, m")
+    cad_link_max_turn_deg: float = Field(
+        8.0, ge=0, description="... by its orientation too where that lies within this of the CAD feature's, deg "
+        "(else by its position only: a door's plane from its corners can be far off on a door seen obliquely, and "
+        "would turn the flight to fit it)")
     degraded_after_s: float = Field(10.0, description="localized, but no sighting of a CAD-linked landmark "
                                     "for this long: degraded")
     lost_after_s: float = Field(30.0, description="... for this long: lost")
@@ -141,6 +145,10 @@ class GraphConfig(BaseModel):
     line_of_sight: bool = Field(
         True, description="in that check, count against a pose the points it would have the camera see through "
         "a wall or column of the model; turn off for a model whose glass partitions are modelled as walls")
+    surface_turn_deg: float = Field(
+        24.0, ge=0, description="in that check, a candidate pose from one door is first turned about the door, "
+        "within this, to the heading that fits the walls best, deg (its heading is the door's plane: perception's "
+        "is ~20 deg off on a door seen obliquely); 0: not turned")
     verified_min_landmarks: int = Field(
         1, ge=1, description="with the surface check, candidate poses are weighed from this many landmarks. "
         "From one door or window (gravity known) they are every alike feature of the model, seen from either side; "

@@ -99,6 +99,8 @@ def _round(v: float | None, nd: int = 4) -> float | None:
 def settings_from_config(graph: GraphConfig) -> tuple[LocalizerParams, KeyframePolicy, IsamSettings]:
     """The factory's half that reads the config: typed constructor arguments for the components."""
     params = LocalizerParams(associate_m=graph.associate_m, cad_link_m=graph.cad_link_m,
+                             cad_link_max_turn_deg=graph.cad_link_max_turn_deg,
+                             surface_turn_deg=graph.surface_turn_deg,
                              registration_tolerance_m=graph.registration_tolerance_m,
                              registration_min_landmarks=graph.registration_min_landmarks,
                              verified_min_landmarks=graph.verified_min_landmarks,

@@ -601,31 +601,41 @@ def doors_on_the_room(centres_normals: list[tuple[tuple[float, float], tuple[flo
                          features=feats, storeys=["L1"])
 
 
-def fly_facing_one_door(model: BuildingModel, room: SurfaceIndex, seen: str,
-                        camera_xy: tuple[float, float], yaw: float) -> Localizer:
-    """Three keyframes (the map frame is T_TRUE's) at `camera_xy` facing `yaw`, with what a camera there sees
-    of the room all around and a sighting of door `seen` alone (no other door in view); the real registrar."""
+def fly_facing_one_door(model: BuildingModel, room: SurfaceIndex, seen: str, camera_xy: tuple[float, float],
+                        yaw: float, params: LocalizerParams | None = None, door_turn_deg: float = 0.0,
+                        keyframes: int = 3) -> Localizer:
+    """Keyframes 0.5 s apart (the map frame is T_TRUE's) from `camera_xy` on, 0.1 m further along x each,
+    facing `yaw`, with what a camera there sees of the room all around and a sighting of door `seen` alone (no
+    other door in view); the real registrar. `door_turn_deg`: the door is seen turned this much about its
+    vertical centre line (its corners' plane off, as perception's are on a door seen obliquely)."""
     registrar = ModelRegistrar(model, min_landmarks=4, candidates_from=1)
-    loc = Localizer(model, PoseGraph(), registrar, LocalizerParams(surface_min_points=100), surfaces=room)
+    params = params or LocalizerParams(surface_min_points=100)
+    loc = Localizer(model, PoseGraph(), registrar, params, surfaces=room)
     rng = np.random.default_rng(8)
-    for k in range(3):
+    for k in range(keyframes):
         xy = np.array(camera_xy) + np.array([0.1 * k, 0.0])
         T_cad_body = make_T(rot_z(yaw), np.array([xy[0], xy[1], 1.4]))
         sightings = [s for s in sightings_from(model, T_cad_body) if s.truth_id == seen]
         assert len(sightings) == 1
+        centre = sightings[0].corners_body.mean(axis=0)
+        turned = (sightings[0].corners_body - centre) @ rot_z(np.radians(door_turn_deg)).T + centre
+        sightings = [replace(sightings[0], corners_body=turned)]
         points_body = apply(np.linalg.inv(T_cad_body), seen_points(rng, xy))
         loc.add_keyframe(k * 500_000_000, np.linalg.inv(T_TRUE) @ T_cad_body, sightings, UP,
                          points_body=points_body)
     return loc
 
 
+FOURTEEN_DOORS = [((x, 0.0), (0, 1)) for x in (1.0, 3.0, 7.0, 9.0, 11.0)] \
+    + [((x, 7.0), (0, -1)) for x in (1.5, 4.0, 6.5, 9.0, 11.0)] \
+    + [((12.0, y), (-1, 0)) for y in (2.0, 5.0)] + [((0.0, y), (1, 0)) for y in (3.0, 6.0)]
+
+
 def test_one_door_and_the_walls_localize(room_with_walls: SurfaceIndex) -> None:
     """Fourteen alike doors on the room's walls: one door in view gives 28 candidate poses (each door, from
     either side). The 8 that the points fit best unfitted are fitted to the walls and checked, and the walls
     single out the true one: localized from one landmark."""
-    model = doors_on_the_room([((x, 0.0), (0, 1)) for x in (1.0, 3.0, 7.0, 9.0, 11.0)]
-                              + [((x, 7.0), (0, -1)) for x in (1.5, 4.0, 6.5, 9.0, 11.0)]
-                              + [((12.0, y), (-1, 0)) for y in (2.0, 5.0)] + [((0.0, y), (1, 0)) for y in (3.0, 6.0)])
+    model = doors_on_the_room(FOURTEEN_DOORS)
     loc = fly_facing_one_door(model, room_with_walls, "D03", (9.0, 3.5), -np.pi / 2)
     assert loc.surface_screens and loc.surface_screens[0][0] == 28
     assert loc.status == "localized" and len(loc.landmarks) == 1
@@ -633,6 +643,30 @@ def test_one_door_and_the_walls_localize(room_with_walls: SurfaceIndex) -> None:
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
     assert rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T) < 0.5
     assert loc.links == {0: "D03"}
+
+
+def test_a_door_seen_turned_is_turned_back_by_the_walls(room_with_walls: SurfaceIndex) -> None:
+    """The one door in view is seen with its plane 15 deg off (perception's corners on a door seen obliquely
+    were 12-24 deg off, always the same way). Every candidate pose from it is 15 deg off; turned about the door
+    to the heading that fits the walls best, the true one is found, and the door is linked by its position only
+    (its orientation disagrees with the model's), so the flight keeps the walls' heading. Not turned, no
+    candidate fits; linked by its orientation too, the door turns the flight to fit it."""
+    model = doors_on_the_room(FOURTEEN_DOORS)
+    base = LocalizerParams(surface_min_points=100)
+    loc = fly_facing_one_door(model, room_with_walls, "D03", (9.0, 3.5), -np.pi / 2, base, door_turn_deg=15.0,
+                              keyframes=12)
+    assert loc.status == "localized" and loc.links == {0: "D03"}
+    T_cad_map = loc.graph.T_cad_map()
+    assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.1
+    assert rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T) < 1.0
+    not_turned = fly_facing_one_door(model, room_with_walls, "D03", (9.0, 3.5), -np.pi / 2,
+                                     replace(base, surface_turn_deg=0.0), door_turn_deg=15.0, keyframes=12)
+    assert not_turned.status != "localized" and not_turned.graph.T_cad_map() is None
+    oriented = fly_facing_one_door(model, room_with_walls, "D03", (9.0, 3.5), -np.pi / 2,
+                                   replace(base, cad_link_max_turn_deg=180.0), door_turn_deg=15.0, keyframes=12)
+    T_oriented = oriented.graph.T_cad_map()
+    assert oriented.status == "localized" and T_oriented is not None
+    assert rotation_angle_deg(T_oriented[:3, :3] @ T_TRUE[:3, :3].T) > 5.0
 
 
 def test_one_door_in_a_room_alike_after_a_half_turn_stays_ambiguous() -> None:

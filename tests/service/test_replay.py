@@ -233,3 +233,15 @@ def test_only_a_localized_map_with_views_is_placed_in_carried_ones_included() ->
     assert not KeyframePlaces(replace(carried_only, carried=[]), keep_views=False).active
     assert not KeyframePlaces(replace(carried_only, T_cad_map=None), keep_views=False).active
     assert KeyframePlaces(None, keep_views=True).active and not KeyframePlaces(None, keep_views=False).active
+
+
+def test_the_graph_section_reaches_the_localizer(tmp_path: Path) -> None:
+    """Every [graph] key the config documents for the localizer is the localizer's, from a config file (the
+    service and the replay both build their localizer from it)."""
+    from service.config import load_config
+    from service.replay import settings_from_config
+
+    path = tmp_path / "config.toml"
+    path.write_text("[graph]\ncad_link_max_turn_deg = 4.5\nsurface_turn_deg = 0.0\nassociate_m = 0.7\n")
+    params, _, _ = settings_from_config(load_config(path).graph)
+    assert (params.cad_link_max_turn_deg, params.surface_turn_deg, params.associate_m) == (4.5, 0.0, 0.7)
