@@ -73,6 +73,8 @@ class LocalizerParams:
     min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
     registration_tolerance_m: float = 0.6  # the model registrar's inlier / ambiguity tolerance (see GraphConfig)
     registration_min_landmarks: int = 4  # the model registrar answers 'localized' from this many landmarks ...
+    registration_early_stop: float = 1.0  # with the surface check, it stops seeding hypotheses once a pose explains
+    #                                       this fraction of the landmarks (1.0: never; see `model_registrar`)
     verified_min_landmarks: int = 1  # ... and offers candidate poses from this many, for the surface check
     surface_window_keyframes: int = 60  # the depth points of this many recent keyframes check a registration
     surface_min_points: int = 200  # fewer points than this: no check (the registration needs the landmarks above)
@@ -768,10 +770,16 @@ class Localizer:
 def model_registrar(model: BuildingModel, params: LocalizerParams, storey_hint: str | None = None,
                     with_surfaces: bool = False, method: str = "robust") -> ModelRegistrar:
     """The registrar against the whole model, from the localizer's parameters (one place for replay and the
-    service): candidates from `verified_min_landmarks` on when the surface check can decide among them."""
+    service): candidates from `verified_min_landmarks` on when the surface check can decide among them. Then it
+    also seeds hypotheses from every landmark (up to its `max_seeds`), not only until a pose explains half of them
+    (`registration_early_stop`): with perception's false and misplaced doors, two seeds can both be wrong, and
+    a wrong pose explaining half the landmarks at a 0.6 m tolerance then stops the search with the true pose
+    never hypothesised (perception, Office_A seed 7: 4 of 7 landmarks, `ambiguous` from 8.8 to 15.6 s, the walls
+    refusing every candidate; seeded from all, the walls took the true pose at 5.6 s)."""
+    seeding = {"early_stop_fraction": params.registration_early_stop} if with_surfaces and method == "robust" else {}
     return ModelRegistrar(model, method=method, storey_hint=storey_hint,
                           min_landmarks=params.registration_min_landmarks, tolerance_m=params.registration_tolerance_m,
-                          candidates_from=params.verified_min_landmarks if with_surfaces else None)
+                          candidates_from=params.verified_min_landmarks if with_surfaces else None, **seeding)
 
 
 class _PerPose(Generic[V]):
