@@ -29,7 +29,7 @@ from graph.mapstore import KeyframeView, StoredLandmark, StoredMap
 from graph.posegraph import CAD_LINK_POSITION_SIGMAS, CAD_LINK_SIGMAS, PoseGraph
 from graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
 from graph.relocalize import Alignment, KnownRect, ObservedRect
-from graph.rigid import apply, levelled, rotation_angle_deg
+from graph.rigid import apply, levelled, make_T, rot_z, rotation_angle_deg
 from graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surfaces, band_points, floor_points
 
 log = logging.getLogger(__name__)
@@ -486,7 +486,8 @@ class Localizer:
                   origins_map: np.ndarray) -> list[np.ndarray]:
         """The candidate poses worth fitting to the walls: all of a few; of more (one door: each alike door of the
         building, from either side, most of them in rooms whose walls stand nowhere near the points), the
-        `surface_screen_top` that score best by `surface_screen_points` points as they are, unfitted. The points'
+        `surface_screen_top` that score best by `surface_screen_points` points as they are, unfitted (those from
+        one landmark turned to the walls' heading first, `_turned`). The points'
         support under every pose is one k-d tree query; only the best supported 3 x `surface_screen_top` have
         their lines of sight checked (most of a check's cost)."""
         p = self.params
@@ -537,8 +538,7 @@ class Localizer:
         moved = np.stack([apply(poses[k], pts_map) for k in ks])[:, None] - pivot  # (K, 1, N, 3)
 
         def supports(turns: np.ndarray) -> np.ndarray:  # (K, H) turns -> (K, H) supports
-            R = _rot_z(turns.ravel()).reshape(*turns.shape, 3, 3)
-            turned = np.einsum("khij,kxnj->khni", R, moved) + pivot
+            turned = np.einsum("khij,kxnj->khni", rot_z(turns), moved) + pivot
             return surfaces.supports(turned.reshape(-1, *turned.shape[2:])).reshape(turns.shape)
 
         support = supports(np.broadcast_to(coarse, (len(ks), len(coarse))))
@@ -549,10 +549,8 @@ class Localizer:
         turn = np.where(better, fine[np.arange(len(ks)), np.argmax(support_fine, axis=1)], coarse[best])
         for k, theta, c in zip(ks, turn, pivot[:, 0, 0], strict=True):
             if theta != 0.0:
-                R = _rot_z(np.array([theta]))[0]
-                T_turn = np.eye(4)
-                T_turn[:3, :3], T_turn[:3, 3] = R, c - R @ c
-                poses[k] = T_turn @ poses[k]
+                R = rot_z(theta)
+                poses[k] = make_T(R, c - R @ c) @ poses[k]
         return poses
 
     def _landmark_at_a_feature(self, T_cad_map: np.ndarray, centres_map: dict[int, np.ndarray]) -> np.ndarray | None:
@@ -806,14 +804,6 @@ class _Choice(NamedTuple):
     T_cad_map: np.ndarray | None
     registrars: bool
     rivals_fit: bool = False
-
-
-def _rot_z(angles_rad: np.ndarray) -> np.ndarray:
-    """Rotations (H, 3, 3) about z by each angle."""
-    c, s = np.cos(angles_rad), np.sin(angles_rad)
-    R = np.zeros((len(angles_rad), 3, 3))
-    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
-    return R
 
 
 def _same_pose(A: np.ndarray, B: np.ndarray, tol_m: float = 1e-3, tol_rad: float = 1e-4) -> bool:

@@ -73,9 +73,12 @@ def yaw_rigid_fit(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None =
     return make_T(R, b_bar - R @ a_bar)
 
 
-def rot_z(yaw: float) -> np.ndarray:
+def rot_z(yaw: float | np.ndarray) -> np.ndarray:
+    """The rotation about z by `yaw` (rad): (3, 3), or (..., 3, 3) for an array of angles."""
     c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    R = np.zeros((*np.shape(yaw), 3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
+    return R
 
 
 def levelled(T: np.ndarray, up_child: np.ndarray | None = None) -> np.ndarray:

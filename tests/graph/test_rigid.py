@@ -98,3 +98,14 @@ def test_levelled_to_a_measured_up_puts_that_up_on_z(tilt: list[float], yaw: flo
     L = levelled(T, up_child)
     assert np.allclose(L[:3, :3] @ (up_child / np.linalg.norm(up_child)), [0.0, 0.0, 1.0], atol=1e-9)
     assert np.allclose(L[:3, 3], T[:3, 3]) and np.isclose(np.linalg.det(L[:3, :3]), 1.0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(yaws=st.lists(st.floats(-10, 10), min_size=1, max_size=6))
+def test_rot_z_of_many_angles_is_each_angles_rotation(yaws: list[float]) -> None:
+    many = rot_z(np.array(yaws))
+    assert many.shape == (len(yaws), 3, 3)
+    for R, yaw in zip(many, yaws, strict=True):
+        assert np.allclose(R, rot_z(yaw))
+        assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+        assert np.allclose(R[:2, 0], [np.cos(yaw), np.sin(yaw)]) and np.allclose(R[2], [0.0, 0.0, 1.0])
