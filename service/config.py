@@ -146,9 +146,10 @@ class GraphConfig(BaseModel):
         True, description="in that check, count against a pose the points it would have the camera see through "
         "a wall or column of the model; turn off for a model whose glass partitions are modelled as walls")
     surface_turn_deg: float = Field(
-        24.0, ge=0, description="in that check, a candidate pose from one door is first turned about the door, "
-        "within this, to the heading that fits the walls best, deg (its heading is the door's plane: perception's "
-        "is ~20 deg off on a door seen obliquely); 0: not turned")
+        24.0, ge=0, description="in that check, a candidate pose from one to three doors is first turned about "
+        "one of them, within this, to the heading that fits the walls best while keeping its doors by theirs in the "
+        "model, deg (from one door its heading is the door's plane: perception's is ~20 deg off on a door seen "
+        "obliquely; from two or three a few metres apart 5-13 deg off); 0: not turned")
     verified_min_landmarks: int = Field(
         1, ge=1, description="with the surface check, candidate poses are weighed from this many landmarks. "
         "From one door or window (gravity known) they are every alike feature of the model, seen from either side; "
