@@ -406,13 +406,17 @@ class Localizer:
         if T_reg is not None:
             T_reg = self._fitted.get(T_reg, lambda T: self._refined(T, points_map))
             moved_reg = apply(T_reg, points_map)
-        candidates, moved, checks = self._weighed(result.candidates, T_reg, points_map, origins_map, turn_up_to=1)
-        if (checks and not self._fits(max(checks, key=lambda c: c.score))
-                and any(1 < n <= p.surface_turn_max_inliers for _, n in result.candidates)):
+        reg = None if T_reg is None else (T_reg, moved_reg)
+        sample = self._screening_sample(points_map, origins_map)
+        counts = [n for _, n in result.candidates]
+        poses = self._turned(result.candidates, sample[0], 1, 1)
+        candidates, moved, checks = self._weighed(poses, reg, points_map, origins_map, sample)
+        if checks and not self._fits(max(checks, key=lambda c: c.score)) \
+                and any(1 < n <= p.surface_turn_max_inliers for n in counts):
             log.info("no candidate pose fits the walls as it stands: those from up to %d landmarks turned too",
                      p.surface_turn_max_inliers)
-            candidates, moved, checks = self._weighed(result.candidates, T_reg, points_map, origins_map,
-                                                      turn_up_to=p.surface_turn_max_inliers)
+            poses = self._turned(list(zip(poses, counts, strict=True)), sample[0], 2, p.surface_turn_max_inliers)
+            candidates, moved, checks = self._weighed(poses, reg, points_map, origins_map, sample)
         if not candidates:
             return _Choice(None, False)
         score = np.array([c.score for c in checks])
@@ -437,17 +441,17 @@ class Localizer:
                 else _Choice(T_reg, True)
         return _Choice(candidates[best] if confirmed else None, False, fits and rivalled)
 
-    def _weighed(self, raw: list[tuple[np.ndarray, int]], T_reg: np.ndarray | None, points_map: np.ndarray,
-                 origins_map: np.ndarray, turn_up_to: int) -> tuple[list[np.ndarray], list[np.ndarray],
-                                                                    list[SurfaceCheck]]:
-        """The candidate poses worth checking (`_screened`, those from up to `turn_up_to` landmarks turned to the
-        walls), each fitted to the walls, with the registrar's own answer T_reg (fitted) first where it is none
+    def _weighed(self, poses: list[np.ndarray], reg: tuple[np.ndarray, np.ndarray] | None, points_map: np.ndarray,
+                 origins_map: np.ndarray, sample: tuple[np.ndarray, np.ndarray]
+                 ) -> tuple[list[np.ndarray], list[np.ndarray], list[SurfaceCheck]]:
+        """The candidate poses worth checking (`_screened` by the points' `sample`), each fitted to the walls,
+        with the registrar's own answer (`reg`: its pose, fitted, and the points under it) first where it is none
         of them; the map's points under each (CAD frame) and each one's surface check."""
         candidates = [self._fitted.get(T, lambda T: self._refined(T, points_map))
-                      for T in self._screened(raw, points_map, origins_map, turn_up_to)]
+                      for T in self._screened(poses, *sample)]
         moved = [apply(T, points_map) for T in candidates]
-        if T_reg is not None:
-            moved_reg = apply(T_reg, points_map)
+        if reg is not None:
+            T_reg, moved_reg = reg
             if all(_poses_differ(T, T_reg, m, moved_reg) for T, m in zip(candidates, moved, strict=True)):
                 candidates.insert(0, T_reg)
                 moved.insert(0, moved_reg)
@@ -510,19 +514,20 @@ class Localizer:
                                                       if f.type == kind]).reshape(-1, 3)
         return self._feature_centroids[kind]
 
-    def _screened(self, candidates: list[tuple[np.ndarray, int]], points_map: np.ndarray,
-                  origins_map: np.ndarray, turn_up_to: int = 1) -> list[np.ndarray]:
+    def _screening_sample(self, points_map: np.ndarray, origins_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`surface_screen_points` of the points and their cameras, evenly drawn, to screen candidates by."""
+        every = max(1, int(np.ceil(len(points_map) / self.params.surface_screen_points)))
+        return points_map[::every], origins_map[::every]
+
+    def _screened(self, poses: list[np.ndarray], pts: np.ndarray, origins: np.ndarray) -> list[np.ndarray]:
         """The candidate poses worth fitting to the walls: all of a few; of more (one door: each alike door of the
         building, from either side, most of them in rooms whose walls stand nowhere near the points), the
-        `surface_screen_top` that score best by `surface_screen_points` points as they are, unfitted (those from
-        up to `turn_up_to` landmarks turned to the walls' heading first, `_turned`). The points'
+        `surface_screen_top` that score best by the points `pts` (`_screening_sample`, seen from `origins`) as
+        they are, unfitted (turned to the walls' heading before, `_turned`). The points'
         support under every pose is one k-d tree query; only the best supported 3 x `surface_screen_top` have
         their lines of sight checked (most of a check's cost)."""
         p = self.params
         assert self.surfaces is not None
-        every = max(1, int(np.ceil(len(points_map) / p.surface_screen_points)))
-        pts, origins = points_map[::every], origins_map[::every]
-        poses = self._turned(candidates, pts, turn_up_to)
         if len(poses) <= p.surface_screen_top:
             return poses
         R = np.stack([T[:3, :3] for T in poses])
@@ -537,9 +542,9 @@ class Localizer:
         self.surface_screens.append((len(poses), score[ranked].round(3).tolist()))
         return [poses[k] for k in supported[ranked[: p.surface_screen_top]]]
 
-    def _turned(self, candidates: list[tuple[np.ndarray, int]], pts_map: np.ndarray,
-                turn_up_to: int = 1) -> list[np.ndarray]:
-        """The candidate poses, each one from at most `turn_up_to` landmarks turned about the vertical through a
+    def _turned(self, candidates: list[tuple[np.ndarray, int]], pts_map: np.ndarray, fewest: int,
+                most: int) -> list[np.ndarray]:
+        """The candidate poses, each one from `fewest` to `most` landmarks turned about the vertical through a
         landmark (the one its pose puts nearest a same-type CAD feature) to the heading, within `surface_turn_deg`,
         whose unfitted support by `surface_turn_points` of the points `pts_map` is highest (ties: the least turn)
         among the headings that leave as many landmarks within `registration_tolerance_m` of a same-type CAD
@@ -553,7 +558,7 @@ class Localizer:
         only so far; the walls around a door hold its heading over metres, not over the door's width."""
         p = self.params
         poses = [T for T, _ in candidates]
-        few = [k for k, (_, n) in enumerate(candidates) if n <= turn_up_to]
+        few = [k for k, (_, n) in enumerate(candidates) if fewest <= n <= most]
         if p.surface_turn_deg <= 0 or not few or not len(pts_map):
             return poses
         pts_map = pts_map[:: max(1, int(np.ceil(len(pts_map) / p.surface_turn_points)))]

@@ -721,7 +721,7 @@ def test_a_turn_keeps_the_candidates_doors_by_their_cad_doors(room_with_walls: S
     T_candidate = turn_about_d02(0.5) @ T_TRUE  # D02 exact, so the turn is about it
     walls_cad = seen_points(np.random.default_rng(3), np.array([9.0, 3.5]), n=300)
     points_map = apply(np.linalg.inv(T_candidate) @ turn_about_d02(-14.0), walls_cad)  # fit 14 deg further
-    (T_turned,) = loc._turned([(T_candidate, 2)], points_map, turn_up_to=2)
+    (T_turned,) = loc._turned([(T_candidate, 2)], points_map, 2, 2)
     turn_deg = rotation_angle_deg(T_turned[:3, :3] @ T_candidate[:3, :3].T)
     assert 3.0 < turn_deg < 8.6
     for key, door_id in loc.links.items():
