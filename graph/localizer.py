@@ -717,12 +717,17 @@ class Localizer:
         coarse positions put it, and the fit from there may be refused as too large (perception, Office_A seed 5:
         three doors linked by their positions put the pose 0.6 m and 5.3 deg from where the walls chose it, 0.16 m
         and 0.6 deg from the truth); the height is the doors' (the candidate's was the registration's, and
-        perception's floor points put Office_A seed 7's 0.15 m low there)."""
+        perception's floor points put Office_A seed 7's 0.15 m low there). That fit takes the window's points,
+        those the pose was chosen and fitted by (`_refined`), not the keyframe's alone: on its 300 points a fit
+        moved `truth` Office_A seed 5's (noise seed 2) pose from 0.13 to 0.50 m off, too far for its door to be
+        linked, and the flight's height then sank 0.67 m until the next doors (APE 0.112 m; 0.078 m now)."""
         i = self.graph.n_keyframes - 1
         if not self.graph.has_anchor or not self._points or self._points[-1][0] != i or self._fit_tried_at == i:
             return
         self._fit_tried_at = i
         _, points_body, floor_body = self._points[-1]
+        if anchoring:  # the window's points, as the candidate was chosen and fitted by (`_refined`)
+            points_body = apply(np.linalg.inv(self.graph.T_map_body(i)), self._points_map()[0])
         self._fit_to_surfaces(i, points_body, floor_body if not anchoring else None)
 
     def _fit_to_surfaces(self, i: int, points_body: np.ndarray, floor_body: np.ndarray | None) -> None:

@@ -17,7 +17,15 @@ import numpy as np
 from perception.calib import StereoRig
 from perception.detector import DEFAULT_MODEL, Detection, Detector
 from perception.lines import LineConfig, Sides, refine_box
-from perception.reconstruct import PlausibilityConfig, check_plausible, measure, reconstruct_sides
+from perception.reconstruct import (
+    PlausibilityConfig,
+    WallPlaneConfig,
+    check_plausible,
+    corners_on_plane,
+    measure,
+    reconstruct_sides,
+    wall_plane,
+)
 from perception.stereo import SgbmConfig, SgbmMatcher, depth_from_disparity
 
 log = logging.getLogger(__name__)
@@ -102,11 +110,13 @@ class Perception:
     """The whole chain with its components; `process(pair)` is the paper's §2.2 step by step."""
 
     def __init__(self, detector: Detector, matcher: SgbmMatcher, lines: LineConfig | None = None,
-                 plausibility: PlausibilityConfig | None = None) -> None:
+                 plausibility: PlausibilityConfig | None = None, wall: WallPlaneConfig | None = WallPlaneConfig()
+                 ) -> None:
         self.detector = detector
         self.matcher = matcher
         self.lines = lines or LineConfig()
         self.plausibility = plausibility or PlausibilityConfig()
+        self.wall = wall  # corners on the wall's plane beside the opening, where it shows one (None: the sides')
         self.band_margin_px = 24  # rows of stereo context above and below the boxes
 
     @staticmethod
@@ -157,13 +167,17 @@ class Perception:
 
     def _reconstruct(self, det: Detection, sides: Sides, depth_m: np.ndarray,
                      pair: StereoPair) -> ObservedFeature | Rejected:
-        fitted = reconstruct_sides(sides, depth_m, pair.rig)
-        if isinstance(fitted, str):
-            return Rejected(det, fitted)
-        corners_cam, lines = fitted
+        corners_cam = None
+        if self.wall is not None and (plane := wall_plane(sides, depth_m, pair.rig, pair.gravity_cam, self.wall)):
+            corners_cam = corners_on_plane(sides, plane, pair.rig, self.wall.min_incidence_deg)
+        if corners_cam is None:
+            fitted = reconstruct_sides(sides, depth_m, pair.rig)
+            if isinstance(fitted, str):
+                return Rejected(det, fitted)
+            corners_cam = fitted[0]
+        tl, tr, br, bl = corners_cam
         rec = measure(corners_cam, pair.gravity_cam)
-        reason = check_plausible(det.type, rec, (lines[0].direction, lines[1].direction),
-                                 pair.gravity_cam is not None, self.plausibility)
+        reason = check_plausible(det.type, rec, (bl - tl, br - tr), pair.gravity_cam is not None, self.plausibility)
         if reason is not None:
             return Rejected(det, reason)
         h, w = pair.left.shape[:2]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from perception.detector import Detection
-from perception.pipeline import Perception, StereoPair
+from perception.pipeline import ObservedFeature, Perception, Rejected, StereoPair
 from tests.perception.helpers import RIG, door_pair
 
 
@@ -68,3 +68,22 @@ def test_runtime_needs_neither_torch_nor_the_service():
             "bad = [m for m in ('torch', 'zenoh', 'service', 'typer') if m in sys.modules]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_a_doorway_is_placed_on_its_wall_not_in_the_room_seen_through_it():
+    """The chain reads the doorway's depth from the wall beside it; with that switched off (`wall=None`), from
+    inside its sides, where the camera sees the room 3 m behind: there the doorway would be 3.5 m tall, and is
+    rejected."""
+    from tests.perception.test_reconstruct import _doorway_on_a_wall
+
+    depth, sides, corners, _ = _doorway_on_a_wall(20.0, np.array([0.1, 0.1, 4.0]), 3.0, 0.0, 0)
+    grey = np.zeros((RIG.height_px, RIG.width_px), np.uint8)
+    pair = StereoPair(grey, grey, RIG, gravity_cam=np.array([0.0, 1.0, 0.0]))
+    box = (float(sides.left_px[:, 0].min()), float(sides.left_px[:, 1].min()), float(sides.right_px[:, 0].max()),
+           float(sides.right_px[:, 1].max()))
+    chain = Perception.create()
+    on_wall = chain._reconstruct(Detection("door", 0.9, box), sides, depth, pair)
+    chain.wall = None
+    inside = chain._reconstruct(Detection("door", 0.9, box), sides, depth, pair)
+    assert isinstance(on_wall, ObservedFeature) and np.abs(on_wall.corners_cam - corners).max() < 0.02
+    assert isinstance(inside, Rejected) and "height" in inside.reason

@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -8,9 +9,11 @@ from perception.reconstruct import (
     Reconstruction,
     check_plausible,
     closest_point_to_ray,
+    corners_on_plane,
     fit_line_robust,
     measure,
     reconstruct_sides,
+    wall_plane,
 )
 from perception.stereo import back_project
 from tests.perception.helpers import RIG
@@ -105,3 +108,75 @@ def test_back_projected_side_points_lie_on_the_fitted_line():
     pts = back_project(np.array([[100.0, 50 + 5 * i] for i in range(20)]), np.full(20, 3.0), RIG)
     line = fit_line_robust(pts)
     assert line is not None and np.allclose(line.distances_m(pts), 0, atol=1e-9)
+
+
+def _doorway_on_a_wall(yaw_deg: float, centre: np.ndarray, behind_m: float, noise_m: float, seed: int
+                       ) -> tuple[np.ndarray, Sides, np.ndarray, np.ndarray]:
+    """A wall turned `yaw_deg` about the vertical with a 0.9 x 2.0 m open doorway centred at `centre` (camera
+    frame), through which the camera sees a room `behind_m` deeper: the depth image (with stereo-like noise
+    growing with depth squared, and 5 % of the pixels without depth), the doorway's sides, its corners (TL TR
+    BR BL) and the wall's unit normal."""
+    rng = np.random.default_rng(seed)
+    yaw = np.radians(yaw_deg)
+    normal = np.array([np.sin(yaw), 0.0, -np.cos(yaw)])
+    depth = _depth_of_plane(normal, normal @ centre).astype(np.float64)
+    along, up = np.array([np.cos(yaw), 0.0, np.sin(yaw)]), np.array([0.0, -1.0, 0.0])
+    corners = np.stack([centre - 0.45 * along + 1.0 * up, centre + 0.45 * along + 1.0 * up,
+                        centre + 0.45 * along - 1.0 * up, centre - 0.45 * along - 1.0 * up])  # TL TR BR BL
+    px = corners[:, :2] / corners[:, 2:] * RIG.fx_px + [RIG.cx_px, RIG.cy_px]
+    inside = np.zeros(depth.shape, np.uint8)  # the doorway's outline in the image (a trapezoid seen obliquely)
+    cv2.fillConvexPoly(inside, np.rint(px).astype(np.int32), 1)
+    depth[inside.astype(bool)] += behind_m  # through the doorway
+    depth += rng.normal(0.0, noise_m, depth.shape) * depth**2
+    depth[rng.random(depth.shape) < 0.05] = np.nan
+    sides = Sides(np.stack([px[0], px[3]]), np.stack([px[1], px[2]]), (True, True))
+    return depth.astype(np.float32), sides, corners, normal
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(-50, 50), st.floats(-0.6, 0.6), st.floats(2.5, 6.5), st.floats(0.0, 0.004), st.integers(0, 2**31 - 1))
+def test_a_doorway_s_corners_lie_on_its_wall_not_in_the_room_behind(yaw_deg, x_m, z_m, noise_m, seed):
+    """Seen through an open doorway, the room behind is metres deeper than the door; the wall beside it holds the
+    door's plane, and the corners on that plane are where the doorway is, at any angle and range."""
+    depth, sides, corners, normal = _doorway_on_a_wall(yaw_deg, np.array([x_m, 0.1, z_m]), 3.0, noise_m, seed)
+    plane = wall_plane(sides, depth, RIG, gravity_cam=np.array([0.0, 1.0, 0.0]))
+    assert plane is not None
+    n, d = plane
+    assert abs(n @ normal) > np.cos(np.radians(2.0 + 400 * noise_m * z_m))  # a few degrees at 6 m with noise
+    found = corners_on_plane(sides, plane, RIG)
+    assert found is not None
+    assert np.abs(found - corners).max() < 0.03 + 3.0 * noise_m * z_m**2
+
+
+def test_the_sides_own_depth_would_put_that_doorway_in_the_room_behind():
+    """Why the wall: the sides' depth, read inside the opening, is the room's (the doorway 1.3 m too deep)."""
+    depth, sides, corners, _ = _doorway_on_a_wall(25.0, np.array([0.2, 0.1, 4.0]), 3.0, 0.0, 0)
+    fitted = reconstruct_sides(sides, depth, RIG)
+    assert not isinstance(fitted, str)
+    assert np.abs(fitted[0] - corners).max() > 1.0
+    plane = wall_plane(sides, depth, RIG)
+    assert plane is not None
+    found = corners_on_plane(sides, plane, RIG)
+    assert found is not None and np.abs(found - corners).max() < 0.02
+
+
+def test_no_wall_beside_an_opening_gives_no_plane():
+    """With depth only inside the opening (nothing beside it: a glass front, the image's border), there is no
+    wall to read; so is a strip that is not a wall (a tilted plane, with gravity known)."""
+    depth, sides, _, _ = _doorway_on_a_wall(0.0, np.array([0.0, 0.1, 4.0]), 3.0, 0.0, 0)
+    (tl, bl), (tr, _) = sides.left_px, sides.right_px
+    inside = np.full_like(depth, np.nan)
+    u0, u1, v0, v1 = int(tl[0]) + 2, int(tr[0]) - 2, int(tl[1]) + 2, int(bl[1]) - 2
+    inside[v0:v1, u0:u1] = depth[v0:v1, u0:u1]
+    assert wall_plane(sides, inside, RIG) is None
+    tilted = _depth_of_plane(np.array([0.0, -np.sin(0.5), -np.cos(0.5)]), -4.0)  # a floor-like slope, 29 deg
+    assert wall_plane(sides, tilted, RIG, gravity_cam=np.array([0.0, 1.0, 0.0])) is None
+    assert wall_plane(sides, tilted, RIG) is not None
+
+
+def test_a_ray_grazing_the_plane_gives_no_corners():
+    sides = Sides(np.array([[100.0, 100], [100, 300]]), np.array([[200.0, 100], [200, 300]]), (True, True))
+    assert corners_on_plane(sides, (np.array([0.0, 0.0, -1.0]), -4.0), RIG) is not None
+    ahead = Sides(np.array([[310.0, 100], [310, 300]]), np.array([[330.0, 100], [330, 300]]), (True, True))
+    assert corners_on_plane(ahead, (np.array([1.0, 0.0, 0.0]), -4.0), RIG) is None  # a wall along the view
+    assert corners_on_plane(sides, (np.array([0.0, 0.0, 1.0]), -4.0), RIG) is None  # behind the camera

@@ -159,3 +159,17 @@ def test_the_surfaces_read_from_the_cache_are_those_built(fzk_path, tmp_path, mo
     unchecked = surfaces_for(fzk_path, line_of_sight=False)
     assert unchecked is not None and len(unchecked) > len(built)  # its hidden faces are kept
     assert len(list(tmp_path.glob("surfaces-*.npz"))) == 2
+
+
+def test_the_model_s_triangles_come_in_the_elements_order(fzk_path) -> None:
+    """The geometry iterator's two threads hand the shapes over in whichever order they finish; the mesh (and so
+    the surface samples drawn on it, and every replay's figures) must not depend on that: the shapes come in the
+    elements' id order, and two reads give the same mesh."""
+    import ifcopenshell
+
+    from service.planning_grid import NOT_SEEN, _iterate_shapes, _read_solids
+
+    ids = [element.id() for element, _, _ in _iterate_shapes(ifcopenshell.open(str(fzk_path)), exclude=list(NOT_SEEN))]
+    assert len(ids) > 10 and ids == sorted(ids)
+    first, again = _read_solids(fzk_path, NOT_SEEN), _read_solids(fzk_path, NOT_SEEN)
+    assert np.array_equal(first.vertices_cad, again.vertices_cad) and np.array_equal(first.faces, again.faces)
