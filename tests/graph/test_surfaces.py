@@ -705,6 +705,36 @@ def test_two_doors_seen_turned_are_turned_back_by_the_walls(room_with_walls: Sur
     assert one_door_only.status == "ambiguous" and one_door_only.graph.T_cad_map() is None
 
 
+def test_the_keyframe_that_localizes_is_fitted_by_the_window_s_points(room_with_walls: SurfaceIndex) -> None:
+    """The keyframe that localizes sees its walls 0.25 m off (its depth biased: clutter the model lacks, a poor
+    stereo frame); the keyframes before it saw them right. Fitted to the walls by the window's points, as the
+    pose was chosen, it stays within 0.08 m; by its own points alone (a one-keyframe window), the fit moves it
+    0.24 m (`truth`, Office_A seed 5: such a fit moved a pose from 0.13 to 0.50 m off, too far for its door to be
+    linked)."""
+    model = doors_on_the_room(FOURTEEN_DOORS)
+
+    def first_pose_error_m(window_keyframes: int) -> float:
+        params = LocalizerParams(surface_min_points=100, min_sightings_to_register=4,
+                                 surface_window_keyframes=window_keyframes)
+        loc = Localizer(model, PoseGraph(), ModelRegistrar(model, min_landmarks=4, candidates_from=1), params,
+                        surfaces=room_with_walls)
+        rng = np.random.default_rng(8)
+        for k in range(6):
+            xy = np.array([9.0 + 0.1 * k, 3.5])
+            T_cad_body = make_T(rot_z(-np.pi / 2), np.array([xy[0], xy[1], 1.4]))
+            sightings = [s for s in sightings_from(model, T_cad_body) if s.truth_id == "D03"]
+            points_cad = seen_points(rng, xy) + (np.array([0.25, 0.0, 0.0]) if k == 3 else 0.0)
+            estimate = loc.add_keyframe(k * 500_000_000, np.linalg.inv(T_TRUE) @ T_cad_body, sightings, UP,
+                                        points_body=apply(np.linalg.inv(T_cad_body), points_cad))
+            if estimate.T_cad_body is not None:
+                assert k == 3  # the fourth sighting of the door: the biased keyframe localizes
+                return float(np.linalg.norm(estimate.T_cad_body[:3, 3] - T_cad_body[:3, 3]))
+        raise AssertionError("not localized")
+
+    assert first_pose_error_m(60) < 0.08
+    assert first_pose_error_m(1) > 0.2
+
+
 def test_a_turn_keeps_the_candidates_doors_by_their_cad_doors(room_with_walls: SurfaceIndex) -> None:
     """Doors D02 and D04, 4 m apart, both by their CAD doors under a candidate pose; the walls fit best with the
     candidate turned 14 deg about D02, which would put D04 0.97 m from its door (the registration's tolerance
