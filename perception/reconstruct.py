@@ -4,7 +4,9 @@ Points sampled along each 2D side are back-projected with their stereo depth (eq
 orthogonal regression (total least squares), points farther than a threshold removed, the line refitted.
 The side's ends are the points of the fitted line nearest the viewing rays through the 2D side's ends
 (the paper projects the 3D endpoints onto the line; the rays need no depth at the very ends, where
-stereo is least reliable).
+stereo is least reliable). Where the depth beside the opening shows the wall it sits in (`wall_plane`), the corners
+are instead where those rays meet that wall (`corners_on_plane`): inside an open doorway the sides' depth is the
+room behind it.
 Frames: camera optical frame (x right, y down, z forward), metres. Corners are ordered
 top-left, top-right, bottom-right, bottom-left as seen in the image.
 """
