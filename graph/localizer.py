@@ -733,7 +733,7 @@ class Localizer:
     def _fit_to_surfaces(self, i: int, points_body: np.ndarray, floor_body: np.ndarray | None) -> None:
         """Keyframe i's depth points fitted to the model's walls and floors (point-to-plane) enter the graph as a
         measured T_cad_body with the fit's information: the walls hold the pose where the doors' corners are
-        coarse, the floor holds its height."""
+        coarse, the floor holds its height; without floor points (`floor_body` None) the height is held as it is."""
         T_cad_map = self.graph.T_cad_map()
         if not self.params.surface_fit or self.surfaces is None or T_cad_map is None:
             return

@@ -603,13 +603,15 @@ def doors_on_the_room(centres_normals: list[tuple[tuple[float, float], tuple[flo
 
 def fly_facing_doors(model: BuildingModel, room: SurfaceIndex, seen: tuple[str, ...], camera_xy: tuple[float, float],
                      yaw: float, params: LocalizerParams | None = None, seen_turn_deg: float = 0.0,
-                     keyframes: int = 3, estimates: list[Estimate] | None = None) -> Localizer:
+                     keyframes: int = 3, estimates: list[Estimate] | None = None,
+                     depth_offset: tuple[int, np.ndarray] | None = None) -> Localizer:
     """Keyframes 0.5 s apart (the map frame is T_TRUE's) from `camera_xy` on, 0.1 m further along x each,
     facing `yaw`, with what a camera there sees of the room all around and sightings of the doors `seen` alone
     (no other door in view); the real registrar. `seen_turn_deg`: the doors are seen turned this much about the
     vertical through their mean centre (one door: its corners' plane off, as perception's are on a door seen
     obliquely; two: their corners coarse at range, each a few tenths of a metre off). Each keyframe's estimate
-    is appended to `estimates`, where given."""
+    is appended to `estimates`, where given. `depth_offset` (k, xyz): keyframe k's depth points are that far off
+    (CAD frame, m), as a biased stereo frame's are."""
     registrar = ModelRegistrar(model, min_landmarks=4, candidates_from=1)
     params = params or LocalizerParams(surface_min_points=100)
     loc = Localizer(model, PoseGraph(), registrar, params, surfaces=room)
@@ -623,7 +625,10 @@ def fly_facing_doors(model: BuildingModel, room: SurfaceIndex, seen: tuple[str, 
         centre = np.mean([s.corners_body.mean(axis=0) for s in sightings], axis=0)
         R = rot_z(np.radians(seen_turn_deg))
         sightings = [replace(s, corners_body=(s.corners_body - centre) @ R.T + centre) for s in sightings]
-        points_body = apply(np.linalg.inv(T_cad_body), seen_points(rng, xy))
+        points_cad = seen_points(rng, xy)
+        if depth_offset is not None and depth_offset[0] == k:
+            points_cad = points_cad + depth_offset[1]
+        points_body = apply(np.linalg.inv(T_cad_body), points_cad)
         estimate = loc.add_keyframe(k * 500_000_000, np.linalg.inv(T_TRUE) @ T_cad_body, sightings, UP,
                                     points_body=points_body)
         if estimates is not None:
@@ -716,20 +721,12 @@ def test_the_keyframe_that_localizes_is_fitted_by_the_window_s_points(room_with_
     def first_pose_error_m(window_keyframes: int) -> float:
         params = LocalizerParams(surface_min_points=100, min_sightings_to_register=4,
                                  surface_window_keyframes=window_keyframes)
-        loc = Localizer(model, PoseGraph(), ModelRegistrar(model, min_landmarks=4, candidates_from=1), params,
-                        surfaces=room_with_walls)
-        rng = np.random.default_rng(8)
-        for k in range(6):
-            xy = np.array([9.0 + 0.1 * k, 3.5])
-            T_cad_body = make_T(rot_z(-np.pi / 2), np.array([xy[0], xy[1], 1.4]))
-            sightings = [s for s in sightings_from(model, T_cad_body) if s.truth_id == "D03"]
-            points_cad = seen_points(rng, xy) + (np.array([0.25, 0.0, 0.0]) if k == 3 else 0.0)
-            estimate = loc.add_keyframe(k * 500_000_000, np.linalg.inv(T_TRUE) @ T_cad_body, sightings, UP,
-                                        points_body=apply(np.linalg.inv(T_cad_body), points_cad))
-            if estimate.T_cad_body is not None:
-                assert k == 3  # the fourth sighting of the door: the biased keyframe localizes
-                return float(np.linalg.norm(estimate.T_cad_body[:3, 3] - T_cad_body[:3, 3]))
-        raise AssertionError("not localized")
+        estimates: list[Estimate] = []
+        fly_facing_doors(model, room_with_walls, ("D03",), (9.0, 3.5), -np.pi / 2, params, keyframes=6,
+                         estimates=estimates, depth_offset=(3, np.array([0.25, 0.0, 0.0])))
+        k, T_first = next((k, e.T_cad_body) for k, e in enumerate(estimates) if e.T_cad_body is not None)
+        assert k == 3  # the fourth sighting of the door: the biased keyframe localizes
+        return float(np.linalg.norm(T_first[:3, 3] - np.array([9.0 + 0.1 * k, 3.5, 1.4])))
 
     assert first_pose_error_m(60) < 0.08
     assert first_pose_error_m(1) > 0.2
