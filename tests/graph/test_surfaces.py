@@ -818,6 +818,37 @@ def test_a_far_doors_bearing_tells_apart_poses_the_walls_fit_alike() -> None:
     assert fly_seeing_a_far_door(model, box, params, far_lift_m=3.0).status == "ambiguous"
 
 
+@settings(max_examples=15, deadline=None)
+@given(off_deg=st.floats(-3.9, 3.9).filter(lambda a: abs(a) > 3.2))
+def test_a_candidate_a_few_degrees_off_still_explains_the_far_door_it_sees(off_deg: float) -> None:
+    """A candidate's heading, from a door or two and the walls, is ~2 deg off (perception, Office_A seed 4: 1.9
+    deg). Turned 3.2-3.9 deg about the newest camera, the true pose puts the far door D02 (10.5 m) beyond the 3 deg
+    bearing tolerance; the far check turns it back by up to `far_turn_deg` (2 deg) and it explains D02 again.
+    Without the turn it does not, and the half-turned pose explains nothing, turned or not."""
+    v, f = room_mesh()
+    box = SurfaceIndex.from_mesh(v, f[:8], SurfaceParams(spacing_m=0.05))
+    box.walls = WallVoxels.from_mesh(v, f[:8])
+    model = doors_on_the_room([((7.0, 0.0), (0, 1)), ((5.0, 7.0), (0, -1)), ((0.0, 3.5), (1, 0))])
+    params = LocalizerParams(surface_min_points=100)
+    loc = fly_seeing_a_far_door(model, box, params)
+    T_cad_map = loc.graph.T_cad_map()
+    assert T_cad_map is not None
+    camera = apply(T_cad_map @ loc.graph.T_map_body(loc.graph.n_keyframes - 1), loc.viewer_body[None])[0]
+
+    def turned(deg: float, about: np.ndarray) -> np.ndarray:
+        R = rot_z(np.radians(deg))
+        return make_T(R, about - R @ about) @ T_cad_map
+
+    T_off = turned(off_deg, camera)
+    assert loc._far_explained(T_off) == 1.0
+    loc.params = replace(params, far_turn_deg=0.0)
+    assert loc._far_explained(T_off) == 0.0
+    assert loc._far_explained(T_cad_map) == 1.0
+    loc.params = params
+    half_turned = turned(180.0, np.array([6.0, 3.5, 0.0]))  # the box room's centre: its walls fit alike
+    assert loc._far_explained(half_turned) == 0.0
+
+
 def test_the_walls_turn_back_a_pose_localized_degrees_off(room_with_walls: SurfaceIndex) -> None:
     """A pose localized from one door carries the detector's error in that door's orientation (5.5 deg on
     Office_A seed 9, where every later fit to the walls turned the pose more than the 5 deg then allowed and was
