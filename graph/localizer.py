@@ -34,6 +34,7 @@ from graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surfaces, band_p
 
 log = logging.getLogger(__name__)
 V = TypeVar("V")
+Ranges = TypeVar("Ranges", float, np.ndarray)
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 
@@ -328,8 +329,9 @@ class Localizer:
             trans[2] = max(sigma_m, p.truncated_sigma_m)
         return np.r_[np.full(3, p.sighting_sigma_rad[0] + p.sighting_sigma_rad[1] * range_m**2), trans]
 
-    def _sighting_sigma_m(self, range_m: float) -> float:
-        """A sighting's position sigma at a range (stereo: it grows with range squared), metres."""
+    def _sighting_sigma_m(self, range_m: Ranges) -> Ranges:
+        """A sighting's position sigma at a range (stereo: it grows with range squared), metres; of each of an
+        array of ranges too."""
         a, b = self.params.sighting_sigma_m
         return a + b * range_m**2
 
@@ -474,20 +476,19 @@ class Localizer:
         if far is None:
             return rivals
         f_best = self._far_explained(T_best, far)
-        if f_best is None or f_best < p.far_min_explained:
+        if f_best < p.far_min_explained:
             return rivals
-        f_rivals = [self._far_explained(T, far) or 0.0 for T in rivals]
+        f_rivals = [self._far_explained(T, far) for T in rivals]
         log.info("far sightings: the best candidate pose explains %.2f of them, its rivals on the walls %s",
                  f_best, ", ".join(f"{f:.2f}" for f in f_rivals))
         return [T for T, f in zip(rivals, f_rivals, strict=True) if f > f_best - p.far_margin]
 
-    def _far_explained(self, T_cad_map: np.ndarray,
-                       far: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> float | None:
-        """The fraction of the window's far sightings (beyond `max_range_m`) that the pose T_cad_map explains,
+    def _far_explained(self, T_cad_map: np.ndarray, far: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
+        """The fraction of the window's far sightings (`far`, from `_far_map`) that the pose T_cad_map explains,
         turned about the newest keyframe's camera by up to `far_turn_deg` (`far_turn_step_deg` steps) to the
         heading that explains most: a same-type CAD feature lies within `far_bearing_deg` of the sighting's
         horizontal bearing from its keyframe's camera, `far_elevation_deg` of its elevation and 3 of its sigmas
-        (`sighting_sigma_m`) of its horizontal range. None with fewer than `far_min_sightings`. A stereo pair
+        (`sighting_sigma_m`) of its horizontal range. A stereo pair
         places a door 15 m away to a metre along its line of sight but to a fraction of a degree across it: the
         bearings tell apart poses that the walls near by fit alike. The candidate's heading is known less well:
         from one door and the walls it is ~2 deg off (`perception`, Office_A seed 4: the one-door candidate, 1.9 deg
@@ -496,11 +497,8 @@ class Localizer:
         allowed more: the vertical is the weak part of a candidate from one door (the walls' fit holds its
         height). With the visual odometry (truth-vo, Office_A seed 4) the true one-door candidate put the far
         doors 2.5-3.6 deg low at 8 m and 0.2-1.4 deg aside; the two-door one 0.04 deg low. A door a storey up or
-        down is 17 deg or more off at 10 m. `far`: the window's far sightings (`_far_map`), where known."""
+        down is 17 deg or more off at 10 m."""
         p = self.params
-        far = far if far is not None else self._far_map()
-        if far is None:
-            return None
         pivot = apply(T_cad_map @ self.graph.T_map_body(self.graph.n_keyframes - 1), self.viewer_body[None])[0]
         n_turns = int(round(p.far_turn_deg / p.far_turn_step_deg)) if p.far_turn_step_deg > 0 else 0
         turns = [rot_z(np.radians(k * p.far_turn_step_deg)) for k in range(-n_turns, n_turns + 1)]
@@ -527,7 +525,6 @@ class Localizer:
         p = self.params
         cos_tol = float(np.cos(np.radians(p.far_bearing_deg)))
         elevation_tol = float(np.radians(p.far_elevation_deg))
-        a, b = p.sighting_sigma_m
         R, t = T_cad_map[:, :3, :3], T_cad_map[:, None, :3, 3]
         cameras = np.einsum("hij,kj->hki", R, cameras_map) + t  # (H, K, 3)
         rays = np.einsum("hij,kj->hki", R, centroids_map) + t - cameras
@@ -540,7 +537,7 @@ class Localizer:
             d = np.linalg.norm(to_features[..., :2], axis=-1)  # (H, k, F)
             aside = np.einsum("hkfi,hki->hkf", to_features[..., :2], ray[..., :2]) >= cos_tol * d * r
             up = np.abs(np.arctan2(to_features[..., 2], d) - np.arctan2(ray[..., 2:3], r)) <= elevation_tol
-            near = np.abs(d - r) <= 3 * (a + b * r**2)  # sigmas: `_sighting_sigma_m`
+            near = np.abs(d - r) <= 3 * self._sighting_sigma_m(r)
             explained += np.any(aside & up & near, axis=2).sum(axis=1)
         return explained / len(kinds)
 

@@ -805,7 +805,7 @@ def test_a_far_doors_bearing_tells_apart_poses_the_walls_fit_alike() -> None:
     T_cad_map = loc.graph.T_cad_map()
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.1
     assert loc.links == {0: "D00"}
-    assert loc._far_explained(T_cad_map) == 1.0
+    assert loc._far_explained(T_cad_map, loc._far_map()) == 1.0
     second, best = sorted(loc.surface_checks[-1][1])[-2:]
     assert best - second < 0.05  # the walls alone fit the half-turn as well
     without_far = fly_seeing_a_far_door(model, box, replace(params, far_range_m=params.max_range_m))
@@ -842,14 +842,16 @@ def test_a_candidate_a_few_degrees_off_still_explains_the_far_door_it_sees(off_d
         R = rot_z(np.radians(deg))
         return make_T(R, about - R @ about) @ T_cad_map
 
+    far = loc._far_map()
+    assert far is not None
     T_off = turned(sign * off_deg, camera)
-    assert loc._far_explained(T_off) == 1.0
+    assert loc._far_explained(T_off, far) == 1.0
     loc.params = replace(params, far_turn_deg=0.0)
-    assert loc._far_explained(T_off) == 0.0
-    assert loc._far_explained(T_cad_map) == 1.0
+    assert loc._far_explained(T_off, far) == 0.0
+    assert loc._far_explained(T_cad_map, far) == 1.0
     loc.params = params
     half_turned = turned(180.0, np.array([6.0, 3.5, 0.0]))  # the box room's centre: its walls fit alike
-    assert loc._far_explained(half_turned) == 0.0
+    assert loc._far_explained(half_turned, far) == 0.0
 
 
 def test_the_walls_turn_back_a_pose_localized_degrees_off(room_with_walls: SurfaceIndex) -> None:
