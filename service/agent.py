@@ -22,7 +22,14 @@ import zenoh
 
 from graph.features import BuildingModel
 from service.planning_grid import OccupancyGrid
-from service.recording import matrix_from_pose, pose_from_matrix, vector3
+from service.recording import (
+    TOPIC_GROUND_TRUTH,
+    TOPIC_STEREO,
+    FlightWriter,
+    matrix_from_pose,
+    pose_from_matrix,
+    vector3,
+)
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 from service.zenoh_io import Keys, declare_publisher
 from sim.vehicle import DriftingOdometry, KinematicDrone, yaw_of
@@ -30,6 +37,7 @@ from sim.vehicle import DriftingOdometry, KinematicDrone, yaw_of
 log = logging.getLogger(__name__)
 
 GRAVITY_MPS2 = 9.81
+RECORDED_TOPICS = {"stereo": TOPIC_STEREO, "ground_truth": TOPIC_GROUND_TRUTH}  # a sensor's keys -> recording's
 
 
 class Sensor(Protocol):
@@ -105,9 +113,12 @@ class RenderedStereoCamera:
 
     label = "rendered stereo frames -> the service's perception chain"
 
-    def __init__(self, building: Path, seed: int) -> None:
+    def __init__(self, building: Path, seed: int, ground_truth: bool = False) -> None:
+        """`ground_truth`: also give each frame's GroundTruth (key "ground_truth": the true pose, the doors and
+        windows in view and the depth), for a recording; it is not published."""
         from sim.simulator import SimulationParams, Simulator
 
+        self.ground_truth = ground_truth
         self.sim = Simulator(building, SimulationParams(seed=seed))
         cam = self.sim.params.camera
         self.info = pb.CameraInfo(width=cam.width, height=cam.height, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy,
@@ -124,7 +135,22 @@ class RenderedStereoCamera:
                                info=self.info)
         frame.header.stamp_ns = stamp_ns
         frame.header.frame_id = "cam_left"
-        return [("stereo", frame)]
+        if not self.ground_truth:
+            return [("stereo", frame)]
+        return [("stereo", frame), ("ground_truth", self._truth(stamp_ns, T_cad_body, left))]
+
+    def _truth(self, stamp_ns: int, T_cad_body: np.ndarray, left: Any) -> pb.GroundTruth:  # noqa: ANN401 - a render
+        """The frame's ground truth as `macroloc simulate` records it (its depth in 1 mm steps)."""
+        from service.recording import add_features_in_view, encode_image
+        from sim.groundtruth import features_in_view
+
+        truth = pb.GroundTruth(header=pb.Header(stamp_ns=stamp_ns, frame_id="cam_left", seq=self._k),
+                               T_cad_body=pose_from_matrix(T_cad_body), T_body_cam=self.info.T_body_cam,
+                               depth=encode_image((np.round(left.depth_m * 1000.0) / 1000.0).astype(np.float32)))
+        add_features_in_view(truth, features_in_view(self.sim.features, self.sim.half_depths,
+                                                     T_cad_body @ self.sim.T_body_cam, self.sim.params.camera,
+                                                     left.depth_m, left.instance))
+        return truth
 
     def close(self) -> None:
         self.sim.close()
@@ -194,9 +220,11 @@ class VehicleAgent:
     def __init__(self, session: zenoh.Session, vehicle: str, drone: KinematicDrone, odometry: DriftingOdometry,
                  sensor: Sensor, follower: WaypointFollower | None = None, sensor_period_s: float = 0.1,
                  lockstep_timeout_s: float = 0.0, exploration_odom: np.ndarray | None = None,
-                 explore_after_s: float = 10.0) -> None:
+                 explore_after_s: float = 10.0, recorder: FlightWriter | None = None) -> None:
         """`exploration_odom`: (N, 3) the vehicle's own exploration route in its odometry frame, flown on its
-        odometry while the service is not localized, after `explore_after_s` of turning on the spot."""
+        odometry while the service is not localized, after `explore_after_s` of turning on the spot.
+        `recorder`: also write what the vehicle sends (IMU, odometry, stereo frames) and the sensor's ground truth
+        to this recording (service.recording), a flight `macroloc replay` can run again."""
         self.keys = Keys(vehicle)
         self.drone = drone
         self.odometry = odometry
@@ -214,6 +242,7 @@ class VehicleAgent:
         self._lock = threading.Lock()
         self.pose: pb.PoseEstimate | None = None
         self.plans = 0
+        self.recorder = recorder
         self._pubs = {name: declare_publisher(session, getattr(self.keys, name))
                       for name in ("imu", "odometry", "observations", "stereo", "goal")}
         self._subs = [session.declare_subscriber(self.keys.pose, self._on_pose),
@@ -264,10 +293,16 @@ class VehicleAgent:
         odo.header.stamp_ns = self.stamp_ns
         odo.header.frame_id = "map"
         self._pubs["odometry"].put(odo.SerializeToString())
+        if self.recorder is not None:
+            self.recorder.write_imu(imu)
+            self.recorder.write_odometry(odo)
         if self.stamp_ns >= self._next_sensor_ns:
             self._next_sensor_ns = self.stamp_ns + int(self.sensor_period_s * 1e9)
             for key, message in self.sensor.measure(self.stamp_ns, T_true):
-                self._pubs[key].put(message.SerializeToString())
+                if key in self._pubs:
+                    self._pubs[key].put(message.SerializeToString())
+                if self.recorder is not None and key in RECORDED_TOPICS:
+                    self.recorder.write(RECORDED_TOPICS[key], message, self.stamp_ns)
             if self.lockstep_timeout_s > 0:
                 self._wait_for_pose(self.stamp_ns, self.lockstep_timeout_s)
 

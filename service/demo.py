@@ -12,10 +12,12 @@ percentage of the flown path's length. A picture of the flight is written.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -28,6 +30,7 @@ from graph.rigid import apply
 from service.config import MacrolocConfig, load_config
 from service.planning import GoalSpec, Planner, PlanningError
 from service.planning_grid import Space
+from service.recording import FlightWriter
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +48,7 @@ class DemoParams:
     observations: str = "truth"  # truth: noisy ground truth; perception: rendered frames -> perception chain
     camera_rate_hz: float = 5.0  # perception mode: frames per simulated second (the loop waits for each pose)
     detector_model: Path | None = None  # perception mode: None = the building's bundled adapted one, if any
+    record: Path | None = None  # perception mode: write the flight (service.recording) for `macroloc replay`
 
 
 @dataclass
@@ -165,9 +169,11 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
                              zenoh={"listen": [f"tcp/127.0.0.1:{port}"]},
                              graph={"storey_hint": take_off_storey(load_building(building))},
                              perception={"detector_model": detector})
+    if params.record is not None and not perceive:
+        raise UserInputError("--record needs --observations perception (a recording holds the stereo frames)")
     rng = np.random.default_rng([params.seed, 0xDE40])
     stop = threading.Event()
-    with zenoh.open(session_config(cfg.zenoh)) as service_session:
+    with zenoh.open(session_config(cfg.zenoh)) as service_session, _recorder(building, params) as recorder:
         service = build_service(cfg, service_session, NullMapStore())
         start, goal, start_xyz = choose_route(service.planner, params.seed, params)
         thread = threading.Thread(target=service.run, args=(stop,), name="service", daemon=True)
@@ -179,8 +185,8 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
                 T0 = level_pose(start_xyz, rng.uniform(-np.pi, np.pi))
                 T_cad_odom = level_pose(np.r_[rng.uniform(-20, 20, 2), 0.0], rng.uniform(-np.pi, np.pi))
                 grid, _ = service.planner.grid(start_xyz[2])
-                sensor: Sensor = RenderedStereoCamera(building, params.seed) if perceive else \
-                    TruthSensor(service.planner.model, grid, params.seed)
+                sensor: Sensor = RenderedStereoCamera(building, params.seed, ground_truth=recorder is not None) \
+                    if perceive else TruthSensor(service.planner.model, grid, params.seed)
                 # The vehicle's own exploration, for when turning on the spot is not enough to localize: in
                 # this simulation a route through the storey's free space handed over in its odometry frame
                 # (a real vehicle explores with its own obstacle sensing); it flies it on its odometry.
@@ -189,8 +195,12 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
                 agent = VehicleAgent(agent_session, "demo", KinematicDrone(T0),
                                      DriftingOdometry(T_cad_odom, T0, params.seed), sensor,
                                      sensor_period_s=1.0 / params.camera_rate_hz if perceive else 0.1,
-                                     lockstep_timeout_s=5.0 if perceive else 0.0, exploration_odom=route_odom)
+                                     lockstep_timeout_s=5.0 if perceive else 0.0, exploration_odom=route_odom,
+                                     recorder=recorder)
                 result = _fly(agent, goal, params, pb)
+                if recorder is not None:
+                    recorder.metadata.duration_s = agent.stamp_ns * 1e-9
+                    recorder.metadata.storey = cfg.graph.storey_hint or ""
                 agent.close()
                 sensor.close()
         finally:
@@ -285,6 +295,22 @@ def result_json(result: DemoResult) -> dict:
     for key in ("true_xy", "estimated_xy", "waypoints_xy"):
         doc.pop(key)
     return doc
+
+
+@contextlib.contextmanager
+def _recorder(building: Path, params: DemoParams) -> Iterator[FlightWriter | None]:
+    """The flight's recording (params.record), closed with its metadata when the flight ends, else None."""
+    if params.record is None:
+        yield None
+        return
+    from graph.bim import file_sha256
+    from service.recording import FlightMetadata
+
+    meta = FlightMetadata(building=building.name, building_sha256=file_sha256(building), seed=params.seed,
+                          extra={"generator": "macroloc demo", "observations": params.observations})
+    with FlightWriter(params.record, meta) as writer:
+        yield writer
+    log.info("flight recorded: %s (%s)", params.record, writer.counts)
 
 
 def _free_port() -> int:

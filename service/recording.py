@@ -3,13 +3,15 @@
 Topics (each a `macroloc.v1` message, protobuf encoding, log time = the message's stamp in ns):
   "/stereo"                  StereoFrame   left/right images + CameraInfo (incl. T_body_cam, baseline)
   "/imu"                     Imu           body frame (x forward, y left, z up), specific force and rate
+  "/odometry"                Odometry      the vehicle's own odometry (T_map_body, map frame z up), where the
+                                           vehicle has one (e.g. `macroloc demo --record`); optional
   "/ground_truth"            GroundTruth   one per stereo frame, same stamp (simulated flights only)
   "/ground_truth/instances"  Image         instance mask of the left image, same stamp: 0 = none,
                                            k = features_cam[k - 1] of that frame's GroundTruth (PNG, mono8)
 Metadata record "macroloc": {"building", "building_sha256", "seed", "storey", "duration_s"} (strings).
 
 `FlightWriter` writes, `read_flight(path)` yields one `FlightFrame` per stereo frame with its ground truth
-and the IMU samples since the previous frame; `read_messages` gives every message in log-time order.
+and the IMU and odometry samples since the previous frame; `read_messages` gives every message in log-time order.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ log = logging.getLogger(__name__)
 
 TOPIC_STEREO = "/stereo"
 TOPIC_IMU = "/imu"
+TOPIC_ODOMETRY = "/odometry"
 TOPIC_GROUND_TRUTH = "/ground_truth"
 TOPIC_INSTANCES = "/ground_truth/instances"
 METADATA_NAME = "macroloc"
@@ -171,6 +174,9 @@ class FlightWriter:
     def write_imu(self, sample: pb.Imu) -> None:
         self.write(TOPIC_IMU, sample, sample.header.stamp_ns)
 
+    def write_odometry(self, odometry: pb.Odometry) -> None:
+        self.write(TOPIC_ODOMETRY, odometry, odometry.header.stamp_ns)
+
     def write_ground_truth(self, truth: pb.GroundTruth, instances: pb.Image | None = None) -> None:
         self.write(TOPIC_GROUND_TRUTH, truth, truth.header.stamp_ns)
         if instances is not None:
@@ -191,6 +197,16 @@ class FlightWriter:
         self.close()
 
 
+def add_features_in_view(truth: pb.GroundTruth, features: list[Any]) -> None:
+    """Append the simulator's features in view (sim.groundtruth.FeatureInView: type, id, box, corners in the
+    left camera frame and their visibility) to a GroundTruth message, in order."""
+    for f in features:
+        obs = truth.features_cam.add(type=f.type, score=1.0, id=f.id, box_xyxy=[float(v) for v in f.box_xyxy])
+        for c in f.corners_cam:
+            obs.corners.add(x=float(c[0]), y=float(c[1]), z=float(c[2]))
+        truth.corner_visible.extend(bool(v) for v in f.corner_visible)
+
+
 # --- reading -------------------------------------------------------------------------------------------------
 
 
@@ -206,12 +222,14 @@ class FlightFrame:
     """One stereo frame of a recording with what belongs to it.
 
     imu: the IMU samples with stamps in (previous frame's stamp, this frame's stamp].
+    odometry: the vehicle's own odometry samples in the same interval (empty where it recorded none).
     ground_truth / instances: None in a real (non-simulated) recording.
     """
 
     stamp_ns: int
     stereo: pb.StereoFrame
     imu: list[pb.Imu] = field(default_factory=list)
+    odometry: list[pb.Odometry] = field(default_factory=list)
     ground_truth: pb.GroundTruth | None = None
     instances: pb.Image | None = None
 
@@ -255,14 +273,18 @@ def read_messages(path: str | Path, topics: list[str] | None = None) -> Iterator
 
 
 def read_flight(path: str | Path) -> Iterator[FlightFrame]:
-    """The recording as stereo frames, each with its IMU samples and (simulated flights) ground truth."""
+    """The recording as stereo frames, each with its IMU and odometry samples and (simulated flights) ground
+    truth."""
     pending_imu: list[pb.Imu] = []
+    pending_odometry: list[pb.Odometry] = []
     truths: dict[int, pb.GroundTruth] = {}
     masks: dict[int, pb.Image] = {}
     frame: FlightFrame | None = None
     for rec in read_messages(path):
         if rec.topic == TOPIC_IMU:
             pending_imu.append(rec.message)
+        elif rec.topic == TOPIC_ODOMETRY:
+            pending_odometry.append(rec.message)
         elif rec.topic == TOPIC_GROUND_TRUTH:
             truths[rec.stamp_ns] = rec.message
         elif rec.topic == TOPIC_INSTANCES:
@@ -270,8 +292,8 @@ def read_flight(path: str | Path) -> Iterator[FlightFrame]:
         elif rec.topic == TOPIC_STEREO:
             if frame is not None:
                 yield _complete(frame, truths, masks)
-            frame = FlightFrame(rec.stamp_ns, rec.message, imu=pending_imu)
-            pending_imu = []
+            frame = FlightFrame(rec.stamp_ns, rec.message, imu=pending_imu, odometry=pending_odometry)
+            pending_imu, pending_odometry = [], []
     if frame is not None:
         yield _complete(frame, truths, masks)
 

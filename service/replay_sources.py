@@ -4,11 +4,13 @@
 would deliver, with realistic errors: odometry that drifts (a scale error, a yaw bias, noise growing with
 motion), stereo-like corner noise (depth error ~ z^2), missed detections, and gravity with a small tilt
 error. `PerceptionSource` (`--observations perception`) runs the perception chain and the visual odometry
-on the recorded images, once they exist. Both return a `FrameInput` per recorded frame.
+on the recorded images (or takes the vehicle's own odometry, where the recording has one). Both return a
+`FrameInput` per recorded frame.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
@@ -22,6 +24,8 @@ from service.recording import FlightFrame, matrix_from_pose
 
 if TYPE_CHECKING:
     from perception.odometry import StereoOdometry
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -182,6 +186,37 @@ class VisualOdometry:
         return T_odom_body
 
 
+class VehicleOdometry:
+    """T_odom_body from the vehicle's own odometry recorded with the flight ("/odometry", e.g. a demo's flight or
+    a drone's VIO), as the service takes it from the vehicle's odometry key: the sample at the frame's stamp (else
+    the newest before it). `up_body` and `points_body` as `VisualOdometry` gives them."""
+
+    def __init__(self, matcher=None) -> None:  # noqa: ANN001 - perception.stereo.SgbmMatcher
+        from perception.gravity import GravityEstimator
+        from service.frames import StereoDepth
+
+        self._gravity = GravityEstimator()
+        self._depth = StereoDepth(matcher)
+        self._T_odom_body: np.ndarray | None = None
+        self.points_body: np.ndarray | None = None
+        self.up_body: np.ndarray | None = None
+
+    def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        from perception.calib import StereoRig
+
+        at_or_before = [o for o in frame.odometry if o.header.stamp_ns <= frame.stamp_ns]
+        if at_or_before:
+            self._T_odom_body = matrix_from_pose(at_or_before[-1].T_map_body)
+        if self._T_odom_body is None:
+            raise UserInputError(f"the recording's first stereo frame ({frame.stamp_ns} ns) has no vehicle "
+                                 "odometry at or before it")
+        info = frame.stereo.info
+        rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
+        self.points_body = self._depth(left, right, rig, matrix_from_pose(info.T_body_cam))
+        self.up_body = self._gravity.update(frame.stamp_ns, self._T_odom_body, _specific_forces(frame))
+        return self._T_odom_body
+
+
 class TruthFeaturesWithVisualOdometry:
     """`--observations truth-vo`: ground-truth sightings (with TruthSource's noise) but the odometry of the
     real stereo visual odometry on the recorded images: the graph against a real front end's drift."""
@@ -200,7 +235,9 @@ class TruthFeaturesWithVisualOdometry:
 
 
 class PerceptionSource:
-    """The perception chain (doors and windows in 3D) and the stereo visual odometry on recorded images.
+    """The perception chain (doors and windows in 3D) and the stereo visual odometry on recorded images, or the
+    vehicle's own odometry where the recording carries it (`VehicleOdometry`; the service, too, takes the
+    vehicle's odometry when it sends one).
 
     Gravity comes from the IMU's specific force less the odometry's acceleration (VisualOdometry.up_body);
     the odometry frame is the first body frame levelled by the first frame's specific force. The chain runs on
@@ -216,7 +253,7 @@ class PerceptionSource:
                                  "is not available; use --observations truth") from None
         self.perception = Perception.create(detector_model)
         self.detect_every = detect_every
-        self.odometry = VisualOdometry(self.perception.matcher)
+        self.odometry: VisualOdometry | VehicleOdometry | None = None
         self._n = 0
 
     def __call__(self, frame: FlightFrame) -> FrameInput:
@@ -227,6 +264,10 @@ class PerceptionSource:
         info = frame.stereo.info
         T_body_cam = matrix_from_pose(info.T_body_cam)
         left, right = decode_image(frame.stereo.left), decode_image(frame.stereo.right)
+        if self.odometry is None:
+            self.odometry = (VehicleOdometry(self.perception.matcher) if frame.odometry else
+                             VisualOdometry(self.perception.matcher))
+            log.info("odometry: %s", "the vehicle's, recorded" if frame.odometry else "stereo visual odometry")
         T_odom_body = self.odometry(frame, left, right)
         up_body = self.odometry.up_body
         sightings: list[Sighting] = []

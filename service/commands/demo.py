@@ -22,6 +22,11 @@ def register(app: typer.Typer) -> None:
                                              "detector (ONNX beside its JSON sidecar). Default: the one adapted to "
                                              "the building and shipped beside it (data/buildings/NAME_detector/), "
                                              "else the generic shipped detector."),
+        record: Path | None = typer.Option(None, "--record", help="With --observations perception: write the "
+                                           "flight (stereo frames, IMU, the vehicle's odometry, ground truth) to "
+                                           "this MCAP file, to run again with `macroloc replay --observations "
+                                           "perception` (set perception.detect_every = 1 in a --config to perceive "
+                                           "every frame as the service did). With several seeds, NAME-seedN.mcap."),
         json_out: bool = typer.Option(False, "--json", help="Print {localization_time_s, goal_error_m, "
                                       "path_length_m, goal_error_pct} (a list with several seeds)."),
     ) -> None:
@@ -47,10 +52,14 @@ def register(app: typer.Typer) -> None:
             raise UserInputError(f"--observations must be truth or perception, not {observations!r}")
         if detector is not None:
             existing_file(detector, "detector model")
+        if record is not None and observations != "perception":
+            raise UserInputError("--record needs --observations perception (a recording holds the stereo frames)")
         rows, pictures = [], []
         for s in seed:
+            recording = None if record is None else record if len(seed) == 1 else \
+                record.with_name(f"{record.stem}-seed{s}{record.suffix or '.mcap'}")
             result = run_demo(path, DemoParams(seed=s, speedup=speedup, observations=observations,
-                                               detector_model=detector))
+                                               detector_model=detector, record=recording))
             picture = out if len(seed) == 1 else out.with_name(f"{out.stem}-seed{s}{out.suffix or '.png'}")
             planner = Planner.for_building(path, 0.2, 0.35, 1.4)
             plot_flight(result, planner, picture)
@@ -63,7 +72,8 @@ def register(app: typer.Typer) -> None:
                     f"error (% of {result.path_length_m:.1f} m path) |\n"
                     f"  | {result.localization_time_s:21.2f} | {result.goal_error_m:17.3f} | "
                     f"{result.goal_error_pct:27.2f} |\n"
-                    f"  reached: {result.reached}, wall time {result.wall_time_s:.1f} s, picture {picture}\n")
+                    f"  reached: {result.reached}, wall time {result.wall_time_s:.1f} s, picture {picture}"
+                    + (f", recording {recording}" if recording is not None else "") + "\n")
         if json_out:
             docs = [dict(r.table_row(), seed=r.seed, observations=r.observations, reached=r.reached,
                          picture=str(p)) for r, p in zip(rows, pictures, strict=True)]

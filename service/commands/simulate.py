@@ -174,7 +174,7 @@ def imu_message(imu, k: int, stamp_ns: int):  # noqa: ANN001, ANN201 - (ImuSampl
 
 def frame_messages(frame: SimFrame, sim: Simulator, cfg: MacrolocConfig):  # noqa: ANN201 - protobuf messages
     """(StereoFrame, GroundTruth, instance mask Image) of one simulated frame (contract: service/recording.py)."""
-    from service.recording import encode_image, pose_from_matrix
+    from service.recording import add_features_in_view, encode_image, pose_from_matrix
     from service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     cam = sim.params.camera
@@ -187,12 +187,9 @@ def frame_messages(frame: SimFrame, sim: Simulator, cfg: MacrolocConfig):  # noq
                             right=encode_image(frame.right_bgr, enc), info=info)
     truth = pb.GroundTruth(header=pb.Header(stamp_ns=frame.stamp_ns, frame_id="cam_left", seq=frame.index),
                            T_cad_body=pose_from_matrix(frame.T_cad_body), T_body_cam=T_body_cam)
+    add_features_in_view(truth, frame.features[:255])
     lut = np.zeros(len(sim.features) + 1, np.uint8)
     for j, f in enumerate(frame.features[:255]):
-        obs = truth.features_cam.add(type=f.type, score=1.0, id=f.id, box_xyxy=[float(v) for v in f.box_xyxy])
-        for c in f.corners_cam:
-            obs.corners.add(x=float(c[0]), y=float(c[1]), z=float(c[2]))
-        truth.corner_visible.extend(bool(v) for v in f.corner_visible)
         lut[f.index + 1] = j + 1
     if cfg.sim.depth:
         # quantized to 1 mm: still float32 metres, but the MCAP chunk compression then shrinks it ~40x

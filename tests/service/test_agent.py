@@ -95,3 +95,52 @@ def test_the_vehicles_imu_measures_its_acceleration_and_gravity_is_recovered() -
             errors.append(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0))))  # the drone flies level: up = z
     assert max(leans) > 5.0  # 1-1.5 m/s^2 lean the specific force by 6-9 degrees
     assert np.median(errors) < 0.5 and max(errors) < 0.3 * max(leans)
+
+
+class StampCamera:
+    """A sensor giving a small stereo frame and its ground truth (the true pose) at each measurement."""
+
+    label = "stamp camera"
+
+    def __init__(self) -> None:
+        self.stamps_ns: list[int] = []
+
+    def measure(self, stamp_ns: int, T_cad_body: np.ndarray) -> list:
+        self.stamps_ns.append(stamp_ns)
+        from service.recording import encode_image, pose_from_matrix
+        from service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+        image = encode_image(np.full((8, 10, 3), stamp_ns % 251, np.uint8))
+        frame = pb.StereoFrame(header=pb.Header(stamp_ns=stamp_ns, frame_id="cam_left"), left=image, right=image)
+        truth = pb.GroundTruth(header=pb.Header(stamp_ns=stamp_ns), T_cad_body=pose_from_matrix(T_cad_body))
+        return [("stereo", frame), ("ground_truth", truth)]
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_recorded_flight_holds_what_the_vehicle_sent_and_replays_frame_by_frame(tmp_path) -> None:  # noqa: ANN001
+    """`recorder`: every IMU and odometry sample the vehicle publishes, and its camera's frames with their ground
+    truth; read back, each frame carries the odometry of its own stamp (the pose the service placed it at)."""
+    from service.recording import FlightWriter, matrix_from_pose, read_flight
+
+    T0 = level_pose(np.array([2.0, 1.0, 1.4]), 0.4)
+    odometry = DriftingOdometry(level_pose(np.array([5.0, -3.0, 0.0]), 1.1), T0, seed=3)
+    published, camera = {}, StampCamera()
+    with zenoh.open(session_config(loopback())) as session, FlightWriter(tmp_path / "f.mcap") as writer:
+        agent = VehicleAgent(session, "record-test", KinematicDrone(T0), odometry, camera,
+                             sensor_period_s=0.2, recorder=writer)
+        for _ in range(45):  # 1.5 s at 30 Hz, turning on the spot
+            agent.tick(1 / 30)
+            published[agent.stamp_ns] = (agent._T_odom_body.copy(), agent.drone.T_cad_body.copy())
+        agent.close()
+    frames = list(read_flight(tmp_path / "f.mcap"))
+    assert [f.stamp_ns for f in frames] == camera.stamps_ns and len(frames) == 7  # every 0.2 s, on a 30 Hz tick
+    n_ticks = round(camera.stamps_ns[-1] * 30e-9)  # IMU and odometry samples up to the last frame
+    assert sum(len(f.imu) for f in frames) == sum(len(f.odometry) for f in frames) == n_ticks
+    for f in frames:
+        assert f.odometry[-1].header.stamp_ns == f.stamp_ns == f.imu[-1].header.stamp_ns
+        T_odom_body, T_cad_body = published[f.stamp_ns]
+        assert np.allclose(matrix_from_pose(f.odometry[-1].T_map_body), T_odom_body, atol=1e-9)
+        assert f.ground_truth is not None
+        assert np.allclose(matrix_from_pose(f.ground_truth.T_cad_body), T_cad_body, atol=1e-9)

@@ -84,13 +84,24 @@ def test_demo_localizes_and_reaches_the_goal(seed: int, tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_demo_closes_the_loop_through_perception(tmp_path: Path) -> None:
     """Rendered stereo frames -> the service's perception chain (the detector adapted to Office_A and shipped
-    beside it) -> localized -> flown to the goal on the service's poses (~3.5 min on 2 cores)."""
-    from service.demo import DemoParams, run_demo
+    beside it) -> localized -> flown to the goal on the service's poses (~3.5 min on 2 cores); its recording
+    (--record) replays offline."""
+    from service.demo import DEFAULT_BUILDING, DemoParams, bundled_detector, run_demo
 
-    result = run_demo(params=DemoParams(seed=0, observations="perception"))
+    recording = tmp_path / "demo.mcap"
+    result = run_demo(params=DemoParams(seed=0, observations="perception", record=recording))
     assert "office_a_detector" in result.observations
     assert result.localized and result.reached
     assert result.goal_error_m < 0.5 and result.path_length_m > 5.0
+    # the recorded flight runs again offline, perceived frame by frame as the service did, on the vehicle's odometry
+    config = tmp_path / "every_frame.toml"
+    config.write_text(f'[perception]\ndetect_every = 1\ndetector_model = "{bundled_detector(DEFAULT_BUILDING)}"\n')
+    proc = subprocess.run([sys.executable, "-m", "service.cli", "replay", str(recording), "--building",
+                           str(DEFAULT_BUILDING), "--observations", "perception", "--config", str(config), "--json"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    replayed = json.loads(proc.stdout)
+    assert replayed["localized"] and replayed["wrong_localizations"] == 0
 
 
 @pytest.mark.slow

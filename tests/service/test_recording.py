@@ -125,3 +125,19 @@ def test_pose_round_trip_property() -> None:
         assert np.allclose(matrix_from_pose(pose), T, atol=1e-9)
 
     check()
+
+
+def test_read_flight_gives_each_frame_the_vehicle_odometry_since_the_previous_one(tmp_path: Path) -> None:
+    path = tmp_path / "flight.mcap"
+    with FlightWriter(path) as writer:
+        for k in range(1, 10):  # odometry at 10 ms, frames at 30, 60, 90 ms (the same stamps as three of them)
+            odo = pb.Odometry(header=pb.Header(stamp_ns=k * 10_000_000, frame_id="map"),
+                              T_map_body=pose_from_matrix(_T(0.0, (k, 0.0, 0.0))))
+            writer.write_odometry(odo)
+            if k % 3 == 0:
+                writer.write_stereo(pb.StereoFrame(header=pb.Header(stamp_ns=k * 10_000_000, frame_id="cam_left")))
+    frames = list(read_flight(path))
+    assert [[o.header.stamp_ns // 10_000_000 for o in f.odometry] for f in frames] == [[1, 2, 3], [4, 5, 6], [7, 8, 9]]
+    assert all(matrix_from_pose(f.odometry[-1].T_map_body)[0, 3] == f.stamp_ns // 10_000_000 for f in frames)
+    _write_flight(tmp_path / "no_odometry.mcap")
+    assert all(f.odometry == [] for f in read_flight(tmp_path / "no_odometry.mcap"))

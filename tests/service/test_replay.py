@@ -248,3 +248,40 @@ def test_the_graph_section_reaches_the_localizer(tmp_path: Path) -> None:
     path.write_text("[graph]\ncad_link_max_turn_deg = 4.5\nsurface_turn_deg = 0.0\nassociate_m = 0.7\n")
     params, _, _ = settings_from_config(load_config(path).graph)
     assert (params.cad_link_max_turn_deg, params.surface_turn_deg, params.associate_m) == (4.5, 0.0, 0.7)
+
+
+def test_the_vehicles_recorded_odometry_places_each_frame() -> None:
+    """A recording with the vehicle's own odometry (`macroloc demo --record`): each frame's pose is the sample of
+    its stamp (else the newest before it), as the service takes it; up comes from the IMU against that odometry;
+    a first frame with none before it is the user's error, in one line."""
+    from graph.errors import UserInputError
+    from graph.rigid import rot_z
+    from service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
+    from service.replay_sources import VehicleOdometry
+    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+    image = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
+    info = pb.CameraInfo(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5, baseline_m=0.1,
+                         T_body_cam=pose_from_matrix(np.eye(4)))
+
+    def T_map_body(stamp_ns: int) -> np.ndarray:  # the vehicle's odometry: level, moving along x and turning
+        T = np.eye(4)
+        T[:3, :3], T[0, 3] = rot_z(0.001 * stamp_ns), 0.01 * stamp_ns
+        return T
+
+    def frame(stamp_ns: int, odometry_at: list[int]) -> FlightFrame:
+        f_body = T_map_body(stamp_ns)[:3, :3].T @ [0.0, 0.0, 9.81]  # hovering: the specific force is gravity's
+        imu = [pb.Imu(header=pb.Header(stamp_ns=stamp_ns), accel_mps2=vector3(f_body))]
+        stereo = pb.StereoFrame(header=pb.Header(stamp_ns=stamp_ns), left=encode_image(image, "raw"),
+                                right=encode_image(image, "raw"), info=info)
+        odometry = [pb.Odometry(header=pb.Header(stamp_ns=s), T_map_body=pose_from_matrix(T_map_body(s)))
+                    for s in odometry_at]
+        return FlightFrame(stamp_ns, stereo, imu=imu, odometry=odometry)
+
+    with pytest.raises(UserInputError, match="no vehicle odometry"):
+        VehicleOdometry()(frame(100, [110]), image, image)  # only a sample after the frame's stamp
+    source = VehicleOdometry()
+    assert np.allclose(source(frame(100, [50, 100]), image, image), T_map_body(100))
+    assert source.up_body is not None and np.allclose(source.up_body, T_map_body(100)[:3, :3].T @ [0, 0, 1.0])
+    assert np.allclose(source(frame(200, []), image, image), T_map_body(100))  # none since: the last one
+    assert np.allclose(source(frame(300, [250, 290, 310]), image, image), T_map_body(290))  # 310: after it
