@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from graph.evaluation import ScenarioParams, make_scenario, score
-from graph.features import BuildingModel
+from graph.features import BuildingModel, MacroFeature
 from graph.observations import Observation, ObservationSet
 from graph.registration import (
     _coplanar,  # the private eq. (10) kernel, tested directly
@@ -221,6 +221,58 @@ def test_two_doors_offer_every_alike_pair_to_the_walls(office_model) -> None:
                 if np.linalg.norm(centroids - apply(T, corners[1 - k].mean(axis=0)[None]), axis=1).min() < tau]
     assert len(expected) > RobustParams().refine_top + RobustParams().rival_candidates  # more than the refined few
     assert all(covered(T) for T in expected)
+
+
+def test_one_false_landmark_does_not_take_the_truth_out_of_the_candidates(office_model) -> None:
+    """Two true doors and a false one (a detection where the model has no door: Office_A seed 6, perception, at
+    3.2 s): a wrong pose that puts all three on CAD doors explains more than the truth, which explains two. The
+    walls can only choose the truth if it is offered: the candidates hold every pose explaining one landmark
+    fewer than the best too (a wrong pose there fitted the walls at 0.90-0.92 with the truth not offered)."""
+    from graph.landmarks import feature_frame_cad
+    from graph.model_index import index_for
+    from graph.registrar import ModelRegistrar
+    from graph.relocalize import ObservedRect
+    from graph.robust import RobustParams, single_rectangle_poses
+
+    doors = {f.id: f for f in office_model.features}
+    a, b = doors["2N3oFtM8X6lO2dN1$77xv3"], doors["2N3oFtM8X6lO2dN1$77xzD"]
+    T_map_cad = make_T_yaw(0.7, np.array([3.0, -2.0, 0.0]))
+    T_cad_map = invert(T_map_cad)
+    corners = [apply(T_map_cad, a.corners_cad), apply(T_map_cad, b.corners_cad)]
+    index = index_for(office_model)
+    centroids = index.centroids[index.type_indices["door"]]
+    tau = RobustParams().ambiguity_tau_m
+
+    def false_door() -> tuple[np.ndarray, MacroFeature]:  # a wrong two-door pose W, and a third door only W explains
+        for k in (0, 1):
+            for W in single_rectangle_poses(index, "door", corners[k]):
+                x = apply(W, corners[1 - k].mean(axis=0)[None])
+                if np.linalg.norm(centroids - x, axis=1).min() > tau or np.linalg.norm(W[:3, 3] - T_cad_map[:3, 3]) < 3:
+                    continue
+                for c in office_model.features:
+                    seen = apply(T_cad_map @ invert(W), c.centroid_cad[None])  # where the truth puts it
+                    if c.type == "door" and c.id not in (a.id, b.id) \
+                            and 1.5 < np.linalg.norm(c.centroid_cad - x[0]) < 6.0 \
+                            and abs(c.centroid_cad[2] - a.centroid_cad[2]) < 0.5 \
+                            and np.linalg.norm(centroids - seen, axis=1).min() > 1.5:
+                        return W, c
+        raise AssertionError("no such pose in Office_A")
+
+    W, c = false_door()
+    T_map_w = invert(W)
+    observed = [ObservedRect(0, "door", T_map_cad @ feature_frame_cad(a)),
+                ObservedRect(1, "door", T_map_cad @ feature_frame_cad(b)),
+                ObservedRect(2, "door", T_map_w @ feature_frame_cad(c))]
+    false_corners = apply(T_map_w, c.corners_cad)
+    result = ModelRegistrar(office_model, min_landmarks=4, candidates_from=1)(observed, corners + [false_corners])
+    assert result.status == "ambiguous" and result.inliers == 3  # the wrong pose explains all three
+
+    def covered(T: np.ndarray) -> bool:  # a candidate puts the two true doors where T does, turned the same way
+        pts = np.stack([c.mean(axis=0) for c in corners])
+        return any(np.linalg.norm(apply(C, pts) - apply(T, pts), axis=1).mean() < 0.25
+                   and rotation_angle_deg(C[:3, :3] @ T[:3, :3].T) < 5.0 for C, _ in result.candidates)
+
+    assert covered(W) and covered(T_cad_map)
 
 
 def test_one_landmark_is_never_an_answer_by_itself(office_model) -> None:
