@@ -141,12 +141,12 @@ class RenderedStereoCamera:
 
     def _truth(self, stamp_ns: int, T_cad_body: np.ndarray, left: Any) -> pb.GroundTruth:  # noqa: ANN401 - a render
         """The frame's ground truth as `macroloc simulate` records it (its depth in 1 mm steps)."""
-        from service.recording import add_features_in_view, encode_image
+        from service.recording import add_features_in_view, depth_image_mm
         from sim.groundtruth import features_in_view
 
         truth = pb.GroundTruth(header=pb.Header(stamp_ns=stamp_ns, frame_id="cam_left", seq=self._k),
                                T_cad_body=pose_from_matrix(T_cad_body), T_body_cam=self.info.T_body_cam,
-                               depth=encode_image((np.round(left.depth_m * 1000.0) / 1000.0).astype(np.float32)))
+                               depth=depth_image_mm(left.depth_m))
         add_features_in_view(truth, features_in_view(self.sim.features, self.sim.half_depths,
                                                      T_cad_body @ self.sim.T_body_cam, self.sim.params.camera,
                                                      left.depth_m, left.instance))

@@ -197,6 +197,12 @@ class FlightWriter:
         self.close()
 
 
+def depth_image_mm(depth_m: np.ndarray) -> pb.Image:
+    """A ground-truth depth image (H, W) in metres as recorded: still float32 metres, but in 1 mm steps, which the
+    MCAP chunk compression shrinks ~40x."""
+    return encode_image((np.round(np.asarray(depth_m) * 1000.0) / 1000.0).astype(np.float32))
+
+
 def add_features_in_view(truth: pb.GroundTruth, features: list[Any]) -> None:
     """Append the simulator's features in view (sim.groundtruth.FeatureInView: type, id, box, corners in the
     left camera frame and their visibility) to a GroundTruth message, in order."""

@@ -23,6 +23,7 @@ from graph.rigid import apply, rot_z, rotation_aligning, rotation_angle_rad
 from service.recording import FlightFrame, matrix_from_pose
 
 if TYPE_CHECKING:
+    from perception.calib import StereoRig
     from perception.odometry import StereoOdometry
 
 log = logging.getLogger(__name__)
@@ -92,13 +93,12 @@ class TruthSource:
         """Points of the true depth image on a grid, with the stereo depth noise, body frame."""
         if not gt.HasField("depth"):
             return None
-        from perception.calib import StereoRig
         from perception.stereo import back_project, depth_grid
         from service.recording import decode_image
 
         uv, z = depth_grid(decode_image(gt.depth), self.noise.depth_stride_px, 0.3)
         z = z + self.depth_rng.normal(0, 1, len(z)) * self.noise.depth_sigma_per_m2 * z * z
-        rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
+        rig = _rig(info)
         points_cam = back_project(uv, z, rig)
         return apply(T_body_cam, points_cam)
 
@@ -160,13 +160,12 @@ class VisualOdometry:
         self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        from perception.calib import StereoRig
         from perception.odometry import StereoOdometry
 
         info = frame.stereo.info
         T_body_cam = matrix_from_pose(info.T_body_cam)
         if self._odometry is None:
-            rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
+            rig = _rig(info)
             self._odometry = StereoOdometry(rig)
             T_odom_body0 = np.eye(4)
             up_body = _up_from_imu(frame)
@@ -202,8 +201,6 @@ class VehicleOdometry:
         self.up_body: np.ndarray | None = None
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        from perception.calib import StereoRig
-
         at_or_before = [o for o in frame.odometry if o.header.stamp_ns <= frame.stamp_ns]
         if at_or_before:
             self._T_odom_body = matrix_from_pose(at_or_before[-1].T_map_body)
@@ -211,7 +208,7 @@ class VehicleOdometry:
             raise UserInputError(f"the recording's first stereo frame ({frame.stamp_ns} ns) has no vehicle "
                                  "odometry at or before it")
         info = frame.stereo.info
-        rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
+        rig = _rig(info)
         self.points_body = self._depth(left, right, rig, matrix_from_pose(info.T_body_cam))
         self.up_body = self._gravity.update(frame.stamp_ns, self._T_odom_body, _specific_forces(frame))
         return self._T_odom_body
@@ -257,7 +254,6 @@ class PerceptionSource:
         self._n = 0
 
     def __call__(self, frame: FlightFrame) -> FrameInput:
-        from perception.calib import StereoRig
         from perception.pipeline import StereoPair
         from service.recording import decode_image
 
@@ -272,7 +268,7 @@ class PerceptionSource:
         up_body = self.odometry.up_body
         sightings: list[Sighting] = []
         if self._n % self.detect_every == 0:
-            rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
+            rig = _rig(info)
             gravity_cam = None if up_body is None else -(T_body_cam[:3, :3].T @ up_body)
             result = self.perception.process(StereoPair(left, right, rig, gravity_cam, frame.stamp_ns))
             truth = _truth_centroids_cam(frame)
@@ -299,6 +295,13 @@ def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:
         w = np.array([s.gyro_radps.x, s.gyro_radps.y, s.gyro_radps.z])
         R = R @ Rotation.from_rotvec(w * dt).as_matrix()
     return R
+
+
+def _rig(info) -> StereoRig:  # noqa: ANN001 - pb.CameraInfo
+    """The stereo rig a recorded frame's CameraInfo describes."""
+    from perception.calib import StereoRig
+
+    return StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
 
 
 def _specific_forces(frame: FlightFrame) -> np.ndarray:

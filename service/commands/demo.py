@@ -52,8 +52,6 @@ def register(app: typer.Typer) -> None:
             raise UserInputError(f"--observations must be truth or perception, not {observations!r}")
         if detector is not None:
             existing_file(detector, "detector model")
-        if record is not None and observations != "perception":
-            raise UserInputError("--record needs --observations perception (a recording holds the stereo frames)")
         rows, pictures = [], []
         for s in seed:
             recording = None if record is None else record if len(seed) == 1 else \

@@ -174,7 +174,7 @@ def imu_message(imu, k: int, stamp_ns: int):  # noqa: ANN001, ANN201 - (ImuSampl
 
 def frame_messages(frame: SimFrame, sim: Simulator, cfg: MacrolocConfig):  # noqa: ANN201 - protobuf messages
     """(StereoFrame, GroundTruth, instance mask Image) of one simulated frame (contract: service/recording.py)."""
-    from service.recording import add_features_in_view, encode_image, pose_from_matrix
+    from service.recording import add_features_in_view, depth_image_mm, encode_image, pose_from_matrix
     from service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     cam = sim.params.camera
@@ -192,7 +192,6 @@ def frame_messages(frame: SimFrame, sim: Simulator, cfg: MacrolocConfig):  # noq
     for j, f in enumerate(frame.features[:255]):
         lut[f.index + 1] = j + 1
     if cfg.sim.depth:
-        # quantized to 1 mm: still float32 metres, but the MCAP chunk compression then shrinks it ~40x
-        truth.depth.CopyFrom(encode_image((np.round(frame.depth_m * 1000.0) / 1000.0).astype(np.float32)))
+        truth.depth.CopyFrom(depth_image_mm(frame.depth_m))
     instances = encode_image(lut[frame.instance], "png")
     return stereo, truth, instances
