@@ -3,7 +3,8 @@ keyframes placed in a stored map's views (perception.place) while the localizer 
 
 Both cost image work at keyframes only: a view to keep is ORB and SGBM on the stereo pair (~40 ms here); placing a
 keyframe is ORB and a match against every stored view (tried while the status is anything but `localized`, at
-most every `every_s` of flight: 1 s, ~40 ms each while the new flight is where the map has no view).
+most every `every_s` of flight: 1 s, ~9 ms each while the new flight is where the map has no view; 28 ms with
+OpenCV's brute-force matcher for the vote, before faiss: perception.place).
 """
 
 from __future__ import annotations
