@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import faiss
 import numpy as np
 
 from graph.mapstore import KeyframeView
@@ -175,8 +176,6 @@ class _BinaryIndex:
     against 12-23 ms (`bench.bench_place`)."""
 
     def __init__(self, descriptors: np.ndarray) -> None:
-        import faiss
-
         faiss.omp_set_num_threads(1)
         self.n = len(descriptors)
         self._index = faiss.IndexBinaryFlat(descriptors.shape[1] * 8)

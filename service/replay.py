@@ -141,6 +141,7 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
     t_kf = t0 = None
     busy_s = 0.0
     busy_at_localized: float | None = None
+    dead_reckoned_s = 0.0  # since the last keyframe
     for frame in read_flight(flight):
         start = time.perf_counter()
         inputs: FrameInput = source(frame)
@@ -151,12 +152,14 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
         is_kf = policy.is_keyframe(T_kf, inputs.T_odom_body, t_s - (t_kf if t_kf is not None else -1e9))
         if inputs.points_body is not None:
             localizer.add_depth(inputs.T_odom_body, inputs.points_body)  # given with the next keyframe
+        dead_reckoned_s += inputs.dead_reckoned_s
         if is_kf:
             placed = places.at_frame(frame.stereo, inputs.stamp_ns, inputs.T_odom_body, inputs.T_body_cam,
                                      inputs.up_body, localizer.status) if places is not None else Placed(None, None)
             est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body,
-                                         T_cad_body_placed=placed.T_cad_body, view=placed.view)
-            T_kf, t_kf = inputs.T_odom_body, t_s
+                                         T_cad_body_placed=placed.T_cad_body, view=placed.view,
+                                         dead_reckoned_s=dead_reckoned_s)
+            T_kf, t_kf, dead_reckoned_s = inputs.T_odom_body, t_s, 0.0
         else:
             est = localizer.track(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings)
         busy_s += time.perf_counter() - start

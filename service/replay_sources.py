@@ -40,6 +40,7 @@ class FrameInput:
     up_body: np.ndarray | None
     T_body_cam: np.ndarray
     points_body: np.ndarray | None = None  # (N, 3) stereo depth points, body frame, when this frame measured them
+    dead_reckoned_s: float = 0.0  # seconds since the previous frame the odometry only extrapolated (it lost track)
 
 
 class ObservationSource(Protocol):
@@ -146,8 +147,7 @@ class VisualOdometry:
     taken out of the specific force (perception.gravity), and `points_body` the stereo depth points the service
     would measure on that frame (service.frames.StereoDepth: every third frame), or None."""
 
-    def __init__(self, matcher=None) -> None:  # noqa: ANN001 - perception.stereo.SgbmMatcher
-        """`matcher`: the stereo matcher for the depth points (default: a new one)."""
+    def __init__(self) -> None:
         from perception.gravity import GravityEstimator
         from service.frames import StereoDepth
 
@@ -155,9 +155,11 @@ class VisualOdometry:
         self._T_odom_cam0: np.ndarray | None = None
         self._last_imu_ns: int | None = None
         self._gravity = GravityEstimator()
-        self._depth = StereoDepth(matcher)
+        self._depth = StereoDepth()
         self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
         self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
+        self.dead_reckoned_s = 0.0  # the last frame's seconds of extrapolation: tracking lost, constant velocity
+        self._last_stamp_ns: int | None = None
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         from perception.odometry import StereoOdometry
@@ -179,6 +181,9 @@ class VisualOdometry:
             self._last_imu_ns = frame.imu[-1].header.stamp_ns
         R_prev_cur = None if R_gyro is None else R_body_cam.T @ R_gyro @ R_body_cam
         result = self._odometry.track(left, right, R_prev_cur)
+        self.dead_reckoned_s = 0.0 if result.tracked or self._last_stamp_ns is None else \
+            (frame.stamp_ns - self._last_stamp_ns) * 1e-9
+        self._last_stamp_ns = frame.stamp_ns
         self.points_body = self._depth(left, right, self._odometry.rig, T_body_cam)
         T_odom_body = self._T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
         self.up_body = self._gravity.update(frame.stamp_ns, T_odom_body, _specific_forces(frame))
@@ -190,15 +195,16 @@ class VehicleOdometry:
     a drone's VIO), as the service takes it from the vehicle's odometry key: the sample at the frame's stamp (else
     the newest before it). `up_body` and `points_body` as `VisualOdometry` gives them."""
 
-    def __init__(self, matcher=None) -> None:  # noqa: ANN001 - perception.stereo.SgbmMatcher
+    def __init__(self) -> None:
         from perception.gravity import GravityEstimator
         from service.frames import StereoDepth
 
         self._gravity = GravityEstimator()
-        self._depth = StereoDepth(matcher)
+        self._depth = StereoDepth()
         self._T_odom_body: np.ndarray | None = None
         self.points_body: np.ndarray | None = None
         self.up_body: np.ndarray | None = None
+        self.dead_reckoned_s = 0.0  # the vehicle's odometry says nothing of its own losses
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         at_or_before = [o for o in frame.odometry if o.header.stamp_ns <= frame.stamp_ns]
@@ -228,7 +234,7 @@ class TruthFeaturesWithVisualOdometry:
         inputs = self.truth(frame)
         T_odom_body = self.odometry(frame, decode_image(frame.stereo.left), decode_image(frame.stereo.right))
         return FrameInput(inputs.stamp_ns, T_odom_body, inputs.sightings, self.odometry.up_body, inputs.T_body_cam,
-                          self.odometry.points_body)
+                          self.odometry.points_body, self.odometry.dead_reckoned_s)
 
 
 class PerceptionSource:
@@ -261,8 +267,7 @@ class PerceptionSource:
         T_body_cam = matrix_from_pose(info.T_body_cam)
         left, right = decode_image(frame.stereo.left), decode_image(frame.stereo.right)
         if self.odometry is None:
-            self.odometry = (VehicleOdometry(self.perception.matcher) if frame.odometry else
-                             VisualOdometry(self.perception.matcher))
+            self.odometry = VehicleOdometry() if frame.odometry else VisualOdometry()
             log.info("odometry: %s", "the vehicle's, recorded" if frame.odometry else "stereo visual odometry")
         T_odom_body = self.odometry(frame, left, right)
         up_body = self.odometry.up_body
@@ -277,7 +282,8 @@ class PerceptionSource:
                 sightings.append(Sighting(f.type, corners_body, truth_id=_nearest_id(f.centroid_cam, truth),
                                           truncated=f.truncated))
         self._n += 1
-        return FrameInput(frame.stamp_ns, T_odom_body, sightings, up_body, T_body_cam, self.odometry.points_body)
+        return FrameInput(frame.stamp_ns, T_odom_body, sightings, up_body, T_body_cam, self.odometry.points_body,
+                          self.odometry.dead_reckoned_s)
 
 
 def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:

@@ -285,3 +285,29 @@ def test_the_vehicles_recorded_odometry_places_each_frame() -> None:
     assert source.up_body is not None and np.allclose(source.up_body, T_map_body(100)[:3, :3].T @ [0, 0, 1.0])
     assert np.allclose(source(frame(200, []), image, image), T_map_body(100))  # none since: the last one
     assert np.allclose(source(frame(300, [250, 290, 310]), image, image), T_map_body(290))  # 310: after it
+
+
+def test_the_visual_odometry_says_how_long_it_only_extrapolated() -> None:
+    """The stereo visual odometry (`--observations perception` without the vehicle's odometry) tracks a textured
+    wall; a blank view (a wall nearer than stereo measures looks so) loses it, and each such frame reports its
+    interval as dead-reckoned, for the graph to trust that stretch of odometry less; tracked again, none."""
+    from service.recording import FlightFrame, encode_image, pose_from_matrix
+    from service.replay_sources import VisualOdometry
+    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from tests.perception.helpers import RIG, fronto_parallel_pair
+
+    left, right = fronto_parallel_pair(2.0)
+    blank = np.full_like(left, 128)
+    info = pb.CameraInfo(width=RIG.width_px, height=RIG.height_px, fx=RIG.fx_px, fy=RIG.fy_px, cx=RIG.cx_px,
+                         cy=RIG.cy_px, baseline_m=RIG.baseline_m, T_body_cam=pose_from_matrix(np.eye(4)))
+    odometry = VisualOdometry()
+    reported = []
+    for k, (l_img, r_img) in enumerate([(left, right)] * 3 + [(blank, blank)] * 3 + [(left, right)] * 2):
+        stamp_ns = k * 33_000_000
+        stereo = pb.StereoFrame(header=pb.Header(stamp_ns=stamp_ns), left=encode_image(l_img, "raw"),
+                                right=encode_image(r_img, "raw"), info=info)
+        odometry(FlightFrame(stamp_ns, stereo), l_img, r_img)
+        reported.append(odometry.dead_reckoned_s)
+    assert reported[:3] == [0.0] * 3
+    assert reported[3:6] == pytest.approx([0.033] * 3)
+    assert reported[7] == 0.0  # the textured wall again: re-keyed on the frame before, tracked
