@@ -289,7 +289,7 @@ class LocalizerBackend:
             snap.storey = _storey_of(self.model, self.last.matches)
         for j, lm in loc.landmarks.items():
             f = snap.landmarks_map.add(type=lm.type, id=loc.links.get(j, ""))
-            f.corners.extend(vector3(c) for c in lm.corners_map)
+            f.corners.extend(vector3(c) for c in lm.corners(loc.graph.T_map_rect(j)))
         return snap
 
     def supersedes_saved(self) -> bool:
