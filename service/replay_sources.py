@@ -147,8 +147,7 @@ class VisualOdometry:
     taken out of the specific force (perception.gravity), and `points_body` the stereo depth points the service
     would measure on that frame (service.frames.StereoDepth: every third frame), or None."""
 
-    def __init__(self, matcher=None) -> None:  # noqa: ANN001 - perception.stereo.SgbmMatcher
-        """`matcher`: the stereo matcher for the depth points (default: a new one)."""
+    def __init__(self) -> None:
         from perception.gravity import GravityEstimator
         from service.frames import StereoDepth
 
@@ -156,7 +155,7 @@ class VisualOdometry:
         self._T_odom_cam0: np.ndarray | None = None
         self._last_imu_ns: int | None = None
         self._gravity = GravityEstimator()
-        self._depth = StereoDepth(matcher)
+        self._depth = StereoDepth()
         self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
         self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
         self.dead_reckoned_s = 0.0  # the last frame's seconds of extrapolation: tracking lost, constant velocity
@@ -196,12 +195,12 @@ class VehicleOdometry:
     a drone's VIO), as the service takes it from the vehicle's odometry key: the sample at the frame's stamp (else
     the newest before it). `up_body` and `points_body` as `VisualOdometry` gives them."""
 
-    def __init__(self, matcher=None) -> None:  # noqa: ANN001 - perception.stereo.SgbmMatcher
+    def __init__(self) -> None:
         from perception.gravity import GravityEstimator
         from service.frames import StereoDepth
 
         self._gravity = GravityEstimator()
-        self._depth = StereoDepth(matcher)
+        self._depth = StereoDepth()
         self._T_odom_body: np.ndarray | None = None
         self.points_body: np.ndarray | None = None
         self.up_body: np.ndarray | None = None
@@ -268,8 +267,7 @@ class PerceptionSource:
         T_body_cam = matrix_from_pose(info.T_body_cam)
         left, right = decode_image(frame.stereo.left), decode_image(frame.stereo.right)
         if self.odometry is None:
-            self.odometry = (VehicleOdometry(self.perception.matcher) if frame.odometry else
-                             VisualOdometry(self.perception.matcher))
+            self.odometry = VehicleOdometry() if frame.odometry else VisualOdometry()
             log.info("odometry: %s", "the vehicle's, recorded" if frame.odometry else "stereo visual odometry")
         T_odom_body = self.odometry(frame, left, right)
         up_body = self.odometry.up_body

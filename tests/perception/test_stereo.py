@@ -39,6 +39,21 @@ def test_sgbm_recovers_a_textured_plane(depth_m: float):
     assert np.isfinite(disparity[20:-20, 30:60]).mean() > 0.8
 
 
+def test_no_disparity_puts_the_match_left_of_the_right_image():
+    """The padding repeats the right image's first column: a left pixel matched into it (disparity greater than
+    its column) has no match in view. 128 disparities on a plane 5 m away (11.5 px) gave 2,787 such pixels down
+    the left edge (in Office_A seed 3's frames: walls 5-7 m away measured at 0.5 m); none is kept."""
+    from perception.stereo import SgbmConfig
+
+    left, right = fronto_parallel_pair(5.0)
+    disparity = SgbmMatcher(SgbmConfig(num_disparities=128)).disparity_px(left, right)
+    column = np.arange(disparity.shape[1])
+    assert not np.any(disparity > column)
+    truth = RIG.fx_px * RIG.baseline_m / 5.0
+    in_view = disparity[20:-20, 20:]  # from column 20 on, the true match (11.5 px to the left) is in view
+    assert np.isfinite(in_view).mean() > 0.9 and np.nanmedian(np.abs(in_view - truth)) < 0.25
+
+
 def test_sample_depth_takes_the_median_of_valid_neighbours():
     depth = np.full((5, 10), np.nan, np.float32)
     depth[2, 3:6] = [1.0, 2.0, 9.0]

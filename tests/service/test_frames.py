@@ -38,3 +38,20 @@ def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
     assert points is not None and len(points) > 500
     # the plane is z = fx b / d = 2.4 m ahead of the camera: body x (forward) = 2.4 + the camera's 0.10 m
     assert np.median(points[:, 0]) == pytest.approx(2.5, abs=0.05)
+
+
+def test_depth_points_reach_a_wall_nearer_than_the_chains_search() -> None:
+    """A wall 0.70 m ahead (82 px of disparity): the depth points' SGBM searches 128 disparities and finds it;
+    searching the perception chain's 64 (down to 0.9 m) it would be matched at a wrong disparity, behind itself."""
+    from perception.calib import StereoRig
+    from service.frames import StereoDepth
+
+    left, right = textured_pair(82)
+    rig = StereoRig(480.0, 480.0, 319.5, 239.5, 0.12, 640, 480)
+    z_m = {}
+    for n in (128, 64):
+        points = StereoDepth(every=1, num_disparities=n)(left, right, rig, np.eye(4))
+        assert points is not None
+        z_m[n] = points[:, 2]
+    assert len(z_m[128]) > 500 and np.mean(np.abs(z_m[128] - 0.70) < 0.02) > 0.95
+    assert np.mean(np.abs(z_m[64] - 0.70) < 0.1) < 0.05, "the chain's search range would have measured it too"
