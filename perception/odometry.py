@@ -30,6 +30,7 @@ Frames: `odom` = the first frame's left camera (optical: x right, y down, z forw
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -69,7 +70,7 @@ class OdometryConfig:
 class OdometryResult:
     T_odom_cam: np.ndarray  # 4x4
     inliers: int
-    tracked: bool  # False: PnP failed, the pose is the last one moved at constant velocity
+    tracked: bool  # False: PnP failed; the pose is dead-reckoned (`track`'s lost_position) or at the last velocity
 
 
 @dataclass
@@ -95,13 +96,16 @@ class StereoOdometry:
         self._T_prev = np.eye(4)
         self._inliers: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3)), np.zeros((0, 2)))  # of the last PnP
 
-    def track(self, left: np.ndarray, right: np.ndarray, R_prev_cur: np.ndarray | None = None) -> OdometryResult:
+    def track(self, left: np.ndarray, right: np.ndarray, R_prev_cur: np.ndarray | None = None,
+              lost_position: Callable[[np.ndarray], np.ndarray | None] | None = None) -> OdometryResult:
         """The left camera's pose in the odometry frame after this stereo pair (uint8 grey or BGR).
 
         R_prev_cur: the camera's rotation since the previous frame from a gyroscope (3x3, previous camera frame
         <- this one), when there is one. A plane filling the view (a wall close by) leaves PnP unable to tell a
         turn from a slide: where its rotation departs from the gyro's, the gyro's is kept and the translation
-        refitted to the same matches."""
+        refitted to the same matches. lost_position: where tracking is lost, called with the pose coasted at the
+        last velocity (T_odom_cam, the gyro's rotation) for the camera's position to take instead (e.g. with the
+        height dead-reckoned on the IMU, perception.inertial); None from it, or no callable: the coasted pose."""
         kp, desc = self.orb.detectAndCompute(to_gray(left), None)
         kp = list(kp)
         desc = desc if desc is not None else np.zeros((0, 32), np.uint8)
@@ -116,6 +120,9 @@ class StereoOdometry:
             T = self._T_last @ (np.linalg.inv(self._T_prev) @ self._T_last)  # constant velocity
             if R_prev_cur is not None:
                 T[:3, :3] = self._T_last[:3, :3] @ R_prev_cur
+            position = None if lost_position is None else lost_position(T)
+            if position is not None:
+                T[:3, 3] = position
             self._advance(T)
             self._ref = self._keyframe(T, left, right, kp, desc)
             return OdometryResult(T, inliers, False)

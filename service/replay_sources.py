@@ -142,23 +142,26 @@ class TruthSource:
 
 class VisualOdometry:
     """T_odom_body from the stereo visual odometry on the recorded images, its rotation checked against the
-    IMU's gyroscope (integrated over the frame's samples); the odometry frame is the first body frame levelled
-    by the IMU's gravity. After each frame, `up_body` is gravity's direction with the odometry's acceleration
-    taken out of the specific force (perception.gravity), and `points_body` the stereo depth points the service
-    would measure on that frame (service.frames.StereoDepth: every third frame), or None."""
+    IMU's gyroscope (integrated over the frame's samples), and where it loses track its position dead-reckoned
+    on the accelerometer (perception.inertial); the odometry frame is the first body frame levelled by the IMU's
+    gravity. After each frame, `up_body` is gravity's direction with the odometry's acceleration taken out of the
+    specific force (perception.gravity), and `points_body` the stereo depth points the service would measure on
+    that frame (service.frames.StereoDepth: every third frame), or None."""
 
     def __init__(self) -> None:
         from perception.gravity import GravityEstimator
+        from perception.inertial import InertialDeadReckoning
         from service.frames import StereoDepth
 
         self._odometry: StereoOdometry | None = None
         self._T_odom_cam0: np.ndarray | None = None
         self._last_imu_ns: int | None = None
         self._gravity = GravityEstimator()
+        self._inertial = InertialDeadReckoning()
         self._depth = StereoDepth()
         self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
         self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
-        self.dead_reckoned_s = 0.0  # the last frame's seconds of extrapolation: tracking lost, constant velocity
+        self.dead_reckoned_s = 0.0  # the last frame's seconds of dead reckoning (tracking lost)
         self._last_stamp_ns: int | None = None
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
@@ -180,13 +183,30 @@ class VisualOdometry:
         if frame.imu:
             self._last_imu_ns = frame.imu[-1].header.stamp_ns
         R_prev_cur = None if R_gyro is None else R_body_cam.T @ R_gyro @ R_body_cam
-        result = self._odometry.track(left, right, R_prev_cur)
+        f_body = _specific_forces(frame)
+        T_odom_cam0 = self._T_odom_cam0
+        stamps_s = np.array([s.header.stamp_ns for s in frame.imu], float) * 1e-9
+
+        def lost_position(T_oc_cam: np.ndarray) -> np.ndarray | None:
+            """The coasted camera's position (its odometry's frame, the first camera's) at the height the IMU
+            dead-reckons (perception.inertial: its horizontal position needs a velocity and a tilt better than the
+            odometry has as it loses track)."""
+            T_odom_body = T_odom_cam0 @ T_oc_cam @ np.linalg.inv(T_body_cam)
+            p_odom_body = self._inertial.predict(stamps_s, f_body @ T_odom_body[:3, :3].T)
+            if p_odom_body is None:
+                return None
+            T_odom_body[2, 3] = p_odom_body[2]
+            return (np.linalg.inv(T_odom_cam0) @ T_odom_body @ T_body_cam)[:3, 3]
+
+        result = self._odometry.track(left, right, R_prev_cur, lost_position)
         self.dead_reckoned_s = 0.0 if result.tracked or self._last_stamp_ns is None else \
             (frame.stamp_ns - self._last_stamp_ns) * 1e-9
         self._last_stamp_ns = frame.stamp_ns
         self.points_body = self._depth(left, right, self._odometry.rig, T_body_cam)
-        T_odom_body = self._T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
-        self.up_body = self._gravity.update(frame.stamp_ns, T_odom_body, _specific_forces(frame))
+        T_odom_body = T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
+        self._inertial.update(frame.stamp_ns * 1e-9, T_odom_body[:3, 3], f_body @ T_odom_body[:3, :3].T,
+                              result.tracked)
+        self.up_body = self._gravity.update(frame.stamp_ns, T_odom_body, f_body)
         return T_odom_body
 
 

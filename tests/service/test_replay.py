@@ -311,3 +311,36 @@ def test_the_visual_odometry_says_how_long_it_only_extrapolated() -> None:
     assert reported[:3] == [0.0] * 3
     assert reported[3:6] == pytest.approx([0.033] * 3)
     assert reported[7] == 0.0  # the textured wall again: re-keyed on the frame before, tracked
+
+
+def test_the_visual_odometry_dead_reckons_the_height_on_the_imu_while_it_has_lost_track() -> None:
+    """1.5 s hovering before a textured wall (tracked; the IMU reads gravity alone), then 1 s blank (lost) while the
+    IMU reads a climb at 1 m/s^2: the height follows it (0.5 m), where the last velocity would have kept it."""
+    from service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
+    from service.replay_sources import VisualOdometry
+    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from tests.perception.helpers import RIG, fronto_parallel_pair
+
+    left, right = fronto_parallel_pair(2.0)
+    blank = np.full_like(left, 128)
+    R_body_cam = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical axes in the body's
+    T_body_cam = np.eye(4)
+    T_body_cam[:3, :3] = R_body_cam
+    info = pb.CameraInfo(width=RIG.width_px, height=RIG.height_px, fx=RIG.fx_px, fy=RIG.fy_px, cx=RIG.cx_px,
+                         cy=RIG.cy_px, baseline_m=RIG.baseline_m, T_body_cam=pose_from_matrix(T_body_cam))
+    odometry = VisualOdometry()
+    frame_ns, n_hover, n_lost = 33_333_333, 45, 30
+    heights = []
+    for k in range(n_hover + n_lost):
+        stamp_ns = (k + 1) * frame_ns
+        climbing = k >= n_hover
+        l_img, r_img = (blank, blank) if climbing else (left, right)
+        f_up = 9.81 + (1.0 if climbing else 0.0)
+        imu = [pb.Imu(header=pb.Header(stamp_ns=stamp_ns - frame_ns + (i + 1) * frame_ns // 4),
+                      accel_mps2=vector3(np.array([0.0, 0.0, f_up])), gyro_radps=pb.Vector3()) for i in range(4)]
+        stereo = pb.StereoFrame(header=pb.Header(stamp_ns=stamp_ns), left=encode_image(l_img, "raw"),
+                                right=encode_image(r_img, "raw"), info=info)
+        heights.append(odometry(FlightFrame(stamp_ns, stereo, imu=imu), l_img, r_img)[2, 3])
+    assert odometry.dead_reckoned_s > 0.0
+    assert abs(heights[n_hover - 1]) < 0.01
+    assert heights[-1] - heights[n_hover - 1] == pytest.approx(0.5 * 1.0 * (n_lost * frame_ns * 1e-9) ** 2, abs=0.05)
