@@ -733,7 +733,7 @@ class Localizer:
         """Register the map's landmarks to the model; on success anchor the graph to the CAD frame."""
         keys = self._confirmed()
         observed = [ObservedRect(j, self.landmarks[j].type, self.graph.T_map_rect(j)) for j in keys]
-        corners = [self.landmarks[j].corners(self.graph.T_map_rect(j)) for j in keys]
+        corners = [self.landmarks[o.key].corners(o.T_map_rect) for o in observed]
         result = self.registrar(observed, corners)
         self._fitted, self._checked = _PerPose(), _PerPose()
         choice = self._choose_by_surfaces(result, stamp_ns)
@@ -905,8 +905,8 @@ class Localizer:
         """This flight's map for a later flight to re-localize into (graph.mapstore)."""
         T_cad_map = self.graph.T_cad_map()
         keyframes = [(s, self.graph.T_map_body(i)) for i, s in enumerate(self.keyframe_stamps_ns)]
-        landmarks = [StoredLandmark(j, lm.type, self.graph.T_map_rect(j), lm.corners(self.graph.T_map_rect(j)),
-                                    self.links.get(j))
+        poses = {j: self.graph.T_map_rect(j) for j in self.landmarks}
+        landmarks = [StoredLandmark(j, lm.type, poses[j], lm.corners(poses[j]), self.links.get(j))
                      for j, lm in self.landmarks.items()]
         return StoredMap(self.model.sha256, T_cad_map, keyframes, landmarks, dict(self.views))
 

@@ -50,17 +50,15 @@ class GravityEstimator:
         while t_s - self._history[0][0] > self.params.window_s:
             self._history.popleft()
         t = np.array([h[0] for h in self._history])
-        end = self.params.end_s
-        first, last = t <= t[0] + end, t >= t[-1] - end
-        if t[-1] - t[0] < self.params.min_span_s or first.sum() < 2 or last.sum() < 2:
+        p = np.array([h[1] for h in self._history])
+        ends = None if t[-1] - t[0] < self.params.min_span_s else end_velocities(t, p, self.params.end_s)
+        if ends is None:
             up_odom = self._history[-1][2]  # too little history: the specific force alone
         else:
-            p = np.array([h[1] for h in self._history])
             f = np.array([h[2] for h in self._history])
             # the mean acceleration between the centres of the window's first and last parts is the difference of
             # their velocities (lines fitted to each part's positions), whatever the acceleration did in between
-            t1, t2 = t[first].mean(), t[last].mean()
-            v1, v2 = np.polyfit(t[first] - t1, p[first], 1)[0], np.polyfit(t[last] - t2, p[last], 1)[0]
+            t1, v1, t2, v2 = ends
             accel_odom = (v2 - v1) / (t2 - t1)
             inside = (t >= t1) & (t <= t2)
             if np.linalg.norm(accel_odom) > self.params.max_accel_mps2 or not inside.any():
@@ -68,3 +66,14 @@ class GravityEstimator:
             up_odom = f[inside].mean(axis=0) - accel_odom
         norm = float(np.linalg.norm(up_odom))
         return R.T @ up_odom / norm if norm > 1e-6 else None
+
+
+def end_velocities(t_s: np.ndarray, p: np.ndarray, end_s: float) -> tuple[float, np.ndarray, float, np.ndarray] | None:
+    """(t1, v1, t2, v2): the velocities of lines fitted to the positions p (N, 3) at times t_s (N,) within `end_s`
+    of the first and of the last, at those parts' mean times; None where either part has fewer than two."""
+    first, last = t_s <= t_s[0] + end_s, t_s >= t_s[-1] - end_s
+    if first.sum() < 2 or last.sum() < 2:
+        return None
+    t1, t2 = float(t_s[first].mean()), float(t_s[last].mean())
+    v1, v2 = np.polyfit(t_s[first] - t1, p[first], 1)[0], np.polyfit(t_s[last] - t2, p[last], 1)[0]
+    return t1, v1, t2, v2

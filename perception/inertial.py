@@ -36,6 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from perception.gravity import end_velocities
+
 
 @dataclass(frozen=True)
 class InertialParams:
@@ -104,12 +106,10 @@ class InertialDeadReckoning:
             return None
         t = np.array([h[0] for h in self._positions])
         p = np.array([h[1] for h in self._positions])
-        end = self.params.end_s
-        first, last = t <= t[0] + end, t >= t[-1] - end
-        if t[-1] - t[0] < self.params.min_calibrate_s or first.sum() < 2 or last.sum() < 2:
+        ends = None if t[-1] - t[0] < self.params.min_calibrate_s else end_velocities(t, p, self.params.end_s)
+        if ends is None:
             return None
-        t1, t2 = t[first].mean(), t[last].mean()
-        v1, v2 = np.polyfit(t[first] - t1, p[first], 1)[0], np.polyfit(t[last] - t2, p[last], 1)[0]
+        t1, v1, t2, v2 = ends
         accel = (v2 - v1) / (t2 - t1)
         t_f = np.array([h[0] for h in self._forces])
         inside = (t_f > t1) & (t_f <= t2)
