@@ -23,6 +23,7 @@ from typing import Generic, NamedTuple, TypeVar
 
 import numpy as np
 
+from graph.far import refined_by_bearings, resection_candidates
 from graph.features import BuildingModel
 from graph.landmarks import closer_flip, feature_frame_cad, is_vertical, observed_frame
 from graph.mapstore import KeyframeView, StoredLandmark, StoredMap
@@ -75,6 +76,13 @@ class LocalizerParams:
     far_min_sightings: int = 10  # with this many far sightings in the window, a candidate pose explaining
     far_min_explained: float = 0.8  # at least this fraction of them is not rivalled by one explaining
     far_margin: float = 0.4  # this much less (the surfaces' margin aside)
+    far_resection: bool = True  # with no landmark yet, candidate poses from two far doors seen from one camera
+    far_pair_min_deg: float = 10.0  # ... at least this far apart in bearing (graph.far), in the newest
+    far_pairs: int = 3  # ... this many keyframes that saw such a pair, the widest pair of each; the candidates
+    #                     explaining `far_min_explained` of `far_resection_sightings` of the far sightings are
+    far_resection_sightings: int = 60  # checked by the walls (`_resected`); the height the pose taken puts
+    far_height_sigma_m: float = 0.2  # the anchoring keyframe at is measured with this sigma (no door holds it)
+    far_bearing_sigma_deg: float = 0.5  # a far sighting's horizontal bearing, fitting such a pose (`_far_refined`)
     min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
     registration_tolerance_m: float = 0.6  # the model registrar's inlier / ambiguity tolerance (see GraphConfig)
     registration_min_landmarks: int = 4  # the model registrar answers 'localized' from this many landmarks ...
@@ -406,7 +414,9 @@ class Localizer:
             return n >= self.registrar.min_landmarks and n > self._registered_with
         last_ns, last_points = self._registered_at
         more_walls = (stamp_ns - last_ns) * 1e-9 >= self.params.surface_retry_s and self._n_points() > last_points
-        return n >= self.registrar.candidates_from and (n > self._registered_with or more_walls)
+        if n < self.registrar.candidates_from:
+            return more_walls and self.params.far_resection and self._far_map() is not None
+        return n > self._registered_with or more_walls
 
     def _n_points(self) -> int:
         return sum(len(p) for _, p, _ in self._points)
@@ -534,6 +544,92 @@ class Localizer:
         log.info("far sightings: the best candidate pose explains %.2f of them, its rivals on the walls %s",
                  f_best, ", ".join(f"{f:.2f}" for f in f_rivals))
         return [T for T, f in zip(rivals, f_rivals, strict=True) if f > f_best - p.far_margin]
+
+    def _resected(self) -> Alignment:
+        """Candidate poses from the far sightings alone, before any landmark (`far_resection`): from each of the
+        newest `far_pairs` keyframes that saw two far doors or windows `far_pair_min_deg` apart in bearing, the
+        widest such pair matched to every pair of same-type features of the model (`graph.far`); those explaining
+        `far_min_explained` of the far sightings (`_far_fractions`, `far_resection_sightings` of them, evenly
+        drawn), one of each place (1 m, 5 deg), most explaining first. None is the registrar's answer: the walls
+        choose (`_choose_by_surfaces`), with the full margin (no landmark vouches for any of them).
+
+        Office_A seed 2 (`truth`) sees no door within the sighting range for 14 s, but three beyond it, 13 m away,
+        from the first seconds: the true pose is among 1310 candidates from one pair at 0.15 m and 0.6 deg, and
+        with 300 of them explaining as many far sightings, the walls set it apart by 5 s."""
+        p = self.params
+        far = self._far_map()
+        if far is None:
+            return Alignment("not_localized", None)
+        every = max(1, int(np.ceil(len(far[0]) / p.far_resection_sightings)))
+        far = (far[0][::every], far[1][::every], far[2][::every])
+        poses = []
+        for camera_map, kinds, centroids_map in self._far_pairs()[-p.far_pairs:]:
+            poses.append(resection_candidates(camera_map, centroids_map, self._centroids_cad(kinds[0]),
+                                              self._centroids_cad(kinds[1]), self._sighting_sigma_m,
+                                              same_features=kinds[0] == kinds[1]))
+        if not poses or not sum(len(T) for T in poses):
+            return Alignment("not_localized", None)
+        T_all = np.concatenate(poses)
+        explained = np.concatenate([self._far_fractions(T_all[k:k + 256], *far) for k in range(0, len(T_all), 256)])
+        order = [k for k in np.argsort(-explained, kind="stable") if explained[k] >= p.far_min_explained]
+        kept: list[np.ndarray] = []
+        for k in order:
+            T = T_all[k]
+            if all(np.linalg.norm(T[:3, 3] - K[:3, 3]) > 1.0 or rotation_angle_deg(T[:3, :3] @ K[:3, :3].T) > 5.0
+                   for K in kept):
+                kept.append(T)
+        log.info("resection from far sightings: %d candidate poses, %d explaining %.2f of %d far sightings, %d "
+                 "places", len(T_all), len(order), p.far_min_explained, len(far[0]), len(kept))
+        if not kept:
+            return Alignment("not_localized", None)
+        return Alignment("ambiguous", None, candidates=[(T, 0) for T in kept])
+
+    def _far_refined(self, T_cad_map: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """A pose resected from far sightings, fitted to all of the window's far sightings' bearings (`graph.far`):
+        one pair's coarse ranges put it 0.15-0.3 m off (`truth`, Office_A seed 2), the keyframes' bearings
+        triangulate it."""
+        p = self.params
+        far = self._far_map()
+        if far is None:
+            return T_cad_map, None
+        kinds, cameras, centroids = far
+        features = {str(k): self._centroids_cad(str(k)) for k in np.unique(kinds)}
+        return refined_by_bearings(T_cad_map, cameras, centroids, kinds, features, np.radians(p.far_bearing_sigma_deg),
+                                   self._sighting_sigma_m, np.radians(p.far_bearing_deg))
+
+    def _add_far_pose(self, T_cad_map: np.ndarray, sigmas: np.ndarray | None) -> None:
+        """The newest keyframe's pose resected from far sightings (`_far_refined`) as a measurement in the CAD
+        frame: its horizontal position and heading with the bearings' sigmas (`sigmas`, [m, rad]; none where
+        they were too few), its height with `far_height_sigma_m` (the far doors' elevations: the walls do not see
+        it), roll and pitch left to gravity. Without it (`truth`, Office_A seed 2) the first fits to far walls
+        8 m away moved the pose 0.2 m off the bearings' (0.27 m off before the bearings' fit, 0.05 m after), and
+        with no door to hold it the height wandered up to 1.1 m in the 10 s before a door came within range."""
+        p = self.params
+        i = self.graph.n_keyframes - 1
+        information = np.zeros((6, 6))
+        if sigmas is not None:
+            information[2, 2] = sigmas[1] ** -2.0
+            information[3, 3] = information[4, 4] = sigmas[0] ** -2.0
+        information[5, 5] = p.far_height_sigma_m ** -2.0
+        self.graph.add_cad_pose(i, T_cad_map @ self.graph.T_map_body(i), information)
+
+    def _far_pairs(self) -> list[tuple[np.ndarray, tuple[str, str], np.ndarray]]:
+        """Per keyframe of the far window, oldest first, the widest pair of its far sightings in horizontal
+        bearing where that is `far_pair_min_deg` or more: (camera (3,), their types, their centroids (2, 3)),
+        map frame."""
+        pairs = []
+        for i, kinds, centroids_body in self._far:
+            if len(kinds) < 2:
+                continue
+            T_map_body = self.graph.T_map_body(i)
+            camera = apply(T_map_body, self.viewer_body[None])[0]
+            centroids = apply(T_map_body, centroids_body)
+            bearing = np.arctan2(centroids[:, 1] - camera[1], centroids[:, 0] - camera[0])
+            apart = np.abs((bearing[:, None] - bearing[None] + np.pi) % (2 * np.pi) - np.pi)
+            a, b = np.unravel_index(int(np.argmax(apart)), apart.shape)
+            if apart[a, b] >= np.radians(self.params.far_pair_min_deg):
+                pairs.append((camera, (kinds[a], kinds[b]), centroids[[a, b]]))
+        return pairs
 
     def _far_explained(self, T_cad_map: np.ndarray, far: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
         """The fraction of the window's far sightings (`far`, from `_far_map`) that the pose T_cad_map explains,
@@ -734,7 +830,7 @@ class Localizer:
         keys = self._confirmed()
         observed = [ObservedRect(j, self.landmarks[j].type, self.graph.T_map_rect(j)) for j in keys]
         corners = [self.landmarks[o.key].corners(o.T_map_rect) for o in observed]
-        result = self.registrar(observed, corners)
+        result = self.registrar(observed, corners) if keys else self._resected()
         self._fitted, self._checked = _PerPose(), _PerPose()
         choice = self._choose_by_surfaces(result, stamp_ns)
         # the walls confirm none of the candidates: the next registrar's, unless two of these fit the walls alike
@@ -746,6 +842,9 @@ class Localizer:
             result = result.fallback()
             choice = self._choose_by_surfaces(result, stamp_ns)
         T_cad_map, registrars = choice.T_cad_map, choice.registrars
+        far_sigmas = None
+        if T_cad_map is not None and not keys:
+            T_cad_map, far_sigmas = self._far_refined(T_cad_map)
         self._registered_with = len(keys)
         self._registered_at = (stamp_ns, self._n_points())
         self.inliers = result.inliers
@@ -761,6 +860,8 @@ class Localizer:
         self.graph.add_anchor(np.linalg.inv(T_cad_map))
         self._anchored_at = self.graph.n_keyframes - 1
         self._fit_newest_to_surfaces(anchoring=True)  # at the pose the walls chose, before the doors' links
+        if not keys:  # resected from far doors: their bearings hold the pose while no door does
+            self._add_far_pose(T_cad_map, far_sigmas)
         if registrars:  # the registrar's own pose (fitted to the walls): its matches hold
             for j, fid in result.matches:
                 self._link(j, fid, T_cad_map)

@@ -958,3 +958,32 @@ def test_placements_hold_the_pose_and_keep_the_status_alive(room_with_walls: Sur
     assert once.status == "degraded" and always.status == "localized"
     T_cad_map = always.graph.T_cad_map()
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.01
+
+
+def test_doors_beyond_the_sighting_range_and_the_walls_localize(room_with_walls: SurfaceIndex) -> None:
+    """No door within the sighting range (here 2 m), five of the fourteen alike doors beyond it: the far pairs'
+    resection offers every pose that puts two of the model's doors along two bearings, the far sightings'
+    bearings keep those explaining them, and the walls single out the true one, fitted to the bearings and
+    held there (its height too) with no landmark at all. Without the resection it keeps exploring."""
+    model = doors_on_the_room(FOURTEEN_DOORS)
+    runs = {}
+    for resect in (True, False):
+        params = LocalizerParams(surface_min_points=100, max_range_m=2.0, far_resection=resect)
+        registrar = ModelRegistrar(model, min_landmarks=4, candidates_from=1)
+        loc = Localizer(model, PoseGraph(), registrar, params, surfaces=room_with_walls)
+        rng = np.random.default_rng(3)
+        for k in range(8):
+            xy = np.array([2.0 + 0.15 * k, 3.5])
+            T_cad_body = make_T(rot_z(0.05 * k), np.array([xy[0], xy[1], 1.4]))
+            sightings = sightings_from(model, T_cad_body, max_range_m=20.0, rng=rng, sigma_m=0.02)
+            points_body = apply(np.linalg.inv(T_cad_body), seen_points(rng, xy))
+            loc.add_keyframe(k * 500_000_000, np.linalg.inv(T_TRUE) @ T_cad_body, sightings, UP,
+                             points_body=points_body)
+        runs[resect] = loc
+    loc = runs[True]
+    assert loc.status == "localized" and not loc.landmarks and not loc.links
+    T_cad_map = loc.graph.T_cad_map()
+    assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.1
+    assert rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T) < 0.5
+    assert runs[False].status == "exploring"
+
