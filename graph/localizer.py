@@ -78,11 +78,10 @@ class LocalizerParams:
     far_margin: float = 0.4  # this much less (the surfaces' margin aside)
     far_resection: bool = True  # with no landmark yet, candidate poses from two far doors seen from one camera
     far_pair_min_deg: float = 10.0  # ... at least this far apart in bearing (graph.far), in the newest
-    far_pairs: int = 3  # ... this many keyframes that saw such a pair, the widest pair of each; the candidates
-    #                     explaining `far_min_explained` of `far_resection_sightings` of the far sightings are
-    far_resection_sightings: int = 60  # checked by the walls (`_resected`); the height the pose taken puts
-    far_height_sigma_m: float = 0.2  # the anchoring keyframe at is measured with this sigma (no door holds it)
-    far_bearing_sigma_deg: float = 0.5  # a far sighting's horizontal bearing, fitting such a pose (`_far_refined`)
+    far_pairs: int = 3  # ... this many keyframes that saw such a pair, the widest pair of each (`_resected`)
+    far_resection_sightings: int = 60  # the candidates are judged by this many of the far sightings, evenly drawn
+    far_height_sigma_m: float = 0.2  # the pose taken holds the anchoring keyframe's height with this sigma ...
+    far_bearing_sigma_deg: float = 0.5  # ... and is fitted to the far bearings with this one (`_far_refined`)
     min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
     registration_tolerance_m: float = 0.6  # the model registrar's inlier / ambiguity tolerance (see GraphConfig)
     registration_min_landmarks: int = 4  # the model registrar answers 'localized' from this many landmarks ...
@@ -554,8 +553,8 @@ class Localizer:
         choose (`_choose_by_surfaces`), with the full margin (no landmark vouches for any of them).
 
         Office_A seed 2 (`truth`) sees no door within the sighting range for 14 s, but three beyond it, 13 m away,
-        from the first seconds: the true pose is among 1310 candidates from one pair at 0.15 m and 0.6 deg, and
-        with 300 of them explaining as many far sightings, the walls set it apart by 5 s."""
+        from the first seconds: at 3 s the true pose is among 1310 candidates from one pair (0.15 m and 0.6 deg
+        off), 368 places explain the far sightings, and the walls set it apart."""
         p = self.params
         far = self._far_map()
         if far is None:
