@@ -29,7 +29,7 @@ from graph.landmarks import closer_flip, feature_frame_cad, is_vertical, observe
 from graph.mapstore import KeyframeView, StoredLandmark, StoredMap
 from graph.posegraph import CAD_LINK_POSITION_SIGMAS, CAD_LINK_SIGMAS, PoseGraph
 from graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
-from graph.relocalize import Alignment, KnownRect, ObservedRect
+from graph.relocalize import Alignment, KnownRect, ObservedRect, distinct_poses
 from graph.rigid import apply, levelled, make_T, rot_z, rotation_angle_deg
 from graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surfaces, band_points, floor_points
 
@@ -414,7 +414,7 @@ class Localizer:
         last_ns, last_points = self._registered_at
         more_walls = (stamp_ns - last_ns) * 1e-9 >= self.params.surface_retry_s and self._n_points() > last_points
         if n < self.registrar.candidates_from:
-            return more_walls and self.params.far_resection and self._far_map() is not None
+            return more_walls and self.params.far_resection and self._n_far() >= self.params.far_min_sightings
         return n > self._registered_with or more_walls
 
     def _n_points(self) -> int:
@@ -544,7 +544,7 @@ class Localizer:
                  f_best, ", ".join(f"{f:.2f}" for f in f_rivals))
         return [T for T, f in zip(rivals, f_rivals, strict=True) if f > f_best - p.far_margin]
 
-    def _resected(self) -> Alignment:
+    def _resected(self, far: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> Alignment:
         """Candidate poses from the far sightings alone, before any landmark (`far_resection`): from each of the
         newest `far_pairs` keyframes that saw two far doors or windows `far_pair_min_deg` apart in bearing, the
         widest such pair matched to every pair of same-type features of the model (`graph.far`); those explaining
@@ -554,9 +554,8 @@ class Localizer:
 
         Office_A seed 2 (`truth`) sees no door within the sighting range for 14 s, but three beyond it, 13 m away,
         from the first seconds: at 3 s the true pose is among 1310 candidates from one pair (0.15 m and 0.6 deg
-        off), 368 places explain the far sightings, and the walls set it apart."""
+        off), 368 places explain the far sightings, and the walls set it apart. `far`: `_far_map`."""
         p = self.params
-        far = self._far_map()
         if far is None:
             return Alignment("not_localized", None)
         every = max(1, int(np.ceil(len(far[0]) / p.far_resection_sightings)))
@@ -571,24 +570,19 @@ class Localizer:
         T_all = np.concatenate(poses)
         explained = np.concatenate([self._far_fractions(T_all[k:k + 256], *far) for k in range(0, len(T_all), 256)])
         order = [k for k in np.argsort(-explained, kind="stable") if explained[k] >= p.far_min_explained]
-        kept: list[np.ndarray] = []
-        for k in order:
-            T = T_all[k]
-            if all(np.linalg.norm(T[:3, 3] - K[:3, 3]) > 1.0 or rotation_angle_deg(T[:3, :3] @ K[:3, :3].T) > 5.0
-                   for K in kept):
-                kept.append(T)
+        kept = distinct_poses(T_all, order, angle_rad=np.radians(5.0))
         log.info("resection from far sightings: %d candidate poses, %d explaining %.2f of %d far sightings, %d "
                  "places", len(T_all), len(order), p.far_min_explained, len(far[0]), len(kept))
         if not kept:
             return Alignment("not_localized", None)
         return Alignment("ambiguous", None, candidates=[(T, 0) for T in kept])
 
-    def _far_refined(self, T_cad_map: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    def _far_refined(self, T_cad_map: np.ndarray, far: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+                     ) -> tuple[np.ndarray, np.ndarray | None]:
         """A pose resected from far sightings, fitted to all of the window's far sightings' bearings (`graph.far`):
         one pair's coarse ranges put it 0.15-0.3 m off (`truth`, Office_A seed 2), the keyframes' bearings
-        triangulate it."""
+        triangulate it. `far`: `_far_map`."""
         p = self.params
-        far = self._far_map()
         if far is None:
             return T_cad_map, None
         kinds, cameras, centroids = far
@@ -655,7 +649,7 @@ class Localizer:
     def _far_map(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The window's far sightings: types (K,), their keyframes' cameras (K, 3) and their centroids (K, 3),
         map frame, at the keyframes' current estimates; None with fewer than `far_min_sightings`."""
-        if sum(len(kinds) for _, kinds, _ in self._far) < self.params.far_min_sightings:
+        if self._n_far() < self.params.far_min_sightings:
             return None
         kinds, cameras, centroids = [], [], []
         for i, kinds_i, centroids_body in self._far:
@@ -664,6 +658,9 @@ class Localizer:
             cameras.append(np.repeat(apply(T_map_body, self.viewer_body[None]), len(kinds_i), axis=0))
             centroids.append(apply(T_map_body, centroids_body))
         return np.array(kinds), np.vstack(cameras), np.vstack(centroids)
+
+    def _n_far(self) -> int:
+        return sum(len(kinds) for _, kinds, _ in self._far)
 
     def _far_fractions(self, T_cad_map: np.ndarray, kinds: np.ndarray, cameras_map: np.ndarray,
                        centroids_map: np.ndarray) -> np.ndarray:
@@ -829,7 +826,8 @@ class Localizer:
         keys = self._confirmed()
         observed = [ObservedRect(j, self.landmarks[j].type, self.graph.T_map_rect(j)) for j in keys]
         corners = [self.landmarks[o.key].corners(o.T_map_rect) for o in observed]
-        result = self.registrar(observed, corners) if keys else self._resected()
+        far = None if keys else self._far_map()  # resecting from far sightings: once for the attempt
+        result = self.registrar(observed, corners) if keys else self._resected(far)
         self._fitted, self._checked = _PerPose(), _PerPose()
         choice = self._choose_by_surfaces(result, stamp_ns)
         # the walls confirm none of the candidates: the next registrar's, unless two of these fit the walls alike
@@ -843,7 +841,7 @@ class Localizer:
         T_cad_map, registrars = choice.T_cad_map, choice.registrars
         far_sigmas = None
         if T_cad_map is not None and not keys:
-            T_cad_map, far_sigmas = self._far_refined(T_cad_map)
+            T_cad_map, far_sigmas = self._far_refined(T_cad_map, far)
         self._registered_with = len(keys)
         self._registered_at = (stamp_ns, self._n_points())
         self.inliers = result.inliers

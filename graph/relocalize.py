@@ -13,7 +13,7 @@ flight linked to the model), and a stand-in registration against a whole model w
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -93,8 +93,8 @@ def align_rectangles(observed: list[ObservedRect], known: list[KnownRect], inlie
     best = int(order[0])
     if support[best] < fewest:
         return Alignment("not_localized", None, inliers=int(support[best]))
-    candidates = [] if candidates_from is None else _distinct(H, order[support[order] == support[best]],
-                                                              max_candidates)
+    candidates = [] if candidates_from is None else distinct_poses(H, order[support[order] == support[best]],
+                                                                   max_candidates)
     if support[best] < min_inliers:
         return Alignment("ambiguous" if candidates else "not_localized", None, inliers=int(support[best]),
                          candidates=[(T, int(support[best])) for T in candidates])
@@ -120,13 +120,15 @@ def _nearest_known(H: np.ndarray, obs_T: np.ndarray, same_type: np.ndarray, know
     return dist.argmin(axis=2), np.isfinite(dist.min(axis=2))
 
 
-def _distinct(H: np.ndarray, order: np.ndarray, limit: int) -> list[np.ndarray]:
-    """The hypotheses H[order], best first, less those that do not differ from one kept before (`_differs`)."""
+def distinct_poses(H: np.ndarray, order: Sequence[int] | np.ndarray, limit: int | None = None, trans_m: float = 1.0,
+                   angle_rad: float = np.radians(15.0)) -> list[np.ndarray]:
+    """The poses H[order] (N, 4, 4), best first, less those that do not differ from one kept before by `trans_m`
+    or `angle_rad` (`_differs`); at most `limit` of them."""
     kept: list[np.ndarray] = []
     for n in order:
-        if len(kept) >= limit:
+        if limit is not None and len(kept) >= limit:
             break
-        if all(_differs(H[n], T) for T in kept):
+        if all(_differs(H[n], T, trans_m, angle_rad) for T in kept):
             kept.append(H[n])
     return kept
 
