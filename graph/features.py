@@ -81,3 +81,17 @@ class BuildingModel:
         for f in self.features:
             out.setdefault(f.storey, []).append(f)
         return out
+
+
+class CentroidsByType:
+    """The model's feature centroids of each type, (N, 3) CAD frame, metres: computed once per type."""
+
+    def __init__(self, model: BuildingModel) -> None:
+        self._features = list({f.id: f for f in model.features}.values())
+        self._by_type: dict[str, np.ndarray] = {}
+
+    def __call__(self, kind: str) -> np.ndarray:
+        if kind not in self._by_type:
+            self._by_type[kind] = np.array([f.centroid_cad for f in self._features
+                                            if f.type == kind]).reshape(-1, 3)
+        return self._by_type[kind]

@@ -286,7 +286,7 @@ def test_the_walls_choose_the_true_candidate(room: SurfaceIndex) -> None:
         assert loc.status == "localized"
         T_cad_map = loc.graph.T_cad_map()
         assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
-        assert loc.surface_checks and max(loc.surface_checks[-1][1]) == 1.0
+        assert loc.judge.checks and max(loc.judge.checks[-1][1]) == 1.0
 
 
 def test_two_landmarks_without_depth_stay_ambiguous(room: SurfaceIndex) -> None:
@@ -303,7 +303,7 @@ def test_walls_that_cannot_tell_the_candidates_apart_leave_it_ambiguous() -> Non
     box = SurfaceIndex.from_mesh(v, f[:8], SurfaceParams(spacing_m=0.05))  # the 4 outer walls
     half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))
     loc = fly_in_room(box, CandidatesRegistrar([T_TRUE, half_turn @ T_TRUE]), n_walls=4)
-    assert loc.surface_checks[-1][1] == [1.0, 1.0]
+    assert loc.judge.checks[-1][1] == [1.0, 1.0]
     assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None
     same = T_TRUE @ make_T(np.eye(3), np.array([0.0, 0.0, 0.1]))  # 0.1 m apart: one pose, not a rival
     assert fly_in_room(box, CandidatesRegistrar([T_TRUE, same]), n_walls=4).status == "localized"
@@ -319,7 +319,7 @@ def test_a_rival_the_walls_do_not_fit_blocks_only_within_its_own_margin(room: Su
     demo's seed 1 with perception: a corridor 18.6 m along, 0.71-0.86 of its points on the walls)."""
     half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))
     loc = fly_in_room(room, CandidatesRegistrar([half_turn @ T_TRUE, T_TRUE]), surface_margin_unfit=margin_unfit)
-    assert sorted(loc.surface_checks[-1][1]) == pytest.approx([0.77, 1.0], abs=0.03)
+    assert sorted(loc.judge.checks[-1][1]) == pytest.approx([0.77, 1.0], abs=0.03)
     assert loc.status == status
     if status == "localized":
         T_cad_map = loc.graph.T_cad_map()
@@ -332,7 +332,7 @@ def test_candidates_from_one_door_keep_the_full_margin_against_a_rival_that_does
     `surface_margin`, fitting or not."""
     half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))
     loc = fly_in_room(room, PartialRegistrar([half_turn @ T_TRUE, T_TRUE]), surface_margin_unfit=0.15)
-    assert sorted(loc.surface_checks[-1][1]) == pytest.approx([0.77, 1.0], abs=0.03)
+    assert sorted(loc.judge.checks[-1][1]) == pytest.approx([0.77, 1.0], abs=0.03)
     assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None
 
 
@@ -418,12 +418,12 @@ def test_lines_of_sight_tell_apart_what_the_surfaces_cannot(room: SurfaceIndex,
     would have seen a third of them through the partition, and the lines of sight settle it."""
     half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))
     loc = fly_seeing(room, CandidatesRegistrar([half_turn @ T_TRUE, T_TRUE]), NEAR_THE_PARTITION_END)
-    assert loc.status == "ambiguous" and min(loc.surface_checks[-1][1]) >= 0.9
+    assert loc.status == "ambiguous" and min(loc.judge.checks[-1][1]) >= 0.9
     loc = fly_seeing(room_with_walls, CandidatesRegistrar([half_turn @ T_TRUE, T_TRUE]), NEAR_THE_PARTITION_END)
     assert loc.status == "localized"
     T_cad_map = loc.graph.T_cad_map()
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
-    half_turn_score, true_score = loc.surface_checks[-1][1]
+    half_turn_score, true_score = loc.judge.checks[-1][1]
     assert true_score > 0.95 and half_turn_score < true_score - 0.3
 
 
@@ -434,7 +434,7 @@ def test_a_candidate_a_little_off_is_fitted_to_the_walls_before_the_check(room_w
     cameras = [np.array([8.0, 2.0]), np.array([8.3, 2.5]), np.array([8.6, 3.0])]
     unfitted = fly_seeing(room_with_walls, CandidatesRegistrar([off, T_WRONG]), cameras,
                           LocalizerParams(surface_min_points=100, surface_refine_m=0.0))
-    assert unfitted.status == "ambiguous" and max(unfitted.surface_checks[-1][1]) < 0.9
+    assert unfitted.status == "ambiguous" and max(unfitted.judge.checks[-1][1]) < 0.9
     fitted = fly_seeing(room_with_walls, CandidatesRegistrar([off, T_WRONG]), cameras)
     assert fitted.status == "localized"
     T_cad_map = fitted.graph.T_cad_map()
@@ -675,7 +675,7 @@ def test_one_door_and_the_walls_localize(room_with_walls: SurfaceIndex) -> None:
     single out the true one: localized from one landmark."""
     model = doors_on_the_room(FOURTEEN_DOORS)
     loc = fly_facing_doors(model, room_with_walls, ("D03",), (9.0, 3.5), -np.pi / 2)
-    assert loc.surface_screens and loc.surface_screens[0][0] == 28
+    assert loc.judge.screens and loc.judge.screens[0][0] == 28
     assert loc.status == "localized" and len(loc.landmarks) == 1
     T_cad_map = loc.graph.T_cad_map()
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
@@ -776,7 +776,7 @@ def test_a_turn_keeps_the_candidates_doors_by_their_cad_doors(room_with_walls: S
     T_candidate = turn_about_d02(0.5) @ T_TRUE  # D02 exact, so the turn is about it
     walls_cad = seen_points(np.random.default_rng(3), np.array([9.0, 3.5]), n=300)
     points_map = apply(np.linalg.inv(T_candidate) @ turn_about_d02(-14.0), walls_cad)  # fit 14 deg further
-    (T_turned,) = loc._turned([(T_candidate, 2)], points_map, 2, 2)
+    (T_turned,) = loc.judge.turned([(T_candidate, 2)], points_map, 2, 2, loc.landmark_centres_map())
     turn_deg = rotation_angle_deg(T_turned[:3, :3] @ T_candidate[:3, :3].T)
     assert 3.0 < turn_deg < 8.6
     for key, door_id in loc.links.items():
@@ -792,7 +792,7 @@ def test_one_door_in_a_room_alike_after_a_half_turn_stays_ambiguous() -> None:
     box.walls = WallVoxels.from_mesh(v, f[:8])
     model = doors_on_the_room([((9.0, 0.0), (0, 1)), ((3.0, 7.0), (0, -1))])
     loc = fly_facing_doors(model, box, ("D00",), (9.0, 3.5), -np.pi / 2)
-    second, best = sorted(loc.surface_checks[-1][1])[-2:]
+    second, best = sorted(loc.judge.checks[-1][1])[-2:]
     assert best - second < 0.05  # the half-turn fits as well
     assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None and not loc.links
 
@@ -833,8 +833,9 @@ def test_a_far_doors_bearing_tells_apart_poses_the_walls_fit_alike() -> None:
     T_cad_map = loc.graph.T_cad_map()
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.1
     assert loc.links == {0: "D00"}
-    assert loc._far_explained(T_cad_map, loc._far_map()) == 1.0
-    second, best = sorted(loc.surface_checks[-1][1])[-2:]
+    newest = loc.graph.T_map_body(loc.graph.n_keyframes - 1)
+    assert loc.far.explained(T_cad_map, loc.far.in_map(), newest) == 1.0
+    second, best = sorted(loc.judge.checks[-1][1])[-2:]
     assert best - second < 0.05  # the walls alone fit the half-turn as well
     without_far = fly_seeing_a_far_door(model, box, replace(params, far_range_m=params.max_range_m))
     assert without_far.status == "ambiguous" and without_far.graph.T_cad_map() is None
@@ -870,16 +871,17 @@ def test_a_candidate_a_few_degrees_off_still_explains_the_far_door_it_sees(off_d
         R = rot_z(np.radians(deg))
         return make_T(R, about - R @ about) @ T_cad_map
 
-    far = loc._far_map()
+    far = loc.far.in_map()
     assert far is not None
+    newest = loc.graph.T_map_body(loc.graph.n_keyframes - 1)
     T_off = turned(sign * off_deg, camera)
-    assert loc._far_explained(T_off, far) == 1.0
-    loc.params = replace(params, far_turn_deg=0.0)
-    assert loc._far_explained(T_off, far) == 0.0
-    assert loc._far_explained(T_cad_map, far) == 1.0
-    loc.params = params
+    assert loc.far.explained(T_off, far, newest) == 1.0
+    loc.far.params = replace(params, far_turn_deg=0.0)
+    assert loc.far.explained(T_off, far, newest) == 0.0
+    assert loc.far.explained(T_cad_map, far, newest) == 1.0
+    loc.far.params = params
     half_turned = turned(180.0, np.array([6.0, 3.5, 0.0]))  # the box room's centre: its walls fit alike
-    assert loc._far_explained(half_turned, far) == 0.0
+    assert loc.far.explained(half_turned, far, newest) == 0.0
 
 
 def test_the_walls_turn_back_a_pose_localized_degrees_off(room_with_walls: SurfaceIndex) -> None:

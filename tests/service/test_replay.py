@@ -147,7 +147,7 @@ def test_the_backend_hands_depth_to_the_next_keyframe() -> None:
     backend.odometry(OdometryIn(0, np.eye(4)))
     backend.depth(0, np.array([[3.0, 0.0, 0.1], [4.0, 1.0, -0.2]]))
     backend.odometry(OdometryIn(100_000_000, make_T(np.eye(3), np.array([1.5, 0.0, 0.0]))))  # a keyframe (> 1 m)
-    (i, points, below), = list(backend.localizer._points)
+    (i, points, below), = list(backend.localizer.depth)
     assert i == 1 and np.allclose(points, [[1.5, 0.0, 0.1], [2.5, 1.0, -0.2]]) and len(below) == 0
 
 

@@ -1,0 +1,308 @@
+"""The walls choose among candidate poses (beyond the paper): the registrar's answer, or the poses it offers from
+one to three landmarks, or those resected from far doors, each fitted to the model's walls and scored by the
+flight's depth points on them and in sight of their cameras (graph.surfaces).
+
+One door with gravity fixes the pose up to which of the model's alike doors it is and from which side: Office_A's
+87 alike doors give 174 candidates. A few points screen them, the best are turned to the walls' heading where
+their doors' orientations are coarse, fitted to the walls, and checked; a candidate is taken when it fits the
+walls (`surface_min_support`, `surface_max_seen_through`) and no different pose scores within `surface_margin`
+of it, or the rivals are contradicted by the doors seen beyond the sighting range (graph.far_window).
+
+Frames: map = the flight's odometry frame, z up; cad = the model's. A candidate is a T_cad_map (4, 4). Metres.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from functools import partial
+from typing import Generic, NamedTuple, TypeVar
+
+import numpy as np
+
+from graph.features import CentroidsByType
+from graph.params import LocalizerParams
+from graph.relocalize import Alignment
+from graph.rigid import apply, make_T, rot_z, rotation_angle_deg
+from graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surfaces
+
+log = logging.getLogger(__name__)
+V = TypeVar("V")
+FarRivals = Callable[[np.ndarray, list[np.ndarray]], list[np.ndarray]]  # (T_best, rivals) -> those not contradicted
+
+
+class SurfaceJudge:
+    """Weighs candidate poses against the model's surfaces (see module doc)."""
+
+    def __init__(self, surfaces: SurfaceIndex, params: LocalizerParams, centroids_cad: CentroidsByType) -> None:
+        self.surfaces = surfaces
+        self.params = params
+        self._centroids_cad = centroids_cad
+        self.checks: list[tuple[int, list[float]]] = []  # (stamp_ns, score of each candidate pose)
+        self.screens: list[tuple[int, list[float]]] = []  # (candidates, their screening scores, best first)
+        # within one registration attempt: each candidate fitted to the walls, each fitted pose's check, once
+        self._fitted: PerPose[np.ndarray] = PerPose()
+        self._checked: PerPose[SurfaceCheck] = PerPose()
+
+    def new_attempt(self) -> None:
+        """A new registration attempt: the poses fitted and checked in the last one are forgotten (the points
+        and the keyframes' estimates have moved since)."""
+        self._fitted, self._checked = PerPose(), PerPose()
+
+    def choose(self, result: Alignment, stamp_ns: int, points_map: np.ndarray, origins_map: np.ndarray,
+               landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals) -> Choice:
+        """The pose to anchor the map with, or None, and whether it is the registrar's answer (whose matches
+        then hold): the registrar's answer `result` and its candidates, checked by the walls. By: the map's depth
+        points `points_map` (N, 3) seen from `origins_map` (N, 3), the confirmed landmarks as (type, centre (3,)),
+        map frame (`landmarks`), and `far_rivals(T_best, rivals)`: the rivals the far sightings do not contradict.
+
+        Each candidate is fitted to the walls (`refined`) and scored by the points on the model's surfaces and,
+        with the model's walls as voxels, in sight of their cameras (SurfaceCheck.score); a candidate is taken when
+        it puts `surface_min_support` of the points on the surfaces, lets at most `surface_max_seen_through` be
+        seen through a wall, and every other candidate scores `surface_margin` less, or `surface_margin_unfit` less
+        where that candidate does not fit the walls itself (`fits`) and every candidate explains two landmarks
+        or more (a pose the walls contradict is a weaker rival: perception demo seed 1, a corridor 18.6 m along
+        put 0.71-0.86 of the points on the walls against the true pose's 0.97-0.99, and held the status
+        ambiguous 15 s at 0.14-0.29 below it; from one door the candidates are coarse and the true one may fit
+        badly: on the duplex it was 2.8 deg off, 42 % of its points seen through a wall, its twin 0.994); the
+        registrar's 'localized'
+        stands unless another candidate beats it by that margin or more than `surface_refuse_seen_through` of the
+        points would have been seen through a wall (the walls contradict it), and is refused where the walls
+        confirm a different pose. Few points on the surfaces alone do not refuse it: a true pose among furniture
+        the model lacks puts only half of them there.
+
+        Candidates from one landmark are first turned to the walls' heading (`turned`); where then none fits,
+        those from up to `surface_turn_max_inliers` are turned too and all are weighed again. Turned, wrong poses
+        fit better too (`truth`, Office_A seed 4: wrong two-door poses from 0.45-0.59 to 0.67-0.73 against the true
+        0.96, rivals within the margin), so a pose from two or three doors is turned only when it must be."""
+        p = self.params
+        T_reg = result.T_cad_map if result.status == "localized" else None
+        if T_reg is not None:
+            T_reg = self._fitted.get(T_reg, lambda T: self.refined(T, points_map))
+            moved_reg = apply(T_reg, points_map)
+        reg = None if T_reg is None else (T_reg, moved_reg)
+        sample = self._screening_sample(points_map, origins_map)
+        counts = [n for _, n in result.candidates]
+        poses = self.turned(result.candidates, sample[0], 1, 1, landmarks)
+        candidates, moved, checks = self._weighed(poses, reg, points_map, origins_map, sample)
+        if checks and not self.fits(max(checks, key=lambda c: c.score)) \
+                and any(1 < n <= p.surface_turn_max_inliers for n in counts):
+            log.info("no candidate pose fits the walls as it stands: those from up to %d landmarks turned too",
+                     p.surface_turn_max_inliers)
+            poses = self.turned(list(zip(poses, counts, strict=True)), sample[0], 2, p.surface_turn_max_inliers,
+                                landmarks)
+            candidates, moved, checks = self._weighed(poses, reg, points_map, origins_map, sample)
+        if not candidates:
+            return Choice(None, False)
+        score = np.array([c.score for c in checks])
+        self.checks.append((stamp_ns, score.round(3).tolist()))
+        log.info("surface check of %d candidate poses (%d points): support %s", len(candidates), len(points_map),
+                 ", ".join(f"{c.support:.2f}" + (f" ({c.seen_through:.2f} seen through walls)"
+                                                 if self.surfaces.walls is not None else "") for c in checks))
+        best = int(np.argmax(score))
+        relaxed = min(counts, default=0) >= 2  # a candidate from one door is coarse: the true one may fit badly
+        margin = [p.surface_margin if self.fits(c) or not relaxed else p.surface_margin_unfit for c in checks]
+        rivals = [T for T, m, s, d in zip(candidates, moved, score, margin, strict=True)
+                  if s > score[best] - d and poses_differ(T, candidates[best], m, moved[best])]
+        fits = self.fits(checks[best])
+        if fits and rivals:
+            rivals = far_rivals(candidates[best], rivals)
+        rivalled = bool(rivals)
+        confirmed = fits and not rivalled
+        if T_reg is not None:
+            i_reg = next(k for k, (T, m) in enumerate(zip(candidates, moved, strict=True))
+                         if not poses_differ(T, T_reg, m, moved_reg))
+            beaten = score[best] >= score[i_reg] + p.surface_margin
+            contradicted = checks[i_reg].seen_through > p.surface_refuse_seen_through
+            return Choice(None, False, fits and rivalled) if beaten or contradicted or (confirmed and best != i_reg) \
+                else Choice(T_reg, True)
+        return Choice(candidates[best] if confirmed else None, False, fits and rivalled)
+
+    def _weighed(self, poses: list[np.ndarray], reg: tuple[np.ndarray, np.ndarray] | None, points_map: np.ndarray,
+                 origins_map: np.ndarray, sample: tuple[np.ndarray, np.ndarray]
+                 ) -> tuple[list[np.ndarray], list[np.ndarray], list[SurfaceCheck]]:
+        """The candidate poses worth checking (`_screened` by the points' `sample`), each fitted to the walls,
+        with the registrar's own answer (`reg`: its pose, fitted, and the points under it) first where it is none
+        of them; the map's points under each (CAD frame) and each one's surface check."""
+        candidates = [self._fitted.get(T, lambda T: self.refined(T, points_map))
+                      for T in self._screened(poses, *sample)]
+        moved = [apply(T, points_map) for T in candidates]
+        if reg is not None:
+            T_reg, moved_reg = reg
+            if all(poses_differ(T, T_reg, m, moved_reg) for T, m in zip(candidates, moved, strict=True)):
+                candidates.insert(0, T_reg)
+                moved.insert(0, moved_reg)
+        checks = [self._checked.get(T, partial(self.check, m, origins_map))
+                  for T, m in zip(candidates, moved, strict=True)]
+        return candidates, moved, checks
+
+    def fits(self, check: SurfaceCheck) -> bool:
+        """Whether a pose's surface check fits the walls: enough points on them, few seen through one."""
+        p = self.params
+        return check.support >= p.surface_min_support and check.seen_through <= p.surface_max_seen_through
+
+    def _screening_sample(self, points_map: np.ndarray, origins_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`surface_screen_points` of the points and their cameras, evenly drawn, to screen candidates by."""
+        every = max(1, int(np.ceil(len(points_map) / self.params.surface_screen_points)))
+        return points_map[::every], origins_map[::every]
+
+    def _screened(self, poses: list[np.ndarray], pts: np.ndarray, origins: np.ndarray) -> list[np.ndarray]:
+        """The candidate poses worth fitting to the walls: all of a few; of more (one door: each alike door of the
+        building, from either side, most of them in rooms whose walls stand nowhere near the points), the
+        `surface_screen_top` that score best by the points `pts` (`_screening_sample`, seen from `origins`) as
+        they are, unfitted (turned to the walls' heading before, `turned`). The points'
+        support under every pose is one k-d tree query; only the best supported 3 x `surface_screen_top` have
+        their lines of sight checked (most of a check's cost)."""
+        p = self.params
+        if len(poses) <= p.surface_screen_top:
+            return poses
+        R = np.stack([T[:3, :3] for T in poses])
+        t = np.stack([T[:3, 3] for T in poses])
+        support = self.surfaces.supports(np.einsum("hij,nj->hni", R, pts) + t[:, None, :])
+        supported = np.argsort(-support, kind="stable")[: 3 * p.surface_screen_top]
+        score = np.array([self.surfaces.check(apply(poses[k], pts), apply(poses[k], origins)).score
+                          for k in supported])
+        ranked = np.argsort(-score, kind="stable")
+        log.debug("screened %d candidate poses by %d points: best %s", len(poses), len(pts),
+                  score[ranked[: p.surface_screen_top]].round(2).tolist())
+        self.screens.append((len(poses), score[ranked].round(3).tolist()))
+        return [poses[k] for k in supported[ranked[: p.surface_screen_top]]]
+
+    def turned(self, candidates: list[tuple[np.ndarray, int]], pts_map: np.ndarray, fewest: int, most: int,
+               landmarks: list[tuple[str, np.ndarray]]) -> list[np.ndarray]:
+        """The candidate poses, each one from `fewest` to `most` landmarks turned about the vertical through a
+        landmark (the one its pose puts nearest a same-type CAD feature) to the heading, within `surface_turn_deg`,
+        whose unfitted support by `surface_turn_points` of the points `pts_map` is highest (ties: the least turn)
+        among the headings that leave as many landmarks within `registration_tolerance_m` of a same-type CAD
+        feature, searched in steps of twice `surface_turn_step_deg`, then one step either side.
+
+        A pose from one door has the heading of that door's normal, which perception's corners get wrong by
+        ~20 deg on a door seen obliquely (Office_A seed 4: a door seen through another doorway, whose jamb hides
+        one of its sides; its normal was off by a median 18 deg in 69 sightings over 16 s, 66 of them the same
+        way); one from two or three doors a few metres apart, whose corners are coarse at range, by 5-13 deg
+        (Office_A seed 5: 1.45 m and 12.9 deg, then 0.6 m and 5.3 deg). The wall fit (`refined`) moves a pose
+        only so far; the walls around a door hold its heading over metres, not over the door's width."""
+        p = self.params
+        poses = [T for T, _ in candidates]
+        few = [k for k, (_, n) in enumerate(candidates) if fewest <= n <= most]
+        if p.surface_turn_deg <= 0 or not few or not len(pts_map):
+            return poses
+        pts_map = pts_map[:: max(1, int(np.ceil(len(pts_map) / p.surface_turn_points)))]
+        step = np.radians(p.surface_turn_step_deg)
+        coarse = np.arange(1, int(p.surface_turn_deg / p.surface_turn_step_deg / 2) + 1) * 2 * step
+        coarse = np.concatenate([[0.0], np.ravel(np.column_stack([coarse, -coarse]))])  # the least turn first
+        surfaces = self.surfaces
+        pivots = {k: c for k in few if (c := self._landmark_at_a_feature(poses[k], landmarks)) is not None}
+        ks = list(pivots)
+        if not ks:
+            return poses
+        pivot = np.stack([pivots[k] for k in ks])[:, None, None, :]  # (K, 1, 1, 3)
+        moved = np.stack([apply(poses[k], pts_map) for k in ks])[:, None] - pivot  # (K, 1, N, 3)
+        centres = np.stack([apply(poses[k], np.stack([x for _, x in landmarks]))
+                            for k in ks])[:, None] - pivot  # (K, 1, L, 3)
+        kinds = [kind for kind, _ in landmarks]
+
+        def turned(turns: np.ndarray, x: np.ndarray) -> np.ndarray:  # (K, H) turns of (K, 1, M, 3) -> (K, H, M, 3)
+            return np.einsum("khij,kxnj->khni", rot_z(turns), x) + pivot
+
+        def by_a_feature(turns: np.ndarray) -> np.ndarray:  # (K, H) turns -> (K, H) landmarks by a CAD feature
+            x = turned(turns, centres)
+            return sum((np.min(np.linalg.norm(x[:, :, i, None, :] - self._centroids_cad(kind), axis=-1), axis=-1,
+                               initial=np.inf) <= p.registration_tolerance_m).astype(int)
+                       for i, kind in enumerate(kinds))
+
+        def supports(turns: np.ndarray) -> np.ndarray:  # (K, H) turns -> (K, H) supports, -1 where doors are lost
+            x = turned(turns, moved)
+            support = surfaces.supports(x.reshape(-1, *x.shape[2:])).reshape(turns.shape)
+            return np.where(by_a_feature(turns) >= explained, support, -1.0)
+
+        explained = by_a_feature(np.zeros((len(ks), 1)))  # (K, 1), as the candidates stand
+        support = supports(np.broadcast_to(coarse, (len(ks), len(coarse))))
+        best = np.argmax(support, axis=1)  # the first of the best: the least turn
+        fine = coarse[best][:, None] + np.array([-step, step])  # then a step either side of the best
+        support_fine = supports(fine)
+        better = support_fine.max(axis=1) > support[np.arange(len(ks)), best]
+        turn = np.where(better, fine[np.arange(len(ks)), np.argmax(support_fine, axis=1)], coarse[best])
+        for k, theta, c in zip(ks, turn, pivot[:, 0, 0], strict=True):
+            if theta != 0.0:
+                R = rot_z(theta)
+                poses[k] = make_T(R, c - R @ c) @ poses[k]
+        return poses
+
+    def _landmark_at_a_feature(self, T_cad_map: np.ndarray, landmarks: list[tuple[str, np.ndarray]]
+                               ) -> np.ndarray | None:
+        """The CAD-frame centre, under T_cad_map, of the landmark (type, centre in the map frame) it puts nearest a
+        CAD feature of its type."""
+        best, best_d = None, np.inf
+        for kind, x_map in landmarks:
+            x_cad = apply(T_cad_map, x_map[None])[0]
+            centroids = self._centroids_cad(kind)
+            d = float(np.min(np.linalg.norm(centroids - x_cad, axis=1))) if len(centroids) else np.inf
+            if d < best_d:
+                best, best_d = x_cad, d
+        return best
+
+    def check(self, moved: np.ndarray, origins_map: np.ndarray, T_cad_map: np.ndarray) -> SurfaceCheck:
+        """The surface check of the points `moved` by T_cad_map, seen from `origins_map`."""
+        return self.surfaces.check(moved, apply(T_cad_map, origins_map))
+
+    def refined(self, T_cad_map: np.ndarray, points_map: np.ndarray) -> np.ndarray:
+        """A candidate pose fitted to the walls by the map's depth points (point-to-plane, roll, pitch and height
+        held: the walls hardly see the height, and a few sloped faces would set it alone; the floor fits after
+        localizing take it from the doors'), or as it was where the fit fails or moves the points further than
+        `surface_refine_m`. A pose from two or
+        three doors' corners is off by tenths of a metre and a degree or two (their corners are coarse at range):
+        enough to put points beyond the check's tolerance of their walls, and lines of sight through a doorway
+        into its jambs. The check should judge the place a candidate stands for, not its error."""
+        if self.params.surface_refine_m <= 0:
+            return T_cad_map
+        points_map = points_map[:: max(1, int(np.ceil(len(points_map) / 500)))]  # a pose's fit needs no more
+        # the points are in the map frame, not around one camera: no range-dependent noise in their weights
+        fit = align_to_surfaces(self.surfaces, points_map, T_cad_map, iterations=8, depth_sigma_per_m2=0.0,
+                                max_distance_m=self.params.surface_refine_m, sigma_m=self.params.surface_fit_sigma_m,
+                                hold_height=True)
+        if fit is None:
+            return T_cad_map
+        moved = np.linalg.norm(apply(np.linalg.inv(T_cad_map) @ fit.T_cad_body, points_map) - points_map, axis=1)
+        return fit.T_cad_body if float(moved.mean()) <= self.params.surface_refine_m else T_cad_map
+
+
+class PerPose(Generic[V]):
+    """Values computed once per pose (T_cad_map, equal to rounding) within one registration attempt: a stored
+    map's candidates and the model's after them share poses."""
+
+    def __init__(self) -> None:
+        self._items: list[tuple[np.ndarray, V]] = []
+
+    def get(self, T: np.ndarray, compute: Callable[[np.ndarray], V]) -> V:
+        """`compute(T)`, or its value for an equal pose computed before."""
+        for T_known, value in self._items:
+            if same_pose(T_known, T):
+                return value
+        value = compute(T)
+        self._items.append((T, value))
+        return value
+
+
+class Choice(NamedTuple):
+    """The walls' verdict on a registration (`SurfaceJudge.choose`): the pose to anchor with or None,
+    whether it is the registrar's own answer, and whether two different candidates fit the walls alike."""
+
+    T_cad_map: np.ndarray | None
+    registrars: bool
+    rivals_fit: bool = False
+
+
+def same_pose(A: np.ndarray, B: np.ndarray, tol_m: float = 1e-3, tol_rad: float = 1e-4) -> bool:
+    """Two T_cad_map equal to rounding (the same candidate offered by two registrars)."""
+    return bool(np.abs(A[:3, 3] - B[:3, 3]).max() <= tol_m and np.abs(A[:3, :3] - B[:3, :3]).max() <= tol_rad)
+
+
+
+def poses_differ(A: np.ndarray, B: np.ndarray, moved_A: np.ndarray, moved_B: np.ndarray, apart_m: float = 0.5,
+                  turned_deg: float = 5.0) -> bool:
+    """Two candidate T_cad_map are different poses where they place the points (`moved_A`, `moved_B`: the same
+    map-frame points under each) `apart_m` apart on average, or differ in rotation by `turned_deg` (not at the
+    map's origin, which may be far away)."""
+    moved = float(np.linalg.norm(moved_A - moved_B, axis=1).mean())
+    return moved > apart_m or rotation_angle_deg(A[:3, :3] @ B[:3, :3].T) > turned_deg
