@@ -393,7 +393,7 @@ class Localizer:
         three doors linked by their positions put the pose 0.6 m and 5.3 deg from where the walls chose it, 0.16 m
         and 0.6 deg from the truth); the height is the doors' (the candidate's was the registration's, and
         perception's floor points put Office_A seed 7's 0.15 m low there). That fit takes the window's points,
-        those the pose was chosen and fitted by (`_refined`), not the keyframe's alone: on its 300 points a fit
+        those the pose was chosen and fitted by (`judge.refined`), not the keyframe's alone: on its 300 points a fit
         moved `truth` Office_A seed 5's (noise seed 2) pose from 0.13 to 0.50 m off, too far for its door to be
         linked, and the flight's height then sank 0.67 m until the next doors (APE 0.112 m; 0.078 m now)."""
         i = self.graph.n_keyframes - 1
@@ -401,7 +401,7 @@ class Localizer:
             return
         self._fit_tried_at = i
         _, points_body, floor_body = self.depth.newest
-        if anchoring:  # the window's points, as the candidate was chosen and fitted by (`_refined`)
+        if anchoring:  # the window's points, as the candidate was chosen and fitted by (`SurfaceJudge.refined`)
             points_body = apply(np.linalg.inv(self.graph.T_map_body(i)), self.depth.points_map()[0])
         self._fit_to_surfaces(i, points_body, floor_body if not anchoring else None)
 

@@ -35,10 +35,10 @@ class LocalizerParams:
     far_margin: float = 0.4  # this much less (the surfaces' margin aside)
     far_resection: bool = True  # with no landmark yet, candidate poses from two far doors seen from one camera
     far_pair_min_deg: float = 10.0  # ... at least this far apart in bearing (graph.far), in the newest
-    far_pairs: int = 3  # ... this many keyframes that saw such a pair, the widest pair of each (`_resected`)
+    far_pairs: int = 3  # ... this many keyframes that saw such a pair, the widest pair of each (`resected`)
     far_resection_sightings: int = 60  # the candidates are judged by this many of the far sightings, evenly drawn
     far_height_sigma_m: float = 0.2  # the pose taken holds the anchoring keyframe's height with this sigma ...
-    far_bearing_sigma_deg: float = 0.5  # ... and is fitted to the far bearings with this one (`_far_refined`)
+    far_bearing_sigma_deg: float = 0.5  # ... and is fitted to the far bearings with this one (`FarSightings.refined`)
     min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
     registration_tolerance_m: float = 0.6  # the model registrar's inlier / ambiguity tolerance (see GraphConfig)
     registration_min_landmarks: int = 4  # the model registrar answers 'localized' from this many landmarks ...
@@ -51,7 +51,7 @@ class LocalizerParams:
     surface_margin: float = 0.3  # ... and every other candidate pose this much less (of points on surfaces and in
     #                               sight, with the model's walls: SurfaceCheck.score) ...
     surface_margin_unfit: float = 0.15  # ... or this much less where that pose does not fit the walls itself
-    #                                     (candidates from two landmarks or more: `_choose_by_surfaces`) ...
+    #                                     (candidates from two landmarks or more: `SurfaceJudge.choose`) ...
     surface_max_seen_through: float = 0.1  # ... and let at most this fraction be seen through a wall
     surface_refuse_seen_through: float = 0.25  # a registrar's own answer is refused where more are seen through one
     surface_retry_s: float = 1.0  # with no new landmark, the check is retried this often as the walls come in view
@@ -59,7 +59,7 @@ class LocalizerParams:
     surface_screen_top: int = 8  # of more candidates (one door: every alike door of the model, from both sides),
     surface_screen_points: int = 200  # only the best this many by these many points, unfitted, are fitted and checked
     surface_turn_deg: float = 24.0  # a candidate pose from one door is first turned about it, within this and by
-    surface_turn_step_deg: float = 3.0  # these steps, to the heading that puts most points on the walls (`_turned`)
+    surface_turn_step_deg: float = 3.0  # these steps, to the heading that puts most points on the walls (`turned`)
     surface_turn_points: int = 100  # ... judged by this many points; where no candidate then fits the walls, so is
     surface_turn_max_inliers: int = 3  # one from up to this many doors, keeping as many by a CAD feature
     surface_fit: bool = True  # once localized, each keyframe's depth points fitted to the walls join the graph
