@@ -154,6 +154,16 @@ class GraphConfig(BaseModel):
         1, ge=1, description="with the surface check, candidate poses are weighed from this many landmarks. "
         "From one door or window (gravity known) they are every alike feature of the model, seen from either side; "
         "the walls must single one out")
+    surface_retry_s: float = Field(
+        1.0, gt=0, description="while not localized and no new landmark came, the walls weigh the candidate poses "
+        "again this often as more of them is seen, s (each check costs 0.1-0.4 s of CPU on a 2-core machine)")
+    far_range_m: float = Field(
+        20.0, ge=0, description="doors and windows seen beyond the 7 m sighting range, up to this range, check "
+        "candidate poses by their bearings and, before any door came within range, resect the pose, m "
+        "(their stereo range is coarse, their bearing good to a fraction of a degree)")
+    far_resection: bool = Field(
+        True, description="before any door came within the sighting range, candidate poses from two far doors or "
+        "windows seen at least 10 deg apart from one keyframe, for the walls to choose among")
 
 
 class MacrolocConfig(BaseSettings):

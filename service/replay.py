@@ -104,6 +104,8 @@ def settings_from_config(graph: GraphConfig) -> tuple[LocalizerParams, KeyframeP
                              registration_tolerance_m=graph.registration_tolerance_m,
                              registration_min_landmarks=graph.registration_min_landmarks,
                              verified_min_landmarks=graph.verified_min_landmarks,
+                             surface_retry_s=graph.surface_retry_s, far_range_m=graph.far_range_m,
+                             far_resection=graph.far_resection,
                              degraded_after_s=graph.degraded_after_s, lost_after_s=graph.lost_after_s)
     policy = KeyframePolicy(graph.keyframe_translation_m, graph.keyframe_rotation_rad, graph.keyframe_interval_s)
     return params, policy, IsamSettings(relinearize_threshold=graph.relinearize_threshold)
