@@ -2,7 +2,7 @@
 VENV := .venv/bin
 export PYTHONUNBUFFERED := 1
 
-.PHONY: setup demo test test-slow lint bench eval eval-shared train proto clean
+.PHONY: setup demo test test-slow lint bench flights eval eval-shared train proto clean
 setup:
 	@bash scripts/setup.sh
 
@@ -20,6 +20,9 @@ test-slow: setup     ## training, long flights, soak: the heavy checks behind th
 bench: setup         ## benchmarks, each figure printed beside its target
 	MACROLOC_EXTRAS=dev,bench bash scripts/setup.sh
 	$(VENV)/python -m bench.run_all
+
+flights: setup      ## issue 5's flight table: 10 rendered flights (~4 GB, rendered once: ~20 min) x 3 noise seeds, truth
+	$(VENV)/python -m bench.bench_flights $(FLIGHTS_ARGS)
 
 eval: setup          ## the project's own localization evaluation on every bundled building
 	for b in data/buildings/*.ifc; do $(VENV)/macroloc eval $$b --n 200 --seed 1; done
