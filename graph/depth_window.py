@@ -11,7 +11,7 @@ Frames: body (x forward, y left, z up), map (the flight's odometry frame, z up).
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -35,7 +35,7 @@ class DepthWindow:
     def __len__(self) -> int:
         return len(self._window)
 
-    def __iter__(self):  # noqa: ANN204 - Iterator[tuple[int, np.ndarray, np.ndarray]]
+    def __iter__(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
         return iter(self._window)
 
     @property

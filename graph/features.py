@@ -5,6 +5,7 @@ Frames: everything here is in the CAD frame (the model's world frame, z up), met
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -84,10 +85,11 @@ class BuildingModel:
 
 
 class CentroidsByType:
-    """The model's feature centroids of each type, (N, 3) CAD frame, metres: computed once per type."""
+    """The centroids of each type of some features (a model's, one per id), (N, 3) CAD frame, metres: computed
+    once per type."""
 
-    def __init__(self, model: BuildingModel) -> None:
-        self._features = list({f.id: f for f in model.features}.values())
+    def __init__(self, features: Iterable[MacroFeature]) -> None:
+        self._features = list(features)
         self._by_type: dict[str, np.ndarray] = {}
 
     def __call__(self, kind: str) -> np.ndarray:

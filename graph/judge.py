@@ -104,19 +104,19 @@ class SurfaceJudge:
         margin = [p.surface_margin if self.fits(c) or not relaxed else p.surface_margin_unfit for c in checks]
         rivals = [T for T, m, s, d in zip(candidates, moved, score, margin, strict=True)
                   if s > score[best] - d and poses_differ(T, candidates[best], m, moved[best])]
-        fits = self.fits(checks[best])
-        if fits and rivals:
+        best_fits = self.fits(checks[best])
+        if best_fits and rivals:
             rivals = far_rivals(candidates[best], rivals)
         rivalled = bool(rivals)
-        confirmed = fits and not rivalled
+        confirmed = best_fits and not rivalled
         if T_reg is not None:
             i_reg = next(k for k, (T, m) in enumerate(zip(candidates, moved, strict=True))
                          if not poses_differ(T, T_reg, m, moved_reg))
             beaten = score[best] >= score[i_reg] + p.surface_margin
             contradicted = checks[i_reg].seen_through > p.surface_refuse_seen_through
-            return Choice(None, False, fits and rivalled) if beaten or contradicted or (confirmed and best != i_reg) \
-                else Choice(T_reg, True)
-        return Choice(candidates[best] if confirmed else None, False, fits and rivalled)
+            refused = beaten or contradicted or (confirmed and best != i_reg)
+            return Choice(None, False, best_fits and rivalled) if refused else Choice(T_reg, True)
+        return Choice(candidates[best] if confirmed else None, False, best_fits and rivalled)
 
     def _weighed(self, poses: list[np.ndarray], reg: tuple[np.ndarray, np.ndarray] | None, points_map: np.ndarray,
                  origins_map: np.ndarray, sample: tuple[np.ndarray, np.ndarray]

@@ -73,7 +73,7 @@ class Localizer:
         self.params = params or LocalizerParams()
         self.viewer_body = (np.eye(4) if T_body_cam is None else T_body_cam)[:3, 3]
         self.features = {f.id: f for f in model.features}
-        centroids_cad = CentroidsByType(model)
+        centroids_cad = CentroidsByType(self.features.values())
         # the components: the recent keyframes' depth points and far sightings, and the walls' judgement
         self.depth = DepthWindow(self.params.surface_window_keyframes, self.viewer_body, graph.T_map_body)
         self.far = FarSightings(self.params, self.viewer_body, centroids_cad, graph.T_map_body)

@@ -29,7 +29,7 @@ def model() -> BuildingModel:
 def window(T_cad_map: np.ndarray, T_map_bodies: list[np.ndarray], seen: list[list[int]],
            params: LocalizerParams | None = None) -> FarSightings:
     """A window whose keyframe k (at T_map_bodies[k]) saw the doors `seen[k]`, exactly."""
-    far = FarSightings(params or LocalizerParams(far_min_sightings=3), VIEWER_BODY, CentroidsByType(model()),
+    far = FarSightings(params or LocalizerParams(far_min_sightings=3), VIEWER_BODY, CentroidsByType(model().features),
                        lambda i: T_map_bodies[i])
     for i, (T_map_body, doors) in enumerate(zip(T_map_bodies, seen, strict=True)):
         T_body_cad = np.linalg.inv(T_cad_map @ T_map_body)
