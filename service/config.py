@@ -73,6 +73,10 @@ class ServiceConfig(BaseModel):
     save_period_s: float = Field(5.0, description="period of saving the map to state_dir, s (and at exit)")
     perception: bool = Field(True, description="run the perception chain on stereo frames (else decode only)")
     log_json: bool = Field(False, description="structured logs: one JSON object per line on stderr")
+    stall_after_s: float = Field(5.0, gt=0, description="a worker busy this long on one event is stalled: the "
+                                 "liveliness token is withdrawn and systemd's watchdog no longer fed, s")
+    drain_timeout_s: float = Field(15.0, gt=0, description="at stop, how long queued events are handled before the "
+                                   "map is saved and the process exits (keep under the unit's TimeoutStopSec), s")
 
 
 class PlanningConfig(BaseModel):

@@ -30,6 +30,7 @@ from service.places import KeyframePlaces, Placed
 from service.planning import GoalSpec, Planner, PlanningError
 from service.recording import matrix_from_pose
 from service.state import MapStore
+from service.systemd import Notifier, NullNotifier
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 from service.workqueue import WorkQueue
 from service.zenoh_io import PROTOBUF, Keys, declare_publisher
@@ -50,13 +51,16 @@ class ServiceParams:
     status_period_s: float = 1.0
     save_period_s: float = 5.0
     replan_period_s: float = 2.0
+    stall_after_s: float = 5.0  # a handler busy this long is a stall: liveliness withdrawn, watchdog not fed
+    drain_timeout_s: float = 15.0  # at stop, the queued events get this long; then the map is saved and we exit
 
 
 class LocalizationService:
     """One vehicle's service on an open Zenoh session (see module doc)."""
 
     def __init__(self, session: zenoh.Session, backend: LocalizerBackend, planner: Planner, store: MapStore,
-                 params: ServiceParams, pipeline: FramePipeline | None = None) -> None:
+                 params: ServiceParams, pipeline: FramePipeline | None = None,
+                 notifier: Notifier | None = None) -> None:
         self.session = session
         self.backend = backend
         self.planner = planner
@@ -77,6 +81,11 @@ class LocalizationService:
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._worker_done = threading.Event()
         self._last_pose_ns = -1
+        self.notifier = notifier or NullNotifier()
+        self._worker_beat_s = time.monotonic()  # the worker's last sign of progress (between events)
+        self._stalled = False
+        self._token: zenoh.LivelinessToken | None = None
+        self._last_status = pb.ServiceStatus(version=VERSION, vehicle=params.vehicle, building=params.building)
 
     # --- the process --------------------------------------------------------------------------------------------
 
@@ -85,7 +94,7 @@ class LocalizationService:
         k = self.keys
         self._pubs = {name: declare_publisher(self.session, getattr(k, name))
                       for name in ("pose", "waypoints", "features", "diagnostics", "status")}
-        token = self.session.liveliness().declare_token(k.alive)
+        self._token = self.session.liveliness().declare_token(k.alive)
         queryables = [self.session.declare_queryable(k.map, self._answer_map),
                       self.session.declare_queryable(k.plan, self._answer_plan)]
         intakes = {
@@ -107,29 +116,33 @@ class LocalizationService:
         log.info("serving vehicle %s on macroloc/%s/** (building %s)", self.params.vehicle, self.params.vehicle,
                  self.params.building)
         self.ready.set()
+        self.notifier.ready()
         last_save = time.monotonic()
         try:
             while not stop.wait(self.params.status_period_s):
+                self._watch_worker()
                 self._publish_status()
                 self._publish_features()
-                if time.monotonic() - last_save >= self.params.save_period_s:
-                    self._save()
+                if time.monotonic() - last_save >= self.params.save_period_s and self._save(lock_timeout_s=0.2):
                     last_save = time.monotonic()
         finally:
+            self.notifier.stopping()
             log.info("stopping: draining %d queued events", len(self.queue))
             for sub in subs:
                 sub.undeclare()  # ends the intake threads' iterations
             for t in threads:
                 t.join(timeout=5.0)
-            self._worker_done.wait(timeout=30.0)
-            worker.join(timeout=5.0)
-            self._save()
+            # bounded so that a stalled worker cannot hold the exit past systemd's TimeoutStopSec (30 s)
+            self._worker_done.wait(timeout=self.params.drain_timeout_s)
+            worker.join(timeout=1.0)
+            self._save(lock_timeout_s=2.0)
             self._publish_status()
             for q in queryables:
                 q.undeclare()
             for pub in self._pubs.values():
                 pub.undeclare()
-            token.undeclare()
+            if self._token is not None:
+                self._token.undeclare()
             if self.backend.supersedes_saved():
                 log.info("stopped; map saved to %s", self.store.path)
             else:
@@ -153,6 +166,7 @@ class LocalizationService:
             OdometryIn: self._on_odometry, ObservationsIn: self._on_observations, StereoIn: self._on_stereo,
             ImuIn: self._on_imu, GoalIn: self._on_goal}
         while True:
+            self._worker_beat_s = time.monotonic()
             event = self.queue.get(timeout_s=0.1)
             if event is None:
                 if stop.is_set() and not len(self.queue):
@@ -318,6 +332,24 @@ class LocalizationService:
                 pb.Waypoints(error="not localized yet: give Goal.start_cad")
         query.reply(query.key_expr, msg.SerializeToString(), encoding=PROTOBUF)
 
+    def _watch_worker(self) -> None:
+        """Stall detection: a worker busy beyond `stall_after_s` withdraws the liveliness token and stops feeding
+        systemd's watchdog (which then restarts the process); the token returns when the worker moves again."""
+        busy_s = time.monotonic() - self._worker_beat_s
+        stalled = busy_s > self.params.stall_after_s
+        if stalled and not self._stalled:
+            log.warning("worker stalled: one event has been handled for %.1f s; liveliness withdrawn", busy_s)
+            if self._token is not None:
+                self._token.undeclare()
+                self._token = None
+            self.notifier.status(f"stalled for {busy_s:.0f} s")
+        elif not stalled and self._stalled:
+            log.warning("worker moving again; liveliness restored")
+            self._token = self.session.liveliness().declare_token(self.keys.alive)
+        if not stalled:
+            self.notifier.watchdog()
+        self._stalled = stalled
+
     def diagnostics(self) -> pb.Diagnostics:
         msg = pb.Diagnostics(state=self.backend.status)
         msg.header.stamp_ns = time.time_ns()
@@ -332,28 +364,38 @@ class LocalizationService:
         msg.dropped["queue_overrun"] = self.queue.dropped
         msg.dropped["observations/no_odometry"] = self.backend.unmatched
         msg.counts["queued"] = len(self.queue)
+        msg.latencies_ms["worker_busy"] = (time.monotonic() - self._worker_beat_s) * 1e3  # > stall_after_s: stalled
         return msg
 
     def _publish_status(self) -> None:
         diag = self.diagnostics()
-        with self._lock:
-            loc = self.backend.localizer
-            status = pb.ServiceStatus(version=VERSION, vehicle=self.params.vehicle, building=self.params.building,
-                                      status=STATUS_TO_WIRE[loc.status], keyframes=loc.graph.n_keyframes,
-                                      landmarks=len(loc.landmarks))
+        if self._lock.acquire(timeout=0.2):  # a stalled worker holds the lock: publish what was last known
+            try:
+                loc = self.backend.localizer
+                self._last_status = pb.ServiceStatus(
+                    version=VERSION, vehicle=self.params.vehicle, building=self.params.building,
+                    status=STATUS_TO_WIRE[loc.status], keyframes=loc.graph.n_keyframes, landmarks=len(loc.landmarks))
+            finally:
+                self._lock.release()
+        status = self._last_status
         status.header.stamp_ns = diag.header.stamp_ns
         self._pubs["diagnostics"].put(diag.SerializeToString())
         self._pubs["status"].put(status.SerializeToString())
-        log.info("status %s: rates %s, latencies %s, dropped %s", loc.status,
+        state = diag.state
+        log.info("status %s: rates %s, latencies %s, dropped %s", state,
                  {k: round(v, 1) for k, v in diag.rates_hz.items()},
                  {k: round(v, 2) for k, v in diag.latencies_ms.items()}, dict(diag.dropped),
-                 extra={"data": {"status": loc.status, "rates_hz": dict(diag.rates_hz),
+                 extra={"data": {"status": state, "rates_hz": dict(diag.rates_hz),
                                  "latencies_ms": dict(diag.latencies_ms), "dropped": dict(diag.dropped)}})
 
     def _publish_features(self) -> None:
         """The reconstructed doors/windows: CAD frame once localized (id = the linked model feature), else map."""
-        with self._lock:
+        if not self._lock.acquire(timeout=0.2):  # the worker is busy: the next period publishes them
+            return
+        try:
             snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
+        finally:
+            self._lock.release()
         msg = pb.ObservedFeatures()
         msg.header.stamp_ns = snap.header.stamp_ns
         localized = snap.status == pb.PoseEstimate.LOCALIZED and snap.HasField("T_cad_map")
@@ -365,11 +407,18 @@ class LocalizationService:
                 pb.Vector3(x=c[0], y=c[1], z=c[2]) for c in corners)
         self._pubs["features"].put(msg.SerializeToString())
 
-    def _save(self) -> None:
-        with self._lock:
+    def _save(self, lock_timeout_s: float = -1.0) -> bool:
+        """Save the map (False when the worker held the lock past `lock_timeout_s`; -1: wait as long as it takes)."""
+        if not self._lock.acquire(timeout=lock_timeout_s):
+            log.warning("worker stalled: the map saved last is kept (a snapshot mid-update would be inconsistent)")
+            return False
+        try:
             if not self.backend.supersedes_saved():
                 log.debug("not localized yet: the saved map this run restarted from is kept")
-                return
+                return True
             snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
             views = self.backend.saved_views()
+        finally:
+            self._lock.release()
         self.store.save(snap, views)  # off the lock: the worker goes on meanwhile
+        return True

@@ -13,6 +13,7 @@ from service.config import MacrolocConfig
 from service.frames import FramePipeline, NullPipeline
 from service.node import LocalizationService, ServiceParams
 from service.state import MapStore
+from service.systemd import Notifier, notifier_from_environment
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +30,8 @@ def make_pipeline(cfg: MacrolocConfig) -> FramePipeline:
     return NullPipeline()
 
 
-def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -> LocalizationService:  # noqa: ANN001
+def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  # noqa: ANN001
+                  notifier: Notifier | None = None) -> LocalizationService:
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
     from graph.bim import load_building
     from service.backend import BackendParams, LocalizerBackend
@@ -59,8 +61,9 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -
     params = ServiceParams(vehicle=s.vehicle, building=building.name, building_sha256=model.sha256,
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
                            status_period_s=s.status_period_s, save_period_s=s.save_period_s,
-                           replan_period_s=p.replan_period_s)
-    return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg))
+                           replan_period_s=p.replan_period_s, stall_after_s=s.stall_after_s,
+                           drain_timeout_s=s.drain_timeout_s)
+    return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), notifier)
 
 
 def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,
@@ -76,7 +79,7 @@ def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.resolved.json").write_text(cfg.model_dump_json(indent=2))  # beside the saved map
     with open_session(cfg.zenoh) as session:
-        service = build_service(cfg, session)
+        service = build_service(cfg, session, notifier=notifier_from_environment())
         if on_ready is not None:
             threading.Thread(target=lambda: service.ready.wait() and on_ready(service), daemon=True).start()
         service.run(stop)

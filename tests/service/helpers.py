@@ -97,7 +97,7 @@ def service_config(building: Path, state_dir: Path, port: int, vehicle: str = "t
 
 
 @contextmanager
-def running_service(cfg: MacrolocConfig) -> Iterator[object]:
+def running_service(cfg: MacrolocConfig, notifier: object | None = None) -> Iterator[object]:
     """The service in a thread on its own loopback session; yields it once ready, stops and joins on exit."""
     from service.serve import build_service
     from service.zenoh_io import open_session
@@ -107,13 +107,16 @@ def running_service(cfg: MacrolocConfig) -> Iterator[object]:
 
     def run() -> None:
         with open_session(cfg.zenoh) as session:
-            service = build_service(cfg, session)
+            service = build_service(cfg, session, notifier=notifier)  # type: ignore[arg-type]
             box["service"] = service
             service.run(stop)
 
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
-    wait_for(lambda: "service" in box and box["service"].ready.is_set(), 60.0, "service ready")  # type: ignore
+    # readiness, not a budget: a cold building cache on a loaded machine takes minutes; a dead thread fails at once
+    wait_for(lambda: ("service" in box and box["service"].ready.is_set()) or not thread.is_alive(),  # type: ignore
+             600.0, "service ready")
+    assert thread.is_alive(), "the service thread died while starting"
     try:
         yield box["service"]
     finally:

@@ -22,7 +22,8 @@ def test_systemd_unit_verifies(tmp_path: Path) -> None:
         pytest.skip("systemd-analyze is not installed on this machine")
     unit = (DEPLOY / "macroloc.service").read_text()
     for key in ("Restart=on-failure", "User=macroloc", "NoNewPrivileges=yes", "ProtectSystem=strict",
-                "StateDirectory=macroloc", "ConfigurationDirectory=macroloc", "KillSignal=SIGTERM"):
+                "StateDirectory=macroloc", "ConfigurationDirectory=macroloc", "KillSignal=SIGTERM",
+                "Type=notify", "WatchdogSec=", "MemoryMax=", "TasksMax="):
         assert key in unit, key
     # verify checks that ExecStart exists: point it at this checkout's entry point
     local = tmp_path / "macroloc.service"
@@ -39,6 +40,8 @@ def test_zenoh_configs_parse(name: str) -> None:
 def test_router_config_with_access_control_opens() -> None:
     conf = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "router.json5"))
     conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{free_port()}"]))
+    conf.insert_json5("transport/auth/usrpwd/dictionary_file",
+                      json.dumps(str(DEPLOY / "zenoh" / "credentials.example.txt")))
     with zenoh.open(conf) as session:
         assert str(session.zid())
 
@@ -51,3 +54,39 @@ def test_example_config_and_environment_file_load(monkeypatch: pytest.MonkeyPatc
     cfg = load_config(DEPLOY / "config.toml")
     assert cfg.service.vehicle == "drone1" and str(cfg.service.state_dir) == "/var/lib/macroloc"
     assert cfg.zenoh.config_file is not None and cfg.zenoh.mode == "peer"
+
+
+def test_tls_peer_config_refuses_a_plain_endpoint_beyond_loopback() -> None:
+    from graph.errors import UserInputError
+    from service.config import ZenohConfig
+    from service.zenoh_io import session_config
+
+    tls_file = DEPLOY / "zenoh" / "peer-tls.json5"
+    session_config(ZenohConfig(config_file=tls_file, listen=["tcp/127.0.0.1:7447"]))  # loopback stays allowed
+    session_config(ZenohConfig(config_file=tls_file, connect=["tls/192.0.2.10:7447"], listen=[]))
+    with pytest.raises(UserInputError, match="tcp/192.0.2.10:7447 would bypass the TLS"):
+        session_config(ZenohConfig(config_file=tls_file, connect=["tcp/192.0.2.10:7447"], listen=[]))
+    with pytest.raises(UserInputError, match="listen endpoint tcp/0.0.0.0:7447"):
+        session_config(ZenohConfig(config_file=tls_file, listen=["tcp/0.0.0.0:7447"]))
+    # without TLS nothing is refused: the plain peer file with the example config's (empty) overrides
+    session_config(ZenohConfig(config_file=DEPLOY / "zenoh" / "peer.json5", listen=[]))
+
+
+def test_serve_with_a_tls_bypass_exits_2_with_one_line(tmp_path: Path) -> None:
+    config = tmp_path / "config.toml"
+    config.write_text(f'[service]\nbuilding = "{DEPLOY.parent / "data" / "buildings" / "duplex.ifc"}"\n'
+                      f'state_dir = "{tmp_path}"\n[zenoh]\nconnect = ["tcp/192.0.2.10:7447"]\nlisten = []\n'
+                      f'config_file = "{DEPLOY / "zenoh" / "peer-tls.json5"}"\n')
+    done = subprocess.run([str(Path(sys.executable).parent / "macroloc"), "serve", "--config", str(config)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "would bypass the TLS" in lines[0], done.stderr
+
+
+def test_exposure_is_said_for_loopback_and_beyond() -> None:
+    from service.config import ZenohConfig
+    from service.zenoh_io import describe_exposure, session_config
+
+    assert "this machine only" in describe_exposure(session_config(ZenohConfig()))
+    assert "access control" in describe_exposure(session_config(ZenohConfig(listen=["tcp/0.0.0.0:7447"])))
