@@ -56,8 +56,12 @@ def load_building(path: str | Path, mesh_rules: dict | None = None, use_cache: b
     suffix = path.suffix.lower()
     if suffix not in IFC_SUFFIXES | MESH_SUFFIXES:
         raise BuildingError(f"unsupported building model type {suffix!r} (IFC, or a mesh: OBJ, GLB, DAE, ...)")
+    if suffix in IFC_SUFFIXES:
+        from graph.bim_ifc import check_complete_step
+
+        check_complete_step(path)  # before the cache: a truncated file must never be answered from it
     sha = file_sha256(path)
-    params = {"mesh_rules": mesh_rules or {}}
+    params = {"mesh_rules": mesh_rules or {}, "reader": 2}  # reader 2: damaged IFCs refused, non-finite dropped
     cached = cache_dir() / f"features-{cache_key(sha, params)}.json"
     if use_cache and cached.exists():
         try:

@@ -14,7 +14,8 @@ import numpy as np
 from graph.errors import UserInputError
 from graph.features import FEATURE_TYPES
 
-MAX_COORD_M = 1e5
+MAX_COORD_M = 1e5  # 100 km: no building's map frame reaches it; beyond it the arithmetic loses the centimetres
+MAX_FEATURES = 10_000  # more than the doors and windows of any one view of a building: refused, not searched
 
 
 @dataclass(frozen=True)
@@ -57,6 +58,8 @@ def parse_observations(doc: object) -> ObservationSet:
     feats = doc.get("features")
     if not isinstance(feats, list):
         raise UserInputError("observations: 'features' must be a list")
+    if len(feats) > MAX_FEATURES:
+        raise UserInputError(f"observations: {len(feats)} features, more than the {MAX_FEATURES} accepted")
     gravity = None
     if doc.get("gravity") is not None:
         gravity = _vector(doc["gravity"], "observations.gravity")
@@ -88,6 +91,8 @@ def parse_observations(doc: object) -> ObservationSet:
                                      f"{list(corners.shape)}")
             if not np.all(np.isfinite(corners)):
                 raise UserInputError(f"{where}.corners: NaN or infinite value")
+            if np.abs(corners).max() > MAX_COORD_M:
+                raise UserInputError(f"{where}.corners: coordinate beyond {MAX_COORD_M:g} m")
             out.append(Observation(kind, corners.mean(axis=0), corners))
         elif f.get("centroid") is not None:
             out.append(Observation(kind, _vector(f["centroid"], f"{where}.centroid")))

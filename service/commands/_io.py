@@ -19,14 +19,27 @@ def existing_file(path: Path, what: str) -> Path:
     return path
 
 
+MAX_JSON_BYTES = 64 * 2**20  # a request or a config, not a data set: bigger files are refused before reading
+
+
 def read_json(path: Path, what: str) -> Any:
+    """A user's JSON file; one-line UserInputError for a missing, oversized, malformed, too deeply nested file or
+    an integer of more digits than Python converts (4300)."""
     existing_file(path, what)
+    size = path.stat().st_size
+    if size > MAX_JSON_BYTES:
+        raise UserInputError(f"{what} {path} is {size / 2**20:.0f} MiB, more than the {MAX_JSON_BYTES >> 20} MiB "
+                             f"accepted")
     try:
         return json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise UserInputError(f"{what} {path} is not valid JSON: {exc.msg} at line {exc.lineno}") from None
     except UnicodeDecodeError:
         raise UserInputError(f"{what} {path} is not a text file") from None
+    except RecursionError:
+        raise UserInputError(f"{what} {path} nests arrays or objects too deeply") from None
+    except ValueError as exc:  # an integer beyond sys.get_int_max_str_digits()
+        raise UserInputError(f"{what} {path}: {str(exc).split(';')[0]}") from None
 
 
 def _finite(obj: Any) -> Any:

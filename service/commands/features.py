@@ -22,9 +22,10 @@ def register(app: typer.Typer) -> None:
 
         model = load_building(building)
         if json_out:
-            print_json({"unit": "m", "features": [f.to_json() for f in model.features],
-                        "storeys": model.storeys, "report": {k: (len(v) if isinstance(v, list) and k == "no_geometry"
-                                                                  else v) for k, v in model.report.items()}})
+            counted = ("no_geometry", "non_finite")  # id lists, reported as counts
+            print_json({"unit": "m", "features": [f.to_json() for f in model.features], "storeys": model.storeys,
+                        "report": {k: (len(v) if isinstance(v, list) and k in counted else v)
+                                   for k, v in model.report.items()}})
             return
         from collections import Counter
 
@@ -40,4 +41,5 @@ def register(app: typer.Typer) -> None:
         Console().print(table)
         r = model.report
         Console().print(f"elements: {r.get('elements')}, without geometry: {len(r.get('no_geometry', []))}, "
+                        f"non-finite geometry (dropped): {len(r.get('non_finite', []))}, "
                         f"duplicates merged: {r.get('duplicates_merged')}")

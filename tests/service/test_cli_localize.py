@@ -61,6 +61,11 @@ BAD_INPUTS = {
     "bad gravity": {"frame": "map", "gravity": [0, 0], "features": []},
     "unknown storey hint": {"frame": "map", "hints": {"storey": "Level 99"},
                             "features": [{"type": "door", "centroid": [0, 0, 0]}]},
+    "nested 100000 deep": "[" * 100_000 + "]" * 100_000,
+    "a 5000-digit number": '{"frame": "map", "features": [{"type": "door", "centroid": [' + "9" * 5000 + ',0,0]}]}',
+    "corners at 1e308": {"frame": "map", "features": [{"type": "door", "corners": [[1e308, 0, 0], [1e308, 0, 2],
+                                                                                   [-1e308, 0, 2], [0, 0, 0]]}]},
+    "20000 features": {"frame": "map", "features": [{"type": "door", "centroid": [i, 0, 1]} for i in range(20_000)]},
 }
 
 
@@ -100,3 +105,35 @@ def test_eval_compares_both_methods(capsys, fzk_path: Path) -> None:
 def test_the_installed_command_runs_as_a_process(tmp_path: Path) -> None:
     p = subprocess.run([sys.executable, "-m", "service.cli", "localize", "--help"], capture_output=True, text=True)
     assert p.returncode == 0 and "ambiguous" in p.stdout
+
+
+def _damaged_copies(fzk_path: Path, tmp_path: Path) -> dict[str, Path]:
+    """FZK-Haus cut in half, and with one coordinate of a door's geometry replaced by the text NaN."""
+    text = fzk_path.read_bytes()
+    half = tmp_path / "half.ifc"
+    half.write_bytes(text[: len(text) // 2])
+    nan = tmp_path / "nan.ifc"
+    nan.write_bytes(text.replace(b"#17343= IFCCARTESIANPOINT((0.835,", b"#17343= IFCCARTESIANPOINT((NaN,", 1))
+    assert nan.read_bytes() != text
+    return {"truncated": half, "NaN vertex": nan}
+
+
+@pytest.mark.parametrize("case", ["truncated", "NaN vertex"])
+def test_a_damaged_ifc_is_refused_with_one_line(case: str, fzk_path: Path, tmp_path: Path, capsys) -> None:
+    rc, out, err = run(["features", str(_damaged_copies(fzk_path, tmp_path)[case]), "--json"], capsys)
+    assert rc == 2 and out == ""
+    assert len(err.strip().splitlines()) == 1 and ("truncated" in err or "damaged" in err), err
+
+
+def test_a_door_with_an_absurd_vertex_is_dropped_and_counted(fzk_path: Path, tmp_path: Path) -> None:
+    """A coordinate of 1e200 parses; the kernel would drop the faces it spans and shrink the door silently."""
+    from graph.bim_ifc import read_ifc_features
+
+    huge = tmp_path / "huge.ifc"
+    huge.write_bytes(fzk_path.read_bytes().replace(b"#17343= IFCCARTESIANPOINT((0.835,",
+                                                   b"#17343= IFCCARTESIANPOINT((1.E200,", 1))
+    features, report = read_ifc_features(huge)
+    assert report["non_finite"] == ["1Oms875aH3Wg$9l65H2ZGw"]
+    assert report["elements"] == len(features) + 1
+    intact, _ = read_ifc_features(fzk_path)
+    assert {f.id for f in intact} - {f.id for f in features} == {"1Oms875aH3Wg$9l65H2ZGw"}
