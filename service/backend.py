@@ -127,6 +127,7 @@ class LocalizerBackend:
         self.last: Estimate | None = None
         self.restored: StoredMap | None = None  # a saved map's keyframe views and T_cad_map, for place recognition
         self.restored_localized = False  # restarted from a saved map that was localized (see `supersedes_saved`)
+        self.carried: list[CarriedLandmark] = []  # a saved map's landmarks, CAD frame, kept in the next saved map
 
     @classmethod
     def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None, method: str = "robust",
@@ -149,6 +150,10 @@ class LocalizerBackend:
         backend.restored_localized = saved_T is not None
         if saved_T is not None and snapshot.views:  # views with their poses, as a map carries an earlier one's
             backend.restored = StoredMap(model.sha256, saved_T, carried=[view_from_wire(v) for v in snapshot.views])
+        if saved_T is not None:  # in an unlocalized map's frame they cannot be placed: dropped
+            backend.carried = [CarriedLandmark(lm.type, lm.id, np.array([[c.x, c.y, c.z] for c in lm.corners])
+                                               @ saved_T[:3, :3].T + saved_T[:3, 3])
+                               for lm in snapshot.landmarks_map if len(lm.corners) == 4]
         return backend
 
     # --- inputs -------------------------------------------------------------------------------------------------
@@ -287,9 +292,15 @@ class LocalizerBackend:
             snap.header.stamp_ns = self.last.stamp_ns
             snap.T_map_body.CopyFrom(pose_from_matrix(self.last.T_map_body))
             snap.storey = _storey_of(self.model, self.last.matches)
+        own = []
         for j, lm in loc.landmarks.items():
             f = snap.landmarks_map.add(type=lm.type, id=loc.links.get(j, ""))
-            f.corners.extend(vector3(c) for c in lm.corners(loc.graph.T_map_rect(j)))
+            corners = lm.corners(loc.graph.T_map_rect(j))
+            f.corners.extend(vector3(c) for c in corners)
+            own.append((lm.type, f.id, np.asarray(corners).mean(axis=0)))
+        if T_cad_map is not None:
+            for kind, feature_id, corners_map in carried_landmarks(self.carried, own, np.linalg.inv(T_cad_map)):
+                snap.landmarks_map.add(type=kind, id=feature_id).corners.extend(vector3(c) for c in corners_map)
         return snap
 
     def supersedes_saved(self) -> bool:
@@ -307,6 +318,35 @@ class LocalizerBackend:
         if self.restored is not None and T_cad_map is not None:  # what a later restart can be placed by
             return own + carried_views(own, T_cad_map, self.restored)
         return own
+
+
+@dataclass(frozen=True)
+class CarriedLandmark:
+    """A landmark of an earlier flight's saved map: type, linked CAD feature id ("" if none), corners (4, 3)."""
+
+    type: str
+    id: str
+    corners_cad: np.ndarray
+
+
+SAME_LANDMARK_M = 0.5  # two doors or windows of one building are a frame width apart at least (> 0.6 m)
+
+
+def carried_landmarks(carried: list[CarriedLandmark], own: list[tuple[str, str, np.ndarray]],
+                      T_map_cad: np.ndarray) -> list[tuple[str, str, np.ndarray]]:
+    """The earlier map's landmarks this flight has not seen, as (type, id, corners_map (4, 3)) in this flight's map
+    frame: one linked to a CAD feature this flight also links, or of the same type with its
+    centroid within SAME_LANDMARK_M of one of this flight's (`own`: type, id, centroid_map), is the same one."""
+    out = []
+    own_ids = {i for _, i, _ in own if i}
+    for lm in carried:
+        corners_map = lm.corners_cad @ T_map_cad[:3, :3].T + T_map_cad[:3, 3]
+        centroid = corners_map.mean(axis=0)
+        if (lm.id and lm.id in own_ids) or any(t == lm.type and np.linalg.norm(c - centroid) < SAME_LANDMARK_M
+                                               for t, _, c in own):
+            continue
+        out.append((lm.type, lm.id, corners_map))
+    return out
 
 
 def _storey_of(model: BuildingModel, matches: dict[int, str]) -> str:

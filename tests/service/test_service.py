@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from service.recording import matrix_from_pose
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 from service.zenoh_io import session_config
 from tests.service.helpers import (
@@ -252,3 +253,39 @@ def test_a_storey_hint_that_is_not_in_the_building_is_refused_at_start(office_pa
     with zenoh.open(session_config(loopback())) as session:
         service = build_service(cfg, session)
     assert service.backend.localizer.registrar.storey_hint == "Level 2"  # type: ignore[attr-defined]
+
+
+def test_maps_accumulate_across_restarts(office_path, office_model, start_pose, tmp_path) -> None:
+    """A restart that flies elsewhere keeps the earlier flight's landmarks in its saved map (merged, no duplicate)."""
+    flight = FakeFlight(office_model, yaw_T(0.4, np.array([2.0, -3.0, 0.0])))
+    port = free_port()
+    with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
+        poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        T = fly(s, flight, start_pose, 30)
+        wait_for(lambda: _localized_at(poses, T), what="localized in the first flight")
+    first = pb.MapSnapshot.FromString((tmp_path / "t1" / "map.pb").read_bytes())
+    first_ids = {lm.id for lm in first.landmarks_map if lm.id}
+    assert first_ids
+    by_id = {f.id: f for f in office_model.features}
+    # the second flight starts 8 m away along another corridor: doors the first never saw
+    elsewhere = [f for f in office_model.features if f.type == "door" and f.storey == "Level 1"
+                 and min(np.linalg.norm(f.centroid_cad - by_id[i].centroid_cad)
+                         for i in first_ids) > 8.0][0]
+    start2 = yaw_T(1.2, elsewhere.centroid_cad + np.r_[elsewhere.normal_cad[:2] * 1.5, 0.4])
+    port = free_port()
+    with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
+        poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        T = fly(s, FakeFlight(office_model, yaw_T(-0.5, np.array([1.0, 4.0, 0.0]))), start2, 30,
+                first_stamp_ns=10**10)
+        wait_for(lambda: _localized_at(poses, T), what="localized in the second flight")
+    second = pb.MapSnapshot.FromString((tmp_path / "t1" / "map.pb").read_bytes())
+    ids = [lm.id for lm in second.landmarks_map if lm.id]
+    assert first_ids <= set(ids), "the first flight's landmarks were lost"
+    assert set(ids) - first_ids, "the second flight added none"
+    assert len(ids) == len(set(ids)), "a landmark was kept twice"
+    # carried landmarks sit where the model has them, in the second flight's map frame
+    T_cad_map = matrix_from_pose(second.T_cad_map)
+    for lm in second.landmarks_map:
+        if lm.id in first_ids:
+            corners = np.array([[c.x, c.y, c.z] for c in lm.corners]) @ T_cad_map[:3, :3].T + T_cad_map[:3, 3]
+            assert np.linalg.norm(corners.mean(axis=0) - by_id[lm.id].centroid_cad) < 0.3
