@@ -213,6 +213,50 @@ class WaypointFollower:
         """Before localization: turn on the spot to look around."""
         return np.zeros(3), self.params.explore_yaw_rate_radps
 
+    def remaining_m(self, position_cad: np.ndarray) -> float:
+        """Length of the plan still to fly from `position_cad` (m): to the current waypoint, then along the rest."""
+        points = self.waypoints_cad[self.index:]
+        if not len(points):
+            return 0.0
+        return float(np.linalg.norm(points[0] - position_cad) + np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
+
+
+@dataclass(frozen=True)
+class ProgressParams:
+    window_s: float = 15.0  # no shorter way left to the goal for this long (at 1 m/s: 15 m not gained) = no progress
+    gain_m: float = 0.5  # the way left must shrink by this to count as progress (twice the waypoint reach)
+    max_replans: int = 2  # new plans asked for in a row without progress; then the vehicle holds and says so
+
+
+class ProgressMonitor:
+    """Detects a vehicle that makes no progress toward its goal (circling a room, oscillating between two
+    waypoints): the length of the plan left to fly has not reached a new minimum, by `gain_m`, for `window_s`.
+    `update` answers "ok", "replan" (ask the service for a new plan) or, after `max_replans` of those, "hold"
+    (once; "held" after that)."""
+
+    def __init__(self, params: ProgressParams | None = None) -> None:
+        self.params = params or ProgressParams()
+        self.reset(0.0)
+
+    def reset(self, t_s: float) -> None:
+        self.best_m, self.best_at_s, self.replans, self.holding = float("inf"), t_s, 0, False
+
+    def update(self, t_s: float, remaining_m: float) -> str:
+        p = self.params
+        if self.holding:
+            return "held"
+        if remaining_m < self.best_m - p.gain_m or remaining_m <= p.gain_m:
+            self.best_m, self.best_at_s, self.replans = min(remaining_m, self.best_m), t_s, 0
+            return "ok"
+        if t_s - self.best_at_s < p.window_s:
+            return "ok"
+        self.best_at_s = t_s
+        if self.replans >= p.max_replans:
+            self.holding = True
+            return "hold"
+        self.replans += 1
+        return "replan"
+
 
 class VehicleAgent:
     """The onboard side of the loop (see module doc). `tick(dt)` advances the vehicle by one control step."""
@@ -220,11 +264,14 @@ class VehicleAgent:
     def __init__(self, session: zenoh.Session, vehicle: str, drone: KinematicDrone, odometry: DriftingOdometry,
                  sensor: Sensor, follower: WaypointFollower | None = None, sensor_period_s: float = 0.1,
                  lockstep_timeout_s: float = 0.0, exploration_odom: np.ndarray | None = None,
-                 explore_after_s: float = 10.0, recorder: FlightWriter | None = None) -> None:
+                 explore_after_s: float = 10.0, recorder: FlightWriter | None = None, lockstep: bool = False) -> None:
         """`exploration_odom`: (N, 3) the vehicle's own exploration route in its odometry frame, flown on its
         odometry while the service is not localized, after `explore_after_s` of turning on the spot.
         `recorder`: also write what the vehicle sends (IMU, odometry, stereo frames) and the sensor's ground truth
-        to this recording (service.recording), a flight `macroloc replay` can run again."""
+        to this recording (service.recording), a flight `macroloc replay` can run again.
+        `lockstep`: the vehicle's clock waits for the service (with `ServiceParams.lockstep`): after each tick
+        until every message that gives a pose has been answered, after a goal until its waypoints came; one
+        seed then flies the same flight on an idle or a loaded machine."""
         self.keys = Keys(vehicle)
         self.drone = drone
         self.odometry = odometry
@@ -242,8 +289,13 @@ class VehicleAgent:
         self._lock = threading.Lock()
         self.pose: pb.PoseEstimate | None = None
         self.plans = 0
+        self.lockstep = lockstep
+        self._pose_producers = 0  # odometry, sightings and frames sent: each is answered by one pose (lock-step)
+        self._waypoint_answers = 0  # waypoint messages received, errors included
+        self.progress = ProgressMonitor()
+        self._goal: pb.Goal | None = None
         self.recorder = recorder
-        self._pubs = {name: declare_publisher(session, getattr(self.keys, name))
+        self._pubs = {name: declare_publisher(session, getattr(self.keys, name), block=lockstep)
                       for name in ("imu", "odometry", "observations", "stereo", "goal")}
         self._subs = [session.declare_subscriber(self.keys.pose, self._on_pose),
                       session.declare_subscriber(self.keys.waypoints, self._on_waypoints)]
@@ -255,6 +307,8 @@ class VehicleAgent:
 
     def _on_waypoints(self, sample: zenoh.Sample) -> None:
         msg = pb.Waypoints.FromString(sample.payload.to_bytes())
+        with self._lock:
+            self._waypoint_answers += 1
         if msg.error or not msg.points_cad:
             log.warning("no waypoints: %s", msg.error)
             return
@@ -272,14 +326,26 @@ class VehicleAgent:
         return matrix_from_pose(pose.T_cad_body)
 
     def send_goal(self, goal: pb.Goal) -> None:
+        if self._goal is not goal:
+            self.progress.reset(self.stamp_ns * 1e-9)
+        self._goal = goal
         goal.header.stamp_ns = self.stamp_ns
+        with self._lock:
+            answered = self._waypoint_answers
         self._pubs["goal"].put(goal.SerializeToString())
+        if self.lockstep:
+            self._wait(lambda: self._waypoint_answers > answered, "the goal's waypoints")
 
     def tick(self, dt_s: float) -> None:
         """Control from the estimate, move the true vehicle, publish IMU, odometry and (periodically) sightings."""
         T_est = self.localized_pose()
+        if T_est is not None and self._goal is not None and len(self.follower.waypoints_cad):
+            self._watch_progress(T_est)
         with self._lock:
-            v_body, yaw_rate = self.follower.command(T_est) if T_est is not None else self._explore()
+            if self.progress.holding:
+                v_body, yaw_rate = np.zeros(3), 0.0
+            else:
+                v_body, yaw_rate = self.follower.command(T_est) if T_est is not None else self._explore()
         self.drone.step(dt_s, v_body, yaw_rate)
         self.stamp_ns += int(round(dt_s * 1e9))
         T_true = self.drone.T_cad_body
@@ -293,6 +359,7 @@ class VehicleAgent:
         odo.header.stamp_ns = self.stamp_ns
         odo.header.frame_id = "map"
         self._pubs["odometry"].put(odo.SerializeToString())
+        self._pose_producers += 1
         if self.recorder is not None:
             self.recorder.write_imu(imu)
             self.recorder.write_odometry(odo)
@@ -301,10 +368,27 @@ class VehicleAgent:
             for key, message in self.sensor.measure(self.stamp_ns, T_true):
                 if key in self._pubs:
                     self._pubs[key].put(message.SerializeToString())
+                    self._pose_producers += key in ("observations", "stereo")
                 if self.recorder is not None and key in RECORDED_TOPICS:
                     self.recorder.write(RECORDED_TOPICS[key], message, self.stamp_ns)
-            if self.lockstep_timeout_s > 0:
+            if self.lockstep_timeout_s > 0 and not self.lockstep:
                 self._wait_for_pose(self.stamp_ns, self.lockstep_timeout_s)
+        if self.lockstep:
+            n = self._pose_producers
+            self._wait(lambda: self.pose is not None and self.pose.header.seq >= n - 1, f"pose {n}")
+
+    def _watch_progress(self, T_est: np.ndarray) -> None:
+        """No progress toward the goal: ask for a new plan (the goal again), then hold; each said in the log."""
+        with self._lock:
+            remaining = self.follower.remaining_m(T_est[:3, 3])
+        action = self.progress.update(self.stamp_ns * 1e-9, remaining)
+        if action == "replan" and self._goal is not None:
+            log.warning("no progress toward the goal for %.0f s (%.1f m of the plan left, %.1f m at best): asking "
+                        "for a new plan", self.progress.params.window_s, remaining, self.progress.best_m)
+            self.send_goal(self._goal)
+        elif action == "hold":
+            log.warning("still no progress toward the goal after %d new plans: holding position",
+                        self.progress.replans)
 
     def _explore(self) -> tuple[np.ndarray, float]:
         """Not localized: turn on the spot, then fly the exploration route on odometry (if any), then turn."""
@@ -322,6 +406,16 @@ class VehicleAgent:
                 if self.pose is not None and self.pose.header.stamp_ns >= stamp_ns:
                     return
             time.sleep(0.002)
+
+    def _wait(self, answered: Any, what: str, timeout_s: float = 120.0) -> None:
+        """Lock-step: block the vehicle's clock until `answered()` (checked under the lock) or the timeout."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                if answered():
+                    return
+            time.sleep(0.0005)
+        log.warning("lock-step: no answer for %s within %.0f s; the vehicle goes on", what, timeout_s)
 
     def close(self) -> None:
         for sub in self._subs:

@@ -77,6 +77,8 @@ class ServiceConfig(BaseModel):
                                  "liveliness token is withdrawn and systemd's watchdog no longer fed, s")
     drain_timeout_s: float = Field(15.0, gt=0, description="at stop, how long queued events are handled before the "
                                    "map is saved and the process exits (keep under the unit's TimeoutStopSec), s")
+    lockstep: bool = Field(False, description="handle inputs in the order sent, none dropped, and replan before the "
+                           "pose: for a simulated vehicle whose clock waits for the service (demo --lockstep, tests)")
 
 
 class PlanningConfig(BaseModel):

@@ -49,6 +49,7 @@ class DemoParams:
     camera_rate_hz: float = 5.0  # perception mode: frames per simulated second (the loop waits for each pose)
     detector_model: Path | None = None  # perception mode: None = the building's bundled adapted one, if any
     record: Path | None = None  # perception mode: write the flight (service.recording) for `macroloc replay`
+    lockstep: bool = False  # the vehicle's clock waits for the service: the same flight on any machine load
 
 
 @dataclass
@@ -165,7 +166,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     perceive = params.observations == "perception"
     detector = (params.detector_model or bundled_detector(building)) if perceive else None
     cfg = cfg or load_config(None, service={"building": building, "vehicle": "demo", "status_period_s": 1.0,
-                                            "perception": perceive},
+                                            "perception": perceive, "lockstep": params.lockstep},
                              zenoh={"listen": [f"tcp/127.0.0.1:{port}"]},
                              graph={"storey_hint": take_off_storey(load_building(building))},
                              perception={"detector_model": detector})
@@ -178,7 +179,8 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
         start, goal, start_xyz = choose_route(service.planner, params.seed, params)
         thread = threading.Thread(target=service.run, args=(stop,), name="service", daemon=True)
         thread.start()
-        service.ready.wait(60.0)
+        while not service.ready.wait(1.0) and thread.is_alive():
+            pass  # readiness, not a budget: a cold cache on a loaded machine takes minutes
         agent_cfg = cfg.zenoh.model_copy(update={"listen": [], "connect": [f"tcp/127.0.0.1:{port}"]})
         try:
             with zenoh.open(session_config(agent_cfg)) as agent_session:
@@ -196,7 +198,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
                                      DriftingOdometry(T_cad_odom, T0, params.seed), sensor,
                                      sensor_period_s=1.0 / params.camera_rate_hz if perceive else 0.1,
                                      lockstep_timeout_s=5.0 if perceive else 0.0, exploration_odom=route_odom,
-                                     recorder=recorder)
+                                     recorder=recorder, lockstep=params.lockstep)
                 result = _fly(agent, goal, params, pb)
                 if recorder is not None:
                     recorder.metadata.duration_s = agent.stamp_ns * 1e-9
@@ -238,7 +240,7 @@ def _fly(agent, goal, params: DemoParams, pb) -> DemoResult:  # noqa: ANN001 - a
             if settled >= int(0.5 * params.rate_hz):
                 break
         delay = wall0 + t_sim / params.speedup - time.monotonic()
-        if delay > 0:
+        if delay > 0 and not params.lockstep:
             time.sleep(delay)  # real-time pacing of the simulated vehicle
     final = agent.follower.final_cad()
     reached = settled > 0 and final is not None

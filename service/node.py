@@ -53,6 +53,7 @@ class ServiceParams:
     replan_period_s: float = 2.0
     stall_after_s: float = 5.0  # a handler busy this long is a stall: liveliness withdrawn, watchdog not fed
     drain_timeout_s: float = 15.0  # at stop, the queued events get this long; then the map is saved and we exit
+    lockstep: bool = False  # inputs handled in the order sent (one FIFO intake, nothing dropped), replans first
 
 
 class LocalizationService:
@@ -77,7 +78,7 @@ class LocalizationService:
         self.ready = threading.Event()  # everything declared: inputs are being taken
         self._lock = threading.Lock()  # the backend and planner are used by the worker and the queryables
         self._goal: GoalIn | None = None
-        self._last_plan_s = 0.0
+        self._last_plan_ns: int | None = None  # the pose stamp the last plan started from (vehicle clock)
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._worker_done = threading.Event()
         self._last_pose_ns = -1
@@ -92,7 +93,7 @@ class LocalizationService:
     def run(self, stop: threading.Event) -> None:
         """Serve until `stop` is set, then drain, save and undeclare (the session stays open)."""
         k = self.keys
-        self._pubs = {name: declare_publisher(self.session, getattr(k, name))
+        self._pubs = {name: declare_publisher(self.session, getattr(k, name), block=self.params.lockstep)
                       for name in ("pose", "waypoints", "features", "diagnostics", "status")}
         self._token = self.session.liveliness().declare_token(k.alive)
         queryables = [self.session.declare_queryable(k.map, self._answer_map),
@@ -105,7 +106,12 @@ class LocalizationService:
             k.goal: (lambda s: self.parser.goal(s), "goal", False, 8),
         }
         subs, threads = [], []
-        for key, (parse, name, heavy, ring) in intakes.items():
+        if self.params.lockstep:  # one channel for every input key: handled in the order the vehicle sent them
+            sub = self.session.declare_subscriber(f"macroloc/{self.params.vehicle}/*", zenoh.handlers.FifoChannel(4096))
+            subs.append(sub)
+            threads.append(threading.Thread(target=self._ordered_intake, args=(sub, intakes), name="intake",
+                                            daemon=True))
+        for key, (parse, name, heavy, ring) in ({} if self.params.lockstep else intakes).items():
             sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(ring))
             subs.append(sub)
             threads.append(threading.Thread(target=self._intake, args=(sub, parse, name, heavy),
@@ -160,6 +166,24 @@ class LocalizationService:
                 self.rates[name].tick()
                 self.queue.put(event, heavy)
 
+    def _ordered_intake(self, sub: zenoh.Subscriber, intakes: dict[str, tuple]) -> None:
+        """Lock-step: the input keys' samples from one FIFO channel, parsed and queued in arrival order (the
+        service's own outputs on the same prefix are skipped)."""
+        for sample in sub:
+            intake = intakes.get(str(sample.key_expr))
+            if intake is None:
+                continue
+            parse, name, _, _ = intake
+            try:
+                event = parse(sample.payload.to_bytes())
+            except Exception:
+                log.exception("parsing %s failed", name)
+                self.drops.drop(f"{name}/parse_error")
+                continue
+            if event is not None:
+                self.rates[name].tick()
+                self.queue.put(event, False)  # never pushed out: the vehicle waits for each answer
+
     def _work(self, stop: threading.Event) -> None:
         """Handle events until stopped and the queue is empty (the drain)."""
         handlers: dict[type, Callable[[Any], None]] = {
@@ -189,9 +213,8 @@ class LocalizationService:
         start = time.perf_counter()
         with self._lock:
             est = self.backend.odometry(ev)
-        self._publish_pose(est)
+        self._publish(est)
         self.latency["odometry_to_pose"].add_ms((time.perf_counter() - start) * 1e3)
-        self._maybe_replan(est)
 
     def _on_observations(self, ev: ObservationsIn) -> None:
         start = time.perf_counter()
@@ -203,8 +226,7 @@ class LocalizationService:
         if est.stamp_ns < self._last_pose_ns:  # a late keyframe: publish what it changed at the newest odometry
             with self._lock:
                 est = self.backend.latest() or est
-        self._publish_pose(est)
-        self._maybe_replan(est)
+        self._publish(est)
 
     def _on_stereo(self, ev: StereoIn) -> None:
         """Perceive the frame; its sightings become a keyframe at the odometry pose of its stamp (kept pending
@@ -266,7 +288,7 @@ class LocalizationService:
 
     def _on_goal(self, ev: GoalIn) -> None:
         self._goal = ev
-        self._last_plan_s = 0.0
+        self._last_plan_ns = None
         log.info("new goal: %s", ev.goal)
         if ev.start_cad is not None:
             self._plan_and_publish(ev.start_cad)
@@ -274,6 +296,16 @@ class LocalizationService:
             self._maybe_replan(self.backend.last)
 
     # --- outputs ------------------------------------------------------------------------------------------------
+
+    def _publish(self, est: Estimate) -> None:
+        """The pose, and a new plan when one is due: in lock-step the plan goes out first, so that a vehicle that
+        waits for this pose has the waypoints planned from it too (one session's puts arrive in order)."""
+        if self.params.lockstep:
+            self._maybe_replan(est)
+            self._publish_pose(est)
+        else:
+            self._publish_pose(est)
+            self._maybe_replan(est)
 
     def _publish_pose(self, est: Estimate) -> None:
         """Publish the estimate unless a newer one already went out (keys arrive through separate channels)."""
@@ -288,13 +320,13 @@ class LocalizationService:
     def _maybe_replan(self, est: Estimate) -> None:
         if self._goal is None or est.T_cad_body is None or est.status not in ("localized", "degraded"):
             return
-        if time.monotonic() - self._last_plan_s < self.params.replan_period_s:
-            return
+        if self._last_plan_ns is not None and est.stamp_ns - self._last_plan_ns < self.params.replan_period_s * 1e9:
+            return  # on the vehicle's clock: a replay or a lock-step flight replans at the same moments
+        self._last_plan_ns = est.stamp_ns
         self._plan_and_publish(est.T_cad_body[:3, 3])
 
     def _plan_and_publish(self, start_cad: np.ndarray) -> None:
         assert self._goal is not None
-        self._last_plan_s = time.monotonic()
         msg = self._plan(self._goal.goal, start_cad)
         self._pubs["waypoints"].put(msg.SerializeToString())
 

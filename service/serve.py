@@ -62,7 +62,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
                            status_period_s=s.status_period_s, save_period_s=s.save_period_s,
                            replan_period_s=p.replan_period_s, stall_after_s=s.stall_after_s,
-                           drain_timeout_s=s.drain_timeout_s)
+                           drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep)
     return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), notifier)
 
 

@@ -162,5 +162,8 @@ def put_message(publisher: Any, message: Any) -> None:
     publisher.put(message.SerializeToString())
 
 
-def declare_publisher(session: zenoh.Session, key: str, express: bool = True) -> zenoh.Publisher:
-    return session.declare_publisher(key, encoding=PROTOBUF, express=express)
+def declare_publisher(session: zenoh.Session, key: str, express: bool = True, block: bool = False) -> zenoh.Publisher:
+    """`block`: wait when the link is congested instead of dropping (Zenoh's default for puts): for a lock-step
+    vehicle that waits for every answer, a dropped message would stall the loop."""
+    congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+    return session.declare_publisher(key, encoding=PROTOBUF, express=express, congestion_control=congestion)

@@ -27,6 +27,9 @@ def register(app: typer.Typer) -> None:
                                            "this MCAP file, to run again with `macroloc replay --observations "
                                            "perception` (set perception.detect_every = 1 in a --config to perceive "
                                            "every frame as the service did). With several seeds, NAME-seedN.mcap."),
+        lockstep: bool = typer.Option(False, "--lockstep", help="The simulated vehicle's clock waits for the "
+                                      "service's answer to each message (no real-time pacing): one seed flies the "
+                                      "same flight, to the digit, on an idle or a loaded machine."),
         json_out: bool = typer.Option(False, "--json", help="Print {localization_time_s, goal_error_m, "
                                       "path_length_m, goal_error_pct} (a list with several seeds)."),
     ) -> None:
@@ -57,7 +60,7 @@ def register(app: typer.Typer) -> None:
             recording = None if record is None else record if len(seed) == 1 else \
                 record.with_name(f"{record.stem}-seed{s}{record.suffix or '.mcap'}")
             result = run_demo(path, DemoParams(seed=s, speedup=speedup, observations=observations,
-                                               detector_model=detector, record=recording))
+                                               detector_model=detector, record=recording, lockstep=lockstep))
             picture = out if len(seed) == 1 else out.with_name(f"{out.stem}-seed{s}{out.suffix or '.png'}")
             planner = Planner.for_building(path, 0.2, 0.35, 1.4)
             plot_flight(result, planner, picture)

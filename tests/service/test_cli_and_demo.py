@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -148,3 +149,42 @@ def test_killed_mid_flight_restarts_and_relocalizes(office_path: Path, office_mo
     finally:
         proc.kill()
         proc.wait(30)
+
+
+def _busy(stop: threading.Event) -> None:
+    while not stop.is_set():
+        sum(i * i for i in range(10_000))  # holds the GIL and a core: the service and the vehicle get less
+
+
+def test_lockstep_flies_the_same_flight_on_an_idle_and_a_loaded_machine() -> None:
+    """The vehicle's clock waits for the service: 8 simulated seconds of seed 1 give the same flight to the digit,
+    once as it is and once with a busy thread beside it."""
+    from service.demo import DemoParams, run_demo
+
+    params = DemoParams(seed=1, timeout_s=8.0, lockstep=True)
+    first = run_demo(params=params)
+    stop = threading.Event()
+    load = threading.Thread(target=_busy, args=(stop,), daemon=True)
+    load.start()
+    try:
+        second = run_demo(params=params)
+    finally:
+        stop.set()
+        load.join()
+    assert len(first.true_xy) == len(second.true_xy) > 200
+    assert first.true_xy == second.true_xy and first.estimated_xy == second.estimated_xy
+    assert first.localization_time_s == second.localization_time_s or (first.localized == second.localized is False)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_lockstep_demo_repeats_to_the_digit(seed: int) -> None:
+    from dataclasses import asdict
+
+    from service.demo import DemoParams, run_demo
+
+    runs = [asdict(run_demo(params=DemoParams(seed=seed, lockstep=True))) for _ in range(2)]
+    for run in runs:
+        run.pop("wall_time_s")
+    assert runs[0] == runs[1]
+    assert runs[0]["localized"] and runs[0]["reached"]
