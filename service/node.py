@@ -29,7 +29,9 @@ from service.inputs import GoalIn, ImuIn, InputParser, Observation, Observations
 from service.places import KeyframePlaces, Placed
 from service.planning import GoalSpec, Planner, PlanningError
 from service.recording import matrix_from_pose
+from service.ros_out import NullRosInputs, RosInputs
 from service.state import MapStore
+from service.vehicle_out import NullVehicleOutput, VehicleOutput
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 from service.workqueue import WorkQueue
 from service.zenoh_io import PROTOBUF, Keys, declare_publisher
@@ -56,8 +58,13 @@ class LocalizationService:
     """One vehicle's service on an open Zenoh session (see module doc)."""
 
     def __init__(self, session: zenoh.Session, backend: LocalizerBackend, planner: Planner, store: MapStore,
-                 params: ServiceParams, pipeline: FramePipeline | None = None) -> None:
+                 params: ServiceParams, pipeline: FramePipeline | None = None,
+                 vehicle_out: VehicleOutput | None = None, ros_inputs: RosInputs | NullRosInputs | None = None) -> None:
+        """`vehicle_out`: ROS 2 / PX4 messages beside the protobuf keys (service.ros_out, service.px4), none by
+        default; `ros_inputs`: the ROS topics taken beside the protobuf inputs (the goal; sensor inputs later)."""
         self.session = session
+        self.vehicle_out: VehicleOutput = vehicle_out or NullVehicleOutput()
+        self.ros_inputs = ros_inputs or NullRosInputs()
         self.backend = backend
         self.planner = planner
         self.store = store
@@ -94,6 +101,7 @@ class LocalizationService:
             k.imu: (lambda s: self.parser.imu(s), "imu", False, 1024),
             k.observations: (lambda s: self.parser.observations(s), "observations", False, 64),
             k.goal: (lambda s: self.parser.goal(s), "goal", False, 8),
+            **self.ros_inputs.intakes(),
         }
         subs, threads = [], []
         for key, (parse, name, heavy, ring) in intakes.items():
@@ -129,6 +137,7 @@ class LocalizationService:
                 q.undeclare()
             for pub in self._pubs.values():
                 pub.undeclare()
+            self.vehicle_out.close()
             token.undeclare()
             if self.backend.supersedes_saved():
                 log.info("stopped; map saved to %s", self.store.path)
@@ -269,6 +278,7 @@ class LocalizationService:
         msg = pose_message(est)
         msg.header.seq = self.rates["pose"].total
         self._pubs["pose"].put(msg.SerializeToString())
+        self.vehicle_out.pose(est)
         self.rates["pose"].tick()
 
     def _maybe_replan(self, est: Estimate) -> None:
@@ -276,18 +286,21 @@ class LocalizationService:
             return
         if time.monotonic() - self._last_plan_s < self.params.replan_period_s:
             return
-        self._plan_and_publish(est.T_cad_body[:3, 3])
+        self._plan_and_publish(est.T_cad_body[:3, 3], est.stamp_ns)
 
-    def _plan_and_publish(self, start_cad: np.ndarray) -> None:
+    def _plan_and_publish(self, start_cad: np.ndarray, stamp_ns: int | None = None) -> None:
         assert self._goal is not None
         self._last_plan_s = time.monotonic()
-        msg = self._plan(self._goal.goal, start_cad)
+        msg = self._plan(self._goal.goal, start_cad, stamp_ns)
         self._pubs["waypoints"].put(msg.SerializeToString())
+        self.vehicle_out.waypoints(msg)
 
-    def _plan(self, goal: GoalSpec, start_cad: np.ndarray) -> pb.Waypoints:
+    def _plan(self, goal: GoalSpec, start_cad: np.ndarray, stamp_ns: int | None = None) -> pb.Waypoints:
+        """Waypoints from start_cad to the goal, stamped with the stamp of the pose they start from (`stamp_ns`;
+        by default the last pose published, the vehicle's clock like every pose), with a yaw per waypoint."""
         msg = pb.Waypoints()
         msg.header.frame_id = "cad"
-        msg.header.stamp_ns = time.time_ns()
+        msg.header.stamp_ns = max(self._last_pose_ns, 0) if stamp_ns is None else stamp_ns
         try:
             with self._lock:
                 plan = self.planner.plan(start_cad, goal)
@@ -296,6 +309,7 @@ class LocalizationService:
             log.warning("no plan: %s", exc)
             return msg
         msg.points_cad.extend(pb.Vector3(x=p[0], y=p[1], z=p[2]) for p in plan.points_cad)
+        msg.yaw_rad.extend(float(y) for y in plan.yaw_rad)
         msg.path_length_m = plan.length_m
         msg.goal_description = plan.description
         return msg
@@ -344,6 +358,7 @@ class LocalizationService:
         status.header.stamp_ns = diag.header.stamp_ns
         self._pubs["diagnostics"].put(diag.SerializeToString())
         self._pubs["status"].put(status.SerializeToString())
+        self.vehicle_out.status(diag, status)
         log.info("status %s: rates %s, latencies %s, dropped %s", loc.status,
                  {k: round(v, 1) for k, v in diag.rates_hz.items()},
                  {k: round(v, 2) for k, v in diag.latencies_ms.items()}, dict(diag.dropped),
