@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from graph.geo import GeoReference
 from graph.localizer import Estimate
 from service.backend import STATUS_TO_WIRE, LocalizerBackend, pose_message
 from service.frames import FramePipeline, NullPipeline
@@ -52,6 +53,7 @@ class ServiceParams:
     status_period_s: float = 1.0
     save_period_s: float = 5.0
     replan_period_s: float = 2.0
+    geo: GeoReference | None = None  # the model's geo-reference: poses also in ENU and WGS84
 
 
 class LocalizationService:
@@ -275,7 +277,7 @@ class LocalizationService:
         if est.stamp_ns < self._last_pose_ns:
             return
         self._last_pose_ns = est.stamp_ns
-        msg = pose_message(est)
+        msg = pose_message(est, geo=self.params.geo)
         msg.header.seq = self.rates["pose"].total
         self._pubs["pose"].put(msg.SerializeToString())
         self.vehicle_out.pose(est)

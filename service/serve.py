@@ -61,6 +61,7 @@ def make_vehicle_io(cfg: MacrolocConfig, session, T_enu_cad=None):  # noqa: ANN0
 def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -> LocalizationService:  # noqa: ANN001
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
     from graph.bim import load_building
+    from graph.geo import read_geo_reference
     from service.backend import BackendParams, LocalizerBackend
     from service.planning import Planner
     from service.replay import settings_from_config
@@ -69,6 +70,8 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -
         raise UserInputError("no building model: set service.building in the config or pass --building")
     building = Path(cfg.service.building)
     model = load_building(building)
+    geo = read_geo_reference(building)
+    log.info("geo-reference of %s: %s", building.name, geo.to_json() if geo else "none")
     store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
     snapshot = store.load(model.sha256)
     localizer_params, _, _ = settings_from_config(cfg.graph)  # the config's [graph] section, as replay reads it
@@ -88,8 +91,8 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -
     params = ServiceParams(vehicle=s.vehicle, building=building.name, building_sha256=model.sha256,
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
                            status_period_s=s.status_period_s, save_period_s=s.save_period_s,
-                           replan_period_s=p.replan_period_s)
-    vehicle_out, ros_inputs = make_vehicle_io(cfg, session)
+                           replan_period_s=p.replan_period_s, geo=geo)
+    vehicle_out, ros_inputs = make_vehicle_io(cfg, session, geo.T_enu_cad() if geo and geo.north_given else None)
     return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), vehicle_out, ros_inputs)
 
 
