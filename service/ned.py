@@ -20,11 +20,24 @@ R_FLU_FRD = np.diag([1.0, -1.0, -1.0])  # flip y and z
 
 
 def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (3, 3)."""
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(np.asarray(R, float)).as_quat()  # scipy: x, y, z, w
-    q = np.array([w, x, y, z])
+    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (3, 3) (Shepperd's method: from the largest of
+    w, x, y, z; plain numpy, ~10x faster than scipy's per single rotation)."""
+    m = np.asarray(R, float)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    k = int(np.argmax([trace, m[0, 0], m[1, 1], m[2, 2]]))
+    if k == 0:
+        r = np.sqrt(1.0 + trace) * 2.0  # 4 w
+        q = np.array([0.25 * r, (m[2, 1] - m[1, 2]) / r, (m[0, 2] - m[2, 0]) / r, (m[1, 0] - m[0, 1]) / r])
+    elif k == 1:
+        r = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2.0  # 4 x
+        q = np.array([(m[2, 1] - m[1, 2]) / r, 0.25 * r, (m[0, 1] + m[1, 0]) / r, (m[0, 2] + m[2, 0]) / r])
+    elif k == 2:
+        r = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2.0  # 4 y
+        q = np.array([(m[0, 2] - m[2, 0]) / r, (m[0, 1] + m[1, 0]) / r, 0.25 * r, (m[1, 2] + m[2, 1]) / r])
+    else:
+        r = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2.0  # 4 z
+        q = np.array([(m[1, 0] - m[0, 1]) / r, (m[0, 2] + m[2, 0]) / r, (m[1, 2] + m[2, 1]) / r, 0.25 * r])
+    q /= np.linalg.norm(q)
     return -q if q[0] < 0 else q
 
 

@@ -118,6 +118,9 @@ def test_ros_and_px4_messages_match_the_protobuf_ones(office_path, office_model,
         assert m.header.frame_id == "map"
         ref = same(_T_of(m.pose.pose), by_stamp[stamp_ns_of(m.header.stamp)])
         T_cad_body = matrix_from_pose(ref.T_cad_body)
+        # Office_A's IfcSite geo-reference (no TrueNorth: ENU = CAD axes at the origin): ENU and WGS84 beside CAD
+        assert np.allclose(matrix_from_pose(ref.T_enu_body), T_cad_body, atol=1e-9)
+        assert abs(ref.wgs84.latitude_deg - (42.358428955 + T_cad_body[1, 3] / 111_080)) < 1e-6
         cov = m.pose.covariance.reshape(6, 6)
         assert np.isfinite(cov).all() and np.allclose(cov, cov.T)
         if len(ref.covariance) == 36:
@@ -198,3 +201,40 @@ def test_reset_counter_counts_anchor_jumps_not_refinements() -> None:
             T = T @ yaw_T(float(rng.normal(0, 1e-4)), rng.normal(0, 0.002, 3))
         counts.append(counter.update(T if k != 20 else None))  # one estimate without an anchor (lost)
     assert counts[:15] == [0] * 15 and counts[15:30] == [1] * 15 and counts[30:] == [2] * 10
+
+
+@pytest.mark.slow
+def test_the_demo_can_be_watched_live_through_listen(tmp_path) -> None:
+    """`macroloc demo --listen ENDPOINT --ros`: a session connected to that endpoint (as zenoh-bridge-ros2dds would
+    be) receives the demo's ROS poses in `map` while it flies; the goal's latitude/longitude come back."""
+    from service.demo import DemoParams, run_demo
+
+    port = free_port()
+    poses: list[Any] = []
+    result: dict[str, Any] = {}
+    demo = threading.Thread(target=lambda: result.setdefault("r", run_demo(params=DemoParams(
+        seed=0, speedup=4.0, vehicle="drone1", listen=(f"tcp/127.0.0.1:{port}",), ros=True))), daemon=True)
+    demo.start()
+    from tests.service.helpers import loopback
+
+    conf = loopback(connect=[f"tcp/127.0.0.1:{port}"])
+    from service.zenoh_io import session_config
+
+    deadline_s = 120.0
+    wait_for(lambda: _can_connect(port), deadline_s, "the demo's listening endpoint")
+    with zenoh.open(session_config(conf)) as s:
+        s.declare_subscriber("drone1/macroloc/pose", lambda smp: poses.append(
+            from_cdr(smp.payload.to_bytes(), "geometry_msgs/msg/PoseWithCovarianceStamped")))
+        demo.join(timeout=300.0)
+    assert "r" in result and result["r"].reached
+    assert len(poses) > 10 and all(p.header.frame_id == "map" for p in poses)
+    lat, lon, _ = result["r"].goal_wgs84
+    assert abs(lat - 42.358) < 0.01 and abs(lon + 71.060) < 0.01  # Office_A's IfcSite is in Boston
+
+
+def _can_connect(port: int) -> bool:
+    import socket
+
+    with socket.socket() as sock:
+        sock.settimeout(0.2)
+        return sock.connect_ex(("127.0.0.1", port)) == 0
