@@ -95,9 +95,3 @@ def cov_ros_from_gtsam(cov_rot_trans_body: np.ndarray, R_world_body: np.ndarray)
     J[3:, :3] = R  # world rotation <- body rotation
     return J @ np.asarray(cov_rot_trans_body, float) @ J.T
 
-
-def rotate_cov_ros(cov_ros: np.ndarray, R_new_old: np.ndarray) -> np.ndarray:
-    """A ROS-order 6x6 covariance (position, rotation about world axes) expressed in another world frame."""
-    J = np.zeros((6, 6))
-    J[:3, :3] = J[3:, 3:] = np.asarray(R_new_old, float)
-    return J @ np.asarray(cov_ros, float) @ J.T
