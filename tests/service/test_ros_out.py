@@ -165,6 +165,7 @@ def test_ros_and_px4_messages_match_the_protobuf_ones(office_path, office_model,
     # PX4: the visual odometry is the CAD pose through the NED conversion (float32 on the wire)
     vios = [v for v in vio.snapshot() if v.timestamp_sample * 1000 in by_stamp]
     assert len(vios) >= 3
+    assert {v.reset_counter for v in vio.snapshot()} == {0}  # no re-localization in this flight: no reset
     for v in vios:
         p_cad = np.array([v.position[1], v.position[0], -v.position[2]])  # NED -> ENU (CAD)
         refs = [r for r in by_stamp[v.timestamp_sample * 1000]
