@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from graph.features import BuildingModel
+from graph.geo import GeoReference
 from graph.keyframes import KeyframePolicy
 from graph.landmarks import feature_frame_cad
 from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
@@ -102,6 +103,7 @@ class BackendParams:
     keyframe_max_interval_s: float = 2.0  # or this long; else they are skipped (a hovering vehicle adds nothing)
     localizer: LocalizerParams | None = None
     storey_hint: str | None = None  # register against this storey's doors and windows only (graph.storey_hint)
+    covariance: bool = True  # each keyframe's marginal covariance (iSAM2), carried by the poses until the next
 
 
 class LocalizerBackend:
@@ -121,6 +123,7 @@ class LocalizerBackend:
         self._accel_body: list[np.ndarray] = []  # specific forces since the last odometry sample
         self._last_keyframe_ns: int | None = None
         self._T_last_keyframe: np.ndarray | None = None
+        self._keyframe_covariance: np.ndarray | None = None  # 6x6 [rot; trans], body tangent (graph.posegraph)
         p = self.params
         self._keyframe_policy = KeyframePolicy(p.keyframe_min_translation_m, p.keyframe_min_rotation_rad,
                                                p.keyframe_max_interval_s)
@@ -250,16 +253,21 @@ class LocalizerBackend:
                   placed: Placed | None = None) -> Estimate:
         self._last_keyframe_ns = stamp_ns
         self._T_last_keyframe = T_odom_body
-        return self._remember(self.localizer.add_keyframe(
-            stamp_ns, T_odom_body, sightings, self._up_body,
+        est = self._remember(self.localizer.add_keyframe(
+            stamp_ns, T_odom_body, sightings, self._up_body, with_covariance=self.params.covariance,
             T_cad_body_placed=None if placed is None else placed.T_cad_body,
             view=None if placed is None else placed.view))
+        self._keyframe_covariance = est.covariance
+        return est
 
     def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting] | None = None) -> Estimate:
         """The pose between keyframes; sightings given here enter the graph with the next keyframe."""
         if self.localizer.graph.n_keyframes == 0:
             return self._keyframe(stamp_ns, T_odom_body, sightings or [])
-        return self._remember(self.localizer.track(stamp_ns, T_odom_body, sightings))
+        est = self.localizer.track(stamp_ns, T_odom_body, sightings)
+        if est.covariance is None:  # the last keyframe's: the odometry since adds little over a keyframe interval
+            est.covariance = self._keyframe_covariance
+        return self._remember(est)
 
     def _remember(self, est: Estimate) -> Estimate:
         """Keep the newest estimate (a late keyframe for an older stamp does not replace a newer pose)."""
@@ -355,13 +363,18 @@ def _storey_of(model: BuildingModel, matches: dict[int, str]) -> str:
     return max(set(names), key=names.count) if names else ""
 
 
-def pose_message(est: Estimate, storey: str = "") -> pb.PoseEstimate:
-    """A PoseEstimate (frame cad; before localization T_cad_body is absent and status EXPLORING)."""
+def pose_message(est: Estimate, storey: str = "", geo: GeoReference | None = None) -> pb.PoseEstimate:
+    """A PoseEstimate (frame cad; before localization T_cad_body is absent and status EXPLORING); with the model's
+    geo-reference, also the body in ENU at the site's origin and its latitude/longitude/altitude (WGS84)."""
     msg = pb.PoseEstimate(status=STATUS_TO_WIRE[est.status], storey=storey, inliers=est.inliers)
     msg.header.stamp_ns = est.stamp_ns
     msg.header.frame_id = "cad"
     if est.T_cad_body is not None:
         msg.T_cad_body.CopyFrom(pose_from_matrix(est.T_cad_body))
+        if geo is not None:
+            msg.T_enu_body.CopyFrom(pose_from_matrix(geo.T_enu_cad() @ est.T_cad_body))
+            lat, lon, alt = geo.wgs84(est.T_cad_body[:3, 3])[0]
+            msg.wgs84.CopyFrom(pb.GeoPoint(latitude_deg=lat, longitude_deg=lon, altitude_m=alt))
     if est.T_cad_map is not None:
         msg.T_cad_map.CopyFrom(pose_from_matrix(est.T_cad_map))
     if est.covariance is not None:

@@ -172,6 +172,33 @@ class GraphConfig(BaseModel):
         "windows seen at least 10 deg apart from one keyframe, for the walls to choose among")
 
 
+class RosConfig(BaseModel):
+    """ROS 2 through Zenoh (service/ros_out.py): CDR messages on the keys zenoh-bridge-ros2dds maps to ROS topics."""
+
+    enabled: bool = Field(False, description="also publish ROS 2 messages (pose, odometry, path, tf, status) and take "
+                          "a goal on <namespace>/<vehicle>/macroloc/goal; the protobuf keys stay on")
+    namespace: str = Field("", description="ROS namespace before every topic: '' gives /<vehicle>/macroloc/pose and "
+                           "/tf (Zenoh keys <vehicle>/macroloc/pose and tf)")
+    frame_map: str = Field("map", description="REP-105 map frame id: macroloc's CAD frame")
+    frame_odom: str = Field("odom", description="REP-105 odom frame id: macroloc's map (odometry) frame")
+    frame_base_link: str = Field("base_link", description="the body frame id (FLU)")
+
+
+class Px4Config(BaseModel):
+    """PX4 through its uXRCE-DDS topics on Zenoh (service/px4.py): external vision odometry and offboard setpoints."""
+
+    enabled: bool = Field(False, description="publish fmu/in/vehicle_visual_odometry, and fmu/in/trajectory_setpoint "
+                          "with fmu/in/offboard_control_mode while a plan is active")
+    namespace: str = Field("", description="PX4's topic namespace for this vehicle, e.g. px4_1 (keys "
+                           "px4_1/fmu/in/...); '' for a single vehicle")
+    offboard_rate_hz: float = Field(4.0, ge=2.0, description="offboard_control_mode and setpoint rate while a plan "
+                                    "is active, Hz (PX4 leaves offboard below 2 Hz)")
+    reset_jump_m: float = Field(0.10, gt=0, description="a change of T_cad_map by more than this (a re-localization or"
+                                " a jump of the CAD anchor) increments reset_counter, m")
+    reset_jump_deg: float = Field(2.0, gt=0, description="... or by more than this rotation, deg")
+    reach_m: float = Field(0.5, gt=0, description="the setpoint moves to the next waypoint within this distance, m")
+
+
 class MacrolocConfig(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="MACROLOC_", env_nested_delimiter="__", extra="forbid")
 
@@ -183,6 +210,8 @@ class MacrolocConfig(BaseSettings):
     sim: SimConfig = Field(default_factory=lambda: SimConfig())
     perception: PerceptionConfig = Field(default_factory=lambda: PerceptionConfig())
     graph: GraphConfig = Field(default_factory=lambda: GraphConfig())
+    ros: RosConfig = Field(default_factory=lambda: RosConfig())
+    px4: Px4Config = Field(default_factory=lambda: Px4Config())
 
     @classmethod
     def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,  # noqa: ANN001, ANN206

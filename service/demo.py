@@ -50,6 +50,10 @@ class DemoParams:
     detector_model: Path | None = None  # perception mode: None = the building's bundled adapted one, if any
     record: Path | None = None  # perception mode: write the flight (service.recording) for `macroloc replay`
     lockstep: bool = False  # the vehicle's clock waits for the service: the same flight on any machine load
+    vehicle: str = "demo"  # key prefix: macroloc/<vehicle>/..., ROS topics /<vehicle>/macroloc/...
+    listen: tuple[str, ...] = ()  # extra Zenoh endpoints the service listens on, for a bridge or a subscriber
+    ros: bool = False  # also publish ROS 2 messages (service.ros_out)
+    px4: bool = False  # also publish PX4's fmu/in/ topics (service.px4)
 
 
 @dataclass
@@ -69,6 +73,7 @@ class DemoResult:
     estimated_xy: list[list[float]] = field(default_factory=list, repr=False)
     waypoints_xy: list[list[float]] = field(default_factory=list, repr=False)
     goal_xyz: list[float] = field(default_factory=list, repr=False)
+    goal_wgs84: list[float] | None = None  # latitude, longitude (deg), altitude (m) of the goal; None: no geo-ref.
 
     def table_row(self) -> dict[str, float]:
         return {"localization_time_s": self.localization_time_s, "goal_error_m": self.goal_error_m,
@@ -165,9 +170,10 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     port = _free_port()
     perceive = params.observations == "perception"
     detector = (params.detector_model or bundled_detector(building)) if perceive else None
-    cfg = cfg or load_config(None, service={"building": building, "vehicle": "demo", "status_period_s": 1.0,
+    cfg = cfg or load_config(None, service={"building": building, "vehicle": params.vehicle, "status_period_s": 1.0,
                                             "perception": perceive, "lockstep": params.lockstep},
-                             zenoh={"listen": [f"tcp/127.0.0.1:{port}"]},
+                             zenoh={"listen": [f"tcp/127.0.0.1:{port}", *params.listen]},
+                             ros={"enabled": params.ros}, px4={"enabled": params.px4},
                              graph={"storey_hint": take_off_storey(load_building(building))},
                              perception={"detector_model": detector})
     if params.record is not None and not perceive:
@@ -194,7 +200,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
                 # (a real vehicle explores with its own obstacle sensing); it flies it on its odometry.
                 route_cad = exploration_route(service.planner, start_xyz, params.seed)
                 route_odom = apply(np.linalg.inv(T_cad_odom), route_cad)
-                agent = VehicleAgent(agent_session, "demo", KinematicDrone(T0),
+                agent = VehicleAgent(agent_session, cfg.service.vehicle, KinematicDrone(T0),
                                      DriftingOdometry(T_cad_odom, T0, params.seed), sensor,
                                      sensor_period_s=1.0 / params.camera_rate_hz if perceive else 0.1,
                                      lockstep_timeout_s=5.0 if perceive else 0.0, exploration_odom=route_odom,
@@ -209,6 +215,9 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
             stop.set()
             thread.join(timeout=30.0)
     result.seed, result.start, result.goal = params.seed, start, f"space {goal.name} ({goal.long_name})"
+    geo = service.params.geo
+    if geo is not None and result.goal_xyz:  # where the goal lies on the Earth (graph.geo)
+        result.goal_wgs84 = [float(v) for v in geo.wgs84(np.asarray(result.goal_xyz))[0]]
     result.observations = sensor.label + (f" (detector {cfg.perception.detector_model or 'shipped'})"
                                           if perceive else "")
     result.wall_time_s = time.monotonic() - wall_start

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from graph.geo import GeoReference
 from graph.localizer import Estimate
 from service.backend import STATUS_TO_WIRE, LocalizerBackend, pose_message
 from service.frames import FramePipeline, NullPipeline
@@ -29,8 +30,10 @@ from service.inputs import GoalIn, ImuIn, InputParser, Observation, Observations
 from service.places import KeyframePlaces, Placed
 from service.planning import GoalSpec, Planner, PlanningError
 from service.recording import matrix_from_pose
+from service.ros_out import NullRosInputs, RosInputs
 from service.state import MapStore
 from service.systemd import Notifier, NullNotifier
+from service.vehicle_out import NullVehicleOutput, VehicleOutput
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 from service.workqueue import WorkQueue
 from service.zenoh_io import PROTOBUF, Keys, declare_publisher
@@ -54,6 +57,7 @@ class ServiceParams:
     stall_after_s: float = 5.0  # a handler busy this long is a stall: liveliness withdrawn, watchdog not fed
     drain_timeout_s: float = 15.0  # at stop, the queued events get this long; then the map is saved and we exit
     lockstep: bool = False  # inputs handled in the order sent (one FIFO intake, nothing dropped), replans first
+    geo: GeoReference | None = None  # the model's geo-reference: poses also in ENU and WGS84
 
 
 class LocalizationService:
@@ -61,8 +65,14 @@ class LocalizationService:
 
     def __init__(self, session: zenoh.Session, backend: LocalizerBackend, planner: Planner, store: MapStore,
                  params: ServiceParams, pipeline: FramePipeline | None = None,
+                 vehicle_out: VehicleOutput | None = None, ros_inputs: RosInputs | NullRosInputs | None = None,
                  notifier: Notifier | None = None) -> None:
+        """`vehicle_out`: ROS 2 / PX4 messages beside the protobuf keys (service.ros_out, service.px4), none by
+        default; `ros_inputs`: the ROS topics taken beside the protobuf inputs (the goal; sensor inputs later);
+        `notifier`: systemd's notification socket (service.systemd), none outside systemd."""
         self.session = session
+        self.vehicle_out: VehicleOutput = vehicle_out or NullVehicleOutput()
+        self.ros_inputs = ros_inputs or NullRosInputs()
         self.backend = backend
         self.planner = planner
         self.store = store
@@ -104,14 +114,18 @@ class LocalizationService:
             k.imu: (lambda s: self.parser.imu(s), "imu", False, 1024),
             k.observations: (lambda s: self.parser.observations(s), "observations", False, 64),
             k.goal: (lambda s: self.parser.goal(s), "goal", False, 8),
+            **self.ros_inputs.intakes(),
         }
         subs, threads = [], []
-        if self.params.lockstep:  # one channel for every input key: handled in the order the vehicle sent them
-            sub = self.session.declare_subscriber(f"macroloc/{self.params.vehicle}/*", zenoh.handlers.FifoChannel(4096))
+        prefix = f"macroloc/{self.params.vehicle}/"
+        if self.params.lockstep:  # one channel for the vehicle's keys: handled in the order the vehicle sent them
+            ordered = {key: intake for key, intake in intakes.items() if key.startswith(prefix)}
+            intakes = {key: intake for key, intake in intakes.items() if key not in ordered}
+            sub = self.session.declare_subscriber(prefix + "*", zenoh.handlers.FifoChannel(4096))
             subs.append(sub)
-            threads.append(threading.Thread(target=self._ordered_intake, args=(sub, intakes), name="intake",
+            threads.append(threading.Thread(target=self._ordered_intake, args=(sub, ordered), name="intake",
                                             daemon=True))
-        for key, (parse, name, heavy, ring) in ({} if self.params.lockstep else intakes).items():
+        for key, (parse, name, heavy, ring) in intakes.items():
             sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(ring))
             subs.append(sub)
             threads.append(threading.Thread(target=self._intake, args=(sub, parse, name, heavy),
@@ -147,6 +161,7 @@ class LocalizationService:
                 q.undeclare()
             for pub in self._pubs.values():
                 pub.undeclare()
+            self.vehicle_out.close()
             if self._token is not None:
                 self._token.undeclare()
             if self.backend.supersedes_saved():
@@ -312,9 +327,10 @@ class LocalizationService:
         if est.stamp_ns < self._last_pose_ns:
             return
         self._last_pose_ns = est.stamp_ns
-        msg = pose_message(est)
+        msg = pose_message(est, geo=self.params.geo)
         msg.header.seq = self.rates["pose"].total
         self._pubs["pose"].put(msg.SerializeToString())
+        self.vehicle_out.pose(est)
         self.rates["pose"].tick()
 
     def _maybe_replan(self, est: Estimate) -> None:
@@ -323,17 +339,20 @@ class LocalizationService:
         if self._last_plan_ns is not None and est.stamp_ns - self._last_plan_ns < self.params.replan_period_s * 1e9:
             return  # on the vehicle's clock: a replay or a lock-step flight replans at the same moments
         self._last_plan_ns = est.stamp_ns
-        self._plan_and_publish(est.T_cad_body[:3, 3])
+        self._plan_and_publish(est.T_cad_body[:3, 3], est.stamp_ns)
 
-    def _plan_and_publish(self, start_cad: np.ndarray) -> None:
+    def _plan_and_publish(self, start_cad: np.ndarray, stamp_ns: int | None = None) -> None:
         assert self._goal is not None
-        msg = self._plan(self._goal.goal, start_cad)
+        msg = self._plan(self._goal.goal, start_cad, stamp_ns)
         self._pubs["waypoints"].put(msg.SerializeToString())
+        self.vehicle_out.waypoints(msg)
 
-    def _plan(self, goal: GoalSpec, start_cad: np.ndarray) -> pb.Waypoints:
+    def _plan(self, goal: GoalSpec, start_cad: np.ndarray, stamp_ns: int | None = None) -> pb.Waypoints:
+        """Waypoints from start_cad to the goal, stamped with the stamp of the pose they start from (`stamp_ns`;
+        by default the last pose published, the vehicle's clock like every pose), with a yaw per waypoint."""
         msg = pb.Waypoints()
         msg.header.frame_id = "cad"
-        msg.header.stamp_ns = time.time_ns()
+        msg.header.stamp_ns = max(self._last_pose_ns, 0) if stamp_ns is None else stamp_ns
         try:
             with self._lock:
                 plan = self.planner.plan(start_cad, goal)
@@ -342,6 +361,7 @@ class LocalizationService:
             log.warning("no plan: %s", exc)
             return msg
         msg.points_cad.extend(pb.Vector3(x=p[0], y=p[1], z=p[2]) for p in plan.points_cad)
+        msg.yaw_rad.extend(float(y) for y in plan.yaw_rad)
         msg.path_length_m = plan.length_m
         msg.goal_description = plan.description
         return msg
@@ -413,6 +433,7 @@ class LocalizationService:
         status.header.stamp_ns = diag.header.stamp_ns
         self._pubs["diagnostics"].put(diag.SerializeToString())
         self._pubs["status"].put(status.SerializeToString())
+        self.vehicle_out.status(diag, status)
         state = diag.state
         log.info("status %s: rates %s, latencies %s, dropped %s", state,
                  {k: round(v, 1) for k, v in diag.rates_hz.items()},

@@ -11,7 +11,7 @@ from __future__ import annotations
 import heapq
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -33,11 +33,35 @@ class PlanningError(UserInputError):
 
 @dataclass(frozen=True)
 class Plan:
-    """Waypoints (N, 3) in the CAD frame, metres, from the start to the goal; their polyline length, m."""
+    """Waypoints (N, 3) in the CAD frame, metres, from the start to the goal; their polyline length, m; a heading
+    per waypoint (N,), radians about the CAD frame's +z from +x (`waypoint_yaws`)."""
 
     points_cad: np.ndarray
     length_m: float
     description: str
+    yaw_rad: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+def waypoint_yaws(points_cad: np.ndarray, facing_cad: np.ndarray | None = None) -> np.ndarray:
+    """A heading per waypoint (radians about +z from +x, CAD frame): the direction of travel of the leg that leaves
+    it; at the last one, `facing_cad` (a horizontal direction, e.g. into the goal's door) when given, else the last
+    leg's direction. Legs shorter than 1 mm keep the heading before them (0 for a plan that never moves)."""
+    points = np.asarray(points_cad, float).reshape(-1, 3)
+    yaws = np.zeros(len(points))
+    heading = 0.0
+    legs = np.diff(points[:, :2], axis=0)
+    first = next((leg for leg in legs if np.hypot(*leg) > 1e-3), None)
+    if first is not None:
+        heading = float(np.arctan2(first[1], first[0]))
+    for i, leg in enumerate(legs):
+        if np.hypot(*leg) > 1e-3:
+            heading = float(np.arctan2(leg[1], leg[0]))
+        yaws[i] = heading
+    if len(points):
+        yaws[-1] = heading
+        if facing_cad is not None and np.hypot(facing_cad[0], facing_cad[1]) > 1e-9:
+            yaws[-1] = float(np.arctan2(facing_cad[1], facing_cad[0]))
+    return yaws
 
 
 def astar(free: np.ndarray, start_rc: tuple[int, int], goal_rc: tuple[int, int]) -> list[tuple[int, int]]:
@@ -130,6 +154,16 @@ class GoalResolver:
             raise PlanningError(f"unknown feature id {feature_id!r}")
         return np.asarray(self._features[feature_id].centroid_cad, float)
 
+    def facing(self, feature_id: str, from_cad: np.ndarray) -> np.ndarray | None:
+        """The horizontal direction (unit, CAD frame) that faces the feature's plane from `from_cad`: its normal,
+        signed to point from that side towards the feature; None for a feature without a horizontal normal."""
+        f = self._features[feature_id]
+        n = np.array([f.normal_cad[0], f.normal_cad[1], 0.0], float)
+        if np.linalg.norm(n) < 1e-6:
+            return None
+        n /= np.linalg.norm(n)
+        return n if float(n @ (np.asarray(f.centroid_cad, float) - from_cad)) >= 0 else -n
+
     def space(self, name: str, near_xy_cad: np.ndarray) -> np.ndarray:
         """An IfcSpace by Name, else by LongName (case-insensitive); of several, the one nearest near_xy_cad."""
         key = name.strip().casefold()
@@ -210,7 +244,9 @@ class Planner:
             points[-1, :2] = target_cad[:2]
         points[0, :2] = start_cad[:2] if grid.cell_of(start_cad) == start_rc else points[0, :2]
         length = float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
-        return Plan(points, length, description)
+        before_last = points[-2] if len(points) > 1 else start_cad
+        facing = self.goals.facing(goal.feature_id, before_last) if goal.feature_id is not None else None
+        return Plan(points, length, description, waypoint_yaws(points, facing))
 
 
 @dataclass(frozen=True)

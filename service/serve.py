@@ -30,10 +30,40 @@ def make_pipeline(cfg: MacrolocConfig) -> FramePipeline:
     return NullPipeline()
 
 
+def make_vehicle_io(cfg: MacrolocConfig, session, T_enu_cad=None):  # noqa: ANN001, ANN201
+    """The ROS 2 / PX4 outputs and the ROS inputs the config enables ([ros], [px4]); null objects otherwise.
+    `T_enu_cad`: the model's geo-reference (graph.geo), which makes PX4's pose frame true NED."""
+    from service.ros_out import NullRosInputs, RosFrames, RosInputs, RosKeys, RosOutput
+    from service.vehicle_out import NullVehicleOutput, VehicleOutput, VehicleOutputs
+
+    outputs: list[VehicleOutput] = []
+    inputs: RosInputs | NullRosInputs = NullRosInputs()
+    if cfg.ros.enabled:
+        r = cfg.ros
+        keys, frames = RosKeys(cfg.service.vehicle, r.namespace), RosFrames(r.frame_map, r.frame_odom,
+                                                                            r.frame_base_link)
+        outputs.append(RosOutput(session, keys, frames))
+        inputs = RosInputs(keys, frames)
+        log.info("ROS 2 topics on Zenoh keys %s, %s, ...", keys.topic("pose"), keys.tf)
+    if cfg.px4.enabled:
+        import numpy as np
+
+        from service.px4 import Px4Keys, Px4Messages, Px4Output, ResetCounter
+
+        x = cfg.px4
+        reset = ResetCounter(x.reset_jump_m, float(np.deg2rad(x.reset_jump_deg)))
+        outputs.append(Px4Output(session, Px4Keys(x.namespace), Px4Messages(T_enu_cad, reset), x.offboard_rate_hz,
+                                 x.reach_m))
+        log.info("PX4 topics on Zenoh keys %s", Px4Keys(x.namespace).visual_odometry)
+    out = outputs[0] if len(outputs) == 1 else VehicleOutputs(outputs) if outputs else NullVehicleOutput()
+    return out, inputs
+
+
 def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  # noqa: ANN001
                   notifier: Notifier | None = None) -> LocalizationService:
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
     from graph.bim import load_building
+    from graph.geo import read_geo_reference
     from service.backend import BackendParams, LocalizerBackend
     from service.planning import Planner
     from service.replay import settings_from_config
@@ -42,6 +72,8 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
         raise UserInputError("no building model: set service.building in the config or pass --building")
     building = Path(cfg.service.building)
     model = load_building(building)
+    geo = read_geo_reference(building)
+    log.info("geo-reference of %s: %s", building.name, geo.to_json() if geo else "none")
     store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
     snapshot = store.load(model.sha256)
     localizer_params, _, _ = settings_from_config(cfg.graph)  # the config's [graph] section, as replay reads it
@@ -62,8 +94,10 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
                            status_period_s=s.status_period_s, save_period_s=s.save_period_s,
                            replan_period_s=p.replan_period_s, stall_after_s=s.stall_after_s,
-                           drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep)
-    return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), notifier)
+                           drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep, geo=geo)
+    vehicle_out, ros_inputs = make_vehicle_io(cfg, session, geo.T_enu_cad() if geo and geo.north_given else None)
+    return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), vehicle_out, ros_inputs,
+                               notifier)
 
 
 def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,

@@ -32,6 +32,15 @@ def register(app: typer.Typer) -> None:
                                       "same flight, to the digit, on an idle or a loaded machine."),
         json_out: bool = typer.Option(False, "--json", help="Print {localization_time_s, goal_error_m, "
                                       "path_length_m, goal_error_pct} (a list with several seeds)."),
+        listen: list[str] = typer.Option(None, "--listen", help="Zenoh endpoint the service also listens on, e.g. "
+                                         "tcp/127.0.0.1:7447, for zenoh-bridge-ros2dds or any subscriber on this "
+                                         "machine to watch the demo live (repeatable)."),
+        ros: bool = typer.Option(False, "--ros", help="Also publish ROS 2 messages (CDR) on the keys "
+                                 "zenoh-bridge-ros2dds maps to /<vehicle>/macroloc/{pose,odometry,path,status}, /tf."),
+        px4: bool = typer.Option(False, "--px4", help="Also publish PX4's fmu/in/vehicle_visual_odometry, "
+                                 "trajectory_setpoint and offboard_control_mode."),
+        vehicle: str = typer.Option("demo", "--vehicle", help="Vehicle name: keys macroloc/<vehicle>/..., ROS "
+                                    "topics /<vehicle>/macroloc/..."),
     ) -> None:
         """Take off, explore, localize in the BIM, fly to a room given by its IFC name, and report the paper's
         Table 2 row: localization time, error at the goal, and that error as % of the path length.
@@ -60,7 +69,8 @@ def register(app: typer.Typer) -> None:
             recording = None if record is None else record if len(seed) == 1 else \
                 record.with_name(f"{record.stem}-seed{s}{record.suffix or '.mcap'}")
             result = run_demo(path, DemoParams(seed=s, speedup=speedup, observations=observations,
-                                               detector_model=detector, record=recording, lockstep=lockstep))
+                                               detector_model=detector, record=recording, vehicle=vehicle,
+                                               listen=tuple(listen or ()), ros=ros, px4=px4, lockstep=lockstep))
             picture = out if len(seed) == 1 else out.with_name(f"{out.stem}-seed{s}{out.suffix or '.png'}")
             planner = Planner.for_building(path, 0.2, 0.35, 1.4)
             plot_flight(result, planner, picture)
@@ -74,10 +84,12 @@ def register(app: typer.Typer) -> None:
                     f"  | {result.localization_time_s:21.2f} | {result.goal_error_m:17.3f} | "
                     f"{result.goal_error_pct:27.2f} |\n"
                     f"  reached: {result.reached}, wall time {result.wall_time_s:.1f} s, picture {picture}"
-                    + (f", recording {recording}" if recording is not None else "") + "\n")
+                    + (f", recording {recording}" if recording is not None else "") + "\n"
+                    + ("  goal: no geo-reference in the model\n" if result.goal_wgs84 is None else
+                       "  goal at lat {:.7f}, lon {:.7f}, alt {:.2f} m (WGS84)\n".format(*result.goal_wgs84)))
         if json_out:
             docs = [dict(r.table_row(), seed=r.seed, observations=r.observations, reached=r.reached,
-                         picture=str(p)) for r, p in zip(rows, pictures, strict=True)]
+                         goal_wgs84=r.goal_wgs84, picture=str(p)) for r, p in zip(rows, pictures, strict=True)]
             print_json(docs[0] if len(docs) == 1 else docs)
         elif len(rows) > 1:
             sys.stdout.write(f"all seeds: {[result_json(r)['goal_error_m'] for r in rows]}\n")

@@ -18,6 +18,9 @@ def register(app: typer.Typer) -> None:
         mode: str = typer.Option(None, "--mode", help="Zenoh mode: peer (default), client or router."),
         state_dir: Path = typer.Option(None, "--state-dir", help="Where the map is saved (service.state_dir)."),
         log_json: bool = typer.Option(False, "--log-json", help="Structured logs: one JSON object per line."),
+        ros: bool = typer.Option(False, "--ros", help="Also ROS 2 (CDR) on the keys zenoh-bridge-ros2dds maps to "
+                                 "/<vehicle>/macroloc/{pose,odometry,path,status,goal} and /tf (ros.enabled)."),
+        px4: bool = typer.Option(False, "--px4", help="Also PX4's fmu/in/ topics (px4.enabled)."),
     ) -> None:
         """Serve poses and waypoints over Zenoh: subscribe macroloc/<vehicle>/{stereo,imu,odometry,observations,goal},
         publish {pose,waypoints,features,diagnostics,status}, answer queries on {map,plan}, hold the liveliness
@@ -29,7 +32,7 @@ def register(app: typer.Typer) -> None:
         from service.logs import configure_logging
         from service.serve import serve as run
 
-        overrides: dict[str, dict] = {"service": {}, "zenoh": {}}
+        overrides: dict[str, dict] = {"service": {}, "zenoh": {}, "ros": {}, "px4": {}}
         for section, key, value in (("service", "building", building), ("service", "vehicle", vehicle),
                                     ("service", "state_dir", state_dir), ("zenoh", "connect", connect),
                                     ("zenoh", "listen", listen), ("zenoh", "mode", mode)):
@@ -37,6 +40,10 @@ def register(app: typer.Typer) -> None:
                 overrides[section][key] = value
         if log_json:
             overrides["service"]["log_json"] = True
+        if ros:
+            overrides["ros"]["enabled"] = True
+        if px4:
+            overrides["px4"]["enabled"] = True
         cfg = load_config(config, **overrides)
         configure_logging(logging.INFO, cfg.service.log_json)
         run(cfg)

@@ -34,6 +34,10 @@ def test_features_json_contract(capsys, fzk_path: Path) -> None:
     f = doc["features"][0]
     assert set(f) >= {"id", "type", "storey", "centroid", "corners", "normal"}
     assert np.array(f["corners"]).shape == (4, 3)
+    geo = doc["geo"]  # FZK-Haus's IfcSite and TrueNorth (values in tests/graph/test_geo.py)
+    assert geo["source"] == "IfcSite" and geo["crs"] is None
+    assert abs(geo["latitude_deg"] - 49.100435) < 1e-9 and abs(geo["longitude_deg"] - 8.436539) < 1e-9
+    assert abs(geo["true_north_deg"] + 50.0) < 1e-6 and geo["altitude_m"] == 110.0
 
 
 def test_localize_end_to_end_on_a_real_ifc(tmp_path: Path, capsys, office_path: Path, office_model) -> None:

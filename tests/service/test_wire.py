@@ -36,9 +36,9 @@ def test_field_numbers_are_stable() -> None:
 
     assert numbers(pb.StereoFrame) == {"header": 1, "camera_id": 2, "left": 3, "right": 4, "info": 5, "depth": 6}
     assert numbers(pb.PoseEstimate) == {"header": 1, "T_cad_body": 2, "covariance": 3, "status": 4, "storey": 5,
-                                        "T_cad_map": 6, "inliers": 7}
+                                        "T_cad_map": 6, "inliers": 7, "T_enu_body": 8, "wgs84": 9}
     assert numbers(pb.Goal)["position_cad"] == 2 and numbers(pb.Goal)["space_name"] == 4
-    assert numbers(pb.Waypoints)["points_cad"] == 2
+    assert numbers(pb.Waypoints)["points_cad"] == 2 and numbers(pb.Waypoints)["yaw_rad"] == 6
     assert numbers(pb.Odometry) == {"header": 1, "T_map_body": 2, "covariance": 3}
     assert pb.DESCRIPTOR.package == "macroloc.v1"
 

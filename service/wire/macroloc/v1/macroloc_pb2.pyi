@@ -147,8 +147,18 @@ class ObservedFeatures(_message.Message):
     features: _containers.RepeatedCompositeFieldContainer[ObservedFeature]
     def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., features: _Optional[_Iterable[_Union[ObservedFeature, _Mapping]]] = ...) -> None: ...
 
+class GeoPoint(_message.Message):
+    __slots__ = ("latitude_deg", "longitude_deg", "altitude_m")
+    LATITUDE_DEG_FIELD_NUMBER: _ClassVar[int]
+    LONGITUDE_DEG_FIELD_NUMBER: _ClassVar[int]
+    ALTITUDE_M_FIELD_NUMBER: _ClassVar[int]
+    latitude_deg: float
+    longitude_deg: float
+    altitude_m: float
+    def __init__(self, latitude_deg: _Optional[float] = ..., longitude_deg: _Optional[float] = ..., altitude_m: _Optional[float] = ...) -> None: ...
+
 class PoseEstimate(_message.Message):
-    __slots__ = ("header", "T_cad_body", "covariance", "status", "storey", "T_cad_map", "inliers")
+    __slots__ = ("header", "T_cad_body", "covariance", "status", "storey", "T_cad_map", "inliers", "T_enu_body", "wgs84")
     class Status(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         STATUS_UNSPECIFIED: _ClassVar[PoseEstimate.Status]
@@ -170,6 +180,8 @@ class PoseEstimate(_message.Message):
     STOREY_FIELD_NUMBER: _ClassVar[int]
     T_CAD_MAP_FIELD_NUMBER: _ClassVar[int]
     INLIERS_FIELD_NUMBER: _ClassVar[int]
+    T_ENU_BODY_FIELD_NUMBER: _ClassVar[int]
+    WGS84_FIELD_NUMBER: _ClassVar[int]
     header: Header
     T_cad_body: Pose
     covariance: _containers.RepeatedScalarFieldContainer[float]
@@ -177,7 +189,9 @@ class PoseEstimate(_message.Message):
     storey: str
     T_cad_map: Pose
     inliers: int
-    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., T_cad_body: _Optional[_Union[Pose, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., storey: _Optional[str] = ..., T_cad_map: _Optional[_Union[Pose, _Mapping]] = ..., inliers: _Optional[int] = ...) -> None: ...
+    T_enu_body: Pose
+    wgs84: GeoPoint
+    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., T_cad_body: _Optional[_Union[Pose, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ..., status: _Optional[_Union[PoseEstimate.Status, str]] = ..., storey: _Optional[str] = ..., T_cad_map: _Optional[_Union[Pose, _Mapping]] = ..., inliers: _Optional[int] = ..., T_enu_body: _Optional[_Union[Pose, _Mapping]] = ..., wgs84: _Optional[_Union[GeoPoint, _Mapping]] = ...) -> None: ...
 
 class Goal(_message.Message):
     __slots__ = ("header", "position_cad", "feature_id", "space_name", "start_cad", "has_start")
@@ -196,18 +210,20 @@ class Goal(_message.Message):
     def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., position_cad: _Optional[_Union[Vector3, _Mapping]] = ..., feature_id: _Optional[str] = ..., space_name: _Optional[str] = ..., start_cad: _Optional[_Union[Vector3, _Mapping]] = ..., has_start: _Optional[bool] = ...) -> None: ...
 
 class Waypoints(_message.Message):
-    __slots__ = ("header", "points_cad", "path_length_m", "goal_description", "error")
+    __slots__ = ("header", "points_cad", "path_length_m", "goal_description", "error", "yaw_rad")
     HEADER_FIELD_NUMBER: _ClassVar[int]
     POINTS_CAD_FIELD_NUMBER: _ClassVar[int]
     PATH_LENGTH_M_FIELD_NUMBER: _ClassVar[int]
     GOAL_DESCRIPTION_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
+    YAW_RAD_FIELD_NUMBER: _ClassVar[int]
     header: Header
     points_cad: _containers.RepeatedCompositeFieldContainer[Vector3]
     path_length_m: float
     goal_description: str
     error: str
-    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., points_cad: _Optional[_Iterable[_Union[Vector3, _Mapping]]] = ..., path_length_m: _Optional[float] = ..., goal_description: _Optional[str] = ..., error: _Optional[str] = ...) -> None: ...
+    yaw_rad: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., points_cad: _Optional[_Iterable[_Union[Vector3, _Mapping]]] = ..., path_length_m: _Optional[float] = ..., goal_description: _Optional[str] = ..., error: _Optional[str] = ..., yaw_rad: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class Diagnostics(_message.Message):
     __slots__ = ("header", "rates_hz", "latencies_ms", "dropped", "state", "counts")

@@ -1,0 +1,160 @@
+"""Frame in -> pose out over Zenoh, the protobuf pose and the ROS 2 pose (CDR) of the same frames, in one run.
+
+`macroloc serve --ros` in its own process (perception off: a frame's pose comes from odometry, so this is
+transport + service + serialization); this process is the vehicle. It first localizes the service with doors
+seen from the model's ground truth (Office_A, as the service tests do), then publishes odometry and a 640x480
+stereo frame per stamp at 30 Hz and records, per stamp, when `macroloc/bench/pose` (protobuf PoseEstimate) and
+`bench/macroloc/pose` (geometry_msgs/msg/PoseWithCovarianceStamped, deserialized here with rosbags) arrive.
+Run: `python -m bench.bench_ros [--frames N]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.bench_zenoh import _free_port, stereo_images
+
+ROOT = Path(__file__).resolve().parents[1]
+OFFICE = ROOT / "data" / "buildings" / "office_a.ifc"
+
+
+def _yaw_T(yaw: float, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    T[:3, 3] = t
+    return T
+
+
+def _observations(model, T_cad_body: np.ndarray, stamp_ns: int, rng: np.random.Generator):  # noqa: ANN001, ANN202
+    from service.recording import vector3
+    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+    msg = pb.ObservedFeatures()
+    msg.header.stamp_ns, msg.header.frame_id = stamp_ns, "body"
+    T_body_cad = np.linalg.inv(T_cad_body)
+    for f in model.features:
+        d = f.centroid_cad - T_cad_body[:3, 3]
+        if f.orientation != "vertical" or np.linalg.norm(d[:2]) > 9.0 or abs(d[2]) > 2.0:
+            continue
+        corners = f.corners_cad @ T_body_cad[:3, :3].T + T_body_cad[:3, 3] + rng.normal(0, 0.02, (4, 3))
+        msg.features.add(type=f.type).corners.extend(vector3(c) for c in corners)
+    return msg
+
+
+def run(frames: int, rate_hz: float = 30.0) -> dict:
+    import zenoh
+
+    from graph.bim import load_building
+    from service.config import ZenohConfig
+    from service.recording import encode_image, pose_from_matrix, vector3
+    from service.ros_types import from_cdr, stamp_ns_of
+    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from service.zenoh_io import Keys, declare_publisher, session_config
+
+    model = load_building(OFFICE)
+    port = _free_port()
+    env = dict(os.environ, MACROLOC_SERVICE__PERCEPTION="false", MACROLOC_SERVICE__STATUS_PERIOD_S="5",
+               MACROLOC_GRAPH__SURFACE_CHECK="false")
+    service = subprocess.Popen([str(Path(sys.executable).parent / "macroloc"), "serve", "--building", str(OFFICE),
+                                "--vehicle", "bench", "--ros", "--listen", f"tcp/127.0.0.1:{port}",
+                                "--state-dir", tempfile.mkdtemp()], env=env, stderr=subprocess.DEVNULL)
+    left, right, origin = stereo_images()
+    template = pb.StereoFrame(camera_id="front", left=encode_image(left), right=encode_image(right))
+    template.info.CopyFrom(pb.CameraInfo(width=640, height=480, fx=480, fy=480, cx=319.5, cy=239.5, baseline_m=0.12))
+    keys = Keys("bench")
+    got_pb: dict[int, float] = {}
+    got_ros: dict[int, float] = {}
+    localized: list[bool] = []
+
+    def on_pb(sample) -> None:  # noqa: ANN001
+        t = time.perf_counter()
+        msg = pb.PoseEstimate.FromString(sample.payload.to_bytes())
+        got_pb.setdefault(msg.header.stamp_ns, t)
+        if msg.status == pb.PoseEstimate.LOCALIZED:
+            localized.append(True)
+
+    def on_ros(sample) -> None:  # noqa: ANN001
+        t = time.perf_counter()
+        msg = from_cdr(sample.payload.to_bytes(), "geometry_msgs/msg/PoseWithCovarianceStamped")
+        got_ros.setdefault(stamp_ns_of(msg.header.stamp), t)
+
+    door = [f for f in model.features if f.type == "door" and f.storey == "Level 1"][10]
+    T = _yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])
+    out: dict = {"images": origin, "frame_bytes": template.ByteSize()}
+    rng = np.random.default_rng(0)
+    try:
+        with zenoh.open(session_config(ZenohConfig(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))) as s:
+            subs = [s.declare_subscriber(keys.pose, on_pb), s.declare_subscriber("bench/macroloc/pose", on_ros)]
+            stereo_pub, odo_pub = declare_publisher(s, keys.stereo), declare_publisher(s, keys.odometry)
+            while not any(r.ok for r in s.liveliness().get(keys.alive, timeout=1.0)):
+                if service.poll() is not None:
+                    raise RuntimeError("the service exited")
+            for k in range(40):  # localize: odometry (= CAD here), gravity, doors in view
+                stamp = (k + 1) * 33_000_000
+                accel = pb.Imu(accel_mps2=vector3(T[:3, :3].T @ [0, 0, 9.81]), gyro_radps=pb.Vector3())
+                accel.header.stamp_ns = stamp
+                s.put(keys.imu, accel.SerializeToString())
+                odo = pb.Odometry(T_map_body=pose_from_matrix(T))
+                odo.header.stamp_ns = stamp
+                odo_pub.put(odo.SerializeToString())
+                if k % 5 == 0:
+                    s.put(keys.observations, _observations(model, T, stamp, rng).SerializeToString())
+                T = T @ _yaw_T(0.0, np.array([0.02, 0.0, 0.0]))
+                time.sleep(0.01)
+            deadline = time.perf_counter() + 60
+            while not localized and time.perf_counter() < deadline:
+                time.sleep(0.05)
+            out["localized"] = bool(localized)
+            sent: dict[int, float] = {}
+            t0 = time.perf_counter()
+            for k in range(frames):
+                stamp = 10**10 + k * 33_333_333
+                odo = pb.Odometry(T_map_body=pose_from_matrix(T))
+                odo.header.stamp_ns = stamp - 1
+                odo_pub.put(odo.SerializeToString())
+                template.header.stamp_ns = stamp
+                sent[stamp] = time.perf_counter()
+                stereo_pub.put(template.SerializeToString())
+                delay = t0 + (k + 1) / rate_hz - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+            deadline = time.perf_counter() + 5.0
+            while time.perf_counter() < deadline and (max(sent) not in got_pb or max(sent) not in got_ros):
+                time.sleep(0.005)
+            for name, got in (("protobuf", got_pb), ("ros", got_ros)):
+                lat = np.array([(got[k] - sent[k]) * 1e3 for k in sent if k in got])
+                out[name] = {"answered": f"{len(lat)}/{frames}",
+                             "p50_ms": round(float(np.percentile(lat, 50)), 2) if len(lat) else None,
+                             "p99_ms": round(float(np.percentile(lat, 99)), 2) if len(lat) else None}
+            for sub in subs:
+                sub.undeclare()
+    finally:
+        service.send_signal(signal.SIGTERM)
+        service.wait(60)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=300)
+    args = parser.parse_args()
+    r = run(args.frames)
+    print(json.dumps(r))
+    for name in ("protobuf", "ros"):
+        print(f"{name:>9}: frame->pose p50 {r[name]['p50_ms']} ms, p99 {r[name]['p99_ms']} ms, "
+              f"answered {r[name]['answered']} at 30 Hz")
+
+
+if __name__ == "__main__":
+    main()
