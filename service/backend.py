@@ -179,6 +179,15 @@ class LocalizerBackend:
             (np.linalg.inv(self._T_last_keyframe) @ ev.T_map_body)[:3, 3])) > self.params.odometry_keyframe_m
         return self._keyframe(ev.stamp_ns, ev.T_map_body, []) if due else self._track(ev.stamp_ns, ev.T_map_body)
 
+    def new_time_base(self) -> None:
+        """The vehicle's clock was reset: forget what is kept by stamp (the odometry buffer, sightings waiting
+        for their odometry, the keyframe timer); the graph, its landmarks and T_cad_map stay."""
+        self._odometry.clear()
+        self._pending.clear()
+        self._accel_body = []
+        self._gravity = GravityEstimator()  # it differentiates the odometry over stamps; up_body is kept
+        self._last_keyframe_ns = None
+
     def depth(self, stamp_ns: int, points_body: np.ndarray) -> None:
         """Depth points (N, 3, body frame) measured at stamp_ns: given to the next keyframe, for the surface check
         of registrations (graph.surfaces). Without odometry at that stamp they are dropped."""

@@ -33,6 +33,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
     from graph.bim import load_building
     from service.backend import BackendParams, LocalizerBackend
+    from service.inputs import limits_from_config
     from service.planning import Planner
     from service.replay import settings_from_config
 
@@ -59,7 +60,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None) -
     params = ServiceParams(vehicle=s.vehicle, building=building.name, building_sha256=model.sha256,
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
                            status_period_s=s.status_period_s, save_period_s=s.save_period_s,
-                           replan_period_s=p.replan_period_s)
+                           replan_period_s=p.replan_period_s, limits=limits_from_config(cfg.inputs, model))
     return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg))
 
 
