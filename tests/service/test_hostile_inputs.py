@@ -10,6 +10,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+from service.config import MacrolocConfig
 from service.recording import encode_image, vector3
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.perception.helpers import png_bomb
@@ -91,11 +92,23 @@ def start_pose(office_model) -> np.ndarray:
     return yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])
 
 
-def test_hostile_input_is_counted_and_the_service_keeps_localizing(office_path, office_model, start_pose,
-                                                                   tmp_path) -> None:
-    port = free_port()
-    cfg = service_config(office_path, tmp_path, port)
-    cfg.service.perception = True  # the frames would reach SGBM, LSD and the detector if let through
+@pytest.fixture(scope="module")
+def perceiving_config(office_path, tmp_path_factory: pytest.TempPathFactory) -> MacrolocConfig:
+    """The service's config with perception on (the frames would reach SGBM, LSD and the detector if let
+    through); the model's solids and surfaces built once beforehand, so that the service starts from a warm
+    cache (a cold build takes a minute on a busy 2-core machine)."""
+    from service.serve import build_service
+
+    cfg = service_config(office_path, tmp_path_factory.mktemp("hostile"), free_port())
+    cfg.service.perception = True
+    build_service(cfg, None)
+    return cfg
+
+
+def test_hostile_input_is_counted_and_the_service_keeps_localizing(perceiving_config, office_model,
+                                                                   start_pose) -> None:
+    cfg = perceiving_config
+    port = int(cfg.zenoh.listen[0].rsplit(":", 1)[1])
     rows: list[tuple[str, int, int, str]] = []
     with running_service(cfg) as service, client(port) as s:
         poses = Collector(s, f"macroloc/{VEHICLE}/pose", pb.PoseEstimate)
