@@ -22,7 +22,7 @@ import numpy as np
 import zenoh
 
 from graph.localizer import Estimate
-from service.backend import STATUS_TO_WIRE, LocalizerBackend, pose_message
+from service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
 from service.frames import FramePipeline, NullPipeline
 from service.health import DropCounter, LatencyWindow, RateMeter
 from service.inputs import (
@@ -294,13 +294,11 @@ class LocalizationService:
         self.rates["pose"].tick()
 
     def _plausible(self, est: Estimate) -> Estimate:
-        """The estimate, or LOST without a pose where its pose is not finite or lies outside the model's bounds
-        (plus margin): no garbage pose goes out, least of all as LOCALIZED (counted as pose/implausible)."""
-        T = est.T_cad_body
-        if T is None or (np.isfinite(T).all() and self.params.limits.inside_cad(T[:3, 3])
-                         and (est.T_cad_map is None or np.isfinite(est.T_cad_map).all())):
+        """The estimate, or LOST without a pose where it is implausible (`backend.plausible`): no garbage pose
+        goes out, least of all as LOCALIZED (counted as pose/implausible)."""
+        if plausible(est, self.params.limits):
             return est
-        self.drops.drop("pose/implausible", f"{est.status} pose at {T[:3, 3]} withheld")
+        self.drops.drop("pose/implausible", f"{est.status} pose withheld")
         return Estimate(est.stamp_ns, "lost", np.eye(4))
 
     def _maybe_replan(self, est: Estimate) -> None:

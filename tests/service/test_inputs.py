@@ -148,8 +148,11 @@ def test_a_clock_reset_starts_a_new_time_base_and_a_future_stamp_blocks_nothing(
     taken = [parser.odometry(odometry(10**8 * (k + 1))) is not None for k in range(5)]  # the clock restarted
     assert taken == [False, False, True, True, True]
     assert resets == [("odometry", 3 * 10**8)]
-    assert drops.counts() == {"odometry/future_stamp": 1, "odometry/out_of_order": 1, "odometry/clock_back": 2,
-                              "odometry/clock_reset": 1}
+    hour_ns = 3600 * 10**9  # one stamp an hour ahead (within the clock's reach) is taken, and then outlived
+    assert parser.odometry(odometry(hour_ns)) is not None
+    assert [parser.odometry(odometry(10**9 + k * 10**8)) is not None for k in range(4)] == [False, False, True, True]
+    assert drops.counts() == {"odometry/future_stamp": 1, "odometry/out_of_order": 1, "odometry/clock_back": 4,
+                              "odometry/clock_reset": 2}
 
 
 def test_replaying_a_recording_that_holds_a_bomb_is_one_line_and_exit_2(office_path, tmp_path, capsys) -> None:
@@ -169,3 +172,36 @@ def test_replaying_a_recording_that_holds_a_bomb_is_one_line_and_exit_2(office_p
     rc = main(["replay", str(flight), "--building", str(office_path), "--observations", "truth-vo"])
     err = capsys.readouterr().err
     assert rc == 2 and len(err.strip().splitlines()) == 1 and "refused before decoding" in err, err
+
+
+def test_no_pose_outside_the_model_or_not_finite_goes_out() -> None:
+    from graph.localizer import Estimate
+    from service.backend import plausible
+
+    def est(xyz: tuple[float, float, float], cov: float = 0.01) -> Estimate:
+        T = np.eye(4)
+        T[:3, 3] = xyz
+        return Estimate(1, "localized", np.eye(4), T_cad_body=T, T_cad_map=np.eye(4), covariance=np.full((6, 6), cov))
+
+    assert plausible(est((1.0, 2.0, 1.0)), LIMITS)
+    assert plausible(Estimate(1, "exploring", np.eye(4)), LIMITS)  # no CAD pose yet
+    for bad in (est((1e297, 0.0, 0.0)), est((np.nan, 0.0, 0.0)), est((0.0, 0.0, 100.0)), est((1.0, 2.0, 1.0), np.inf)):
+        assert not plausible(bad, LIMITS)
+
+
+def test_the_pixel_cap_is_a_config_key_that_dump_config_shows(capsys, monkeypatch) -> None:
+    import json
+
+    from service.cli import main
+    from service.config import load_config
+    from service.inputs import limits_from_config
+
+    assert main(["dump-config"]) == 0
+    assert json.loads(capsys.readouterr().out)["inputs"]["max_image_pixels"] == 4096 * 4096
+    monkeypatch.setenv("MACROLOC_INPUTS__MAX_IMAGE_PIXELS", "3072")
+    limits = limits_from_config(load_config().inputs)
+    assert limits.max_image_pixels == 3072
+    parser = InputParser(["front"], DropCounter(), limits)
+    assert parser.stereo(stereo(1), 0) is not None  # 64 x 48 = 3072 pixels
+    image = encode_image(np.zeros((48, 65), np.uint8))
+    assert parser.stereo(stereo(2, image, image), 0) is None
