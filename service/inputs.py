@@ -3,15 +3,16 @@
 Each `InputParser` method takes the raw payload bytes and returns a typed event, or None after counting the
 reason in a `DropCounter` as "<key>/<kind>" (logged once per kind). The kinds: too_large (payload bytes over
 the cap), not_protobuf, unknown_fields (bytes of another message type or garbage: fields this type lacks),
-wrong_frame (a header frame_id this key never carries), nan (not finite, or a quaternion not unit),
-out_of_bounds (a position outside the model's box grown by a margin, a sighting beyond sensor range),
-implausible (an IMU sample beyond what an IMU measures), too_many (features), bad_shape, unknown_camera,
-unknown_frame, bad_image, image_header (a PNG/JPEG whose header is unreadable or differs from the declared
-size), image_too_large (over the pixel cap), size_mismatch (left and right images differ), bad_camera_info
-(intrinsics or baseline not positive and finite, or its size not the images'), bad_depth, empty (a goal
-without a target), and the stamps' kinds (`service.stamps.StampGate`: future_stamp, out_of_order,
-clock_back, clock_reset). Images are sized from their headers and never decoded here. Nothing here raises on
-bad input: the service never dies of what it is sent. The limits: `InputLimits` (config section [inputs]).
+wrong_frame (a goal whose header frame_id is not "cad": another message type), nan (not finite, or a
+quaternion not unit), out_of_bounds (a position outside the model's box grown by a margin, a sighting beyond
+sensor range), implausible (an IMU sample beyond what an IMU measures), too_many (features), bad_shape,
+unknown_camera, unknown_frame, bad_image, image_header (a PNG/JPEG whose header is unreadable or differs from
+the declared size), image_too_large (over the pixel cap), size_mismatch (left and right images differ),
+bad_camera_info (intrinsics or baseline not positive and finite, or its size not the images'), bad_depth,
+empty (a goal without a target), and the stamps' kinds (`service.stamps.StampGate`: future_stamp,
+out_of_order, clock_back, clock_reset). Images are sized from their headers and never decoded here. Nothing
+here raises on bad input: the service never dies of what it is sent. The limits: `InputLimits` (config
+section [inputs]).
 """
 
 from __future__ import annotations
@@ -188,7 +189,7 @@ class InputParser:
         return msg
 
     def odometry(self, payload: bytes) -> OdometryIn | None:
-        msg = self._decode("odometry", pb.Odometry, payload, {"map", "odom"})
+        msg = self._decode("odometry", pb.Odometry, payload)
         if msg is None:
             return None
         if not msg.HasField("T_map_body") or not _pose_ok(msg.T_map_body) or \
@@ -203,7 +204,7 @@ class InputParser:
         return OdometryIn(msg.header.stamp_ns, matrix_from_pose(msg.T_map_body))
 
     def imu(self, payload: bytes) -> ImuIn | None:
-        msg = self._decode("imu", pb.Imu, payload, {"body", "imu"})
+        msg = self._decode("imu", pb.Imu, payload)
         if msg is None:
             return None
         accel, gyro = _xyz(msg.accel_mps2), _xyz(msg.gyro_radps)
