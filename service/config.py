@@ -172,9 +172,10 @@ class InputsConfig(BaseModel):
     counted by key and kind in the diagnostics, and logged once per kind."""
 
     max_image_pixels: int = Field(
-        DEFAULT_MAX_PIXELS, ge=1, description="an image larger than this (width x height, read from the PNG/JPEG "
-        "header before decoding, or declared for raw images) is refused; also caps images read from files and "
-        "recordings")
+        DEFAULT_MAX_PIXELS, ge=1, le=DEFAULT_MAX_PIXELS, description="an image larger than this (width x height, "
+        "read from the PNG/JPEG header before decoding, or declared for raw images) is refused; also caps images read "
+        "from files. At most 4096 x 4096: the stereo matcher's and the decoder's own cap (a 20000 x 20000 pair "
+        "crashed OpenCV's SGBM)")
     max_stereo_bytes: int = Field(128 * 2**20, ge=1, description="largest StereoFrame payload taken, bytes")
     max_message_bytes: int = Field(2**20, ge=1, description="largest payload on the other input keys, bytes")
     max_features: int = Field(256, ge=1, description="most doors/windows in one ObservedFeatures message")
