@@ -112,6 +112,7 @@ def test_hostile_input_is_counted_and_the_service_keeps_localizing(perceiving_co
     rows: list[tuple[str, int, int, str]] = []
     with running_service(cfg) as service, client(port) as s:
         poses = Collector(s, f"macroloc/{VEHICLE}/pose", pb.PoseEstimate)
+        diagnostics = Collector(s, f"macroloc/{VEHICLE}/diagnostics", pb.Diagnostics)
         flight = FakeFlight(office_model, yaw_T(0.7, np.array([3.0, -2.0, 0.1])))
         T = fly(s, flight, start_pose, 30)
         wait_for(lambda: _localized_at(poses, T), what="a localized pose near the truth")
@@ -138,6 +139,8 @@ def test_hostile_input_is_counted_and_the_service_keeps_localizing(perceiving_co
                      pb.PoseEstimate.Status.Name(poses.last().status)))
         assert counts().get("odometry/clock_reset") == 1
         wait_for(lambda: _localized_at(poses, T), what="localized again on the new clock")
+        kinds = {kind for _, _, kind, _ in hostile()} | {"odometry/clock_back", "odometry/clock_reset"}
+        wait_for(lambda: kinds <= set(diagnostics.last().dropped), what="every kind in the published diagnostics")
         limits = service.params.limits  # type: ignore[attr-defined]
         for p in poses.items:
             if p.status == pb.PoseEstimate.LOCALIZED:
