@@ -16,6 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from graph.errors import UserInputError
+
 log = logging.getLogger(__name__)
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
@@ -23,6 +25,7 @@ DEFAULT_MODEL = MODELS_DIR / "detector.onnx"
 CLASS_NAMES = ("door", "window", "neither")
 REPORTED_TYPES = ("door", "window")
 PAD_VALUE = 114
+MAX_INPUT_SIDE_PX = 4096  # a sidecar asking for a larger network input is refused (DetectorSpec.load)
 MAX_DETECTIONS = 32  # per image, best first: bounds the per-box work downstream
 
 
@@ -52,11 +55,16 @@ class DetectorSpec:
 
     @staticmethod
     def load(path: Path) -> DetectorSpec:
+        """The sidecar's spec; UserInputError where its input size (each side 1-4096 px, the tensor onnxruntime is
+        given) or stride (1-256 px) is out of range."""
         doc = json.loads(path.read_text())
+        w, h, stride = int(doc["input_wh"][0]), int(doc["input_wh"][1]), int(doc["stride_px"])
+        if not (0 < w <= MAX_INPUT_SIDE_PX and 0 < h <= MAX_INPUT_SIDE_PX and 0 < stride <= 256):
+            raise UserInputError(f"detector sidecar {path}: input_wh {w}x{h} or stride_px {stride} out of range")
         return DetectorSpec(
             classes=tuple(doc["classes"]),
-            input_wh=(int(doc["input_wh"][0]), int(doc["input_wh"][1])),
-            stride_px=int(doc["stride_px"]),
+            input_wh=(w, h),
+            stride_px=stride,
             anchors_px=tuple((float(w), float(h)) for w, h in doc["anchors_px"]),
             score_threshold=float(doc["score_threshold"]),
             nms_iou=float(doc.get("nms_iou", 0.45)),

@@ -16,6 +16,8 @@ from perception.calib import StereoRig
 
 log = logging.getLogger(__name__)
 
+MAX_PIXELS = 4096 * 4096  # the largest image SGBM is given (its buffers grow with width x disparities)
+
 
 def to_gray(image: np.ndarray) -> np.ndarray:
     if image.ndim == 2:
@@ -59,6 +61,11 @@ class SgbmMatcher:
         )
 
     def disparity_px(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """Raises ValueError on images of different sizes or larger than MAX_PIXELS: OpenCV's matcher is never
+        handed them (a 20000 x 20000 pair crashed the process in it)."""
+        if left.shape[:2] != right.shape[:2] or left.shape[0] * left.shape[1] > MAX_PIXELS or not left.size:
+            raise ValueError(f"stereo pair of {left.shape[:2]} and {right.shape[:2]} pixels: not the same size, "
+                             f"empty or over {MAX_PIXELS}")
         pad = self.config.num_disparities
         gl = cv2.copyMakeBorder(to_gray(left), 0, 0, pad, 0, cv2.BORDER_REPLICATE)
         gr = cv2.copyMakeBorder(to_gray(right), 0, 0, pad, 0, cv2.BORDER_REPLICATE)

@@ -35,7 +35,7 @@ from graph.registrar import FirstOfRegistrar, Registrar
 from graph.relocalize import Alignment, KnownRect, ObservedRect
 from graph.surfaces import SurfaceIndex
 from perception.gravity import GravityEstimator
-from service.inputs import ImuIn, Observation, ObservationsIn, OdometryIn
+from service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn
 from service.places import Placed
 from service.recording import matrix_from_pose, pose_from_matrix, vector3
 from service.state import view_from_wire
@@ -186,6 +186,15 @@ class LocalizerBackend:
         due = self._T_last_keyframe is None or float(np.linalg.norm(
             (np.linalg.inv(self._T_last_keyframe) @ ev.T_map_body)[:3, 3])) > self.params.odometry_keyframe_m
         return self._keyframe(ev.stamp_ns, ev.T_map_body, []) if due else self._track(ev.stamp_ns, ev.T_map_body)
+
+    def new_time_base(self) -> None:
+        """The vehicle's clock was reset: forget what is kept by stamp (the odometry buffer, sightings waiting
+        for their odometry, the keyframe timer); the graph, its landmarks and T_cad_map stay."""
+        self._odometry.clear()
+        self._pending.clear()
+        self._accel_body = []
+        self._gravity = GravityEstimator()  # it differentiates the odometry over stamps; up_body is kept
+        self._last_keyframe_ns = None
 
     def depth(self, stamp_ns: int, points_body: np.ndarray) -> None:
         """Depth points (N, 3, body frame) measured at stamp_ns: given to the next keyframe, for the surface check
@@ -361,6 +370,17 @@ def _storey_of(model: BuildingModel, matches: dict[int, str]) -> str:
     storeys = {f.id: f.storey for f in model.features}
     names = [str(storeys[fid]) for fid in matches.values() if storeys.get(fid)]
     return max(set(names), key=names.count) if names else ""
+
+
+def plausible(est: Estimate, limits: InputLimits) -> bool:
+    """True when the estimate may be published as it is: no CAD pose, or a finite T_cad_body whose position lies
+    within the model's bounds plus margin (`limits.inside_cad`), with a finite T_cad_map and covariance."""
+    T = est.T_cad_body
+    if T is None:
+        return True
+    finite = np.isfinite(T).all() and (est.T_cad_map is None or np.isfinite(est.T_cad_map).all()) and \
+        (est.covariance is None or np.isfinite(est.covariance).all())
+    return bool(finite) and limits.inside_cad(T[:3, 3])
 
 
 def pose_message(est: Estimate, storey: str = "", geo: GeoReference | None = None) -> pb.PoseEstimate:

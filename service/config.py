@@ -16,6 +16,7 @@ from pydantic import BaseModel, Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from graph.errors import UserInputError
+from perception.image_header import DEFAULT_MAX_PIXELS
 
 
 class LocalizeConfig(BaseModel):
@@ -199,6 +200,34 @@ class Px4Config(BaseModel):
     reach_m: float = Field(0.5, gt=0, description="the setpoint moves to the next waypoint within this distance, m")
 
 
+class InputsConfig(BaseModel):
+    """Limits on what the service takes from the wire (service/inputs.py): anything beyond them is dropped,
+    counted by key and kind in the diagnostics, and logged once per kind."""
+
+    max_image_pixels: int = Field(
+        DEFAULT_MAX_PIXELS, ge=1, le=DEFAULT_MAX_PIXELS, description="an image larger than this (width x height, "
+        "read from the PNG/JPEG header before decoding, or declared for raw images) is refused; also caps images read "
+        "from files. At most 4096 x 4096: the stereo matcher's and the decoder's own cap (a 20000 x 20000 pair "
+        "crashed OpenCV's SGBM)")
+    max_stereo_bytes: int = Field(128 * 2**20, ge=1, description="largest StereoFrame payload taken, bytes")
+    max_message_bytes: int = Field(2**20, ge=1, description="largest payload on the other input keys, bytes")
+    max_features: int = Field(256, ge=1, description="most doors/windows in one ObservedFeatures message")
+    position_margin_m: float = Field(
+        20.0, ge=0, description="positions are plausible within the model's bounding box grown by this (goals, CAD "
+        "frame), or within the box's diagonal plus this of the odometry's origin (odometry, map frame), m")
+    max_observation_range_m: float = Field(50.0, gt=0, description="farthest sighting in the body/camera frame, m")
+    max_accel_mps2: float = Field(160.0, gt=0, description="largest specific force an IMU sample may carry "
+                                  "(16 g, a common accelerometer range), m/s^2")
+    max_gyro_radps: float = Field(35.0, gt=0, description="largest angular rate (2000 deg/s, a common gyro range), "
+                                  "rad/s")
+    clock_reset_s: float = Field(
+        2.0, gt=0, description="stamps on a key that go back (or jump ahead) by more than this, in several "
+        "consecutive messages that agree among themselves, start a new time base (a vehicle clock reset), s")
+    max_clock_ahead_s: float = Field(
+        86400.0, gt=0, description="a stamp further than this ahead of this machine's clock is refused (it could "
+        "otherwise hold its key shut until restart), s")
+
+
 class MacrolocConfig(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="MACROLOC_", env_nested_delimiter="__", extra="forbid")
 
@@ -212,6 +241,7 @@ class MacrolocConfig(BaseSettings):
     graph: GraphConfig = Field(default_factory=lambda: GraphConfig())
     ros: RosConfig = Field(default_factory=lambda: RosConfig())
     px4: Px4Config = Field(default_factory=lambda: Px4Config())
+    inputs: InputsConfig = Field(default_factory=lambda: InputsConfig())
 
     @classmethod
     def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,  # noqa: ANN001, ANN206

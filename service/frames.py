@@ -85,10 +85,15 @@ class PerceptionPipeline:
         self.points_body: np.ndarray | None = None  # the last frame's depth points, when it measured them
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
+        """Frames come checked (service.inputs: sizes from the headers, equal left and right and camera info);
+        a frame without camera info cannot be perceived and gives no sightings."""
         from perception.calib import StereoRig
         from perception.pipeline import StereoPair
 
         info = frame.info
+        if not frame.HasField("info") or info.fx <= 0 or info.baseline_m <= 0:
+            self.points_body = None
+            return []
         left, right = decode_image(frame.left), decode_image(frame.right)
         rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam

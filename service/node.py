@@ -23,10 +23,20 @@ import zenoh
 
 from graph.geo import GeoReference
 from graph.localizer import Estimate
-from service.backend import STATUS_TO_WIRE, LocalizerBackend, pose_message
+from service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
 from service.frames import FramePipeline, NullPipeline
 from service.health import DropCounter, LatencyWindow, RateMeter
-from service.inputs import GoalIn, ImuIn, InputParser, Observation, ObservationsIn, OdometryIn, StereoIn
+from service.inputs import (
+    ClockReset,
+    GoalIn,
+    ImuIn,
+    InputLimits,
+    InputParser,
+    Observation,
+    ObservationsIn,
+    OdometryIn,
+    StereoIn,
+)
 from service.places import KeyframePlaces, Placed
 from service.planning import GoalSpec, Planner, PlanningError
 from service.recording import matrix_from_pose
@@ -58,6 +68,7 @@ class ServiceParams:
     drain_timeout_s: float = 15.0  # at stop, the queued events get this long; then the map is saved and we exit
     lockstep: bool = False  # inputs handled in the order sent (one FIFO intake, nothing dropped), replans first
     geo: GeoReference | None = None  # the model's geo-reference: poses also in ENU and WGS84
+    limits: InputLimits = field(default_factory=InputLimits)  # what the input keys take (service.inputs)
 
 
 class LocalizationService:
@@ -81,8 +92,9 @@ class LocalizationService:
         self.places = KeyframePlaces(backend.restored, keep_views=True)  # place recognition on stereo frames
         self.keys = Keys(params.vehicle)
         self.drops = DropCounter()
-        self.parser = InputParser(params.cameras, self.drops)
         self.queue = WorkQueue(params.queue_size)
+        self.parser = InputParser(params.cameras, self.drops, params.limits,
+                                  on_clock_reset=lambda key, stamp_ns: self.queue.put(ClockReset(key, stamp_ns), False))
         self.rates = {name: RateMeter() for name in ("stereo", "imu", "odometry", "observations", "goal", "pose")}
         self.latency = {name: LatencyWindow() for name in ("frame_to_pose", "odometry_to_pose", "keyframe")}
         self.ready = threading.Event()  # everything declared: inputs are being taken
@@ -203,7 +215,7 @@ class LocalizationService:
         """Handle events until stopped and the queue is empty (the drain)."""
         handlers: dict[type, Callable[[Any], None]] = {
             OdometryIn: self._on_odometry, ObservationsIn: self._on_observations, StereoIn: self._on_stereo,
-            ImuIn: self._on_imu, GoalIn: self._on_goal}
+            ImuIn: self._on_imu, GoalIn: self._on_goal, ClockReset: self._on_clock_reset}
         while True:
             self._worker_beat_s = time.monotonic()
             event = self.queue.get(timeout_s=0.1)
@@ -219,6 +231,15 @@ class LocalizationService:
         self._worker_done.set()
 
     # --- events -------------------------------------------------------------------------------------------------
+
+    def _on_clock_reset(self, ev: ClockReset) -> None:
+        """A key's stamps restarted from a new time base: poses go out again from the new stamps on, and the
+        backend forgets what it keeps by stamp (its odometry buffer, pending sightings)."""
+        if ev.stamp_ns < self._last_pose_ns:
+            log.warning("clock reset on %s: poses restart from stamp %d ns", ev.key, ev.stamp_ns)
+            self._last_pose_ns = -1
+            with self._lock:
+                self.backend.new_time_base()
 
     def _on_imu(self, ev: ImuIn) -> None:
         with self._lock:
@@ -326,12 +347,21 @@ class LocalizationService:
         """Publish the estimate unless a newer one already went out (keys arrive through separate channels)."""
         if est.stamp_ns < self._last_pose_ns:
             return
+        est = self._plausible(est)
         self._last_pose_ns = est.stamp_ns
         msg = pose_message(est, geo=self.params.geo)
         msg.header.seq = self.rates["pose"].total
         self._pubs["pose"].put(msg.SerializeToString())
         self.vehicle_out.pose(est)
         self.rates["pose"].tick()
+
+    def _plausible(self, est: Estimate) -> Estimate:
+        """The estimate, or LOST without a pose where it is implausible (`backend.plausible`): no garbage pose
+        goes out, least of all as LOCALIZED (counted as pose/implausible)."""
+        if plausible(est, self.params.limits):
+            return est
+        self.drops.drop("pose/implausible", f"{est.status} pose withheld")
+        return Estimate(est.stamp_ns, "lost", np.eye(4))
 
     def _maybe_replan(self, est: Estimate) -> None:
         if self._goal is None or est.T_cad_body is None or est.status not in ("localized", "degraded"):

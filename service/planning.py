@@ -187,6 +187,8 @@ class Planner:
         self.flight_height_m = flight_height_m
         self.goals = GoalResolver(model, solids.spaces)
         self._grids: dict[float, tuple[OccupancyGrid, ObstacleLayer]] = {}
+        v = solids.vertices_cad
+        self._box_cad = (v.min(axis=0), v.max(axis=0)) if len(v) else None  # the solids' box, CAD frame, m
 
     @classmethod
     def for_building(cls, path: Path, cell_m: float, vehicle_radius_m: float, flight_height_m: float) -> Planner:
@@ -194,6 +196,14 @@ class Planner:
         from service.planning_grid import load_solids
 
         return cls(load_building(path), load_solids(Path(path)), cell_m, vehicle_radius_m, flight_height_m)
+
+    def inside(self, xyz_cad: np.ndarray, margin_m: float = 1.0) -> bool:
+        """True when the CAD point (3,) is finite and within the model's solids' box grown by margin_m."""
+        xyz = np.asarray(xyz_cad, float)
+        if not np.isfinite(xyz).all() or self._box_cad is None:
+            return bool(np.isfinite(xyz).all())
+        lo, hi = self._box_cad
+        return bool(((xyz >= lo - margin_m) & (xyz <= hi + margin_m)).all())
 
     def floor_z(self, z_cad: float) -> float:
         """Elevation (CAD z, m) of the storey the point at height z_cad is in (the highest floor below it)."""
@@ -230,8 +240,14 @@ class Planner:
     def plan(self, start_cad: np.ndarray, goal: GoalSpec) -> Plan:
         """Waypoints from start_cad (3,) to the goal, at flight height over the start's storey, CAD frame."""
         start_cad = np.asarray(start_cad, float)
+        if not self.inside(start_cad):
+            raise PlanningError(f"start {np.round(start_cad, 1).tolist()} lies outside the building model")
         target_cad, description = self.resolve(goal, start_cad)
+        if not self.inside(target_cad):
+            raise PlanningError(f"goal {np.round(target_cad, 1).tolist()} lies outside the building model")
         grid, free = self.free_cells(start_cad[2])
+        if not grid.contains(target_cad):
+            raise PlanningError(f"goal {np.round(target_cad, 1).tolist()} lies outside this storey's plan")
         start_rc = nearest_free(free, grid.cell_of(start_cad))
         goal_rc = nearest_free(free, grid.cell_of(target_cad))
         if start_rc is None or goal_rc is None:

@@ -196,6 +196,15 @@ class OccupancyGrid:
         h, w = self.shape
         return int(np.clip(row, 0, h - 1)), int(np.clip(col, 0, w - 1))
 
+    def contains(self, xy_cad: np.ndarray) -> bool:
+        """True when the CAD point (x, y) is finite and on the grid (not clipped into it)."""
+        xy = np.asarray(xy_cad, float)[:2]
+        if not np.isfinite(xy).all():
+            return False
+        h, w = self.shape
+        extent_xy = np.array([w, h], float) * self.cell_m
+        return bool(((xy >= self.origin_xy_cad) & (xy < self.origin_xy_cad + extent_xy)).all())
+
     def centre_cad(self, cells_rc: np.ndarray) -> np.ndarray:
         """(N, 2) rows/cols -> (N, 3) CAD points at cell centres, z = z_cad."""
         rc = np.asarray(cells_rc, float).reshape(-1, 2)

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from graph.errors import UserInputError
+from perception.image_header import DEFAULT_MAX_PIXELS as DEFAULT_MAX_IMAGE_PIXELS
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
@@ -102,11 +103,22 @@ def encode_image(image: np.ndarray, encoding: str = "png", png_level: int = 1, j
     raise ValueError(f"unknown image encoding {encoding!r} (png, jpeg, raw)")
 
 
-def decode_image(image: pb.Image) -> np.ndarray:
-    """A wire Image as numpy: (H, W, 3) uint8 BGR, (H, W) uint8 mono, or (H, W) float32 metres for depth."""
+def decode_image(image: pb.Image, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
+    """A wire Image as numpy: (H, W, 3) uint8 BGR, (H, W) uint8 mono, or (H, W) float32 metres for depth.
+
+    Nothing is decoded that is larger than `max_pixels` or whose size differs from the declared one: raw data
+    must hold exactly the declared pixels, and a PNG/JPEG's header (read first, perception.image_header) must
+    declare them; UserInputError otherwise (a recording's image, or the service's after its input checks)."""
     import cv2
 
+    from perception.image_header import ImageHeaderError, check_encoded
+
     h, w = image.height, image.width
+    if not (w > 0 and h > 0 and w * h <= max_pixels):
+        raise UserInputError(f"image of {w}x{h} pixels declared: not positive or over the cap of {max_pixels}")
+    raw_bytes = {pb.Image.RAW_DEPTH_F32: 4, pb.Image.RAW_BGR8: 3, pb.Image.RAW_MONO8: 1}.get(image.encoding)
+    if raw_bytes is not None and len(image.data) != w * h * raw_bytes:
+        raise UserInputError(f"raw image of {len(image.data)} bytes declared {w}x{h} pixels")
     if image.encoding == pb.Image.RAW_DEPTH_F32:
         return np.frombuffer(image.data, dtype="<f4").reshape(h, w).astype(np.float32)
     if image.encoding == pb.Image.RAW_BGR8:
@@ -114,8 +126,12 @@ def decode_image(image: pb.Image) -> np.ndarray:
     if image.encoding == pb.Image.RAW_MONO8:
         return np.frombuffer(image.data, dtype=np.uint8).reshape(h, w)
     if image.encoding in (pb.Image.PNG, pb.Image.JPEG):
+        try:
+            check_encoded(image.data, max_pixels, (w, h))
+        except ImageHeaderError as exc:
+            raise UserInputError(f"recorded image refused before decoding: {exc}") from None
         out = cv2.imdecode(np.frombuffer(image.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-        if out is None:
+        if out is None or out.shape[:2] != (h, w):
             raise UserInputError("recorded image cannot be decoded")
         return out
     raise UserInputError(f"recorded image has unsupported encoding {image.encoding}")

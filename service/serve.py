@@ -65,6 +65,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     from graph.bim import load_building
     from graph.geo import read_geo_reference
     from service.backend import BackendParams, LocalizerBackend
+    from service.inputs import limits_from_config
     from service.planning import Planner
     from service.replay import settings_from_config
 
@@ -94,7 +95,8 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
                            status_period_s=s.status_period_s, save_period_s=s.save_period_s,
                            replan_period_s=p.replan_period_s, stall_after_s=s.stall_after_s,
-                           drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep, geo=geo)
+                           drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep, geo=geo,
+                           limits=limits_from_config(cfg.inputs, model))
     vehicle_out, ros_inputs = make_vehicle_io(cfg, session, geo.T_enu_cad() if geo and geo.north_given else None)
     return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), vehicle_out, ros_inputs,
                                notifier)

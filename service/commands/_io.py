@@ -19,6 +19,50 @@ def existing_file(path: Path, what: str) -> Path:
     return path
 
 
+def read_image(path: Path, what: str, flags: int, max_pixels: int | None = None) -> Any:
+    """An image file as numpy (cv2.imdecode `flags`), its size read from the header first: a file that
+    declares more than `max_pixels` (default: the config's inputs.max_image_pixels) pixels, or whose header
+    cannot be read, is refused (UserInputError) before anything is decoded. PNG and JPEG headers are parsed
+    here (perception.image_header); other formats are sized by Pillow, which reads only the header."""
+    import cv2
+    import numpy as np
+
+    from perception.image_header import ImageHeaderError, check_encoded, encoded_size
+
+    if max_pixels is None:
+        from service.config import load_config
+
+        max_pixels = load_config().inputs.max_image_pixels
+    data = existing_file(path, what).read_bytes()
+    try:
+        if encoded_size(data) is None:
+            _check_with_pillow(path, max_pixels)
+        else:
+            check_encoded(data, max_pixels)
+    except ImageHeaderError as exc:
+        raise UserInputError(f"{what} {path} refused before decoding: {exc}") from None
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    if image is None:
+        raise UserInputError(f"cannot read {what} (not a supported image file): {path}")
+    return image
+
+
+def _check_with_pillow(path: Path, max_pixels: int) -> None:
+    from PIL import Image, UnidentifiedImageError
+
+    from perception.image_header import ImageHeaderError
+
+    try:
+        with Image.open(path) as image:  # lazy: the header only
+            width, height = image.size
+    except Image.DecompressionBombError as exc:
+        raise ImageHeaderError(str(exc)) from None
+    except (UnidentifiedImageError, OSError, ValueError):
+        raise ImageHeaderError("not an image file whose header can be read") from None
+    if width * height > max_pixels:
+        raise ImageHeaderError(f"header says {width}x{height} pixels, more than the cap of {max_pixels}")
+
+
 MAX_JSON_BYTES = 64 * 2**20  # a request or a config, not a data set: bigger files are refused before reading
 
 

@@ -23,17 +23,14 @@ def register(app: typer.Typer) -> None:
         """
         import cv2
 
-        from graph.errors import UserInputError
         from perception.detector import DEFAULT_MODEL, Detector
         from perception.draw import draw_detections
-        from service.commands._io import existing_file, print_json
+        from service.commands._io import existing_file, print_json, read_image
 
         model_path = existing_file(model or DEFAULT_MODEL, "detector model")
         loaded = []
         for path in images:
-            image = cv2.imread(str(existing_file(path, "image")), cv2.IMREAD_COLOR)
-            if image is None:
-                raise UserInputError(f"cannot read image (not a supported image file): {path}")
+            image = read_image(path, "image", cv2.IMREAD_COLOR)
             loaded.append((path, image))
         detector = Detector(model_path)
         results = []

@@ -34,14 +34,12 @@ def register(app: typer.Typer) -> None:
         from perception.detector import DEFAULT_MODEL
         from perception.draw import draw_features
         from perception.pipeline import Perception, StereoPair
-        from service.commands._io import existing_file, print_json
+        from service.commands._io import existing_file, print_json, read_image
 
         rig = read_stereo_rig(calib_left, calib_right)
         images = []
         for path, what in ((left, "left image"), (right, "right image")):
-            image = cv2.imread(str(existing_file(path, what)), cv2.IMREAD_UNCHANGED)
-            if image is None:
-                raise UserInputError(f"cannot read {what}: {path}")
+            image = read_image(path, what, cv2.IMREAD_UNCHANGED)
             if image.shape[:2] != (rig.height_px, rig.width_px):
                 raise UserInputError(f"{what} is {image.shape[1]}x{image.shape[0]}, calibration says "
                                      f"{rig.width_px}x{rig.height_px}")

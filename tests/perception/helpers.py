@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import struct
+import zlib
+
 import numpy as np
 
 from perception.calib import StereoRig
@@ -66,3 +69,24 @@ def door_pair(depth_m: float, door_wh_m: tuple[float, float] = (0.9, 2.0), seed:
     right = cv2.warpAffine(wide, M, (wide.shape[1], wide.shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
     box = (float(u[0]) - 6, float(v[0]) - 5, float(u[1]) + 5, float(v[2]) + 6)
     return wide[:, : RIG.width_px].copy(), right[:, : RIG.width_px].copy(), corners, box
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+
+def png_bomb(width: int, height: int, rows_per_block: int = 100) -> bytes:
+    """A valid mono 8-bit PNG of width x height zero pixels, crafted without compressing them all: one block of
+    rows is deflated once with a full flush (which makes the next identical block compress to identical bytes)
+    and repeated; the zlib trailer's Adler-32 of n zero bytes is (n mod 65521) << 16 | 1. 20000 x 20000 gives
+    ~390 KB in ~20 ms (decoded: 400 MB)."""
+    assert height % rows_per_block == 0
+    block = bytes((width + 1) * rows_per_block)  # each row: filter byte 0, then the pixels
+    deflate = zlib.compressobj(9)
+    first = deflate.compress(block) + deflate.flush(zlib.Z_FULL_FLUSH)
+    again = deflate.compress(block) + deflate.flush(zlib.Z_FULL_FLUSH)
+    assert first[2:] == again  # after the 2-byte zlib header, every block deflates alike
+    n = (width + 1) * height
+    idat = first[:2] + again * (height // rows_per_block) + b"\x03\x00" + struct.pack(">I", (n % 65521) << 16 | 1)
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)  # 8 bits, greyscale, deflate, no filter, no interlace
+    return b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", idat) + _png_chunk(b"IEND", b"")

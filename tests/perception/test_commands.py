@@ -1,6 +1,7 @@
 """`macroloc detect` and `macroloc perceive`: the contract's JSON, and one clean line + exit 2 for bad input."""
 
 import json
+import struct
 from pathlib import Path
 
 import cv2
@@ -9,6 +10,7 @@ import pytest
 
 from service.cli import main
 from tests.conftest import shared_data
+from tests.perception.helpers import png_bomb
 
 
 def _run(capsys, argv):
@@ -31,13 +33,27 @@ def test_detect_json_and_plot(capsys, tmp_path: Path):
     assert (tmp_path / "img_10_detect.jpg").exists()
 
 
-@pytest.mark.parametrize("make", ["missing", "not_an_image"])
+def _bmp_header(width: int, height: int) -> bytes:
+    """A BMP's file and info headers (8-bit) without its pixels: Pillow sizes it from these alone."""
+    return b"BM" + struct.pack("<IHHI", 54, 0, 0, 54) + struct.pack("<IiiHHIIiiII", 40, width, height, 1, 8, 0, 0,
+                                                                     0, 0, 0, 0)
+
+
+@pytest.mark.parametrize("make", ["missing", "not_an_image", "png_bomb", "bmp_bomb"])
 def test_detect_bad_input_is_one_line_and_exit_2(capsys, tmp_path: Path, make: str):
+    """A bomb (a 390 KB PNG of 20000 x 20000 pixels, a BMP header declaring as many) is refused from its
+    header before anything is decoded."""
     path = tmp_path / "x.jpg"
     if make == "not_an_image":
         path.write_text("hello")
+    elif make == "png_bomb":
+        path.write_bytes(png_bomb(20000, 20000))
+    elif make == "bmp_bomb":
+        path.write_bytes(_bmp_header(20000, 20000))
     code, out, err = _run(capsys, ["detect", str(path), "--json"])
     assert code == 2 and out == "" and len(err.strip().splitlines()) == 1
+    if "bomb" in make:
+        assert "refused before decoding" in err, err
 
 
 def _pair_args(folder: Path, frame: str = "50"):
@@ -57,7 +73,7 @@ def test_perceive_json_contract_on_the_real_pair(capsys, tmp_path: Path):
     assert (tmp_path / "p.png").exists()
 
 
-@pytest.mark.parametrize("problem", ["missing_calib", "bad_gravity", "size_mismatch"])
+@pytest.mark.parametrize("problem", ["missing_calib", "bad_gravity", "size_mismatch", "bomb"])
 def test_perceive_bad_input_is_one_line_and_exit_2(capsys, tmp_path: Path, problem: str):
     folder = shared_data("stereo/rtabmap_stereo_rect")
     args = _pair_args(folder)
@@ -65,6 +81,10 @@ def test_perceive_bad_input_is_one_line_and_exit_2(capsys, tmp_path: Path, probl
         args[args.index("--calib-left") + 1] = str(tmp_path / "none.yaml")
     elif problem == "bad_gravity":
         args += ["--gravity", "0,nan,1"]
+    elif problem == "bomb":
+        bomb = tmp_path / "bomb.png"
+        bomb.write_bytes(png_bomb(20000, 20000))
+        args[args.index("--right") + 1] = str(bomb)
     else:
         small = tmp_path / "small.png"
         cv2.imwrite(str(small), np.zeros((10, 10), np.uint8))

@@ -60,3 +60,21 @@ def test_sample_depth_takes_the_median_of_valid_neighbours():
     out = sample_depth_m(depth, np.array([[4.0, 2.0], [4.0, 0.0], [50.0, 2.0]]))
     assert out[0] == pytest.approx(2.0)
     assert np.isnan(out[1]) and np.isnan(out[2])
+
+
+def test_the_matcher_is_never_handed_unequal_empty_or_oversized_pairs() -> None:
+    """OpenCV's SGBM crashed the process on a 20000 x 20000 pair (segfault in compute): it is refused first."""
+    from perception.stereo import MAX_PIXELS, SgbmMatcher
+
+    matcher = SgbmMatcher()
+    left = np.zeros((48, 64), np.uint8)
+    for right in (np.zeros((24, 64), np.uint8), np.zeros((48, 32, 3), np.uint8)):
+        with pytest.raises(ValueError, match="not the same size"):
+            matcher.disparity_px(left, right)
+    with pytest.raises(ValueError):
+        matcher.disparity_px(left[:0], left[:0])
+    side = int(np.sqrt(MAX_PIXELS)) + 1
+    tall = np.lib.stride_tricks.as_strided(np.zeros(1, np.uint8), (side, side), (0, 0))  # no memory behind it
+    with pytest.raises(ValueError, match="over"):
+        matcher.disparity_px(tall, tall)
+    assert matcher.disparity_px(left, left).shape == (48, 64)

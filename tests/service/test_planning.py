@@ -95,6 +95,17 @@ def test_unknown_goals_are_refused(planner: Planner) -> None:
         planner.plan(start, GoalSpec(feature_id="nonexistent"))
 
 
+def test_goals_and_starts_outside_the_model_are_refused(planner: Planner) -> None:
+    """A goal at 1e300 m once got an error-free plan (its cell clipped into the grid's corner)."""
+    start = _start(planner, "121")
+    far = np.array([1e300, 0.0, 1.0])
+    for goal, begin in ((far, start), (start + [200.0, 0.0, 0.0], start), (start + [0.0, 0.0, 500.0], start),
+                        (start, far), (start, np.array([np.nan, 0.0, 0.0]))):
+        with pytest.raises(PlanningError, match="outside"):
+            planner.plan(begin, GoalSpec(position_cad=goal))
+    assert len(planner.plan(start, GoalSpec(position_cad=start + [0.5, 0.0, 0.0])).points_cad) >= 2
+
+
 def test_seen_obstacles_change_the_plan(office_path) -> None:
     planner = Planner.for_building(office_path, cell_m=0.2, vehicle_radius_m=0.35, flight_height_m=1.4)
     start = _start(planner, "121")

@@ -225,7 +225,7 @@ def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, st
         poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
         T = fly(s, FakeFlight(office_model, np.eye(4)), start_pose, 20)
         wait_for(lambda: _localized_at(poses, T), what="localized")
-        image = pb.Image(width=8, height=6, encoding=pb.Image.RAW_MONO8, data=bytes(48))
+        image = pb.Image(width=64, height=48, encoding=pb.Image.RAW_MONO8, data=bytes(64 * 48))  # as CameraInfo says
         depth = np.full((48, 64), 1.5, "<f4")
         frame = pb.StereoFrame(camera_id="front", left=image, right=image,
                                depth=pb.Image(width=64, height=48, encoding=pb.Image.RAW_DEPTH_F32,
