@@ -131,6 +131,7 @@ class LocalizerBackend:
         self.restored: StoredMap | None = None  # a saved map's keyframe views and T_cad_map, for place recognition
         self.restored_localized = False  # restarted from a saved map that was localized (see `supersedes_saved`)
         self.carried: list[CarriedLandmark] = []  # a saved map's landmarks, CAD frame, kept in the next saved map
+        self.graph_restarts = 0  # times the pose graph failed (indeterminate, non-finite) and started afresh
 
     @classmethod
     def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None, method: str = "robust",
@@ -262,18 +263,37 @@ class LocalizerBackend:
                   placed: Placed | None = None) -> Estimate:
         self._last_keyframe_ns = stamp_ns
         self._T_last_keyframe = T_odom_body
-        est = self._remember(self.localizer.add_keyframe(
-            stamp_ns, T_odom_body, sightings, self._up_body, with_covariance=self.params.covariance,
-            T_cad_body_placed=None if placed is None else placed.T_cad_body,
-            view=None if placed is None else placed.view))
+        try:
+            est = self.localizer.add_keyframe(
+                stamp_ns, T_odom_body, sightings, self._up_body, with_covariance=self.params.covariance,
+                T_cad_body_placed=None if placed is None else placed.T_cad_body,
+                view=None if placed is None else placed.view)
+        except RuntimeError as exc:  # GTSAM's IndeterminantLinearSystemException and its kin
+            return self._restart_graph(stamp_ns, f"the update failed ({str(exc).splitlines()[0][:120]})")
+        if not _finite(est):
+            return self._restart_graph(stamp_ns, "the estimate is not finite")
+        est = self._remember(est)
         self._keyframe_covariance = est.covariance
         return est
+
+    def _restart_graph(self, stamp_ns: int, why: str) -> Estimate:
+        """The pose graph cannot go on: start a fresh one (this flight's landmarks are lost; the saved map and its
+        place recognition stay), answer LOST for this stamp, and localize again from what comes next."""
+        self.graph_restarts += 1
+        log.error("pose graph restarted (%d so far): %s", self.graph_restarts, why)
+        old = self.localizer
+        self.localizer = Localizer(self.model, PoseGraph(), old.registrar, old.params, self.T_body_cam, old.surfaces)
+        self._last_keyframe_ns, self._T_last_keyframe, self._keyframe_covariance = None, None, None
+        self.last = Estimate(stamp_ns, "lost", np.eye(4))
+        return self.last
 
     def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting] | None = None) -> Estimate:
         """The pose between keyframes; sightings given here enter the graph with the next keyframe."""
         if self.localizer.graph.n_keyframes == 0:
             return self._keyframe(stamp_ns, T_odom_body, sightings or [])
         est = self.localizer.track(stamp_ns, T_odom_body, sightings)
+        if not _finite(est):
+            return self._restart_graph(stamp_ns, "the tracked pose is not finite")
         if est.covariance is None:  # the last keyframe's: the odometry since adds little over a keyframe interval
             est.covariance = self._keyframe_covariance
         return self._remember(est)
@@ -335,6 +355,10 @@ class LocalizerBackend:
         if self.restored is not None and T_cad_map is not None:  # what a later restart can be placed by
             return own + carried_views(own, T_cad_map, self.restored)
         return own
+
+
+def _finite(est: Estimate) -> bool:
+    return all(m is None or bool(np.isfinite(m).all()) for m in (est.T_map_body, est.T_cad_body, est.T_cad_map))
 
 
 @dataclass(frozen=True)

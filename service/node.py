@@ -445,6 +445,7 @@ class LocalizationService:
             msg.dropped[kind] = n
         msg.dropped["queue_overrun"] = self.queue.dropped
         msg.dropped["observations/no_odometry"] = self.backend.unmatched
+        msg.dropped["graph/restarted"] = self.backend.graph_restarts
         msg.counts["queued"] = len(self.queue)
         msg.latencies_ms["worker_busy"] = (time.monotonic() - self._worker_beat_s) * 1e3  # > stall_after_s: stalled
         return msg

@@ -1,0 +1,27 @@
+"""service.backend: the pose graph defends itself against an update it cannot survive."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.backend import LocalizerBackend
+from service.inputs import OdometryIn
+from tests.service.helpers import yaw_T
+
+
+def test_an_absurd_odometry_restarts_the_graph_and_poses_stay_finite(duplex_model) -> None:
+    """One odometry sample at x = 1e300 (what an unchecked peer sent) makes GTSAM's system indeterminate: the
+    backend answers LOST for it, starts a fresh graph, and the next samples give finite poses again."""
+    backend = LocalizerBackend.fresh_or_restored(duplex_model, None)
+    stamp = 0
+    for k in range(10):
+        stamp += 100_000_000
+        backend.odometry(OdometryIn(stamp, yaw_T(0.05 * k, np.array([0.1 * k, 0.0, 1.4]))))
+    stamp += 100_000_000
+    bad = backend.odometry(OdometryIn(stamp, yaw_T(0.0, np.array([1e300, 0.0, 1.4]))))
+    assert backend.graph_restarts == 1 and bad.status == "lost"
+    for k in range(10):
+        stamp += 100_000_000
+        est = backend.odometry(OdometryIn(stamp, yaw_T(0.05 * k, np.array([2.0 + 0.1 * k, 0.0, 1.4]))))
+        assert np.isfinite(est.T_map_body).all() and est.status != "lost"
+    assert backend.graph_restarts == 1
