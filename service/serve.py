@@ -105,7 +105,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
 def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,
           on_ready: Callable[[LocalizationService], None] | None = None) -> None:
     """Run the service until SIGTERM/SIGINT (or `stop`); the map is saved on the way out."""
-    from service.zenoh_io import open_session
+    from service.zenoh_io import describe_exposure, open_session, session_config
 
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
@@ -116,6 +116,7 @@ def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,
     (run_dir / "config.resolved.json").write_text(cfg.model_dump_json(indent=2))  # beside the saved map
     with open_session(cfg.zenoh) as session:
         service = build_service(cfg, session, notifier=notifier_from_environment())
+        log.info("zenoh %s session: %s", cfg.zenoh.mode, describe_exposure(session_config(cfg.zenoh)))
         if on_ready is not None:
             threading.Thread(target=lambda: service.ready.wait() and on_ready(service), daemon=True).start()
         service.run(stop)

@@ -152,9 +152,7 @@ def describe_exposure(conf: zenoh.Config) -> str:
 
 
 def open_session(cfg: ZenohConfig) -> zenoh.Session:
-    conf = session_config(cfg)
-    log.info("zenoh %s session: %s", cfg.mode, describe_exposure(conf))
-    return zenoh.open(conf)
+    return zenoh.open(session_config(cfg))
 
 
 def put_message(publisher: Any, message: Any) -> None:
