@@ -143,20 +143,18 @@ class LocalizationService:
             threads.append(threading.Thread(target=self._intake, args=(sub, parse, name, heavy),
                                             name=f"intake-{name}", daemon=True))
         worker = threading.Thread(target=self._work, args=(stop,), name="worker", daemon=True)
-        for t in [*threads, worker]:
+        saver = threading.Thread(target=self._save_periodically, args=(stop,), name="saver", daemon=True)
+        for t in [*threads, worker, saver]:
             t.start()
         log.info("serving vehicle %s on macroloc/%s/** (building %s)", self.params.vehicle, self.params.vehicle,
                  self.params.building)
         self.ready.set()
         self.notifier.ready()
-        last_save = time.monotonic()
         try:
             while not stop.wait(self.params.status_period_s):
                 self._watch_worker()
                 self._publish_status()
                 self._publish_features()
-                if time.monotonic() - last_save >= self.params.save_period_s and self._save(lock_timeout_s=0.2):
-                    last_save = time.monotonic()
         finally:
             self.notifier.stopping()
             log.info("stopping: draining %d queued events", len(self.queue))
@@ -167,6 +165,7 @@ class LocalizationService:
             # bounded so that a stalled worker cannot hold the exit past systemd's TimeoutStopSec (30 s)
             self._worker_done.wait(timeout=self.params.drain_timeout_s)
             worker.join(timeout=1.0)
+            saver.join(timeout=5.0)
             self._save(lock_timeout_s=2.0)
             self._publish_status()
             for q in queryables:
@@ -323,6 +322,11 @@ class LocalizationService:
                                                  float(T_cad_body[2, 3]))
 
     def _on_goal(self, ev: GoalIn) -> None:
+        try:  # a feature or space the model does not have: refused and counted, the current goal is kept
+            self.planner.resolve(ev.goal, np.zeros(3))
+        except PlanningError as exc:
+            self.drops.drop("goal/unknown_target", str(exc)[:80])
+            return
         self._goal = ev
         self._last_plan_ns = None
         log.info("new goal: %s", ev.goal)
@@ -490,6 +494,11 @@ class LocalizationService:
             msg.features.add(type=lm.type, id=lm.id).corners.extend(
                 pb.Vector3(x=c[0], y=c[1], z=c[2]) for c in corners)
         self._pubs["features"].put(msg.SerializeToString())
+
+    def _save_periodically(self, stop: threading.Event) -> None:
+        """Every save_period_s, on its own thread: a slow disk (fsync) never delays status or poses."""
+        while not stop.wait(self.params.save_period_s):
+            self._save(lock_timeout_s=0.2)
 
     def _save(self, lock_timeout_s: float = -1.0) -> bool:
         """Save the map (False when the worker held the lock past `lock_timeout_s`; -1: wait as long as it takes)."""

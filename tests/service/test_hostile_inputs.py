@@ -5,6 +5,7 @@ Run with -s to see the table kind -> sent -> counted -> service state."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -43,9 +44,24 @@ def _imu(stamp_ns: int, accel_z: float, gyro_x: float = 0.0, frame: str = "body"
     return msg.SerializeToString()
 
 
-def _features(n: int, far_m: float = 2.0, stamp_ns: int = 1) -> bytes:
+def _quaternion_odometry(stamp_ns: int, qw: float) -> bytes:
+    msg = pb.Odometry()
+    msg.header.stamp_ns = stamp_ns
+    msg.T_map_body.qw = qw
+    return msg.SerializeToString()
+
+
+def _three_corners() -> bytes:
     msg = pb.ObservedFeatures()
     msg.header.frame_id = "body"
+    msg.header.stamp_ns = 1
+    msg.features.add(type="door").corners.extend(vector3(np.array([2.0, y, 0.0])) for y in (0.0, 0.5, 0.9))
+    return msg.SerializeToString()
+
+
+def _features(n: int, far_m: float = 2.0, stamp_ns: int = 1, frame: str = "body") -> bytes:
+    msg = pb.ObservedFeatures()
+    msg.header.frame_id = frame
     msg.header.stamp_ns = stamp_ns
     for _ in range(n):
         msg.features.add(type="door").corners.extend(
@@ -83,6 +99,26 @@ def hostile() -> list[tuple[str, str, str, list[bytes]]]:
         ("300 features in one message", "observations", "observations/too_many", [_features(300)]),
         ("a door 1e6 m away", "observations", "observations/out_of_bounds",  # its stamp as the flight's then
          [_features(1, 1e6, stamp_ns=2 * 10**9 + 17 * 10**8 + 1)]),
+        ("garbage bytes on the stereo key", "stereo", "stereo/not_protobuf", [b"\xff\xff\xff\xff"]),
+        ("a camera the service does not know", "stereo", "stereo/unknown_camera",
+         [pb.StereoFrame(camera_id="rear", left=small, right=small).SerializeToString()]),
+        ("a depth image of another size", "stereo", "stereo/bad_depth",
+         [pb.StereoFrame(camera_id="front", left=small, right=small, info=pb.CameraInfo(
+             width=64, height=48, fx=480.0, fy=480.0, cx=32.0, cy=24.0, baseline_m=0.12),
+             depth=pb.Image(width=8, height=6, encoding=pb.Image.RAW_DEPTH_F32, data=bytes(8 * 6 * 4)))
+          .SerializeToString()]),
+        ("odometry with a quaternion of norm 2", "odometry", "odometry/nan", [_quaternion_odometry(s, 2.0)]),
+        ("imu gyro nan", "imu", "imu/nan", [_imu(s, 9.81, gyro_x=float("nan"))]),
+        ("imu gyro 1e6 rad/s", "imu", "imu/implausible", [_imu(s, 9.81, gyro_x=1e6)]),
+        ("observations in an unknown frame", "observations", "observations/unknown_frame",
+         [_features(1, frame="world")]),
+        ("a door with three corners", "observations", "observations/bad_shape", [_three_corners()]),
+        ("a goal with no target", "goal", "goal/empty", [pb.Goal().SerializeToString()]),
+        ("a goal naming a feature the model lacks", "goal", "goal/unknown_target",
+         [pb.Goal(feature_id="no-such-door").SerializeToString()]),
+        ("a goal naming a space the model lacks", "goal", "goal/unknown_target",
+         [pb.Goal(space_name="Room 9999").SerializeToString()]),
+        ("garbage bytes on the observations key", "observations", "observations/not_protobuf", [b"\x0a\xff"]),
     ]
 
 
@@ -113,6 +149,9 @@ def test_hostile_input_is_counted_and_the_service_keeps_localizing(perceiving_co
     with running_service(cfg) as service, client(port) as s:
         poses = Collector(s, f"macroloc/{VEHICLE}/pose", pb.PoseEstimate)
         diagnostics = Collector(s, f"macroloc/{VEHICLE}/diagnostics", pb.Diagnostics)
+        status_at: list[float] = []
+        status_sub = s.declare_subscriber(f"macroloc/{VEHICLE}/status", lambda _: status_at.append(time.monotonic()))
+        answer_s: list[float] = []
         flight = FakeFlight(office_model, yaw_T(0.7, np.array([3.0, -2.0, 0.1])))
         T = fly(s, flight, start_pose, 30)
         wait_for(lambda: _localized_at(poses, T), what="a localized pose near the truth")
@@ -123,8 +162,10 @@ def test_hostile_input_is_counted_and_the_service_keeps_localizing(perceiving_co
                 s.put(f"macroloc/{VEHICLE}/{key}", payload)
             wait_for(lambda: counts().get(kind, 0) >= before + len(payloads), what=f"{name} counted")  # noqa: B023
             n = len(poses.items)
+            t0 = time.monotonic()
             T = fly(s, flight, T, 2, first_stamp_ns=len(rows) * 10**8 + 10**9 * 2)
-            wait_for(lambda: len(poses.items) >= n + 2, what=f"poses after {name}")  # noqa: B023
+            wait_for(lambda: len(poses.items) >= n + 2, 5.0, f"poses within 5 s after {name}")  # noqa: B023
+            answer_s.append(time.monotonic() - t0)
             rows.append((name, len(payloads), counts()[kind] - before, pb.PoseEstimate.Status.Name(
                 poses.last().status)))
         frames_before = service.rates["stereo"].total  # type: ignore[attr-defined]
@@ -146,6 +187,11 @@ def test_hostile_input_is_counted_and_the_service_keeps_localizing(perceiving_co
             if p.status == pb.PoseEstimate.LOCALIZED:
                 xyz = np.array([p.T_cad_body.position.x, p.T_cad_body.position.y, p.T_cad_body.position.z])
                 assert limits.inside_cad(xyz), xyz
+        status_sub.undeclare()
+    gaps = np.diff(status_at)
+    print(f"\nvalid input -> poses after each kind: max {max(answer_s):.2f} s; status every "
+          f"{cfg.service.status_period_s} s: {len(status_at)} received, largest gap {gaps.max():.2f} s")
+    assert gaps.max() < 5 * cfg.service.status_period_s, "status stopped during the hostile input"
     print("\n| kind | sent | counted | service state after |\n|---|---|---|---|")
     for name, sent, counted, state in rows:
         print(f"| {name} | {sent} | {counted} | up, {state} |")
