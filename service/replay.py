@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
@@ -26,6 +27,7 @@ from graph.rigid import rotation_angle_deg
 from graph.surfaces import SurfaceIndex
 from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from service.places import KeyframePlaces, Placed
+from service.recording import FlightFrame
 from service.replay_sources import FrameInput, ObservationSource, TruthSource
 
 if TYPE_CHECKING:
@@ -50,6 +52,7 @@ class ReplayTrace:
     """Per-frame record: stamps (s from the first frame), truth and estimates (NaN before localization)."""
 
     t_s: list[float] = field(default_factory=list)
+    stamp_ns: list[int] = field(default_factory=list)  # the frames' own stamps
     status: list[str] = field(default_factory=list)
     T_true: list[np.ndarray] = field(default_factory=list)
     T_est: list[np.ndarray | None] = field(default_factory=list)
@@ -124,13 +127,14 @@ def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey
     return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam, surfaces=surfaces)
 
 
-def replay(flight: Path, model: BuildingModel, source: ObservationSource | None = None,
+def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: ObservationSource | None = None,
            stored: StoredMap | None = None, storey_hint: str | None = None, policy: KeyframePolicy | None = None,
            sink: FrameSink = null_sink, params: LocalizerParams | None = None,
            isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None,
            places: KeyframePlaces | None = None) -> ReplayResult:
-    """Run `flight` (MCAP) through a new localizer in `model`; see module doc. `places`: place recognition at
-    keyframes (service.places: views kept for the saved map, keyframes placed in the stored map's views)."""
+    """Run `flight` (a macroloc MCAP recording, or its frames from any reader: service.ros_bag.open_flight) through
+    a new localizer in `model`; see module doc. `places`: place recognition at keyframes (service.places: views
+    kept for the saved map, keyframes placed in the stored map's views)."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
     from service.recording import matrix_from_pose, read_flight
@@ -144,7 +148,7 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
     busy_s = 0.0
     busy_at_localized: float | None = None
     dead_reckoned_s = 0.0  # since the last keyframe
-    for frame in read_flight(flight):
+    for frame in (read_flight(flight) if isinstance(flight, Path) else flight):
         start = time.perf_counter()
         inputs: FrameInput = source(frame)
         if localizer is None:
@@ -168,12 +172,13 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
         if busy_at_localized is None and est.status == "localized":
             busy_at_localized = busy_s
         sink(est)
+        trace.stamp_ns.append(frame.stamp_ns)
         _record(trace, t_s, est, matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None,
                 is_kf, len(inputs.sightings))
     if localizer is None:
         from graph.errors import UserInputError
 
-        raise UserInputError(f"recording {flight} holds no stereo frames")
+        raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
     return _score(trace, localizer, busy_s, busy_at_localized)
 
 

@@ -1,5 +1,6 @@
-"""`macroloc replay FLIGHT.mcap --building BUILDING --json [--report DIR] [--observations truth|perception]
-[--map STORED] [--save-map OUT]`: the whole chain offline, as fast as it runs, scored against ground truth."""
+"""`macroloc replay FLIGHT --building BUILDING --json [--report DIR] [--observations truth|perception]
+[--map STORED] [--save-map OUT] [--topic NAME=/ros/topic ...]`: the whole chain offline, as fast as it runs, scored
+against ground truth. FLIGHT is a macroloc recording (MCAP) or a ROS 2 bag (service.ros_bag)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,14 @@ import typer
 def register(app: typer.Typer) -> None:
     @app.command()
     def replay(
-        flight: Path = typer.Argument(..., help="Recorded flight (MCAP: /stereo, /imu, /ground_truth)."),
+        flight: Path = typer.Argument(..., help="Recorded flight: a macroloc MCAP (/stereo, /imu, /ground_truth) "
+                                      "or a ROS 2 bag (a folder with metadata.yaml and .db3 or .mcap, or one "
+                                      ".mcap of ROS 2 messages)."),
+        topic: list[str] = typer.Option(None, "--topic", help="ROS 2 bags: NAME=/ros/topic, NAME one of left, "
+                                        "right (Image or CompressedImage), imu (Imu), left_info, right_info "
+                                        "(CameraInfo), odometry (Odometry), truth (PoseStamped of the body in the "
+                                        "CAD frame); repeatable. Default: the common names (/cam0/image_raw, "
+                                        "/camera/left/image_raw, /imu0, /imu, ...)."),
         building: Path = typer.Option(..., "--building", "-b", help="IFC file (or mesh) of the building flown in."),
         observations: str = typer.Option("truth", "--observations", help="truth: ground-truth doors/windows and "
                                          "odometry with realistic noise and drift (the graph alone); truth-vo: the "
@@ -62,16 +70,26 @@ def register(app: typer.Typer) -> None:
             TruthSource,
         )
 
-        existing_file(flight, "recording")
+        from service.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
+
+        if not flight.exists():
+            raise UserInputError(f"recording not found: {flight}")
+        is_bag = is_ros_bag(flight)
+        if not is_bag:
+            existing_file(flight, "recording")
         if observations not in ("truth", "truth-vo", "perception"):
             raise UserInputError(f"--observations must be truth, truth-vo or perception, not {observations!r}")
+        if is_bag and observations != "perception":
+            raise UserInputError("a ROS 2 bag holds no ground-truth doors and windows: use --observations perception")
+        cfg = load_config(config)
+        bag_stats = BagStats()
+        frames = open_flight(flight, RosTopics.parse(topic or []), stats=bag_stats)
         if over_zenoh:  # the service perceives the frames itself unless truth observations are sent along
             from service.replay_zenoh import replay_command
 
-            replay_command(flight, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
+            replay_command(frames, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
                            vehicle, speed, json_out)
             return
-        cfg = load_config(config)
         detector = cfg.perception.detector_model
         if observations == "perception" and detector is not None:
             existing_file(detector, "detector model (perception.detector_model)")
@@ -90,7 +108,7 @@ def register(app: typer.Typer) -> None:
         from service.places import KeyframePlaces
 
         places = KeyframePlaces(stored, keep_views=save_map is not None)
-        result = run_replay(flight, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
+        result = run_replay(frames, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
                             isam=isam, surfaces=surfaces, places=places)
         if save_map is not None:
             new_map = result.localizer.stored_map()
@@ -101,8 +119,10 @@ def register(app: typer.Typer) -> None:
             from service.plots import load_wall_mesh
             from service.replay_report import write_report
 
-            write_report(result, model, report, load_wall_mesh(building), stored)
+            write_report(result, model, report, load_wall_mesh(building), stored, config=cfg.model_dump(mode="json"))
         doc = result.to_json()
+        if is_bag:
+            doc["bag"] = bag_stats.to_json()
         if json_out:
             print_json(doc)
             return
