@@ -82,8 +82,8 @@ def _observations(stamp_ns: int, sightings: list) -> pb.ObservedFeatures:  # noq
     return msg
 
 
-def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConfig, vehicle: str, source: ObservationSource | None,
-                      speed: float = 1.0, wait_s: float = 30.0) -> ZenohReplayResult:
+def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConfig, vehicle: str,
+                      source: ObservationSource | None, speed: float = 1.0, wait_s: float = 30.0) -> ZenohReplayResult:
     """Publish the recording (a macroloc MCAP, or its frames from any reader: service.ros_bag.open_flight) to the
     service of `vehicle` and score what it sends back (see module doc)."""
     keys = Keys(vehicle)
@@ -144,8 +144,8 @@ def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, fl
             result.ape_rmse_m = round(float(np.sqrt(np.mean(np.square(errors)))), 4)
 
 
-def replay_command(flight: Path | Iterable[FlightFrame], source: ObservationSource | None, connect: list[str], vehicle: str, speed: float,
-                   json_out: bool) -> None:
+def replay_command(flight: Path | Iterable[FlightFrame], source: ObservationSource | None, connect: list[str],
+                   vehicle: str, speed: float, json_out: bool) -> None:
     """The CLI's `--over-zenoh` branch: a client-less peer connecting to the service's endpoint(s)."""
     import json
     import sys

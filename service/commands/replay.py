@@ -69,7 +69,6 @@ def register(app: typer.Typer) -> None:
             TruthFeaturesWithVisualOdometry,
             TruthSource,
         )
-
         from service.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
 
         if not flight.exists():

@@ -1,0 +1,152 @@
+"""ROS 2 bags as replay sources (service/ros_bag.py, service/ros_in.py): a simulated flight written as a bag with
+rosbags (`.db3` and `.mcap` storage, non-default topic names, Image and CompressedImage) reads back as the native
+recording's frames; a distorted bag is rectified back to the pinhole images; missing topics are one clean line."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.cli import main
+from service.recording import FlightFrame, decode_image, read_flight
+from service.ros_bag import BagStats, read_ros_bag
+from service.ros_bag_write import BagTopics, write_ros_bag
+
+TOPICS = BagTopics(left="/drone/stereo/left/image", right="/drone/stereo/right/image",
+                   left_info="/drone/stereo/left/info", right_info="/drone/stereo/right/info", imu="/drone/imu",
+                   truth="/mocap/body_in_cad")
+GIVEN = {"left": TOPICS.left, "right": TOPICS.right, "imu": TOPICS.imu, "left_info": TOPICS.left_info,
+         "right_info": TOPICS.right_info, "truth": TOPICS.truth}
+DISTORTION = np.array([-0.28, 0.09, 0.0008, -0.0005, -0.012])  # k1, k2, p1, p2, k3: a wide-angle lens's barrel
+
+
+@pytest.fixture(scope="module")
+def short_flight(tmp_path_factory: pytest.TempPathFactory, fzk_path: Path) -> Path:
+    """2 s of a rendered flight through FZK-Haus."""
+    import contextlib
+    import io
+
+    out = tmp_path_factory.mktemp("short") / "fzk.mcap"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["simulate", str(fzk_path), "--out", str(out), "--duration", "2", "--seed", "0", "--json"]) == 0
+    return out
+
+
+def _same_frames(native: list[FlightFrame], bag: list[FlightFrame]) -> None:
+    assert [f.stamp_ns for f in bag] == [f.stamp_ns for f in native]
+    for a, b in zip(native, bag, strict=True):
+        assert np.array_equal(decode_image(a.stereo.left), decode_image(b.stereo.left))
+        assert np.array_equal(decode_image(a.stereo.right), decode_image(b.stereo.right))
+        assert b.stereo.info == a.stereo.info
+        assert [(s.header.stamp_ns, s.accel_mps2, s.gyro_radps) for s in b.imu] == \
+            [(s.header.stamp_ns, s.accel_mps2, s.gyro_radps) for s in a.imu]
+        assert b.ground_truth is not None and a.ground_truth is not None
+        assert b.ground_truth.T_cad_body == a.ground_truth.T_cad_body
+
+
+@pytest.mark.parametrize(("storage", "compressed", "single_file"), [("sqlite3", False, False),
+                                                                    ("mcap", True, True)])
+def test_a_bag_of_a_simulated_flight_reads_as_its_recording(short_flight: Path, tmp_path: Path, storage: str,
+                                                            compressed: bool, single_file: bool) -> None:
+    bag = write_ros_bag(short_flight, tmp_path / "bag", storage, TOPICS, compressed=compressed)
+    path = next(bag.glob("*.mcap")) if single_file else bag  # one .mcap of ROS 2 messages opens alone
+    stats = BagStats()
+    frames = list(read_ros_bag(path, GIVEN, stats=stats))
+    _same_frames(list(read_flight(short_flight)), frames)
+    assert stats.unpaired_left == stats.unpaired_right == 0
+
+
+def test_images_without_their_partner_are_dropped_and_counted(short_flight: Path, tmp_path: Path) -> None:
+    from rosbags.rosbag2 import Reader, Writer
+
+    full = write_ros_bag(short_flight, tmp_path / "full", "sqlite3", TOPICS)
+    cut = tmp_path / "cut"
+    dropped: list[int] = []
+    with Reader(full) as reader, Writer(cut, version=9) as writer:
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest)
+                 for c in reader.connections}
+        for conn, stamp, raw in reader.messages():
+            if conn.topic == TOPICS.right and len(dropped) < 3 and stamp > 0:
+                dropped.append(stamp)  # the first three right images never arrived
+                continue
+            writer.write(conns[conn.id], stamp, raw)
+    stats = BagStats()
+    frames = list(read_ros_bag(cut, GIVEN, stats=stats))
+    assert len(frames) == len(list(read_flight(short_flight))) - 3
+    assert (stats.unpaired_left, stats.unpaired_right) == (3, 0)
+    assert not {f.stamp_ns for f in frames} & set(dropped)
+
+
+def test_a_distorted_bag_is_rectified_back_to_the_pinhole_images(short_flight: Path, tmp_path: Path) -> None:
+    bag = write_ros_bag(short_flight, tmp_path / "bag", "sqlite3", TOPICS, distortion=DISTORTION, max_frames=5)
+    native = list(read_flight(short_flight))[:5]
+    frames = list(read_ros_bag(bag, GIVEN))
+    assert len(frames) == 5 and frames[0].stereo.info == native[0].stereo.info
+    for a, b in zip(native, frames, strict=True):
+        original = decode_image(a.stereo.left).astype(int)
+        rectified = decode_image(b.stereo.left).astype(int)
+        h, w = original.shape[:2]
+        inner = (slice(h // 8, h - h // 8), slice(w // 8, w - w // 8))  # barrel distortion loses the corners
+        diff = np.abs(rectified[inner] - original[inner])
+        assert np.median(diff) <= 3  # grey levels: two bilinear resamplings of a noisy image
+        assert np.median(np.abs(decode_image(b.stereo.left).astype(int) - np.roll(original, 3, axis=1))[inner]) \
+            > np.median(diff)  # a 3 px shift is worse: the test sees misalignment
+
+
+def test_the_camera_mounting_comes_from_tf_static(short_flight: Path, tmp_path: Path) -> None:
+    from service.recording import matrix_from_pose
+    from service.ros_in import TransformTree
+
+    frames = list(read_ros_bag(write_ros_bag(short_flight, tmp_path / "bag", "sqlite3", TOPICS, max_frames=2),
+                               GIVEN))
+    native = next(iter(read_flight(short_flight)))
+    assert np.allclose(matrix_from_pose(frames[0].stereo.info.T_body_cam), matrix_from_pose(native.stereo.info.T_body_cam))
+
+    class Msg:  # TFMessage-like: base_link -> camera_link -> optical
+        def __init__(self, parent: str, child: str, xyz: tuple[float, float, float], quat_xyzw: tuple) -> None:
+            from types import SimpleNamespace as N
+
+            t, q = N(x=xyz[0], y=xyz[1], z=xyz[2]), N(x=quat_xyzw[0], y=quat_xyzw[1], z=quat_xyzw[2], w=quat_xyzw[3])
+            self.transforms = [N(header=N(frame_id=parent), child_frame_id=child,
+                                 transform=N(translation=t, rotation=q))]
+
+    tree = TransformTree()
+    tree.add(Msg("base_link", "camera_link", (0.1, 0.0, 0.05), (0, 0, 0, 1)))
+    tree.add(Msg("camera_link", "camera_optical", (0.0, 0.03, 0.0), (-0.5, 0.5, -0.5, 0.5)))
+    T = tree.T_a_b("base_link", "camera_optical")
+    assert T is not None and np.allclose(T[:3, 3], [0.1, 0.03, 0.05])
+    assert np.allclose(T[:3, 2], [1, 0, 0])  # the optical z looks along the body's x
+    assert tree.T_a_b("base_link", "elsewhere") is None
+
+
+def test_missing_or_wrong_topics_are_one_line_naming_what_the_bag_holds(short_flight: Path, tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str],
+                                                                      fzk_path: Path) -> None:
+    bag = write_ros_bag(short_flight, tmp_path / "bag", "sqlite3", TOPICS, max_frames=2)
+    base = ["replay", str(bag), "--building", str(fzk_path), "--observations", "perception", "--json"]
+    for extra, says in (([], "no left / right / imu topic found"),
+                        (["--topic", f"left={TOPICS.imu}"], f"--topic left={TOPICS.imu} is of type sensor_msgs/msg/Imu"),
+                        (["--topic", "left=/nope"], "--topic left=/nope is not in the bag"),
+                        (["--topic", "lft=/x"], "--topic takes NAME=/ros/topic")):
+        assert main(base + extra) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and len(err.strip().splitlines()) == 1 and says in err, err
+        if "found" in says or "type" in says:
+            assert f"{TOPICS.left} (sensor_msgs/msg/Image)" in err
+    assert main(["replay", str(bag), "--building", str(fzk_path), "--json"]) == 2  # truth needs truth features
+    assert "--observations perception" in capsys.readouterr().err
+
+
+def test_a_bag_replays_on_the_command_line_with_its_topics(short_flight: Path, tmp_path: Path, fzk_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    bag = write_ros_bag(short_flight, tmp_path / "bag", "mcap", TOPICS, compressed=True, max_frames=12)
+    argv = ["replay", str(bag), "--building", str(fzk_path), "--observations", "perception", "--json"]
+    for name, topic in GIVEN.items():
+        argv += ["--topic", f"{name}={topic}"]
+    assert main(argv) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["frames"] == 12 and doc["bag"]["frames"] == 12 and doc["bag"]["unpaired_left"] == 0
+    assert doc["bag"]["topics"]["truth"] == TOPICS.truth
