@@ -47,6 +47,24 @@ def null_sink(estimate: Estimate) -> None:
     """Receives every estimate and does nothing (a publisher can take its place)."""
 
 
+class FrameRecorder(Protocol):
+    """Keeps each frame with its inputs and estimate (service.foxglove_out.ReplayRecorder), and the end state."""
+
+    def frame(self, frame: FlightFrame, inputs: FrameInput, estimate: Estimate) -> None: ...
+
+    def finish(self, localizer: Localizer) -> None: ...
+
+
+class NullRecorder:
+    """Records nothing."""
+
+    def frame(self, frame: FlightFrame, inputs: FrameInput, estimate: Estimate) -> None:
+        pass
+
+    def finish(self, localizer: Localizer) -> None:
+        pass
+
+
 @dataclass
 class ReplayTrace:
     """Per-frame record: stamps (s from the first frame), truth and estimates (NaN before localization)."""
@@ -131,16 +149,18 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
            stored: StoredMap | None = None, storey_hint: str | None = None, policy: KeyframePolicy | None = None,
            sink: FrameSink = null_sink, params: LocalizerParams | None = None,
            isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None,
-           places: KeyframePlaces | None = None) -> ReplayResult:
+           places: KeyframePlaces | None = None, recorder: FrameRecorder | None = None) -> ReplayResult:
     """Run `flight` (a macroloc MCAP recording, or its frames from any reader: service.ros_bag.open_flight) through
     a new localizer in `model`; see module doc. `places`: place recognition at keyframes (service.places: views
-    kept for the saved map, keyframes placed in the stored map's views)."""
+    kept for the saved map, keyframes placed in the stored map's views). `recorder`: keeps every frame (e.g. for
+    Foxglove: service.foxglove_out.ReplayRecorder)."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
     from service.recording import matrix_from_pose, read_flight
 
     source = source or TruthSource()
     policy = policy or KeyframePolicy()
+    recorder = recorder or NullRecorder()
     trace = ReplayTrace()
     localizer: Localizer | None = None
     T_kf: np.ndarray | None = None
@@ -172,6 +192,7 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
         if busy_at_localized is None and est.status == "localized":
             busy_at_localized = busy_s
         sink(est)
+        recorder.frame(frame, inputs, est)
         trace.stamp_ns.append(frame.stamp_ns)
         _record(trace, t_s, est, matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None,
                 is_kf, len(inputs.sightings))
@@ -179,6 +200,7 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
         from graph.errors import UserInputError
 
         raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
+    recorder.finish(localizer)
     return _score(trace, localizer, busy_s, busy_at_localized)
 
 

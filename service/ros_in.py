@@ -52,7 +52,7 @@ def compressed_image_array(msg: Any) -> np.ndarray:
     if image is None:
         raise UserInputError(f"a compressed image (format {msg.format!r}) cannot be decoded")
     if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
+        image = (image // 256).astype(np.uint8)
     return image[:, :, :3] if image.ndim == 3 else image
 
 
@@ -65,7 +65,7 @@ def imu_message(msg: Any, seq: int = 0) -> pb.Imu:
     """A sensor_msgs/Imu as a wire Imu: specific force (m/s^2) and rate (rad/s), in the IMU's frame taken as body."""
     a, g = msg.linear_acceleration, msg.angular_velocity
     return pb.Imu(header=pb.Header(stamp_ns=stamp_ns(msg.header), frame_id="body", seq=seq),
-                  accel_mps2=vector3([a.x, a.y, a.z]), gyro_radps=vector3([g.x, g.y, g.z]))
+                  accel_mps2=vector3(np.array([a.x, a.y, a.z])), gyro_radps=vector3(np.array([g.x, g.y, g.z])))
 
 
 def pose_message(pose: Any) -> pb.Pose:

@@ -4,6 +4,7 @@ against ground truth. FLIGHT is a macroloc recording (MCAP) or a ROS 2 bag (serv
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import typer
@@ -32,6 +33,10 @@ def register(app: typer.Typer) -> None:
         save_map: Path | None = typer.Option(None, "--save-map", help="Write this flight's map here at the end, "
                                              "with a view (ORB features with stereo depth) every 0.5 m or 15 deg "
                                              "of the flight's keyframes, for place recognition."),
+        out: Path | None = typer.Option(None, "--out", help="Write the replay for Foxglove here (MCAP of "
+                                        "foxglove.* messages: left image with the detections, transforms cad -> map "
+                                        "-> body -> cam, estimate and truth poses, the model's doors, windows and "
+                                        "walls, the landmarks, the status)."),
         report: Path | None = typer.Option(None, "--report", help="Write a top-down picture, per-frame figures "
                                            "and result.json into this folder."),
         storey: str | None = typer.Option(None, "--storey", help="Register against this storey's doors and "
@@ -107,8 +112,15 @@ def register(app: typer.Typer) -> None:
         from service.places import KeyframePlaces
 
         places = KeyframePlaces(stored, keep_views=save_map is not None)
-        result = run_replay(frames, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
-                            isam=isam, surfaces=surfaces, places=places)
+        recorder = None
+        with contextlib.ExitStack() as stack:
+            if out is not None:
+                from service.foxglove_out import FoxgloveWriter, ReplayRecorder
+                from service.plots import load_wall_mesh
+
+                recorder = ReplayRecorder(stack.enter_context(FoxgloveWriter(out)), model, load_wall_mesh(building))
+            result = run_replay(frames, model, source, stored=stored, storey_hint=storey, policy=policy,
+                                params=params, isam=isam, surfaces=surfaces, places=places, recorder=recorder)
         if save_map is not None:
             new_map = result.localizer.stored_map()
             if stored is not None and new_map.T_cad_map is not None:  # the stored map's places this flight missed

@@ -103,7 +103,8 @@ def test_the_camera_mounting_comes_from_tf_static(short_flight: Path, tmp_path: 
     frames = list(read_ros_bag(write_ros_bag(short_flight, tmp_path / "bag", "sqlite3", TOPICS, max_frames=2),
                                GIVEN))
     native = next(iter(read_flight(short_flight)))
-    assert np.allclose(matrix_from_pose(frames[0].stereo.info.T_body_cam), matrix_from_pose(native.stereo.info.T_body_cam))
+    assert np.allclose(matrix_from_pose(frames[0].stereo.info.T_body_cam),
+                       matrix_from_pose(native.stereo.info.T_body_cam))
 
     class Msg:  # TFMessage-like: base_link -> camera_link -> optical
         def __init__(self, parent: str, child: str, xyz: tuple[float, float, float], quat_xyzw: tuple) -> None:
@@ -128,7 +129,8 @@ def test_missing_or_wrong_topics_are_one_line_naming_what_the_bag_holds(short_fl
     bag = write_ros_bag(short_flight, tmp_path / "bag", "sqlite3", TOPICS, max_frames=2)
     base = ["replay", str(bag), "--building", str(fzk_path), "--observations", "perception", "--json"]
     for extra, says in (([], "no left / right / imu topic found"),
-                        (["--topic", f"left={TOPICS.imu}"], f"--topic left={TOPICS.imu} is of type sensor_msgs/msg/Imu"),
+                        (["--topic", f"left={TOPICS.imu}"],
+                         f"--topic left={TOPICS.imu} is of type sensor_msgs/msg/Imu"),
                         (["--topic", "left=/nope"], "--topic left=/nope is not in the bag"),
                         (["--topic", "lft=/x"], "--topic takes NAME=/ros/topic")):
         assert main(base + extra) == 2
@@ -140,13 +142,56 @@ def test_missing_or_wrong_topics_are_one_line_naming_what_the_bag_holds(short_fl
     assert "--observations perception" in capsys.readouterr().err
 
 
-def test_a_bag_replays_on_the_command_line_with_its_topics(short_flight: Path, tmp_path: Path, fzk_path: Path,
-                                                           capsys: pytest.CaptureFixture[str]) -> None:
+FOXGLOVE_CHANNELS = {"/camera/left/image": "foxglove.CompressedImage",
+                     "/camera/left/calibration": "foxglove.CameraCalibration",
+                     "/camera/left/detections": "foxglove.ImageAnnotations", "/tf": "foxglove.FrameTransforms",
+                     "/pose/truth": "foxglove.PoseInFrame", "/model": "foxglove.SceneUpdate",
+                     "/status": "foxglove.Log"}
+
+
+def test_a_bag_replays_on_the_command_line_with_its_topics_for_foxglove(short_flight: Path, tmp_path: Path,
+                                                                        fzk_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
     bag = write_ros_bag(short_flight, tmp_path / "bag", "mcap", TOPICS, compressed=True, max_frames=12)
-    argv = ["replay", str(bag), "--building", str(fzk_path), "--observations", "perception", "--json"]
+    argv = ["replay", str(bag), "--building", str(fzk_path), "--observations", "perception", "--json",
+            "--out", str(tmp_path / "foxglove.mcap"), "--report", str(tmp_path / "report")]
     for name, topic in GIVEN.items():
         argv += ["--topic", f"{name}={topic}"]
     assert main(argv) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["frames"] == 12 and doc["bag"]["frames"] == 12 and doc["bag"]["unpaired_left"] == 0
     assert doc["bag"]["topics"]["truth"] == TOPICS.truth
+    assert len((tmp_path / "report" / "truth_tum.txt").read_text().splitlines()) == 12
+    counts, first_ns = _decode_with_embedded_schemas(tmp_path / "foxglove.mcap")
+    assert {t: n for t, (n, _) in counts.items() if t in FOXGLOVE_CHANNELS} == \
+        {t: counts[t][0] for t in FOXGLOVE_CHANNELS} and all(counts[t][1] == s for t, s in FOXGLOVE_CHANNELS.items())
+    assert counts["/camera/left/image"][0] == counts["/tf"][0] == 12
+    assert first_ns == next(iter(read_flight(short_flight))).stamp_ns  # log times are the flight's stamps
+
+
+def _decode_with_embedded_schemas(path: Path) -> tuple[dict[str, tuple[int, str]], int]:
+    """Every message decoded with nothing but the schema the file embeds (a fresh descriptor pool per schema):
+    {topic: (messages, schema name)} and the first log time."""
+    from google.protobuf.descriptor_pb2 import FileDescriptorSet
+    from google.protobuf.descriptor_pool import DescriptorPool
+    from google.protobuf.message_factory import GetMessageClass
+    from mcap.reader import make_reader
+
+    classes: dict[int, type] = {}
+    counts: dict[str, tuple[int, str]] = {}
+    first_ns = None
+    with open(path, "rb") as fh:
+        for schema, channel, message in make_reader(fh).iter_messages(log_time_order=True):
+            assert schema is not None and schema.encoding == "protobuf" and channel.message_encoding == "protobuf"
+            if schema.id not in classes:
+                pool = DescriptorPool()
+                for fd in FileDescriptorSet.FromString(schema.data).file:
+                    pool.Add(fd)
+                classes[schema.id] = GetMessageClass(pool.FindMessageTypeByName(schema.name))
+            decoded = classes[schema.id].FromString(message.data)
+            assert decoded.SerializeToString() == message.data
+            n, _ = counts.get(channel.topic, (0, ""))
+            counts[channel.topic] = (n + 1, schema.name)
+            first_ns = message.log_time if first_ns is None else first_ns
+    assert first_ns is not None
+    return counts, first_ns
