@@ -87,7 +87,11 @@ def register(app: typer.Typer) -> None:
             raise UserInputError("a ROS 2 bag holds no ground-truth doors and windows: use --observations perception")
         cfg = load_config(config)
         bag_stats = BagStats()
-        frames = open_flight(flight, RosTopics.parse(topic or []), stats=bag_stats)
+        from service.progress import track
+        from service.recording import stereo_frame_count
+
+        frames = track(open_flight(flight, RosTopics.parse(topic or []), stats=bag_stats), f"replay {flight.name}",
+                       total=None if is_bag else stereo_frame_count(flight))
         if over_zenoh:  # the service perceives the frames itself unless truth observations are sent along
             from service.replay_zenoh import replay_command
 
@@ -97,7 +101,10 @@ def register(app: typer.Typer) -> None:
         detector = cfg.perception.detector_model
         if observations == "perception" and detector is not None:
             existing_file(detector, "detector model (perception.detector_model)")
-        model = load_building(building)
+        from service.progress import step
+
+        with step(f"reading {building.name} (its first time: a minute or more, cached after)"):
+            model = load_building(building)
         stored = StoredMap.load(stored_map, model) if stored_map is not None else None
         source: ObservationSource = (TruthSource(seed=seed) if observations == "truth" else
                                      TruthFeaturesWithVisualOdometry(seed=seed) if observations == "truth-vo"
@@ -108,7 +115,8 @@ def register(app: typer.Typer) -> None:
         if cfg.graph.surface_check:
             from service.planning_grid import surfaces_for
 
-            surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
+            with step(f"preparing {building.name}'s surfaces (its first time: minutes, cached after)"):
+                surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
         from service.places import KeyframePlaces
 
         places = KeyframePlaces(stored, keep_views=save_map is not None)

@@ -103,6 +103,7 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
     """
     import cv2
 
+    from service.progress import track
     from service.recording import FlightMetadata, FlightWriter
     from sim.contact_sheet import annotate
     from sim.contact_sheet import contact_sheet as make_sheet
@@ -129,7 +130,7 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
     imu_ns = np.round(imu.stamps_s * 1e9).astype(np.int64)
     try:
         with FlightWriter(out, meta) as writer:
-            for i, t in enumerate(times):
+            for i, t in enumerate(track(times, f"simulate {building.name}", total=len(times))):
                 t0 = time.perf_counter()
                 frame = sim.render_at(i, float(t))
                 render_s += time.perf_counter() - t0
