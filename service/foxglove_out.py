@@ -12,6 +12,8 @@ Channels (log time = the flight's stamp of each message):
                                                         the others faint; the walls cut at the flight's height
   /landmarks                foxglove.SceneUpdate        the flight's landmarks in the CAD frame (end of a replay)
   /status                   foxglove.Log                the localizer's status, at each change (replay)
+A simulated flight (`macroloc simulate`) carries the image, calibration, transform (cad -> body -> cam, its
+truth), truth pose and model channels beside its macroloc ones.
 Frames: "cad" (the model's, the 3D panel's fixed frame), "map" (the flight's odometry frame; its transform from
 "cad" appears once localized), "body", "cam" (optical, x right, y down, z forward).
 """
@@ -19,6 +21,7 @@ Frames: "cad" (the model's, the 3D panel's fixed frame), "map" (the flight's odo
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -62,23 +65,12 @@ def _colour(rgb: tuple[float, float, float], alpha: float) -> Any:
     return Color(r=rgb[0], g=rgb[1], b=rgb[2], a=alpha)
 
 
-class FoxgloveWriter:
-    """An MCAP file of Foxglove messages (see module doc). Use as a context manager."""
+class FoxgloveChannels:
+    """The channels of the module doc, written through `write(topic, message, stamp_ns)` (an MCAP protobuf
+    writer's: a FoxgloveWriter's own file, or a flight recording's, beside its macroloc channels)."""
 
-    def __init__(self, path: Path) -> None:
-        from mcap.writer import CompressionType
-        from mcap_protobuf.writer import Writer
-
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self.path = path
-        self._file = open(path, "wb")  # noqa: SIM115 - closed in close()
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
-        self.counts: dict[str, int] = {}
-
-    def write(self, topic: str, message: Any, stamp_ns: int) -> None:
-        seq = self.counts.get(topic, 0)
-        self._writer.write_message(topic, message, log_time=int(stamp_ns), publish_time=int(stamp_ns), sequence=seq)
-        self.counts[topic] = seq + 1
+    def __init__(self, write: Callable[[str, Any, int], None]) -> None:
+        self.write = write
 
     def image(self, frame: pb.StereoFrame, stamp_ns: int) -> None:
         """The left image (JPEG: the recorded bytes where they are JPEG) and its camera."""
@@ -191,6 +183,27 @@ class FoxgloveWriter:
         self.write("/status", Log(timestamp=_stamp(stamp_ns), level=STATUS_LEVEL.get(status, 2),  # type: ignore[arg-type]
                                   message=f"status: {status}", name="macroloc"), stamp_ns)
 
+
+
+class FoxgloveWriter(FoxgloveChannels):
+    """An MCAP file of Foxglove messages (see module doc). Use as a context manager."""
+
+    def __init__(self, path: Path) -> None:
+        from mcap.writer import CompressionType
+        from mcap_protobuf.writer import Writer
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._file = open(path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self.counts: dict[str, int] = {}
+        super().__init__(self._write)
+
+    def _write(self, topic: str, message: Any, stamp_ns: int) -> None:
+        seq = self.counts.get(topic, 0)
+        self._writer.write_message(topic, message, log_time=int(stamp_ns), publish_time=int(stamp_ns), sequence=seq)
+        self.counts[topic] = seq + 1
+
     def close(self) -> None:
         if not self._file.closed:
             self._writer.finish()
@@ -219,10 +232,32 @@ def _box(corners_cad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return T, np.array([np.linalg.norm(u), abs(float(v @ y)), 0.05])
 
 
+class SimulationChannels:
+    """A simulated flight's Foxglove channels, written into its recording (service.recording.FlightWriter)."""
+
+    def __init__(self, write: Callable[[str, Any, int], None], model: BuildingModel, wall_mesh: Any = None) -> None:
+        self.channels = FoxgloveChannels(write)
+        self.model, self.wall_mesh = model, wall_mesh
+        self._first = True
+
+    def frame(self, stereo: pb.StereoFrame, T_cad_body: np.ndarray, T_body_cam: np.ndarray) -> None:
+        c, s = self.channels, stereo.header.stamp_ns
+        if self._first:
+            from service.plots import wall_segments_xy
+
+            z = float(T_cad_body[2, 3])
+            walls = wall_segments_xy(self.wall_mesh, z) if self.wall_mesh is not None else None
+            c.model(s, self.model, set(), walls, z)
+            self._first = False
+        c.image(stereo, s)
+        c.transforms(s, None, T_body_cam, T_cad_body=T_cad_body)
+        c.pose("/pose/truth", s, T_cad_body)
+
+
 class ReplayRecorder:
     """Writes a replay's frames to a FoxgloveWriter as they run (service.replay's `recorder`)."""
 
-    def __init__(self, writer: FoxgloveWriter, model: BuildingModel, wall_mesh: Any = None) -> None:
+    def __init__(self, writer: FoxgloveChannels, model: BuildingModel, wall_mesh: Any = None) -> None:
         self.writer, self.model, self.wall_mesh = writer, model, wall_mesh
         self._status: str | None = None
         self._first = True
