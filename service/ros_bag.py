@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from graph.errors import UserInputError
+from service.config import CameraConfig
 from service.recording import FlightFrame, encode_image
 from service.ros_in import (
     CameraCalibration,
@@ -120,11 +121,12 @@ def is_ros_bag(path: Path) -> bool:
             return False
 
 
-def open_flight(path: Path, topics: dict[str, str] | None = None, T_body_cam_default: np.ndarray | None = None,
+def open_flight(path: Path, topics: dict[str, str] | None = None, camera: CameraConfig | None = None,
                 stats: BagStats | None = None) -> Iterator[FlightFrame]:
-    """The flight's frames from what `path` is: a ROS 2 bag (`read_ros_bag`) or a macroloc recording."""
+    """The flight's frames from what `path` is: a ROS 2 bag (`read_ros_bag`; `camera`: the configured camera, for
+    bags without camera info or /tf_static) or a macroloc recording."""
     if is_ros_bag(path):
-        return read_ros_bag(path, topics or {}, T_body_cam_default, stats)
+        return read_ros_bag(path, topics or {}, camera, stats)
     if topics:
         raise UserInputError(f"--topic applies to ROS 2 bags; {path} is a macroloc recording")
     from service.recording import read_flight
@@ -177,7 +179,7 @@ def _candidates(name: str, chosen: dict[str, str | None]) -> list[str]:
     return names + [f"{n}/compressed" for n in names] if name in ("left", "right") else names
 
 
-def read_ros_bag(path: Path, given: dict[str, str], T_body_cam_default: np.ndarray | None = None,
+def read_ros_bag(path: Path, given: dict[str, str], camera: CameraConfig | None = None,
                  stats: BagStats | None = None) -> Iterator[FlightFrame]:
     """The bag's stereo pairs as FlightFrames (see module doc); `stats` is filled as it reads."""
     reader = _open_reader(path)
@@ -189,7 +191,7 @@ def read_ros_bag(path: Path, given: dict[str, str], T_body_cam_default: np.ndarr
         log.info("ROS 2 bag %s: %s", path.name, ", ".join(f"{k}={v}" for k, v in stats.topics.items()))
         wanted = {v for v in stats.topics.values()} | {TF_STATIC}
         connections = [c for c in reader.connections if c.topic in wanted]
-        assembler = _Assembler(topics, T_body_cam_default, stats)
+        assembler = _Assembler(topics, camera or CameraConfig(), stats)
         start = time.perf_counter()
         for conn, _, raw in reader.messages(connections=connections):
             msg = reader.deserialize(raw, conn.msgtype)
@@ -212,9 +214,8 @@ def read_ros_bag(path: Path, given: dict[str, str], T_body_cam_default: np.ndarr
 class _Assembler:
     """Messages in bag order in, complete FlightFrames out (see module doc)."""
 
-    def __init__(self, topics: RosTopics, T_body_cam_default: np.ndarray | None, stats: BagStats) -> None:
-        self.topics, self.stats = topics, stats
-        self.T_body_cam_default = T_body_cam_default
+    def __init__(self, topics: RosTopics, camera: CameraConfig, stats: BagStats) -> None:
+        self.topics, self.stats, self.camera = topics, stats, camera
         self.images: dict[str, dict[int, tuple[Any, str]]] = {"left": {}, "right": {}}
         self.pairs: list[int] = []  # stamps with both images, sorted
         self.imu: list[pb.Imu] = []
@@ -307,7 +308,7 @@ class _Assembler:
         t = self.topics
         cal_l, cal_r = self.calibration.get("left"), self.calibration.get("right")
         if cal_l is None or cal_r is None:
-            cal_l, cal_r = _configured_calibration(left.shape[1], left.shape[0])
+            cal_l, cal_r = _configured_calibration(self.camera, left.shape[1], left.shape[0])
             log.warning("no camera info for both cameras: taking the configured camera (service.config camera), "
                         "rectified")
         rectified = any("rect" in (topic or "") for topic in (t.left, t.right))
@@ -315,8 +316,10 @@ class _Assembler:
         frame_id = cal_l.frame_id or str(lmsg.header.frame_id).lstrip("/")
         T_body_cam = self.tf.T_a_b(BODY_FRAME, frame_id) if frame_id else None
         if T_body_cam is None:
-            T_body_cam = self.T_body_cam_default if self.T_body_cam_default is not None else \
+            T_body_cam = np.array(self.camera.T_body_cam, float) if self.camera.T_body_cam is not None else \
                 default_T_body_cam(self.rectifier.baseline_m)
+            if T_body_cam.shape != (4, 4):
+                raise UserInputError(f"camera.T_body_cam must be 4x4, not {T_body_cam.shape}")
             log.info("camera mounting: the configuration's (no %s -> %r in %s)", BODY_FRAME, frame_id, TF_STATIC)
         else:
             log.info("camera mounting: %s -> %s from %s", BODY_FRAME, frame_id, TF_STATIC)
@@ -350,10 +353,7 @@ def default_T_body_cam(baseline_m: float) -> np.ndarray:
     return forward_camera_T_body_cam(baseline_m)
 
 
-def _configured_calibration(width: int, height: int) -> tuple[CameraCalibration, CameraCalibration]:
-    from service.config import CameraConfig
-
-    c = CameraConfig()
+def _configured_calibration(c: CameraConfig, width: int, height: int) -> tuple[CameraCalibration, CameraCalibration]:
     K = np.array([[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]])
     P_l = np.hstack([K, np.zeros((3, 1))])
     P_r = P_l.copy()

@@ -90,8 +90,8 @@ def register(app: typer.Typer) -> None:
         from service.progress import track
         from service.recording import stereo_frame_count
 
-        frames = track(open_flight(flight, RosTopics.parse(topic or []), stats=bag_stats), f"replay {flight.name}",
-                       total=None if is_bag else stereo_frame_count(flight))
+        frames = track(open_flight(flight, RosTopics.parse(topic or []), cfg.camera, bag_stats),
+                       f"replay {flight.name}", total=None if is_bag else stereo_frame_count(flight))
         if over_zenoh:  # the service perceives the frames itself unless truth observations are sent along
             from service.replay_zenoh import replay_command
 

@@ -59,20 +59,29 @@ def test_a_bag_of_a_simulated_flight_reads_as_its_recording(short_flight: Path, 
     assert stats.unpaired_left == stats.unpaired_right == 0
 
 
-def test_images_without_their_partner_are_dropped_and_counted(short_flight: Path, tmp_path: Path) -> None:
+def _copy_bag(source: Path, out: Path, keep) -> Path:  # noqa: ANN001 - keep(topic, stamp) -> bool
     from rosbags.rosbag2 import Reader, Writer
 
-    full = write_ros_bag(short_flight, tmp_path / "full", "sqlite3", TOPICS)
-    cut = tmp_path / "cut"
-    dropped: list[int] = []
-    with Reader(full) as reader, Writer(cut, version=9) as writer:
+    with Reader(source) as reader, Writer(out, version=9) as writer:
         conns = {c.id: writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest)
                  for c in reader.connections}
         for conn, stamp, raw in reader.messages():
-            if conn.topic == TOPICS.right and len(dropped) < 3 and stamp > 0:
-                dropped.append(stamp)  # the first three right images never arrived
-                continue
-            writer.write(conns[conn.id], stamp, raw)
+            if keep(conn.topic, stamp):
+                writer.write(conns[conn.id], stamp, raw)
+    return out
+
+
+def test_images_without_their_partner_are_dropped_and_counted(short_flight: Path, tmp_path: Path) -> None:
+    full = write_ros_bag(short_flight, tmp_path / "full", "sqlite3", TOPICS)
+    dropped: list[int] = []
+
+    def keep(topic: str, stamp: int) -> bool:
+        if topic == TOPICS.right and len(dropped) < 3:
+            dropped.append(stamp)  # the first three right images never arrived
+            return False
+        return True
+
+    cut = _copy_bag(full, tmp_path / "cut", keep)
     stats = BagStats()
     frames = list(read_ros_bag(cut, GIVEN, stats=stats))
     assert len(frames) == len(list(read_flight(short_flight))) - 3
@@ -121,6 +130,24 @@ def test_the_camera_mounting_comes_from_tf_static(short_flight: Path, tmp_path: 
     assert T is not None and np.allclose(T[:3, 3], [0.1, 0.03, 0.05])
     assert np.allclose(T[:3, 2], [1, 0, 0])  # the optical z looks along the body's x
     assert tree.T_a_b("base_link", "elsewhere") is None
+
+
+def test_without_camera_info_and_tf_static_the_configured_camera_is_taken(short_flight: Path, tmp_path: Path) -> None:
+    from service.config import CameraConfig
+    from service.recording import matrix_from_pose
+
+    full = write_ros_bag(short_flight, tmp_path / "full", "sqlite3", TOPICS, max_frames=3)
+    bare = _copy_bag(full, tmp_path / "bare", lambda topic, _: topic not in ("/tf_static", TOPICS.left_info,
+                                                                              TOPICS.right_info))
+    T_body_cam = np.eye(4)
+    T_body_cam[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
+    T_body_cam[:3, 3] = [0.2, 0.0, -0.05]
+    camera = CameraConfig(fx=470.0, fy=470.0, baseline_m=0.1, T_body_cam=T_body_cam.tolist())
+    given = {k: v for k, v in GIVEN.items() if not k.endswith("_info")}
+    frame = next(iter(read_ros_bag(bare, given, camera)))
+    info = frame.stereo.info
+    assert (info.fx, info.baseline_m, info.width) == (470.0, 0.1, 640)
+    assert np.allclose(matrix_from_pose(info.T_body_cam), T_body_cam)
 
 
 def test_missing_or_wrong_topics_are_one_line_naming_what_the_bag_holds(short_flight: Path, tmp_path: Path,
