@@ -222,3 +222,20 @@ def _decode_with_embedded_schemas(path: Path) -> tuple[dict[str, tuple[int, str]
             first_ns = message.log_time if first_ns is None else first_ns
     assert first_ns is not None
     return counts, first_ns
+
+
+@pytest.mark.slow  # the service's start on a fresh cache: the building's surfaces and planning grid (~40 s here)
+def test_a_bag_plays_into_a_running_service_over_zenoh(short_flight: Path, tmp_path: Path, fzk_path: Path) -> None:
+    """`replay BAG --over-zenoh`: the bag's frames (rectified, raw images) on the service's keys; it answers each
+    with a pose, scored against the bag's truth."""
+    from service.replay_zenoh import replay_over_zenoh
+    from tests.service.helpers import free_port, loopback, running_service, service_config
+
+    bag = write_ros_bag(short_flight, tmp_path / "bag", "sqlite3", TOPICS, max_frames=10)
+    port = free_port()
+    cfg = service_config(fzk_path, tmp_path, port)
+    cfg.service.perception = True
+    with running_service(cfg):
+        result = replay_over_zenoh(read_ros_bag(bag, GIVEN), loopback(connect=[f"tcp/127.0.0.1:{port}"]), "t1",
+                                   None, speed=1.0)
+    assert result.frames == 10 and result.poses >= 5  # a frame may be dropped by the service's ring, not most
