@@ -239,3 +239,33 @@ def test_a_bag_plays_into_a_running_service_over_zenoh(short_flight: Path, tmp_p
         result = replay_over_zenoh(read_ros_bag(bag, GIVEN), loopback(connect=[f"tcp/127.0.0.1:{port}"]), "t1",
                                    None, speed=1.0)
     assert result.frames == 10 and result.poses >= 5  # a frame may be dropped by the service's ring, not most
+
+
+@pytest.mark.parametrize("encoding", ["mono8", "mono16", "bgr8", "rgb8", "png", "jpeg"])
+def test_each_image_encoding_reads_as_macrolocs_images(encoding: str) -> None:
+    import cv2
+    from rosbags.typesys import Stores, get_typestore
+
+    from service.ros_in import any_image_array
+
+    types = get_typestore(Stores.LATEST).types
+    header = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=1, nanosec=2), frame_id="c")
+    rng = np.random.default_rng(0)
+    bgr = cv2.GaussianBlur(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8), (5, 5), 0)
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    if encoding in ("png", "jpeg"):
+        ok, buf = cv2.imencode("." + encoding, bgr)
+        msg = types["sensor_msgs/msg/CompressedImage"](header=header, format=encoding, data=buf.ravel())
+        image = any_image_array(msg, "sensor_msgs/msg/CompressedImage")
+        assert image.shape == bgr.shape
+        assert np.median(np.abs(image.astype(int) - bgr)) <= (0 if encoding == "png" else 8)  # JPEG of noise: lossy
+        return
+    mono16 = (grey.astype(np.uint16) * 256 + 7).astype(">u2")  # big-endian, the low byte below the 8 kept bits
+    array = {"mono8": grey, "mono16": mono16, "bgr8": bgr, "rgb8": bgr[:, :, ::-1]}[encoding]
+    raw = np.ascontiguousarray(array).view(np.uint8).reshape(48, -1)
+    padded = np.hstack([raw, np.zeros((48, 4), np.uint8)])  # a row step longer than the row
+    msg = types["sensor_msgs/msg/Image"](header=header, height=48, width=64, encoding=encoding,
+                                         is_bigendian=int(encoding == "mono16"), step=padded.shape[1],
+                                         data=padded.ravel())
+    image = any_image_array(msg, "sensor_msgs/msg/Image")
+    assert np.array_equal(image, grey if encoding.startswith("mono") else bgr)
