@@ -8,9 +8,10 @@ right_info (sensor_msgs/CameraInfo; default: the image topic's `camera_info` bes
 taken as rectified), odometry (nav_msgs/Odometry: the vehicle's own, optional) and truth (geometry_msgs/PoseStamped
 of the body in the CAD frame, optional). Left and right are paired by equal header stamps; an image without its
 partner is dropped and counted. A pair is emitted once the IMU, odometry and truth streams have reached its stamp
-(or the bag ends), with the IMU and odometry samples stamped in (previous pair, this pair] and the truth pose
-nearest its stamp (within TRUTH_TOLERANCE_NS). The left camera's mounting: `/tf_static` from the body frame
-(`base_link`) to the left camera info's (else image's) frame id, else the configuration (service.config.CameraConfig).
+(or the bag ends, or MAX_PENDING pairs wait), with the IMU and odometry samples stamped in (previous pair, this
+pair] and the truth pose nearest its stamp (within TRUTH_TOLERANCE_NS). The left camera's mounting: `/tf_static`
+from the body frame (`base_link`) to the left camera info's (else image's) frame id, else the configuration
+(service.config.CameraConfig).
 """
 
 from __future__ import annotations
@@ -60,7 +61,8 @@ COMMON_NAMES: dict[str, tuple[str, ...]] = {
 TF_STATIC = "/tf_static"
 BODY_FRAME = "base_link"
 TRUTH_TOLERANCE_NS = 5_000_000  # a truth pose further than 5 ms from a frame's stamp is not that frame's
-MAX_PENDING = 300  # images waiting for their partner; older ones are dropped as unpaired
+MAX_PENDING = 300  # images waiting for their partner (older ones are dropped as unpaired), and pairs waiting for
+#                   the other streams to reach their stamp (older ones go without: a stream that stops holds no frames)
 
 
 @dataclass
@@ -272,7 +274,7 @@ class _Assembler:
 
     def _ready(self, final: bool) -> list[FlightFrame]:
         out = []
-        while self.pairs and (final or self._streams_reached(self.pairs[0])):
+        while self.pairs and (final or self._streams_reached(self.pairs[0]) or len(self.pairs) > MAX_PENDING):
             out.append(self._frame(self.pairs.pop(0)))
         return out
 
