@@ -269,3 +269,33 @@ def test_each_image_encoding_reads_as_macrolocs_images(encoding: str) -> None:
                                          data=padded.ravel())
     image = any_image_array(msg, "sensor_msgs/msg/Image")
     assert np.array_equal(image, grey if encoding.startswith("mono") else bgr)
+
+
+@pytest.mark.slow  # three perception replays of a 7 s rendered flight (~2 min each on 2 shared cores)
+def test_bags_of_a_flight_replay_to_the_recordings_figures(rendered_office_flight: Path, office_path: Path,
+                                                           tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Office_A seed 1 (7 s; the adapted detector localizes it at ~5 s): the `.db3` bag with Image and the `.mcap`
+    with CompressedImage give the native recording's frames, time to localize (within a frame) and APE (1 cm)."""
+    from service.demo import bundled_detector
+
+    detector = bundled_detector(office_path)
+    assert detector is not None
+    config = tmp_path / "detector.toml"
+    config.write_text(f'[perception]\ndetector_model = "{detector}"\n')
+
+    def replay(path: Path, topics: dict[str, str] | None) -> dict:
+        argv = ["replay", str(path), "--building", str(office_path), "--observations", "perception", "--json",
+                "--config", str(config)]
+        for name, topic in (topics or {}).items():
+            argv += ["--topic", f"{name}={topic}"]
+        assert main(argv) == 0
+        return json.loads(capsys.readouterr().out)
+
+    native = replay(rendered_office_flight, None)
+    assert native["localized"]
+    for storage, compressed in (("sqlite3", False), ("mcap", True)):
+        bag = write_ros_bag(rendered_office_flight, tmp_path / storage, storage, TOPICS, compressed=compressed)
+        doc = replay(next(bag.glob("*.mcap")) if storage == "mcap" else bag, GIVEN)
+        assert doc["frames"] == native["frames"] and doc["localized"]
+        assert abs(doc["time_to_localize_s"] - native["time_to_localize_s"]) <= 1.5 / 30
+        assert abs(doc["ape_rmse_m"] - native["ape_rmse_m"]) <= 0.01
