@@ -95,6 +95,9 @@ def register(app: typer.Typer) -> None:
         if over_zenoh:  # the service perceives the frames itself unless truth observations are sent along
             from service.replay_zenoh import replay_command
 
+            if out is not None:
+                raise UserInputError("--out records an in-process replay; with --over-zenoh, record the service")
+
             replay_command(frames, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
                            vehicle, speed, json_out)
             return
