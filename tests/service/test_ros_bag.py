@@ -272,6 +272,7 @@ def test_each_image_encoding_reads_as_macrolocs_images(encoding: str) -> None:
 
 
 @pytest.mark.slow  # three perception replays of a 7 s rendered flight (~2 min each on 2 shared cores)
+@pytest.mark.timeout(1500)
 def test_bags_of_a_flight_replay_to_the_recordings_figures(rendered_office_flight: Path, office_path: Path,
                                                            tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Office_A seed 1 (7 s; the adapted detector localizes it at ~5 s): the `.db3` bag with Image and the `.mcap`
