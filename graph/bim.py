@@ -21,8 +21,13 @@ log = logging.getLogger(__name__)
 
 EXTRACTOR_VERSION = 1
 DUPLICATE_TOL_M = 0.10  # same type, centroids closer than this: one physical feature exported twice
-IFC_SUFFIXES = {".ifc"}
+IFC_SUFFIXES = {".ifc", ".ifczip"}  # .ifczip: a zip holding one .ifc (ifcopenshell.open unzips it)
 MESH_SUFFIXES = {".obj", ".glb", ".gltf", ".dae", ".ply", ".stl", ".off", ".world"}
+
+
+def is_ifc(path: str | Path) -> bool:
+    """An IFC model (`.ifc`, or `.ifczip` holding one), read with ifcopenshell; anything else is a mesh."""
+    return Path(path).suffix.lower() in IFC_SUFFIXES
 
 
 def cache_dir() -> Path:

@@ -60,7 +60,12 @@ def _register_all() -> None:
 @app.callback()
 def _root(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress at INFO level on stderr."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars on stderr (they show only at a "
+                               "terminal, never on stdout)."),
 ) -> None:
+    from service.progress import set_quiet
+
+    set_quiet(quiet)
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

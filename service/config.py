@@ -47,6 +47,10 @@ class CameraConfig(BaseModel):
     cy: float = 239.5
     baseline_m: float = 0.12
     rate_hz: float = 30.0
+    T_body_cam: list[list[float]] | None = Field(
+        None, description="the left camera's optical frame in the body frame (4x4, rows), for ROS 2 bags without "
+        "/tf_static (base_link -> the camera's frame); None: looking forward along body x, 0.10 m ahead, the left "
+        "camera baseline/2 to the left (the simulator's mounting)")
 
 
 class ZenohConfig(BaseModel):

@@ -131,9 +131,10 @@ def surfaces_for(building: Path, line_of_sight: bool = True) -> SurfaceIndex | N
     registrations then go unchecked. Cached by the file's SHA-256 and the surface parameters."""
     import hashlib
 
+    from graph.bim import is_ifc
     from graph.surfaces import SurfaceIndex, SurfaceParams
 
-    if Path(building).suffix.lower() != ".ifc":
+    if not is_ifc(building):
         log.info("%s: no surface check of registrations (IFC models only)", Path(building).name)
         return None
     walls = wall_voxels(Path(building)) if line_of_sight else None

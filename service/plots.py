@@ -44,7 +44,9 @@ def load_wall_mesh(path: str | Path):
     (already metres); a mesh or Gazebo world: graph.bim_mesh.read_wall_mesh.
     """
     path = Path(path)
-    if path.suffix.lower() != ".ifc":
+    from graph.bim import is_ifc
+
+    if not is_ifc(path):
         from graph.bim_mesh import read_wall_mesh
 
         return read_wall_mesh(path)

@@ -280,6 +280,20 @@ def read_metadata(path: str | Path) -> FlightMetadata:
     return FlightMetadata()
 
 
+def stereo_frame_count(path: str | Path) -> int | None:
+    """The recording's number of stereo frames from its summary (None where it has none)."""
+    fh, reader = _open_reader(path)
+    with fh:
+        try:
+            summary = reader.get_summary()
+        except Exception:  # a file without a summary section (e.g. cut short) still reads message by message
+            return None
+        if summary is None or summary.statistics is None:
+            return None
+        ids = [c.id for c in summary.channels.values() if c.topic == TOPIC_STEREO]
+        return sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
+
+
 def read_messages(path: str | Path, topics: list[str] | None = None) -> Iterator[RecordedMessage]:
     """Every message of the recording (or of `topics`) in log-time order, parsed into macroloc_pb2 types."""
     fh, reader = _open_reader(path)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
@@ -26,6 +27,7 @@ from graph.rigid import rotation_angle_deg
 from graph.surfaces import SurfaceIndex
 from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from service.places import KeyframePlaces, Placed
+from service.recording import FlightFrame
 from service.replay_sources import FrameInput, ObservationSource, TruthSource
 
 if TYPE_CHECKING:
@@ -45,11 +47,30 @@ def null_sink(estimate: Estimate) -> None:
     """Receives every estimate and does nothing (a publisher can take its place)."""
 
 
+class FrameRecorder(Protocol):
+    """Keeps each frame with its inputs and estimate (service.foxglove_out.ReplayRecorder), and the end state."""
+
+    def frame(self, frame: FlightFrame, inputs: FrameInput, estimate: Estimate) -> None: ...
+
+    def finish(self, localizer: Localizer) -> None: ...
+
+
+class NullRecorder:
+    """Records nothing."""
+
+    def frame(self, frame: FlightFrame, inputs: FrameInput, estimate: Estimate) -> None:
+        pass
+
+    def finish(self, localizer: Localizer) -> None:
+        pass
+
+
 @dataclass
 class ReplayTrace:
     """Per-frame record: stamps (s from the first frame), truth and estimates (NaN before localization)."""
 
     t_s: list[float] = field(default_factory=list)
+    stamp_ns: list[int] = field(default_factory=list)  # the frames' own stamps
     status: list[str] = field(default_factory=list)
     T_true: list[np.ndarray] = field(default_factory=list)
     T_est: list[np.ndarray | None] = field(default_factory=list)
@@ -124,19 +145,22 @@ def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey
     return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam, surfaces=surfaces)
 
 
-def replay(flight: Path, model: BuildingModel, source: ObservationSource | None = None,
+def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: ObservationSource | None = None,
            stored: StoredMap | None = None, storey_hint: str | None = None, policy: KeyframePolicy | None = None,
            sink: FrameSink = null_sink, params: LocalizerParams | None = None,
            isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None,
-           places: KeyframePlaces | None = None) -> ReplayResult:
-    """Run `flight` (MCAP) through a new localizer in `model`; see module doc. `places`: place recognition at
-    keyframes (service.places: views kept for the saved map, keyframes placed in the stored map's views)."""
+           places: KeyframePlaces | None = None, recorder: FrameRecorder | None = None) -> ReplayResult:
+    """Run `flight` (a macroloc MCAP recording, or its frames from any reader: service.ros_bag.open_flight) through
+    a new localizer in `model`; see module doc. `places`: place recognition at keyframes (service.places: views
+    kept for the saved map, keyframes placed in the stored map's views). `recorder`: keeps every frame (e.g. for
+    Foxglove: service.foxglove_out.ReplayRecorder)."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
     from service.recording import matrix_from_pose, read_flight
 
     source = source or TruthSource()
     policy = policy or KeyframePolicy()
+    recorder = recorder or NullRecorder()
     trace = ReplayTrace()
     localizer: Localizer | None = None
     T_kf: np.ndarray | None = None
@@ -144,7 +168,7 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
     busy_s = 0.0
     busy_at_localized: float | None = None
     dead_reckoned_s = 0.0  # since the last keyframe
-    for frame in read_flight(flight):
+    for frame in (read_flight(flight) if isinstance(flight, Path) else flight):
         start = time.perf_counter()
         inputs: FrameInput = source(frame)
         if localizer is None:
@@ -168,12 +192,15 @@ def replay(flight: Path, model: BuildingModel, source: ObservationSource | None 
         if busy_at_localized is None and est.status == "localized":
             busy_at_localized = busy_s
         sink(est)
+        recorder.frame(frame, inputs, est)
+        trace.stamp_ns.append(frame.stamp_ns)
         _record(trace, t_s, est, matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None,
                 is_kf, len(inputs.sightings))
     if localizer is None:
         from graph.errors import UserInputError
 
-        raise UserInputError(f"recording {flight} holds no stereo frames")
+        raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
+    recorder.finish(localizer)
     return _score(trace, localizer, busy_s, busy_at_localized)
 
 

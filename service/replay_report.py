@@ -1,7 +1,8 @@
 """Pictures of a replay: the top-down view (the model's walls cut at the flight's height, doors and windows, true and
 estimated trajectories, matched features; a stored map's keyframe views and the keyframes placed in them) and the
 per-frame figures (position error with its horizontal and height
-parts, tilt and yaw errors, status, sightings, iSAM2 update time), plus result.json."""
+parts, tilt and yaw errors, status, sightings, iSAM2 update time), plus result.json, the trajectories for evo
+(TUM: estimate_tum.txt, truth_tum.txt) and the resolved configuration (config.json)."""
 
 from __future__ import annotations
 
@@ -19,10 +20,11 @@ STATUS_LEVEL = {"exploring": 0, "ambiguous": 1, "localized": 2, "degraded": 3, "
 
 
 def write_report(result: ReplayResult, model: BuildingModel, out_dir: Path, wall_mesh: Any = None,
-                 stored: StoredMap | None = None) -> list[Path]:
-    """Write topdown.png, frames.png and result.json into `out_dir`; returns their paths. `wall_mesh`: the
-    model's walls (service.plots.load_wall_mesh), drawn as a floor plan cut at the flight's height; `stored`: the
-    map the flight re-localized into, whose keyframe views are drawn with the keyframes placed in them."""
+                 stored: StoredMap | None = None, config: dict | None = None) -> list[Path]:
+    """Write topdown.png, frames.png, result.json, the TUM trajectories (`write_tum`) and `config` (the resolved
+    configuration, as config.json) into `out_dir`; returns their paths. `wall_mesh`: the model's walls
+    (service.plots.load_wall_mesh), drawn as a floor plan cut at the flight's height; `stored`: the map the flight
+    re-localized into, whose keyframe views are drawn with the keyframes placed in them."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -31,7 +33,38 @@ def write_report(result: ReplayResult, model: BuildingModel, out_dir: Path, wall
              _frames(result, out_dir / "frames.png")]
     doc = out_dir / "result.json"
     doc.write_text(json.dumps(result.to_json(), indent=2))
-    return [*paths, doc]
+    paths += [doc, *write_tum(result, out_dir)]
+    if config is not None:
+        (out_dir / "config.json").write_text(json.dumps(config, indent=2))
+        paths.append(out_dir / "config.json")
+    return paths
+
+
+def write_tum(result: ReplayResult, out_dir: Path) -> list[Path]:
+    """estimate_tum.txt (the frames APE scores: `localized`, `degraded` or `lost` with a pose) and, where the flight
+    has truth, truth_tum.txt (every frame with truth), as TUM lines `stamp_s tx ty tz qx qy qz qw` (CAD frame, s,
+    m), so that `evo_ape tum truth_tum.txt estimate_tum.txt` (no alignment, translation) gives ape_rmse_m."""
+    tr = result.trace
+    est = [(s, T) for s, status, T in zip(tr.stamp_ns, tr.status, tr.T_est, strict=True)
+           if T is not None and status in ("localized", "degraded", "lost")]
+    truth = [(s, T) for s, T in zip(tr.stamp_ns, tr.T_true, strict=True) if np.isfinite(T).all()]
+    paths = [_tum(out_dir / "estimate_tum.txt", est)]
+    if truth:
+        paths.append(_tum(out_dir / "truth_tum.txt", truth))
+    return paths
+
+
+def _tum(path: Path, poses: list[tuple[int, np.ndarray]]) -> Path:
+    from scipy.spatial.transform import Rotation
+
+    lines = []
+    for stamp_ns, T in poses:
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()  # scipy: x, y, z, w (TUM's order)
+        t = T[:3, 3]
+        lines.append(f"{stamp_ns // 1_000_000_000}.{stamp_ns % 1_000_000_000:09d} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} "
+                     f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
+    path.write_text("\n".join(lines) + ("\n" if lines else ""))
+    return path
 
 
 def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: Any = None,

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,9 +82,10 @@ def _observations(stamp_ns: int, sightings: list) -> pb.ObservedFeatures:  # noq
     return msg
 
 
-def replay_over_zenoh(flight: Path, zenoh_cfg: ZenohConfig, vehicle: str, source: ObservationSource | None,
-                      speed: float = 1.0, wait_s: float = 30.0) -> ZenohReplayResult:
-    """Publish the recording to the service of `vehicle` and score what it sends back (see module doc)."""
+def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConfig, vehicle: str,
+                      source: ObservationSource | None, speed: float = 1.0, wait_s: float = 30.0) -> ZenohReplayResult:
+    """Publish the recording (a macroloc MCAP, or its frames from any reader: service.ros_bag.open_flight) to the
+    service of `vehicle` and score what it sends back (see module doc)."""
     keys = Keys(vehicle)
     result = ZenohReplayResult()
     sent_at: dict[int, float] = {}
@@ -95,7 +97,7 @@ def replay_over_zenoh(flight: Path, zenoh_cfg: ZenohConfig, vehicle: str, source
         poses = PoseCollector(session, keys.pose)
         start_wall, first_stamp = time.perf_counter(), None
         frame: FlightFrame
-        for frame in read_flight(flight):
+        for frame in (read_flight(flight) if isinstance(flight, Path) else flight):
             first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
             if speed > 0:
                 delay = start_wall + (frame.stamp_ns - first_stamp) * 1e-9 / speed - time.perf_counter()
@@ -142,8 +144,8 @@ def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, fl
             result.ape_rmse_m = round(float(np.sqrt(np.mean(np.square(errors)))), 4)
 
 
-def replay_command(flight: Path, source: ObservationSource | None, connect: list[str], vehicle: str, speed: float,
-                   json_out: bool) -> None:
+def replay_command(flight: Path | Iterable[FlightFrame], source: ObservationSource | None, connect: list[str],
+                   vehicle: str, speed: float, json_out: bool) -> None:
     """The CLI's `--over-zenoh` branch: a client-less peer connecting to the service's endpoint(s)."""
     import json
     import sys

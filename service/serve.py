@@ -72,7 +72,10 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     if cfg.service.building is None:
         raise UserInputError("no building model: set service.building in the config or pass --building")
     building = Path(cfg.service.building)
+    log.info("preparing %s: doors and windows, surfaces, planning grid (the first time for a building takes "
+             "minutes; each step is cached after)", building.name)
     model = load_building(building)
+    log.info("%s: %d doors and windows", building.name, len(model.features))
     geo = read_geo_reference(building)
     log.info("geo-reference of %s: %s", building.name, geo.to_json() if geo else "none")
     store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
@@ -85,11 +88,13 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     from service.planning_grid import surfaces_for
 
     surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight) if cfg.graph.surface_check else None
+    log.info("%s: surfaces ready; the planning grid next", building.name)
     backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, backend_params, surfaces)
     p = cfg.planning
     planner = Planner.for_building(building, p.cell_m, p.vehicle_radius_m, p.flight_height_m)
     for elevation in sorted(model.storey_elevations_m.values())[:1]:
         planner.grid(elevation + p.flight_height_m)  # the ground floor's grid ready before the first goal
+    log.info("%s: ready", building.name)
     s = cfg.service
     params = ServiceParams(vehicle=s.vehicle, building=building.name, building_sha256=model.sha256,
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,

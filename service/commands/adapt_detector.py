@@ -64,7 +64,10 @@ def register(app: typer.Typer) -> None:
         photos = facades or SHARED_DATA / "images" / "facades"
         if not (photos / "images").is_dir() or not (photos / "labels").is_dir():
             raise UserInputError(f"no facade photos with labels at {photos} (images/, labels/): give --facades")
-        logging.getLogger().setLevel(logging.INFO)  # rendering and training take minutes: show progress
+        from service.progress import is_quiet
+
+        if not is_quiet():
+            logging.getLogger().setLevel(logging.INFO)  # rendering and training take minutes: show progress
         frames = out / "frames"
         counts = render_training_frames(building, frames, seed_list, duration, every)
         if counts["door"] + counts["window"] == 0:

@@ -1,8 +1,10 @@
-"""`macroloc replay FLIGHT.mcap --building BUILDING --json [--report DIR] [--observations truth|perception]
-[--map STORED] [--save-map OUT]`: the whole chain offline, as fast as it runs, scored against ground truth."""
+"""`macroloc replay FLIGHT --building BUILDING --json [--report DIR] [--observations truth|perception]
+[--map STORED] [--save-map OUT] [--topic NAME=/ros/topic ...]`: the whole chain offline, as fast as it runs, scored
+against ground truth. FLIGHT is a macroloc recording (MCAP) or a ROS 2 bag (service.ros_bag)."""
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import typer
@@ -11,7 +13,14 @@ import typer
 def register(app: typer.Typer) -> None:
     @app.command()
     def replay(
-        flight: Path = typer.Argument(..., help="Recorded flight (MCAP: /stereo, /imu, /ground_truth)."),
+        flight: Path = typer.Argument(..., help="Recorded flight: a macroloc MCAP (/stereo, /imu, /ground_truth) "
+                                      "or a ROS 2 bag (a folder with metadata.yaml and .db3 or .mcap, or one "
+                                      ".mcap of ROS 2 messages)."),
+        topic: list[str] = typer.Option(None, "--topic", help="ROS 2 bags: NAME=/ros/topic, NAME one of left, "
+                                        "right (Image or CompressedImage), imu (Imu), left_info, right_info "
+                                        "(CameraInfo), odometry (Odometry), truth (PoseStamped of the body in the "
+                                        "CAD frame); repeatable. Default: the common names (/cam0/image_raw, "
+                                        "/camera/left/image_raw, /imu0, /imu, ...)."),
         building: Path = typer.Option(..., "--building", "-b", help="IFC file (or mesh) of the building flown in."),
         observations: str = typer.Option("truth", "--observations", help="truth: ground-truth doors/windows and "
                                          "odometry with realistic noise and drift (the graph alone); truth-vo: the "
@@ -24,6 +33,10 @@ def register(app: typer.Typer) -> None:
         save_map: Path | None = typer.Option(None, "--save-map", help="Write this flight's map here at the end, "
                                              "with a view (ORB features with stereo depth) every 0.5 m or 15 deg "
                                              "of the flight's keyframes, for place recognition."),
+        out: Path | None = typer.Option(None, "--out", help="Write the replay for Foxglove here (MCAP of "
+                                        "foxglove.* messages: left image with the detections, transforms cad -> map "
+                                        "-> body -> cam, estimate and truth poses, the model's doors, windows and "
+                                        "walls, the landmarks, the status)."),
         report: Path | None = typer.Option(None, "--report", help="Write a top-down picture, per-frame figures "
                                            "and result.json into this folder."),
         storey: str | None = typer.Option(None, "--storey", help="Register against this storey's doors and "
@@ -61,21 +74,40 @@ def register(app: typer.Typer) -> None:
             TruthFeaturesWithVisualOdometry,
             TruthSource,
         )
+        from service.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
 
-        existing_file(flight, "recording")
+        if not flight.exists():
+            raise UserInputError(f"recording not found: {flight}")
+        is_bag = is_ros_bag(flight)
+        if not is_bag:
+            existing_file(flight, "recording")
         if observations not in ("truth", "truth-vo", "perception"):
             raise UserInputError(f"--observations must be truth, truth-vo or perception, not {observations!r}")
+        if is_bag and observations != "perception":
+            raise UserInputError("a ROS 2 bag holds no ground-truth doors and windows: use --observations perception")
+        cfg = load_config(config)
+        bag_stats = BagStats()
+        from service.progress import track
+        from service.recording import stereo_frame_count
+
+        frames = track(open_flight(flight, RosTopics.parse(topic or []), cfg.camera, bag_stats),
+                       f"replay {flight.name}", total=None if is_bag else stereo_frame_count(flight))
         if over_zenoh:  # the service perceives the frames itself unless truth observations are sent along
             from service.replay_zenoh import replay_command
 
-            replay_command(flight, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
+            if out is not None:
+                raise UserInputError("--out records an in-process replay; with --over-zenoh, record the service")
+
+            replay_command(frames, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
                            vehicle, speed, json_out)
             return
-        cfg = load_config(config)
         detector = cfg.perception.detector_model
         if observations == "perception" and detector is not None:
             existing_file(detector, "detector model (perception.detector_model)")
-        model = load_building(building)
+        from service.progress import step
+
+        with step(f"reading {building.name} (its first time: a minute or more, cached after)"):
+            model = load_building(building)
         stored = StoredMap.load(stored_map, model) if stored_map is not None else None
         source: ObservationSource = (TruthSource(seed=seed) if observations == "truth" else
                                      TruthFeaturesWithVisualOdometry(seed=seed) if observations == "truth-vo"
@@ -86,12 +118,20 @@ def register(app: typer.Typer) -> None:
         if cfg.graph.surface_check:
             from service.planning_grid import surfaces_for
 
-            surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
+            with step(f"preparing {building.name}'s surfaces (its first time: minutes, cached after)"):
+                surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
         from service.places import KeyframePlaces
 
         places = KeyframePlaces(stored, keep_views=save_map is not None)
-        result = run_replay(flight, model, source, stored=stored, storey_hint=storey, policy=policy, params=params,
-                            isam=isam, surfaces=surfaces, places=places)
+        recorder = None
+        with contextlib.ExitStack() as stack:
+            if out is not None:
+                from service.foxglove_out import FoxgloveWriter, ReplayRecorder
+                from service.plots import load_wall_mesh
+
+                recorder = ReplayRecorder(stack.enter_context(FoxgloveWriter(out)), model, load_wall_mesh(building))
+            result = run_replay(frames, model, source, stored=stored, storey_hint=storey, policy=policy,
+                                params=params, isam=isam, surfaces=surfaces, places=places, recorder=recorder)
         if save_map is not None:
             new_map = result.localizer.stored_map()
             if stored is not None and new_map.T_cad_map is not None:  # the stored map's places this flight missed
@@ -101,8 +141,10 @@ def register(app: typer.Typer) -> None:
             from service.plots import load_wall_mesh
             from service.replay_report import write_report
 
-            write_report(result, model, report, load_wall_mesh(building), stored)
+            write_report(result, model, report, load_wall_mesh(building), stored, config=cfg.model_dump(mode="json"))
         doc = result.to_json()
+        if is_bag:
+            doc["bag"] = bag_stats.to_json()
         if json_out:
             print_json(doc)
             return

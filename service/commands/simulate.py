@@ -103,6 +103,7 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
     """
     import cv2
 
+    from service.progress import track
     from service.recording import FlightMetadata, FlightWriter
     from sim.contact_sheet import annotate
     from sim.contact_sheet import contact_sheet as make_sheet
@@ -129,7 +130,11 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
     imu_ns = np.round(imu.stamps_s * 1e9).astype(np.int64)
     try:
         with FlightWriter(out, meta) as writer:
-            for i, t in enumerate(times):
+            from service.foxglove_out import SimulationChannels
+            from service.plots import load_wall_mesh
+
+            foxglove = SimulationChannels(writer.write, sim.model, load_wall_mesh(building))
+            for i, t in enumerate(track(times, f"simulate {building.name}", total=len(times))):
                 t0 = time.perf_counter()
                 frame = sim.render_at(i, float(t))
                 render_s += time.perf_counter() - t0
@@ -139,6 +144,7 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
                 stereo, truth, instances = frame_messages(frame, sim, cfg)
                 writer.write_stereo(stereo)
                 writer.write_ground_truth(truth, instances)
+                foxglove.frame(stereo, frame.T_cad_body, sim.T_body_cam)
                 if exporter is not None:
                     exporter.add(i, frame.left_bgr, frame.features)
                 if i in sample_at:

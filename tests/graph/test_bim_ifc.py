@@ -115,3 +115,22 @@ def test_duplicates_are_merged() -> None:
     assert n == 1
     assert [f.id for f in merged] == ["a", "w", "b"]  # a window at the same place is no duplicate of a door
     assert merged[0].duplicates == ("a-copy",)
+
+
+def test_an_ifczip_reads_as_its_ifc_and_is_cached(fzk_path: Path, tmp_path: Path) -> None:
+    import zipfile
+
+    from graph.bim import cache_dir, is_ifc
+    from service.plots import load_wall_mesh
+
+    zipped = tmp_path / "fzk_haus.ifcZIP"
+    with zipfile.ZipFile(zipped, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.write(fzk_path, "fzk_haus.ifc")
+    assert is_ifc(zipped)
+    plain, from_zip = load_building(fzk_path), load_building(zipped)
+    assert [f.id for f in from_zip.features] == [f.id for f in plain.features]
+    assert np.allclose([f.centroid_cad for f in from_zip.features], [f.centroid_cad for f in plain.features])
+    cached = sorted(cache_dir().glob("features-*.json"), key=lambda p: p.stat().st_mtime)
+    assert load_building(zipped).sha256 == from_zip.sha256 and cached[-1].exists()
+    walls = load_wall_mesh(zipped)
+    assert walls is not None and len(walls.faces) == len(load_wall_mesh(fzk_path).faces)

@@ -66,6 +66,24 @@ def test_replay_prints_the_contract_writes_a_report_and_a_map(flight: Path, fzk_
     assert len(walls) == 1 and len(walls[0].get_segments()) >= 20  # FZK-Haus: its outer and inner walls
     stored = json.loads((tmp_path / "map.json").read_text())
     assert any(lm["feature"] for lm in stored["landmarks"])
+    report = tmp_path / "report"
+    assert json.loads((report / "config.json").read_text())["graph"]  # the resolved configuration of the run
+    assert _evo_ape_rmse_m(report / "truth_tum.txt", report / "estimate_tum.txt") == \
+        pytest.approx(doc["ape_rmse_m"], abs=0.001)
+
+
+def _evo_ape_rmse_m(truth: Path, estimate: Path) -> float:
+    """evo's own APE (its command line: TUM files, no alignment, translation part): the RMSE it prints."""
+    import re
+    import subprocess
+    import sys
+
+    evo_ape = Path(sys.executable).parent / "evo_ape"
+    out = subprocess.run([str(evo_ape), "tum", str(truth), str(estimate), "--no_warnings"], check=True,
+                         capture_output=True, text=True, timeout=120).stdout
+    match = re.search(r"^\s*rmse\s+([0-9.eE+-]+)", out, re.MULTILINE)
+    assert match is not None, out
+    return float(match.group(1))
 
 
 def test_a_second_flight_relocalizes_into_the_stored_map(flight: Path, fzk_path: Path, tmp_path: Path,

@@ -135,3 +135,29 @@ def test_the_appearance_seed_keeps_the_path_and_changes_only_the_look(duplex_pat
     finally:
         for sim in sims.values():
             sim.close()
+
+
+def test_the_recording_plays_in_foxglove_beside_its_own_channels(flight) -> None:
+    """Foxglove's Image and 3D panels: the left image with its camera, the transforms cad -> body -> cam, the truth
+    pose and the model, in Foxglove's own schemas, each decodable from the schema embedded in the file."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    out, summary, _ = flight
+    schemas: dict[str, str] = {}
+    counts: dict[str, int] = {}
+    with open(out, "rb") as fh:
+        for schema, channel, message, decoded in make_reader(fh, decoder_factories=[DecoderFactory()]) \
+                .iter_decoded_messages(topics=["/camera/left/image", "/camera/left/calibration", "/tf",
+                                               "/pose/truth", "/model"]):
+            schemas[channel.topic] = schema.name
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            if channel.topic == "/tf":
+                assert {(t.parent_frame_id, t.child_frame_id) for t in decoded.transforms} == \
+                    {("cad", "body"), ("body", "cam")}
+                assert decoded.transforms[0].timestamp.ToNanoseconds() == message.log_time
+    assert schemas == {"/camera/left/image": "foxglove.CompressedImage",
+                       "/camera/left/calibration": "foxglove.CameraCalibration", "/tf": "foxglove.FrameTransforms",
+                       "/pose/truth": "foxglove.PoseInFrame", "/model": "foxglove.SceneUpdate"}
+    assert counts["/camera/left/image"] == counts["/tf"] == summary["frames"] and counts["/model"] == 1
+    assert len(list(read_flight(out))) == summary["frames"]  # the native reader passes over them

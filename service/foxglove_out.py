@@ -1,0 +1,306 @@
+"""Flights for Foxglove: MCAP channels of Foxglove's own protobuf schemas (foxglove_schemas_protobuf), so a replay
+or a simulated flight plays in Foxglove's Image and 3D panels with nothing else to install.
+
+Channels (log time = the flight's stamp of each message):
+  /camera/left/image        foxglove.CompressedImage    left image (JPEG), frame "cam"
+  /camera/left/calibration  foxglove.CameraCalibration  the rectified left camera (K, P; no distortion)
+  /camera/left/detections   foxglove.ImageAnnotations   the frame's doors/windows seen, corners projected (replay)
+  /tf                       foxglove.FrameTransforms    cad -> map (once localized), map -> body, body -> cam
+  /pose/estimate            foxglove.PoseInFrame        the body in the CAD frame (replay, once localized)
+  /pose/truth               foxglove.PoseInFrame        the body in the CAD frame, ground truth (where known)
+  /model                    foxglove.SceneUpdate        doors (red) and windows (blue) as boxes, matched ones opaque,
+                                                        the others faint; the walls cut at the flight's height
+  /landmarks                foxglove.SceneUpdate        the flight's landmarks in the CAD frame (end of a replay)
+  /status                   foxglove.Log                the localizer's status, at each change (replay)
+A simulated flight (`macroloc simulate`) carries the image, calibration, transform (cad -> body -> cam, its
+truth), truth pose and model channels beside its macroloc ones.
+Frames: "cad" (the model's, the 3D panel's fixed frame), "map" (the flight's odometry frame; its transform from
+"cad" appears once localized), "body", "cam" (optical, x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+
+from graph.features import BuildingModel
+from service.recording import FlightFrame, decode_image, matrix_from_pose
+from service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+log = logging.getLogger(__name__)
+
+TYPE_COLOUR = {"door": (0.85, 0.2, 0.2), "window": (0.2, 0.45, 0.95)}
+OTHER_COLOUR = (0.6, 0.6, 0.6)
+MATCHED_ALPHA, UNMATCHED_ALPHA = 0.9, 0.25
+STATUS_LEVEL = {"localized": 2, "exploring": 2, "ambiguous": 3, "degraded": 3, "lost": 4}  # foxglove.Log levels
+
+
+def _stamp(stamp_ns: int) -> Any:
+    from google.protobuf.timestamp_pb2 import Timestamp
+
+    ts = Timestamp()
+    ts.FromNanoseconds(int(stamp_ns))
+    return ts
+
+
+def _pose(T: np.ndarray) -> Any:
+    from foxglove_schemas_protobuf.Pose_pb2 import Pose
+    from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+    from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()  # scipy: x, y, z, w
+    return Pose(position=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]), orientation=Quaternion(x=q[0], y=q[1], z=q[2],
+                                                                                            w=q[3]))
+
+
+def _colour(rgb: tuple[float, float, float], alpha: float) -> Any:
+    from foxglove_schemas_protobuf.Color_pb2 import Color
+
+    return Color(r=rgb[0], g=rgb[1], b=rgb[2], a=alpha)
+
+
+class FoxgloveChannels:
+    """The channels of the module doc, written through `write(topic, message, stamp_ns)` (an MCAP protobuf
+    writer's: a FoxgloveWriter's own file, or a flight recording's, beside its macroloc channels)."""
+
+    def __init__(self, write: Callable[[str, Any, int], None]) -> None:
+        self.write = write
+
+    def image(self, frame: pb.StereoFrame, stamp_ns: int) -> None:
+        """The left image (JPEG: the recorded bytes where they are JPEG) and its camera."""
+        import cv2
+        from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+        left = frame.left
+        data = left.data if left.encoding == pb.Image.JPEG else \
+            cv2.imencode(".jpg", decode_image(left), [cv2.IMWRITE_JPEG_QUALITY, 85])[1].tobytes()
+        self.write("/camera/left/image", CompressedImage(timestamp=_stamp(stamp_ns), frame_id="cam", data=data,
+                                                         format="jpeg"), stamp_ns)
+        i = frame.info
+        K = [i.fx, 0.0, i.cx, 0.0, i.fy, i.cy, 0.0, 0.0, 1.0]
+        self.write("/camera/left/calibration", CameraCalibration(
+            timestamp=_stamp(stamp_ns), frame_id="cam", width=i.width, height=i.height, distortion_model="plumb_bob",
+            D=[0.0] * 5, K=K, R=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0], P=[i.fx, 0.0, i.cx, 0.0, 0.0, i.fy, i.cy, 0.0, 0.0,
+                                                                     0.0, 1.0, 0.0]), stamp_ns)
+
+    def transforms(self, stamp_ns: int, T_map_body: np.ndarray | None, T_body_cam: np.ndarray,
+                   T_cad_map: np.ndarray | None = None, T_cad_body: np.ndarray | None = None) -> None:
+        """cad -> map (when known), map -> body, body -> cam; where there is no map (a simulated flight), cad ->
+        body (`T_cad_body`, its truth)."""
+        from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+        from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+
+        def tf(parent: str, child: str, T: np.ndarray) -> Any:
+            p = _pose(T)
+            return FrameTransform(timestamp=_stamp(stamp_ns), parent_frame_id=parent, child_frame_id=child,
+                                  translation=p.position, rotation=p.orientation)
+
+        links = [("body", "cam", T_body_cam)]
+        if T_map_body is not None:
+            links.append(("map", "body", T_map_body))
+            if T_cad_map is not None:
+                links.append(("cad", "map", T_cad_map))
+        elif T_cad_body is not None:
+            links.append(("cad", "body", T_cad_body))
+        self.write("/tf", FrameTransforms(transforms=[tf(*link) for link in links]), stamp_ns)
+
+    def pose(self, topic: str, stamp_ns: int, T_cad_body: np.ndarray) -> None:
+        from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+
+        self.write(topic, PoseInFrame(timestamp=_stamp(stamp_ns), frame_id="cad", pose=_pose(T_cad_body)), stamp_ns)
+
+    def model(self, stamp_ns: int, model: BuildingModel, matched: set[str] | None = None,
+              wall_segments_xy: np.ndarray | None = None, wall_z_m: float = 0.0) -> None:
+        """The doors and windows as boxes (their corners' rectangle, 5 cm thick), matched ones opaque; the walls as
+        lines cut at `wall_z_m` (`wall_segments_xy`: (S, 2, 2), CAD frame)."""
+        from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
+        from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
+        from foxglove_schemas_protobuf.Point3_pb2 import Point3
+        from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+        from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+
+        matched = matched or set()
+        entities = []
+        for f in model.features:
+            T, size = _box(f.corners_cad)
+            alpha = MATCHED_ALPHA if f.id in matched else UNMATCHED_ALPHA
+            cube = CubePrimitive(pose=_pose(T), size=Vector3(x=size[0], y=size[1], z=size[2]),
+                                 color=_colour(TYPE_COLOUR.get(f.type, OTHER_COLOUR), alpha))
+            entities.append(SceneEntity(timestamp=_stamp(stamp_ns), frame_id="cad", id=f"{f.type}/{f.id}",
+                                        cubes=[cube]))
+        if wall_segments_xy is not None and len(wall_segments_xy):
+            points = [Point3(x=float(x), y=float(y), z=wall_z_m) for seg in wall_segments_xy for x, y in seg]
+            line = LinePrimitive(type=LinePrimitive.LINE_LIST, pose=_pose(np.eye(4)), thickness=0.05, points=points,
+                                 color=_colour((0.4, 0.4, 0.4), 1.0))
+            entities.append(SceneEntity(timestamp=_stamp(stamp_ns), frame_id="cad", id="walls", lines=[line]))
+        self.write("/model", SceneUpdate(entities=entities), stamp_ns)
+
+    def landmarks(self, stamp_ns: int, positions_cad: list[tuple[str, str, np.ndarray]]) -> None:
+        """(key, type, position in the CAD frame) of each landmark, as spheres."""
+        from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+        from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
+        from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+
+        entities = []
+        for key, kind, p in positions_cad:
+            T = np.eye(4)
+            T[:3, 3] = p
+            sphere = SpherePrimitive(pose=_pose(T), size=Vector3(x=0.25, y=0.25, z=0.25),
+                                     color=_colour(TYPE_COLOUR.get(kind, OTHER_COLOUR), 1.0))
+            entities.append(SceneEntity(timestamp=_stamp(stamp_ns), frame_id="cad", id=f"landmark/{key}",
+                                        spheres=[sphere]))
+        self.write("/landmarks", SceneUpdate(entities=entities), stamp_ns)
+
+    def detections(self, stamp_ns: int, info: pb.CameraInfo, corners_cam: list[tuple[str, np.ndarray]]) -> None:
+        """Each sighting's corners (4, 3) in the left camera frame, projected as a closed outline."""
+        from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+        from foxglove_schemas_protobuf.Point2_pb2 import Point2
+        from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
+
+        outlines = []
+        for kind, c in corners_cam:
+            if np.any(c[:, 2] <= 0.05):
+                continue
+            uv = np.c_[info.fx * c[:, 0] / c[:, 2] + info.cx, info.fy * c[:, 1] / c[:, 2] + info.cy]
+            outlines.append(PointsAnnotation(timestamp=_stamp(stamp_ns), type=PointsAnnotation.LINE_LOOP,
+                                             points=[Point2(x=float(u), y=float(v)) for u, v in uv],
+                                             outline_color=_colour(TYPE_COLOUR.get(kind, OTHER_COLOUR), 1.0),
+                                             thickness=3.0))
+        self.write("/camera/left/detections", ImageAnnotations(points=outlines), stamp_ns)
+
+    def status(self, stamp_ns: int, status: str) -> None:
+        from foxglove_schemas_protobuf.Log_pb2 import Log
+
+        self.write("/status", Log(timestamp=_stamp(stamp_ns), level=STATUS_LEVEL.get(status, 2),  # type: ignore[arg-type]
+                                  message=f"status: {status}", name="macroloc"), stamp_ns)
+
+
+
+class FoxgloveWriter(FoxgloveChannels):
+    """An MCAP file of Foxglove messages (see module doc). Use as a context manager."""
+
+    def __init__(self, path: Path) -> None:
+        from mcap.writer import CompressionType
+        from mcap_protobuf.writer import Writer
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._file = open(path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self.counts: dict[str, int] = {}
+        super().__init__(self._write)
+
+    def _write(self, topic: str, message: Any, stamp_ns: int) -> None:
+        seq = self.counts.get(topic, 0)
+        self._writer.write_message(topic, message, log_time=int(stamp_ns), publish_time=int(stamp_ns), sequence=seq)
+        self.counts[topic] = seq + 1
+
+    def close(self) -> None:
+        if not self._file.closed:
+            self._writer.finish()
+            self._file.close()
+
+    def __enter__(self) -> FoxgloveWriter:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+def _box(corners_cad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T_cad_box, size xyz) of a rectangle's 4 corners in order around it: x along its first side, y along its
+    second, z its normal; 5 cm thick."""
+    c = np.asarray(corners_cad, float)
+    u, v = c[1] - c[0], c[3] - c[0]
+    x = u / max(np.linalg.norm(u), 1e-9)
+    z = np.cross(u, v)
+    z = z / max(np.linalg.norm(z), 1e-9)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.c_[x, y, z]
+    T[:3, 3] = c.mean(axis=0)
+    return T, np.array([np.linalg.norm(u), abs(float(v @ y)), 0.05])
+
+
+class SimulationChannels:
+    """A simulated flight's Foxglove channels, written into its recording (service.recording.FlightWriter)."""
+
+    def __init__(self, write: Callable[[str, Any, int], None], model: BuildingModel, wall_mesh: Any = None) -> None:
+        self.channels = FoxgloveChannels(write)
+        self.model, self.wall_mesh = model, wall_mesh
+        self._first = True
+
+    def frame(self, stereo: pb.StereoFrame, T_cad_body: np.ndarray, T_body_cam: np.ndarray) -> None:
+        c, s = self.channels, stereo.header.stamp_ns
+        if self._first:
+            from service.plots import wall_segments_xy
+
+            z = float(T_cad_body[2, 3])
+            walls = wall_segments_xy(self.wall_mesh, z) if self.wall_mesh is not None else None
+            c.model(s, self.model, set(), walls, z)
+            self._first = False
+        c.image(stereo, s)
+        c.transforms(s, None, T_body_cam, T_cad_body=T_cad_body)
+        c.pose("/pose/truth", s, T_cad_body)
+
+
+class ReplayRecorder:
+    """Writes a replay's frames to a FoxgloveWriter as they run (service.replay's `recorder`)."""
+
+    def __init__(self, writer: FoxgloveChannels, model: BuildingModel, wall_mesh: Any = None) -> None:
+        self.writer, self.model, self.wall_mesh = writer, model, wall_mesh
+        self._status: str | None = None
+        self._first = True
+        self._wall_z: float | None = None
+        self.last_stamp_ns = 0
+
+    def frame(self, frame: FlightFrame, inputs: Any, estimate: Any) -> None:
+        """One frame: image, detections, transforms, poses, status (`inputs`: service.replay_sources.FrameInput,
+        `estimate`: graph.localizer.Estimate)."""
+        w, s = self.writer, frame.stamp_ns
+        T_body_cam = inputs.T_body_cam
+        truth = matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth is not None else None
+        if self._first:
+            self._model(s, set(), truth)
+            self._first = False
+        w.image(frame.stereo, s)
+        T_cam_body = np.linalg.inv(T_body_cam)
+        w.detections(s, frame.stereo.info, [(x.type, (T_cam_body[:3, :3] @ x.corners_body.T).T + T_cam_body[:3, 3])
+                                            for x in inputs.sightings])
+        w.transforms(s, estimate.T_map_body, T_body_cam, estimate.T_cad_map)
+        if estimate.T_cad_body is not None:
+            w.pose("/pose/estimate", s, estimate.T_cad_body)
+        if truth is not None:
+            w.pose("/pose/truth", s, truth)
+        if estimate.status != self._status:
+            w.status(s, estimate.status)
+            self._status = estimate.status
+        self.last_stamp_ns = s
+
+    def _model(self, stamp_ns: int, matched: set[str], T_cad_body: np.ndarray | None) -> None:
+        from service.plots import wall_segments_xy
+
+        if self._wall_z is None:  # the flight's height at its start, else the doors' and windows' middle height
+            self._wall_z = float(T_cad_body[2, 3]) if T_cad_body is not None else \
+                float(np.median([f.centroid_cad[2] for f in self.model.features]))
+        walls = wall_segments_xy(self.wall_mesh, self._wall_z) if self.wall_mesh is not None else None
+        self.writer.model(stamp_ns, self.model, matched, walls, self._wall_z)
+
+    def finish(self, localizer: Any) -> None:
+        """The matched features and the landmarks at the end (`localizer`: graph.localizer.Localizer)."""
+        s = self.last_stamp_ns
+        self._model(s, set(localizer.links.values()), None)
+        T_cad_map = localizer.graph.T_cad_map()
+        if T_cad_map is not None:
+            self.writer.landmarks(s, [(str(j), lm.type, (T_cad_map @ localizer.graph.T_map_rect(j))[:3, 3])
+                                      for j, lm in localizer.landmarks.items()])
