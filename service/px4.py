@@ -61,23 +61,30 @@ class Px4Keys:
 
 
 class ResetCounter:
-    """PX4's reset_counter (uint8, wraps): +1 whenever T_cad_map moves by more than jump_m or jump_rad between
-    consecutive estimates that have one (the anchor kept while none has one: a re-localization after being lost
-    counts where it moved the anchor)."""
+    """PX4's reset_counter (uint8, wraps): +1 at every re-localization (a localized estimate after the service had
+    lost its pose or restarted its graph, having been localized before) and whenever T_cad_map moves by more than
+    jump_m or jump_rad between consecutive estimates that have one (the anchor kept while none has one); one
+    estimate adds one at most."""
 
     def __init__(self, jump_m: float = 0.10, jump_rad: float = np.deg2rad(2.0)) -> None:
         self.jump_m, self.jump_rad = jump_m, jump_rad
         self.count = 0
         self._last: np.ndarray | None = None
+        self._lost_since_localized = False
 
-    def update(self, T_cad_map: np.ndarray | None) -> int:
+    def update(self, T_cad_map: np.ndarray | None, status: str = "localized") -> int:
+        if status in ("lost", "exploring") and self._last is not None:
+            self._lost_since_localized = True
         if T_cad_map is None:
             return self.count
         last, self._last = self._last, np.asarray(T_cad_map, float).copy()
-        if last is not None:
-            moved_m = float(np.linalg.norm(T_cad_map[:3, 3] - last[:3, 3]))
-            if moved_m > self.jump_m or rotation_angle_rad(last[:3, :3].T @ T_cad_map[:3, :3]) > self.jump_rad:
-                self.count = (self.count + 1) % 256
+        relocalized = self._lost_since_localized and status == "localized"
+        jumped = last is not None and (float(np.linalg.norm(T_cad_map[:3, 3] - last[:3, 3])) > self.jump_m
+                                       or rotation_angle_rad(last[:3, :3].T @ T_cad_map[:3, :3]) > self.jump_rad)
+        if relocalized or jumped:
+            self.count = (self.count + 1) % 256
+        if status == "localized":
+            self._lost_since_localized = False
         return self.count
 
 
@@ -112,7 +119,7 @@ class Px4Messages:
                    position=T[:3, 3].astype(np.float32), q=quat_wxyz_from_matrix(T[:3, :3]).astype(np.float32),
                    velocity_frame=vframe, velocity=velocity, angular_velocity=NAN3,
                    position_variance=pos_var.astype(np.float32), orientation_variance=rot_var.astype(np.float32),
-                   velocity_variance=NAN3, reset_counter=self.reset.update(est.T_cad_map),
+                   velocity_variance=NAN3, reset_counter=self.reset.update(est.T_cad_map, est.status),
                    quality=100 if est.status == "localized" else 50)
 
     def setpoint(self, point_cad: np.ndarray, yaw_cad_rad: float, stamp_us: int) -> Any:
@@ -184,6 +191,8 @@ class Px4Output:
                 self.cursor.advance(est.T_cad_body[:3, 3])
         if est.T_cad_body is not None and est.status in ("localized", "degraded"):
             self._pubs["odometry"].put(to_cdr(self.messages.odometry(est, velocity), VEHICLE_ODOMETRY))
+        else:  # no odometry goes out, but the counter learns that the pose was lost (a re-localization follows)
+            self.messages.reset.update(None, est.status)
 
     def waypoints(self, plan: pb.Waypoints) -> None:
         if plan.error:

@@ -239,3 +239,49 @@ def _can_connect(port: int) -> bool:
     with socket.socket() as sock:
         sock.settimeout(0.2)
         return sock.connect_ex(("127.0.0.1", port)) == 0
+
+
+def test_reset_counter_increments_exactly_at_a_re_localization_in_a_flight(office_model) -> None:
+    """A flight through the service's backend: localized, then the pose graph fails (an odometry sample at
+    x = 1e300 let through past the edge checks) and restarts LOST, then the vehicle flies on and is localized
+    again. VehicleOdometry's reset_counter is 0 throughout the first localization and 1 from the first pose after
+    the re-localization on, while T_cad_map itself barely moved (same odometry frame)."""
+    from service.backend import LocalizerBackend
+    from service.health import DropCounter
+    from service.inputs import InputParser, OdometryIn
+    from service.px4 import Px4Messages
+    from tests.service.helpers import FakeFlight
+
+    backend = LocalizerBackend.fresh_or_restored(office_model, None)
+    parser, messages = InputParser(["front"], DropCounter()), Px4Messages()
+    door = [f for f in office_model.features if f.type == "door" and f.storey == "Level 1"][10]
+    T = yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])
+    flight = FakeFlight(office_model, yaw_T(0.7, np.array([3.0, -2.0, 0.1])))
+    counts: list[tuple[str, int]] = []
+
+    def step(k: int, T_cad_body: np.ndarray) -> None:
+        stamp = (k + 1) * 33_000_000
+        est = backend.odometry(parser.odometry(flight.odometry(stamp, T_cad_body).SerializeToString()))
+        if k % 5 == 0:
+            est = backend.observations(parser.observations(flight.observations(stamp, T_cad_body)
+                                                           .SerializeToString())) or est
+        if est.T_cad_body is not None and est.status in ("localized", "degraded"):
+            counts.append((est.status, int(messages.odometry(est, None).reset_counter)))
+        else:
+            messages.reset.update(None, est.status)
+            counts.append((est.status, -1))
+
+    for k in range(40):
+        step(k, T)
+        T = T @ yaw_T(0.0, np.array([0.02, 0.0, 0.0]))
+    assert counts[-1] == ("localized", 0)
+    lost = backend.odometry(OdometryIn(41 * 33_000_000, yaw_T(0.0, np.array([1e300, 0.0, 1.4]))))
+    assert lost.status == "lost" and backend.graph_restarts == 1
+    messages.reset.update(None, lost.status)
+    n = len(counts)
+    for k in range(42, 120):
+        step(k, T)
+        T = T @ yaw_T(0.0, np.array([0.02, 0.0, 0.0]))
+    after = [c for _, c in counts[n:] if c >= 0]
+    assert after and set(after) == {1}, counts[n:]
+    assert all(c == 0 for _, c in counts[:n] if c >= 0)
