@@ -80,3 +80,41 @@ def test_a_stalled_worker_withdraws_liveliness_and_starves_the_watchdog(duplex_p
         listener.messages.clear()
         wait_for(lambda: "WATCHDOG=1" in listener.drain(), 15.0, "the watchdog fed again")
     assert "STOPPING=1" in listener.drain()
+
+
+def test_stop_mid_stall_exits_within_the_units_stop_timeout(duplex_path, tmp_path) -> None:
+    """SIGTERM (the stop event) while the worker is stuck on one event: the service still exits well inside
+    TimeoutStopSec (30 s) - the queue gets drain_timeout_s, the final save gives up on the stuck worker's lock and
+    keeps the map saved last - instead of being SIGKILLed with nothing saved."""
+    import threading
+
+    from service.serve import build_service
+    from service.zenoh_io import open_session
+
+    port = free_port()
+    cfg = service_config(duplex_path, tmp_path, port)
+    cfg.service.drain_timeout_s = 3.0
+    stop, box = threading.Event(), {}
+
+    def run() -> None:
+        with open_session(cfg.zenoh) as session:
+            box["service"] = build_service(cfg, session)
+            box["service"].run(stop)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    wait_for(lambda: "service" in box and box["service"].ready.is_set(), 600.0, "service ready")
+    service = box["service"]
+    release = threading.Event()
+    held = threading.Thread(target=lambda: service._lock.acquire() and release.wait(120.0), daemon=True)
+    held.start()
+    with client(port) as s:
+        s.put("macroloc/t1/imu", FakeFlight(None, np.eye(4)).imu(1, np.eye(4)).SerializeToString())
+        wait_for(lambda: time.monotonic() - service._worker_beat_s > 1.0, 15.0, "the worker stuck")
+    t0 = time.monotonic()
+    stop.set()
+    thread.join(timeout=60.0)
+    stop_s = time.monotonic() - t0
+    release.set()
+    print(f"stop mid-stall took {stop_s:.1f} s")
+    assert not thread.is_alive() and stop_s < 30.0, f"stop took {stop_s:.1f} s"
