@@ -72,10 +72,9 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     if cfg.service.building is None:
         raise UserInputError("no building model: set service.building in the config or pass --building")
     building = Path(cfg.service.building)
-    log.info("preparing %s: doors and windows, surfaces, planning grid (the first time for a building takes "
-             "minutes; each step is cached after)", building.name)
-    model = load_building(building)
-    log.info("%s: %d doors and windows", building.name, len(model.features))
+    model = load_building(building)  # before anything is logged: a bad model file is exactly one line
+    log.info("%s: %d doors and windows; preparing its surfaces and planning grid (the first time for a building "
+             "takes minutes; each step is cached after)", building.name, len(model.features))
     geo = read_geo_reference(building)
     log.info("geo-reference of %s: %s", building.name, geo.to_json() if geo else "none")
     store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
