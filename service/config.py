@@ -187,6 +187,14 @@ class RosConfig(BaseModel):
     frame_map: str = Field("map", description="REP-105 map frame id: macroloc's CAD frame")
     frame_odom: str = Field("odom", description="REP-105 odom frame id: macroloc's map (odometry) frame")
     frame_base_link: str = Field("base_link", description="the body frame id (FLU)")
+    left_image: str = Field("", description="ROS topic of the left camera's sensor_msgs/Image (or CompressedImage, "
+                            "see compressed), e.g. /cam0/image_raw, taken beside macroloc/<vehicle>/stereo; '' = none")
+    right_image: str = Field("", description="ROS topic of the right camera's images, paired with the left by stamp")
+    left_info: str = Field("", description="ROS topic of the left camera's sensor_msgs/CameraInfo")
+    right_info: str = Field("", description="ROS topic of the right camera's CameraInfo (its P gives the baseline)")
+    imu: str = Field("", description="ROS topic of sensor_msgs/Imu in the body frame, beside macroloc/<vehicle>/imu")
+    compressed: bool = Field(False, description="the image topics carry sensor_msgs/CompressedImage (jpeg, png)")
+    rectified: bool = Field(False, description="the image topics carry rectified images (image_rect): not remapped")
 
 
 class Px4Config(BaseModel):

@@ -41,6 +41,7 @@ from service.places import KeyframePlaces, Placed
 from service.planning import GoalSpec, Planner, PlanningError
 from service.recording import matrix_from_pose
 from service.ros_out import NullRosInputs, RosInputs
+from service.ros_sensors import RosSensorInputs, RosSensorTopics
 from service.state import MapStore
 from service.systemd import Notifier, NullNotifier
 from service.vehicle_out import NullVehicleOutput, VehicleOutput
@@ -69,6 +70,8 @@ class ServiceParams:
     lockstep: bool = False  # inputs handled in the order sent (one FIFO intake, nothing dropped), replans first
     geo: GeoReference | None = None  # the model's geo-reference: poses also in ENU and WGS84
     limits: InputLimits = field(default_factory=InputLimits)  # what the input keys take (service.inputs)
+    ros_sensors: RosSensorTopics = field(default_factory=RosSensorTopics)  # ROS sensor topics taken ([ros])
+    T_body_cam: np.ndarray | None = None  # the camera's mounting for ROS images (None: the simulator's)
 
 
 class LocalizationService:
@@ -95,6 +98,8 @@ class LocalizationService:
         self.queue = WorkQueue(params.queue_size)
         self.parser = InputParser(params.cameras, self.drops, params.limits,
                                   on_clock_reset=lambda key, stamp_ns: self.queue.put(ClockReset(key, stamp_ns), False))
+        self.ros_sensors = RosSensorInputs(params.ros_sensors, self.parser, self.drops, params.cameras[0],
+                                           params.T_body_cam, params.limits.max_image_pixels, time.monotonic_ns)
         self.rates = {name: RateMeter() for name in ("stereo", "imu", "odometry", "observations", "goal", "pose")}
         self.latency = {name: LatencyWindow() for name in ("frame_to_pose", "odometry_to_pose", "keyframe")}
         self.ready = threading.Event()  # everything declared: inputs are being taken
@@ -127,6 +132,7 @@ class LocalizationService:
             k.observations: (lambda s: self.parser.observations(s), "observations", False, 64),
             k.goal: (lambda s: self.parser.goal(s), "goal", False, 8),
             **self.ros_inputs.intakes(),
+            **self.ros_sensors.intakes(),
         }
         subs, threads = [], []
         prefix = f"macroloc/{self.params.vehicle}/"

@@ -8,10 +8,13 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from graph.errors import UserInputError
 from service.config import MacrolocConfig
 from service.frames import FramePipeline, NullPipeline
 from service.node import LocalizationService, ServiceParams
+from service.ros_sensors import RosSensorTopics
 from service.state import MapStore
 from service.systemd import Notifier, notifier_from_environment
 
@@ -59,6 +62,21 @@ def make_vehicle_io(cfg: MacrolocConfig, session, T_enu_cad=None):  # noqa: ANN0
     return out, inputs
 
 
+def ros_sensor_topics(cfg: MacrolocConfig) -> RosSensorTopics:
+    """The ROS sensor topics [ros] names, as Zenoh keys (zenoh-bridge-ros2dds: the topic without its leading
+    slash, under the namespace); none unless [ros] is enabled."""
+    r = cfg.ros
+    if not r.enabled:
+        return RosSensorTopics()
+    ns = r.namespace.strip("/")
+
+    def key(topic: str) -> str:
+        return "" if not topic else f"{ns}/{topic.lstrip('/')}" if ns else topic.lstrip("/")
+
+    return RosSensorTopics(key(r.left_image), key(r.right_image), key(r.left_info), key(r.right_info), key(r.imu),
+                           r.compressed, r.rectified)
+
+
 def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  # noqa: ANN001
                   notifier: Notifier | None = None) -> LocalizationService:
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
@@ -100,7 +118,8 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                            status_period_s=s.status_period_s, save_period_s=s.save_period_s,
                            replan_period_s=p.replan_period_s, stall_after_s=s.stall_after_s,
                            drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep, geo=geo,
-                           limits=limits_from_config(cfg.inputs, model))
+                           limits=limits_from_config(cfg.inputs, model), ros_sensors=ros_sensor_topics(cfg),
+                           T_body_cam=None if cfg.camera.T_body_cam is None else np.array(cfg.camera.T_body_cam, float))
     vehicle_out, ros_inputs = make_vehicle_io(cfg, session, geo.T_enu_cad() if geo and geo.north_given else None)
     return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), vehicle_out, ros_inputs,
                                notifier)
