@@ -4,10 +4,10 @@ from it at once?
 One vehicle flies (a fake flight of odometry and door sightings from the bundled Office_A's ground truth, as the
 service tests fly) while the service saves its map every 0.3 s; at a random moment it is killed with SIGKILL, the
 map on disk is read back, and the service is started again on the same state directory. The vehicle goes on with
-only a couple of doors in range (too few to register against the whole building): the first LOCALIZED pose after
-the restart can only come from the saved map. Printed per kill: when it came, whether map.pb parsed, and the time
-from the first input to the first LOCALIZED pose (wall clock on this machine, inputs included, so an upper bound on
-the processing; target 0.5 s).
+only a couple of doors in range (too few to register against the whole building), patrolling back and forth by
+them: the first LOCALIZED pose after the restart can only come from the saved map. Printed per kill: when it came,
+whether map.pb parsed, and the time from the first input to the first LOCALIZED pose (wall clock on this machine,
+inputs included, so an upper bound on the processing; target 0.5 s).
 
     python -m bench.bench_kill9 [--kills 20] [--seed 0]
 """
@@ -53,19 +53,23 @@ def main() -> None:
     cmd = [MACROLOC, "serve", "--building", str(building), "--vehicle", "k9", "--listen", f"tcp/127.0.0.1:{port}",
            "--state-dir", str(state)]
     saved = state / "k9" / "map.pb"
+    log = (state / "serve.log").open("ab")  # every run's stderr, to see why a restart did not come up
 
     def localized(poses: Collector) -> bool:
         last = poses.last()
         return last is not None and last.status == pb.PoseEstimate.LOCALIZED
 
     def up(s: zenoh.Session) -> None:
-        wait_for(lambda: any(r.ok for r in s.liveliness().get("macroloc/k9/alive", timeout=1.0)), 600.0, "up")
+        wait_for(lambda: any(r.ok for r in s.liveliness().get("macroloc/k9/alive", timeout=1.0))
+                 or proc.poll() is not None, 600.0, "up")
+        if proc.poll() is not None:
+            raise SystemExit(f"serve exited with {proc.returncode} at start: see {state / 'serve.log'}")
 
     flight = FakeFlight(model, yaw_T(rng.uniform(-3, 3), np.r_[rng.uniform(-10, 10, 2), 0.0]))
     door = doors[int(rng.integers(len(doors)))]
     T = yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])
     stamp = 0
-    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(cmd, env=env, stderr=log)
     rows, unreadable = [], 0
     try:
         with zenoh.open(session_config(loopback(connect=[f"tcp/127.0.0.1:{port}"]))) as s:
@@ -79,6 +83,7 @@ def main() -> None:
         for k in range(args.kills):
             with zenoh.open(session_config(loopback(connect=[f"tcp/127.0.0.1:{port}"]))) as s:
                 steps = int(rng.integers(3, 30))  # killed after a random part of this leg
+                T = T @ yaw_T(np.pi, np.zeros(3))  # a patrol: each leg turns back, the vehicle stays by its doors
                 T = fly(s, flight, T, steps, first_stamp_ns=stamp, vehicle="k9", observe_every=1)
                 stamp += steps * 33_000_000
                 time.sleep(float(rng.uniform(0.0, 1.0)))
@@ -90,7 +95,7 @@ def main() -> None:
             except Exception:  # noqa: BLE001 - the figure is whether it parses
                 readable = False
             unreadable += not readable
-            proc = subprocess.Popen(cmd, env=env, stderr=subprocess.DEVNULL)
+            proc = subprocess.Popen(cmd, env=env, stderr=log)
             with zenoh.open(session_config(loopback(connect=[f"tcp/127.0.0.1:{port}"]))) as s:
                 up(s)
                 poses = Collector(s, "macroloc/k9/pose", pb.PoseEstimate)
