@@ -25,6 +25,7 @@ def rss_mb() -> float:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(SOAK_S + 600)  # the soak itself, plus a cold start of the service
 def test_soak_at_30_hz_keeps_memory_flat(office_path: Path, office_model, tmp_path: Path) -> None:
     if not Path("/proc/self/statm").exists():
         pytest.skip("needs /proc to read the resident memory")
