@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -46,7 +46,7 @@ from service.state import MapStore
 from service.systemd import Notifier, NullNotifier
 from service.vehicle_out import NullVehicleOutput, VehicleOutput
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
-from service.workqueue import WorkQueue
+from service.workqueue import CountingRing, WorkQueue
 from service.zenoh_io import PROTOBUF, Keys, declare_publisher
 
 log = logging.getLogger(__name__)
@@ -134,7 +134,8 @@ class LocalizationService:
             **self.ros_inputs.intakes(),
             **self.ros_sensors.intakes(),
         }
-        subs, threads = [], []
+        subs: list[Any] = []  # every subscriber, undeclared at stop
+        threads: list[threading.Thread] = []
         prefix = f"macroloc/{self.params.vehicle}/"
         if self.params.lockstep:  # one channel for the vehicle's keys: handled in the order the vehicle sent them
             ordered = {key: intake for key, intake in intakes.items() if key.startswith(prefix)}
@@ -143,10 +144,12 @@ class LocalizationService:
             subs.append(sub)
             threads.append(threading.Thread(target=self._ordered_intake, args=(sub, ordered), name="intake",
                                             daemon=True))
+        rings = []
         for key, (parse, name, heavy, ring) in intakes.items():
-            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(ring))
-            subs.append(sub)
-            threads.append(threading.Thread(target=self._intake, args=(sub, parse, name, heavy),
+            channel = CountingRing(ring, self._overflow_counter(name))
+            subs.append(self.session.declare_subscriber(key, channel))
+            rings.append(channel)
+            threads.append(threading.Thread(target=self._intake, args=(channel, parse, name, heavy),
                                             name=f"intake-{name}", daemon=True))
         worker = threading.Thread(target=self._work, args=(stop,), name="worker", daemon=True)
         saver = threading.Thread(target=self._save_periodically, args=(stop,), name="saver", daemon=True)
@@ -165,7 +168,9 @@ class LocalizationService:
             self.notifier.stopping()
             log.info("stopping: draining %d queued events", len(self.queue))
             for sub in subs:
-                sub.undeclare()  # ends the intake threads' iterations
+                sub.undeclare()  # ends the intake threads' iterations (the FIFO's; the rings at close)
+            for channel in rings:
+                channel.close()
             for t in threads:
                 t.join(timeout=5.0)
             # bounded so that a stalled worker cannot hold the exit past systemd's TimeoutStopSec (30 s)
@@ -186,8 +191,11 @@ class LocalizationService:
             else:
                 log.info("stopped before localizing; the saved map %s is kept as it was", self.store.path)
 
-    def _intake(self, sub: zenoh.Subscriber, parse: Callable[[bytes], Any], name: str, heavy: bool) -> None:
-        for sample in sub:
+    def _overflow_counter(self, name: str) -> Callable[[], None]:
+        return lambda: self.drops.drop(f"{name}/ring_overflow")
+
+    def _intake(self, samples: Iterable[Any], parse: Callable[[bytes], Any], name: str, heavy: bool) -> None:
+        for sample in samples:
             try:
                 event = parse(sample.payload.to_bytes())
             except Exception:  # a parser bug must not kill the intake: count it, keep going

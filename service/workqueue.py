@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Callable, Iterator
 from typing import Any
 
 
@@ -46,3 +47,41 @@ class WorkQueue:
     def __len__(self) -> int:
         with self._cv:
             return len(self._items)
+
+
+class CountingRing:
+    """A subscriber's handler keeping the latest `size` samples, as Zenoh's RingChannel does, but counting the
+    samples it pushes out (`on_overflow` is called for each): a stream faster than its intake loses samples
+    visibly, in the diagnostics, not silently. Iterating blocks for the next sample until `close()`."""
+
+    def __init__(self, size: int, on_overflow: Callable[[], None]) -> None:
+        self._items: deque[Any] = deque()
+        self.size = size
+        self.on_overflow = on_overflow
+        self._cv = threading.Condition()
+        self._closed = False
+
+    def __call__(self, sample: Any) -> None:  # Zenoh's callback thread: append only
+        overflow = False
+        with self._cv:
+            if len(self._items) >= self.size:
+                self._items.popleft()
+                overflow = True
+            self._items.append(sample)
+            self._cv.notify()
+        if overflow:
+            self.on_overflow()
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._cv.notify_all()
+
+    def __iter__(self) -> Iterator[Any]:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: bool(self._items) or self._closed)
+                if not self._items:
+                    return
+                sample = self._items.popleft()
+            yield sample
