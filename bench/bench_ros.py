@@ -23,17 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from bench.bench_zenoh import _free_port, stereo_images
+from sim.vehicle import level_pose
 
 ROOT = Path(__file__).resolve().parents[1]
 OFFICE = ROOT / "data" / "buildings" / "office_a.ifc"
-
-
-def _yaw_T(yaw: float, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    c, s = np.cos(yaw), np.sin(yaw)
-    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    T[:3, 3] = t
-    return T
 
 
 def _observations(model, T_cad_body: np.ndarray, stamp_ns: int, rng: np.random.Generator):  # noqa: ANN001, ANN202
@@ -90,7 +83,7 @@ def run(frames: int, rate_hz: float = 30.0) -> dict:
         got_ros.setdefault(stamp_ns_of(msg.header.stamp), t)
 
     door = [f for f in model.features if f.type == "door" and f.storey == "Level 1"][10]
-    T = _yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])
+    T = level_pose(door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4], 0.3)
     out: dict = {"images": origin, "frame_bytes": template.ByteSize()}
     rng = np.random.default_rng(0)
     try:
@@ -110,7 +103,7 @@ def run(frames: int, rate_hz: float = 30.0) -> dict:
                 odo_pub.put(odo.SerializeToString())
                 if k % 5 == 0:
                     s.put(keys.observations, _observations(model, T, stamp, rng).SerializeToString())
-                T = T @ _yaw_T(0.0, np.array([0.02, 0.0, 0.0]))
+                T = T @ level_pose(np.array([0.02, 0.0, 0.0]), 0.0)
                 time.sleep(0.01)
             deadline = time.perf_counter() + 60
             while not localized and time.perf_counter() < deadline:

@@ -15,10 +15,12 @@ from service.config import Px4Config, RosConfig
 from service.ned import cov_ros_from_gtsam, matrix_from_quat_wxyz
 from service.px4 import ResetCounter
 from service.recording import matrix_from_pose
+from service.ros_in import pose_message as ros_pose
+from service.ros_in import transform_matrix
 from service.ros_types import from_cdr, msg, stamp_ns_of, to_cdr
 from service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for, yaw_T
-from tests.service.test_service import _query, fly
+from tests.service.test_service import Collector, _query, fly
 
 
 class CdrCollector:
@@ -40,26 +42,9 @@ class CdrCollector:
             return list(self.items)
 
 
-class PbCollector:
-    def __init__(self, session: zenoh.Session, key: str, cls: Any) -> None:
-        self.items: list[Any] = []
-        self._sub = session.declare_subscriber(key, lambda s: self.items.append(cls.FromString(s.payload.to_bytes())))
-
-
 def _T_of(pose: Any) -> np.ndarray:
-    T = np.eye(4)
-    q = pose.orientation
-    T[:3, :3] = matrix_from_quat_wxyz([q.w, q.x, q.y, q.z])
-    T[:3, 3] = (pose.position.x, pose.position.y, pose.position.z)
-    return T
-
-
-def _T_of_transform(tr: Any) -> np.ndarray:
-    T = np.eye(4)
-    q = tr.rotation
-    T[:3, :3] = matrix_from_quat_wxyz([q.w, q.x, q.y, q.z])
-    T[:3, 3] = (tr.translation.x, tr.translation.y, tr.translation.z)
-    return T
+    """A geometry_msgs/Pose as 4x4, through the bag reader's conversion."""
+    return matrix_from_pose(ros_pose(pose))
 
 
 @pytest.fixture(scope="module")
@@ -75,8 +60,8 @@ def test_ros_and_px4_messages_match_the_protobuf_ones(office_path, office_model,
     cfg.px4 = Px4Config(enabled=True, namespace="px4_1")
     cfg.graph.surface_check = False  # four doors in range register without the walls' check (faster to start)
     with running_service(cfg), client(port) as s:
-        poses_pb = PbCollector(s, "macroloc/t1/pose", pb.PoseEstimate)
-        waypoints_pb = PbCollector(s, "macroloc/t1/waypoints", pb.Waypoints)
+        poses_pb = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        waypoints_pb = Collector(s, "macroloc/t1/waypoints", pb.Waypoints)
         pose = CdrCollector(s, "t1/macroloc/pose", "geometry_msgs/msg/PoseWithCovarianceStamped")
         odom = CdrCollector(s, "t1/macroloc/odometry", "nav_msgs/msg/Odometry")
         path = CdrCollector(s, "t1/macroloc/path", "nav_msgs/msg/Path")
@@ -143,8 +128,8 @@ def test_ros_and_px4_messages_match_the_protobuf_ones(office_path, office_model,
         stamp = stamp_ns_of(frames["map", "odom"].header.stamp)
         if stamp not in by_stamp:
             continue
-        T_map_odom = _T_of_transform(frames["map", "odom"].transform)
-        T_odom_base = _T_of_transform(frames["odom", "base_link"].transform)
+        T_map_odom = transform_matrix(frames["map", "odom"].transform)
+        T_odom_base = transform_matrix(frames["odom", "base_link"].transform)
         ref = same(T_map_odom, by_stamp[stamp], "T_cad_map", 1e-3)
         assert np.abs(T_map_odom @ T_odom_base - matrix_from_pose(ref.T_cad_body))[:3].max() < 1e-3
         chains += 1
