@@ -400,22 +400,22 @@ class VehicleAgent:
 
     def _wait_for_pose(self, stamp_ns: int, timeout_s: float) -> None:
         """Simulated time waits for the service to answer this measurement (a sensor slower than real time)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            with self._lock:
-                if self.pose is not None and self.pose.header.stamp_ns >= stamp_ns:
-                    return
-            time.sleep(0.002)
+        self._until(lambda: self.pose is not None and self.pose.header.stamp_ns >= stamp_ns, timeout_s, 0.002)
 
     def _wait(self, answered: Any, what: str, timeout_s: float = 120.0) -> None:
         """Lock-step: block the vehicle's clock until `answered()` (checked under the lock) or the timeout."""
+        if not self._until(answered, timeout_s, 0.0005):
+            log.warning("lock-step: no answer for %s within %.0f s; the vehicle goes on", what, timeout_s)
+
+    def _until(self, condition: Any, timeout_s: float, poll_s: float) -> bool:
+        """Poll `condition()` under the lock until it holds (True) or `timeout_s` passed (False)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             with self._lock:
-                if answered():
-                    return
-            time.sleep(0.0005)
-        log.warning("lock-step: no answer for %s within %.0f s; the vehicle goes on", what, timeout_s)
+                if condition():
+                    return True
+            time.sleep(poll_s)
+        return False
 
     def close(self) -> None:
         for sub in self._subs:

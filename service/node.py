@@ -196,33 +196,29 @@ class LocalizationService:
 
     def _intake(self, samples: Iterable[Any], parse: Callable[[bytes], Any], name: str, heavy: bool) -> None:
         for sample in samples:
-            try:
-                event = parse(sample.payload.to_bytes())
-            except Exception:  # a parser bug must not kill the intake: count it, keep going
-                log.exception("parsing %s failed", name)
-                self.drops.drop(f"{name}/parse_error")
-                continue
-            if event is not None:
-                self.rates[name].tick()
-                self.queue.put(event, heavy)
+            self._take(sample, parse, name, heavy)
 
     def _ordered_intake(self, sub: zenoh.Subscriber, intakes: dict[str, tuple]) -> None:
         """Lock-step: the input keys' samples from one FIFO channel, parsed and queued in arrival order (the
-        service's own outputs on the same prefix are skipped)."""
+        service's own outputs on the same prefix are skipped); none is heavy: never pushed out, the vehicle waits
+        for each answer."""
         for sample in sub:
             intake = intakes.get(str(sample.key_expr))
-            if intake is None:
-                continue
-            parse, name, _, _ = intake
-            try:
-                event = parse(sample.payload.to_bytes())
-            except Exception:
-                log.exception("parsing %s failed", name)
-                self.drops.drop(f"{name}/parse_error")
-                continue
-            if event is not None:
-                self.rates[name].tick()
-                self.queue.put(event, False)  # never pushed out: the vehicle waits for each answer
+            if intake is not None:
+                parse, name, _, _ = intake
+                self._take(sample, parse, name, False)
+
+    def _take(self, sample: Any, parse: Callable[[bytes], Any], name: str, heavy: bool) -> None:
+        """Parse one sample and queue its event; a parser bug must not kill the intake: counted, skipped."""
+        try:
+            event = parse(sample.payload.to_bytes())
+        except Exception:
+            log.exception("parsing %s failed", name)
+            self.drops.drop(f"{name}/parse_error")
+            return
+        if event is not None:
+            self.rates[name].tick()
+            self.queue.put(event, heavy)
 
     def _work(self, stop: threading.Event) -> None:
         """Handle events until stopped and the queue is empty (the drain)."""
