@@ -66,6 +66,10 @@ class RosKeys:
     def topic(self, name: str) -> str:
         return self._k(f"{self.vehicle}/macroloc/{name}")
 
+    def of(self, ros_topic: str) -> str:
+        """The Zenoh key of any ROS topic (e.g. /cam0/image_raw); "" for none."""
+        return self._k(ros_topic.lstrip("/")) if ros_topic else ""
+
     @property
     def tf(self) -> str:
         return self._k("tf")

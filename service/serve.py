@@ -65,16 +65,14 @@ def make_vehicle_io(cfg: MacrolocConfig, session, T_enu_cad=None):  # noqa: ANN0
 def ros_sensor_topics(cfg: MacrolocConfig) -> RosSensorTopics:
     """The ROS sensor topics [ros] names, as Zenoh keys (zenoh-bridge-ros2dds: the topic without its leading
     slash, under the namespace); none unless [ros] is enabled."""
+    from service.ros_out import RosKeys
+
     r = cfg.ros
     if not r.enabled:
         return RosSensorTopics()
-    ns = r.namespace.strip("/")
-
-    def key(topic: str) -> str:
-        return "" if not topic else f"{ns}/{topic.lstrip('/')}" if ns else topic.lstrip("/")
-
-    return RosSensorTopics(key(r.left_image), key(r.right_image), key(r.left_info), key(r.right_info), key(r.imu),
-                           r.compressed, r.rectified)
+    keys = RosKeys(cfg.service.vehicle, r.namespace)
+    return RosSensorTopics(keys.of(r.left_image), keys.of(r.right_image), keys.of(r.left_info),
+                           keys.of(r.right_info), keys.of(r.imu), r.compressed, r.rectified)
 
 
 def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  # noqa: ANN001
