@@ -11,7 +11,7 @@ demo: setup          ## the main job on the bundled building
 
 test: setup          ## the fast suite (< 10 min on 2 cores) + lint and type check
 	$(VENV)/ruff check graph perception sim service tests bench scripts
-	$(VENV)/mypy
+	bash scripts/typecheck.sh
 	$(VENV)/python -m pytest -q
 
 test-slow: setup     ## training, long flights, soak: the heavy checks behind the `slow` marker
@@ -34,7 +34,7 @@ eval-shared: setup  ## the independent harness in ../shared/eval on every shared
 
 train: setup         ## reproduce the shipped detector weights (needs torch: the train extra)
 	MACROLOC_EXTRAS=dev,train bash scripts/setup.sh
-	$(VENV)/python -m perception.train
+	$(VENV)/python -m macroloc.perception.train
 
 proto: setup         ## regenerate the committed Python from proto/
 	$(VENV)/python scripts/gen_proto.py

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import graph.bim_ifc
-from graph.bim import load_building, merge_duplicates
-from graph.features import BuildingModel, MacroFeature
+import macroloc.graph.bim_ifc as bim_ifc
+from macroloc.graph.bim import load_building, merge_duplicates
+from macroloc.graph.features import BuildingModel, MacroFeature
 
 
 def _counts(model: BuildingModel) -> Counter:
@@ -72,9 +72,9 @@ def test_sizes_are_plausible(office_model: BuildingModel) -> None:
 def test_centroid_comes_from_geometry_not_placement(fzk_path: Path) -> None:
     import ifcopenshell.util.placement as up
 
-    ifc = graph.bim_ifc.open_ifc(fzk_path)
+    ifc = bim_ifc.open_ifc(fzk_path)
     elements = list(ifc.by_type("IfcDoor")) + list(ifc.by_type("IfcWindow"))
-    shapes = graph.bim_ifc.element_vertices(ifc, elements, graph.bim_ifc.geometry_settings())
+    shapes = bim_ifc.element_vertices(ifc, elements, bim_ifc.geometry_settings())
     model = load_building(fzk_path)
     by_id = {f.id: f for f in model.features}
     offsets = []
@@ -93,7 +93,7 @@ def test_second_load_is_served_from_cache(duplex_path: Path, monkeypatch: pytest
     def must_not_run(path: Path):
         raise AssertionError("the IFC reader ran although the building is cached")
 
-    monkeypatch.setattr(graph.bim_ifc, "read_ifc_features", must_not_run)
+    monkeypatch.setattr(bim_ifc, "read_ifc_features", must_not_run)
     second = load_building(duplex_path)
     assert [f.id for f in second.features] == [f.id for f in first.features]
     np.testing.assert_allclose(second.centroids_cad(), first.centroids_cad(), atol=1e-4)
@@ -120,8 +120,8 @@ def test_duplicates_are_merged() -> None:
 def test_an_ifczip_reads_as_its_ifc_and_is_cached(fzk_path: Path, tmp_path: Path) -> None:
     import zipfile
 
-    from graph.bim import cache_dir, is_ifc
-    from service.plots import load_wall_mesh
+    from macroloc.graph.bim import cache_dir, is_ifc
+    from macroloc.service.plots import load_wall_mesh
 
     zipped = tmp_path / "fzk_haus.ifcZIP"
     with zipfile.ZipFile(zipped, "w", zipfile.ZIP_DEFLATED) as zf:

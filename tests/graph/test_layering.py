@@ -9,6 +9,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 FORBIDDEN = ("service", "zenoh", "typer")
+PROJECT_PACKAGES = ("graph", "perception", "service", "sim")
 
 
 @pytest.mark.parametrize("package", ["graph", "perception"])
@@ -18,5 +19,26 @@ def test_libraries_do_not_import_the_service(package: str) -> None:
         for node in ast.walk(ast.parse(path.read_text())):
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                 [node.module or ""] if isinstance(node, ast.ImportFrom) else []
-            offenders += [f"{path.relative_to(ROOT)}: {n}" for n in names if n.split(".")[0] in FORBIDDEN]
+            offenders += [f"{path.relative_to(ROOT)}: {n}" for n in names if _package(n) in FORBIDDEN]
     assert not offenders, offenders
+
+
+def _package(module: str) -> str:
+    """`macroloc.service.x` -> `service`; a third-party `zenoh.x` -> `zenoh`."""
+    parts = module.split(".")
+    return parts[1] if parts[0] == "macroloc" and len(parts) > 1 else parts[0]
+
+
+@pytest.mark.parametrize("folder", ["graph", "perception", "service", "sim", "tests", "bench", "scripts"])
+def test_the_project_is_imported_under_its_namespace_only(folder: str) -> None:
+    """Installed, the packages are `macroloc.graph`, `macroloc.service`, ...: a bare `import service` would take
+    PyPI's `service` (or nothing) instead of ours."""
+    bare = []
+    for path in sorted((ROOT / folder).rglob("*.py")):
+        if "wire" in path.parts:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else []
+            bare += [f"{path.relative_to(ROOT)}: {n}" for n in names if n.split(".")[0] in PROJECT_PACKAGES]
+    assert not bare, bare
