@@ -6,7 +6,8 @@ export PYTHONUNBUFFERED := 1
 setup:
 	@bash scripts/setup.sh
 
-demo: setup          ## the main job on the bundled building
+demo:                ## the main job on the bundled building (set-up installs the runtime only: no torch)
+	@MACROLOC_EXTRAS=runtime bash scripts/setup.sh
 	$(VENV)/macroloc demo
 
 test: setup          ## the fast suite (< 10 min on 2 cores) + lint and type check

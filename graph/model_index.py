@@ -6,6 +6,7 @@ tables and descriptors. Frames: CAD, metres.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -114,7 +115,7 @@ def index_for(model: BuildingModel) -> ModelIndex:
             tables = None
     index = ModelIndex.build(model.features, tables)
     if tables is None:
-        tmp = path.with_suffix(".tmp.npz")
+        tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")  # one per process: two may build at once
         np.savez(tmp, dist_samples_m=index.tables.dist_samples_m, angle_samples_rad=index.tables.angle_samples_rad,
                  dist_edges_m=index.tables.dist_edges_m, angle_edges_rad=index.tables.angle_edges_rad)
         tmp.replace(path)

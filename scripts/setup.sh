@@ -17,15 +17,25 @@ if ((${#missing[@]})); then
 fi
 
 PY=${PYTHON:-python3}
+# MACROLOC_EXTRAS: "runtime" (what `make demo` needs: no torch, no linters), "dev" (tests, the default), "dev,bench"...
 EXTRAS=${MACROLOC_EXTRAS:-dev}
 stamp=.venv/.setup-stamp
-want="$(sha256sum pyproject.toml | cut -c1-16) extras=$EXTRAS"
-if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
-    exit 0
+hash="$(sha256sum pyproject.toml | cut -c1-16)"
+if [ -f "$stamp" ]; then
+    read -r done_hash done_extras < "$stamp" || true
+    # done when this pyproject was installed with these extras, or with any extras when only the runtime is asked
+    if [ "$done_hash" = "$hash" ] && { [ "$done_extras" = "extras=$EXTRAS" ] || [ "$EXTRAS" = runtime ]; }; then
+        exit 0
+    fi
 fi
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-echo "setup: installing macroloc[$EXTRAS] into .venv (first time: a few minutes)"
-.venv/bin/python -m pip install -q -e ".[$EXTRAS]"
-echo "$want" > "$stamp"
+if [ "$EXTRAS" = runtime ]; then
+    echo "setup: installing macroloc into .venv (first time: a few minutes)"
+    .venv/bin/python -m pip install -q -e .
+else
+    echo "setup: installing macroloc[$EXTRAS] into .venv (first time: a few minutes)"
+    .venv/bin/python -m pip install -q -e ".[$EXTRAS]"
+fi
+echo "$hash extras=$EXTRAS" > "$stamp"
 echo "setup: done (.venv/bin/macroloc)"

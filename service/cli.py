@@ -20,6 +20,7 @@ from macroloc.graph.errors import UserInputError
 
 COMMAND_MODULES = (
     "features",
+    "prepare",
     "localize",
     "eval",
     "inspect",

@@ -108,6 +108,7 @@ class LocalizationService:
         self._last_plan_ns: int | None = None  # the pose stamp the last plan started from (vehicle clock)
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._worker_done = threading.Event()
+        self._abandon = threading.Event()  # set at stop once the drain is over (or has timed out)
         self._last_pose_ns = -1
         self.notifier = notifier or NullNotifier()
         self._worker_beat_s = time.monotonic()  # the worker's last sign of progress (between events)
@@ -174,7 +175,10 @@ class LocalizationService:
             for t in threads:
                 t.join(timeout=5.0)
             # bounded so that a stalled worker cannot hold the exit past systemd's TimeoutStopSec (30 s)
-            self._worker_done.wait(timeout=self.params.drain_timeout_s)
+            if not self._worker_done.wait(timeout=self.params.drain_timeout_s):
+                log.warning("stopping: the drain took longer than %.0f s; %d queued events are dropped",
+                            self.params.drain_timeout_s, len(self.queue))
+            self._abandon.set()  # a worker still busy stops after its current event, before outputs close
             worker.join(timeout=1.0)
             saver.join(timeout=5.0)
             self._save(lock_timeout_s=2.0)
@@ -225,7 +229,7 @@ class LocalizationService:
         handlers: dict[type, Callable[[Any], None]] = {
             OdometryIn: self._on_odometry, ObservationsIn: self._on_observations, StereoIn: self._on_stereo,
             ImuIn: self._on_imu, GoalIn: self._on_goal, ClockReset: self._on_clock_reset}
-        while True:
+        while not self._abandon.is_set():
             self._worker_beat_s = time.monotonic()
             event = self.queue.get(timeout_s=0.1)
             if event is None:
@@ -235,6 +239,9 @@ class LocalizationService:
             try:
                 handlers[type(event)](event)
             except Exception:  # one bad event must not kill the service
+                if self._abandon.is_set():  # its outputs were closed under it at the end of the drain
+                    self.drops.drop(f"{type(event).__name__}/shutdown")
+                    continue
                 log.exception("handling %s failed", type(event).__name__)
                 self.drops.drop(f"{type(event).__name__}/handler_error")
         self._worker_done.set()

@@ -78,19 +78,19 @@ def ros_sensor_topics(cfg: MacrolocConfig) -> RosSensorTopics:
 def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  # noqa: ANN001
                   notifier: Notifier | None = None) -> LocalizationService:
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
-    from macroloc.graph.bim import load_building
     from macroloc.graph.geo import read_geo_reference
+    from macroloc.service.assets import prepare_building
     from macroloc.service.backend import BackendParams, LocalizerBackend
     from macroloc.service.inputs import limits_from_config
-    from macroloc.service.planning import Planner
     from macroloc.service.replay import settings_from_config
 
     if cfg.service.building is None:
         raise UserInputError("no building model: set service.building in the config or pass --building")
     building = Path(cfg.service.building)
-    model = load_building(building)  # before anything is logged: a bad model file is exactly one line
-    log.info("%s: %d doors and windows; preparing its surfaces and planning grid (the first time for a building "
-             "takes minutes; each step is cached after)", building.name, len(model.features))
+    log.info("%s: preparing its assets (cached after the first time: `macroloc prepare` builds them ahead)",
+             building.name)
+    prepared = prepare_building(building, cfg.graph, cfg.planning)
+    model = prepared.model
     geo = read_geo_reference(building)
     log.info("geo-reference of %s: %s", building.name, geo.to_json() if geo else "none")
     store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
@@ -100,21 +100,15 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                                    keyframe_min_rotation_rad=cfg.graph.keyframe_rotation_rad,
                                    localizer=localizer_params,
                                    storey_hint=model.checked_storey(cfg.graph.storey_hint))
-    from macroloc.service.planning_grid import surfaces_for
-
-    surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight) if cfg.graph.surface_check else None
-    log.info("%s: surfaces ready; the planning grid next", building.name)
-    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, backend_params, surfaces)
-    p = cfg.planning
-    planner = Planner.for_building(building, p.cell_m, p.vehicle_radius_m, p.flight_height_m)
-    for elevation in sorted(model.storey_elevations_m.values())[:1]:
-        planner.grid(elevation + p.flight_height_m)  # the ground floor's grid ready before the first goal
+    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, backend_params,
+                                                 prepared.surfaces)
+    planner = prepared.planner
     log.info("%s: ready", building.name)
     s = cfg.service
     params = ServiceParams(vehicle=s.vehicle, building=building.name, building_sha256=model.sha256,
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
                            status_period_s=s.status_period_s, save_period_s=s.save_period_s,
-                           replan_period_s=p.replan_period_s, stall_after_s=s.stall_after_s,
+                           replan_period_s=cfg.planning.replan_period_s, stall_after_s=s.stall_after_s,
                            drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep, geo=geo,
                            limits=limits_from_config(cfg.inputs, model), ros_sensors=ros_sensor_topics(cfg),
                            T_body_cam=None if cfg.camera.T_body_cam is None else np.array(cfg.camera.T_body_cam, float))
