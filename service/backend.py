@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,7 +30,7 @@ from macroloc.graph.keyframes import KeyframePolicy
 from macroloc.graph.landmarks import feature_frame_cad
 from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
 from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
-from macroloc.graph.posegraph import PoseGraph
+from macroloc.graph.posegraph import IsamSettings, PoseGraph
 from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
 from macroloc.graph.surfaces import SurfaceIndex
@@ -104,6 +104,7 @@ class BackendParams:
     localizer: LocalizerParams | None = None
     storey_hint: str | None = None  # register against this storey's doors and windows only (graph.storey_hint)
     covariance: bool = True  # each keyframe's marginal covariance (iSAM2), carried by the poses until the next
+    isam: IsamSettings = field(default_factory=IsamSettings)  # the pose graph's iSAM2 (graph.relinearize_threshold)
 
 
 class LocalizerBackend:
@@ -113,7 +114,8 @@ class LocalizerBackend:
                  T_body_cam: np.ndarray | None = None, surfaces: SurfaceIndex | None = None) -> None:
         self.model = model
         self.params = params or BackendParams()
-        self.localizer = Localizer(model, PoseGraph(), registrar, self.params.localizer, T_body_cam, surfaces)
+        self.localizer = Localizer(model, PoseGraph(self.params.isam), registrar, self.params.localizer, T_body_cam,
+                                   surfaces)
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
         self._odometry: OrderedDict[int, np.ndarray] = OrderedDict()  # stamp_ns -> T_odom_body
         self._pending: list[ObservationsIn] = []  # sightings that arrived before the odometry of their stamp
@@ -282,7 +284,8 @@ class LocalizerBackend:
         self.graph_restarts += 1
         log.error("pose graph restarted (%d so far): %s", self.graph_restarts, why)
         old = self.localizer
-        self.localizer = Localizer(self.model, PoseGraph(), old.registrar, old.params, self.T_body_cam, old.surfaces)
+        self.localizer = Localizer(self.model, PoseGraph(self.params.isam), old.registrar, old.params, self.T_body_cam,
+                                   old.surfaces)
         self._last_keyframe_ns, self._T_last_keyframe, self._keyframe_covariance = None, None, None
         self.last = Estimate(stamp_ns, "lost", np.eye(4))
         return self.last

@@ -95,9 +95,10 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     log.info("geo-reference of %s: %s", building.name, geo.to_json() if geo else "none")
     store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
     snapshot = store.load(model.sha256)
-    localizer_params, _, _ = settings_from_config(cfg.graph)  # the config's [graph] section, as replay reads it
-    backend_params = BackendParams(keyframe_min_translation_m=cfg.graph.keyframe_translation_m,
-                                   keyframe_min_rotation_rad=cfg.graph.keyframe_rotation_rad,
+    localizer_params, policy, isam = settings_from_config(cfg.graph)  # the config's [graph] section, as replay
+    backend_params = BackendParams(keyframe_min_translation_m=policy.min_translation_m,
+                                   keyframe_min_rotation_rad=policy.min_rotation_rad,
+                                   keyframe_max_interval_s=policy.max_interval_s, isam=isam,
                                    localizer=localizer_params,
                                    storey_hint=model.checked_storey(cfg.graph.storey_hint))
     backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, backend_params,
