@@ -20,7 +20,8 @@ from macroloc.perception.image_header import DEFAULT_MAX_PIXELS
 
 
 class LocalizeConfig(BaseModel):
-    """Registration of observed macro-features to the CAD model (graph/registration)."""
+    """Registration of observed macro-features to the CAD model (graph/registration). Only `method` is read, by
+    `macroloc serve`; `macroloc localize` takes `--method` and runs with the defaults of the other keys."""
 
     method: Literal["robust", "paper"] = Field("robust", description="'paper' = the paper's algorithm exactly")
     inlier_threshold_m: float = Field(0.30, description="centroid residual under which a match is an inlier, m")
@@ -128,7 +129,9 @@ class GraphConfig(BaseModel):
 
     keyframe_translation_m: float = Field(0.25, description="a new keyframe after this much motion, m")
     keyframe_rotation_rad: float = Field(0.15, description="... or this much rotation, rad")
-    keyframe_interval_s: float = Field(0.34, description="... or this much time, s")
+    keyframe_interval_s: float = Field(0.34, description="... or this much time, s (replay; the service makes a "
+                                       "keyframe of a frame with sightings at least every 2 s, and of every one "
+                                       "while not localized)")
     associate_m: float = Field(0.6, description="a sighting this close to a same-type landmark re-observes it, m")
     cad_link_m: float = Field(0.5, description="once localized, a landmark this close to a CAD feature is linked, m")
     cad_link_max_turn_deg: float = Field(
@@ -138,7 +141,8 @@ class GraphConfig(BaseModel):
     degraded_after_s: float = Field(10.0, description="localized, but no sighting of a CAD-linked landmark "
                                     "for this long: degraded")
     lost_after_s: float = Field(30.0, description="... for this long: lost")
-    relinearize_threshold: float = Field(0.01, description="iSAM2 relinearization threshold")
+    relinearize_threshold: float = Field(0.01, description="iSAM2 relinearization threshold (replay; the service "
+                                         "uses 0.01)")
     registration_tolerance_m: float = Field(
         0.6, gt=0, description="registering the map to the model: an aligned landmark this close to a same-type "
         "CAD feature supports the pose, m (perception's landmarks lie 0.1-0.5 m off their feature: a tighter "
