@@ -134,3 +134,23 @@ def test_no_help_text_points_users_at_files_they_do_not_have() -> None:
     for source in [ROOT / "service" / "cli.py", *(ROOT / "service" / "commands").glob("*.py")]:
         text = source.read_text()
         assert "../shared" not in text and "DESIGN.md" not in text, f"{source.name} points at an internal file"
+
+
+def test_relative_links_lead_somewhere() -> None:
+    """Every relative link of the README and docs/*.md names a file of the repository (and, with `#anchor`, a
+    heading of that page)."""
+    broken = []
+    for page in PAGES:
+        for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
+            if re.match(r"[a-z]+:", target):
+                continue  # https:, mailto:
+            path, _, anchor = target.partition("#")
+            linked = (page.parent / path).resolve() if path else page
+            if not linked.exists():
+                broken.append(f"{page.name}: {target}")
+            elif anchor and linked.suffix == ".md":
+                headings = {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+                            for h in re.findall(r"^#+ (.+)$", linked.read_text(), re.M)}
+                if anchor not in headings:
+                    broken.append(f"{page.name}: {target} (no such heading)")
+    assert not broken, broken
