@@ -20,7 +20,8 @@ from macroloc.perception.image_header import DEFAULT_MAX_PIXELS
 
 
 class LocalizeConfig(BaseModel):
-    """Registration of observed macro-features to the CAD model (graph/registration)."""
+    """Registration of observed macro-features to the CAD model (graph/registration). Only `method` is read, by
+    `macroloc serve`; `macroloc localize` takes `--method` and runs with the defaults of the other keys."""
 
     method: Literal["robust", "paper"] = Field("robust", description="'paper' = the paper's algorithm exactly")
     inlier_threshold_m: float = Field(0.30, description="centroid residual under which a match is an inlier, m")
@@ -39,14 +40,14 @@ class LocalizeConfig(BaseModel):
 class CameraConfig(BaseModel):
     """The rectified stereo camera (simulator defaults; a real vehicle sends its own CameraInfo)."""
 
-    width: int = 640
-    height: int = 480
-    fx: float = 480.0
-    fy: float = 480.0
-    cx: float = 319.5
-    cy: float = 239.5
-    baseline_m: float = 0.12
-    rate_hz: float = 30.0
+    width: int = Field(640, description="image width of the simulated camera (macroloc simulate), px")
+    height: int = Field(480, description="image height of the simulated camera, px")
+    fx: float = Field(480.0, description="focal length along x of the simulated (rectified) camera, px")
+    fy: float = Field(480.0, description="focal length along y, px")
+    cx: float = Field(319.5, description="principal point x, px")
+    cy: float = Field(239.5, description="principal point y, px")
+    baseline_m: float = Field(0.12, description="stereo baseline of the simulated camera, m")
+    rate_hz: float = Field(30.0, description="stereo frame rate of a simulated flight, Hz")
     T_body_cam: list[list[float]] | None = Field(
         None, description="the left camera's optical frame in the body frame (4x4, rows), for ROS 2 bags without "
         "/tf_static (base_link -> the camera's frame); None: looking forward along body x, 0.10 m ahead, the left "
@@ -56,12 +57,13 @@ class CameraConfig(BaseModel):
 class ZenohConfig(BaseModel):
     """Zenoh session: peer mode on loopback with multicast scouting off is the embedded default."""
 
-    mode: Literal["peer", "client", "router"] = "peer"
+    mode: Literal["peer", "client", "router"] = Field("peer", description="Zenoh session mode")
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to, e.g. tcp/10.0.0.2:7447")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"],
                               description="endpoints to listen on (the service's default: loopback, Zenoh's port)")
     config_file: Path | None = Field(None, description="a zenoh JSON5 config file, applied before the keys above")
-    multicast_scouting: bool = False
+    multicast_scouting: bool = Field(False, description="discover peers by UDP multicast (off: only the "
+                                     "connect/listen endpoints)")
     gossip_scouting: bool = Field(False, description="off for fixed endpoints; on when peers meet through a router")
 
 
@@ -89,9 +91,10 @@ class ServiceConfig(BaseModel):
 class PlanningConfig(BaseModel):
     """Occupancy grid and A* (paper §3.3)."""
 
-    cell_m: float = 0.20
-    vehicle_radius_m: float = 0.35
-    flight_height_m: float = 1.4
+    cell_m: float = Field(0.20, description="occupancy grid cell size, m")
+    vehicle_radius_m: float = Field(0.35, description="obstacles are inflated by this radius before A*, m")
+    flight_height_m: float = Field(1.4, description="height above the storey's floor at which the model is cut "
+                                   "into the occupancy grid and waypoints are placed, m")
     replan_period_s: float = Field(2.0, description="replan to the active goal from the current pose this often, s")
 
 
@@ -102,7 +105,7 @@ class SimConfig(BaseModel):
     speed_mps: float = Field(1.0, description="cruise speed, m/s")
     min_height_m: float = Field(1.0, description="lowest flight height above the storey's floor, m")
     max_height_m: float = Field(1.8, description="highest flight height above the storey's floor, m")
-    imu_rate_hz: float = 200.0
+    imu_rate_hz: float = Field(200.0, description="IMU sample rate of a simulated flight, Hz")
     image_encoding: Literal["png", "jpeg", "raw"] = Field("jpeg", description="stereo images in the recording "
                                                           "(jpeg: quality 92, ~100 KB; png of a noisy image: ~450 KB)")
     depth: bool = Field(True, description="record the ground-truth depth (RAW_DEPTH_F32, m, 1 mm steps) per frame")
@@ -126,7 +129,9 @@ class GraphConfig(BaseModel):
 
     keyframe_translation_m: float = Field(0.25, description="a new keyframe after this much motion, m")
     keyframe_rotation_rad: float = Field(0.15, description="... or this much rotation, rad")
-    keyframe_interval_s: float = Field(0.34, description="... or this much time, s")
+    keyframe_interval_s: float = Field(0.34, description="... or this much time, s (replay; the service makes a "
+                                       "keyframe of a frame with sightings at least every 2 s, and of every one "
+                                       "while not localized)")
     associate_m: float = Field(0.6, description="a sighting this close to a same-type landmark re-observes it, m")
     cad_link_m: float = Field(0.5, description="once localized, a landmark this close to a CAD feature is linked, m")
     cad_link_max_turn_deg: float = Field(
@@ -136,7 +141,8 @@ class GraphConfig(BaseModel):
     degraded_after_s: float = Field(10.0, description="localized, but no sighting of a CAD-linked landmark "
                                     "for this long: degraded")
     lost_after_s: float = Field(30.0, description="... for this long: lost")
-    relinearize_threshold: float = Field(0.01, description="iSAM2 relinearization threshold")
+    relinearize_threshold: float = Field(0.01, description="iSAM2 relinearization threshold (replay; the service "
+                                         "uses 0.01)")
     registration_tolerance_m: float = Field(
         0.6, gt=0, description="registering the map to the model: an aligned landmark this close to a same-type "
         "CAD feature supports the pose, m (perception's landmarks lie 0.1-0.5 m off their feature: a tighter "

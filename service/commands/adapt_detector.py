@@ -33,7 +33,8 @@ def register(app: typer.Typer) -> None:
         steps: int = typer.Option(2400, "--steps", min=1, help="Training steps (batches of 16)."),
         threads: int = typer.Option(2, "--threads", min=1, help="CPU threads for training."),
         facades: Path | None = typer.Option(None, "--facades", help="Real door/window photos with YOLO labels "
-                                            "(images/, labels/; default: ../shared/data/images/facades); half of "
+                                            "(images/, labels/; default: $MACROLOC_SHARED_DATA/images/facades, the "
+                                            "data set the shipped detector was trained on); half of "
                                             "each batch, and the held-out test split reported."),
         json_out: bool = typer.Option(False, "--json", help="Print {model, frames, doors, windows, figures}."),
     ) -> None:

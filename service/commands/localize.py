@@ -11,8 +11,11 @@ def register(app: typer.Typer) -> None:
     @app.command()
     def localize(
         building: Path = typer.Argument(..., help="IFC file, or a mesh, of the building."),
-        observations: Path = typer.Option(..., "--observations", "-o", help="OBS.json: observed doors/windows in "
-                                          "the map frame (see DESIGN.md), optional gravity and storey hint."),
+        observations: Path = typer.Option(..., "--observations", "-o", help="OBS.json: the doors and windows seen, "
+                                          "in the map frame, metres: \"features\", each a \"type\" (door or window) "
+                                          "with 4 \"corners\" (any order) or a \"centroid\"; optional \"gravity\" "
+                                          "(a direction, map frame) and \"hints\": {\"storey\": NAME}. The README "
+                                          "has an example."),
         method: str = typer.Option("robust", "--method", help="robust (default) or paper (the paper's algorithm "
                                    "exactly: top-1 Hamming match, 4-point RANSAC)."),
         json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
