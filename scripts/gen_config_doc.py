@@ -43,9 +43,9 @@ overriding the one before:
    `MACROLOC_ZENOH__MODE=client` or `MACROLOC_GRAPH__STOREY_HINT="Level 1"`;
 4. command-line flags (e.g. `macroloc serve --vehicle drone2 --ros`).
 
-An unknown section is refused at start (exit 2, one line naming it); a misspelt key *inside* a section is
-not (it is ignored), so check a new file with `macroloc dump-config --config FILE [--toml]`, which prints the
-resolved configuration; start a config file from it. `macroloc replay --report DIR` writes
+An unknown section or key is refused at start (exit 2, one line naming it, e.g.
+`config: graph.storey_hintt: Extra inputs are not permitted`). `macroloc dump-config --config FILE [--toml]`
+prints the resolved configuration; start a config file from it. `macroloc replay --report DIR` writes
 the configuration it ran with to `DIR/config.json`.
 
 Units are in the key's name (`_m` metres, `_s` seconds, `_deg` degrees, `_hz` hertz) or its description.

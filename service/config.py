@@ -12,14 +12,20 @@ import tomllib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from macroloc.graph.errors import UserInputError
 from macroloc.perception.image_header import DEFAULT_MAX_PIXELS
 
 
-class LocalizeConfig(BaseModel):
+class _Section(BaseModel):
+    """A config section: a misspelt key is refused with its name, never silently ignored."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class LocalizeConfig(_Section):
     """Registration of observed macro-features to the CAD model (graph/registration). Only `method` is read, by
     `macroloc serve`; `macroloc localize` takes `--method` and runs with the defaults of the other keys."""
 
@@ -37,7 +43,7 @@ class LocalizeConfig(BaseModel):
                     min_inliers=self.min_inliers, seed=self.seed)
 
 
-class CameraConfig(BaseModel):
+class CameraConfig(_Section):
     """The rectified stereo camera (simulator defaults; a real vehicle sends its own CameraInfo)."""
 
     width: int = Field(640, description="image width of the simulated camera (macroloc simulate), px")
@@ -54,7 +60,7 @@ class CameraConfig(BaseModel):
         "camera baseline/2 to the left (the simulator's mounting)")
 
 
-class ZenohConfig(BaseModel):
+class ZenohConfig(_Section):
     """Zenoh session: peer mode on loopback with multicast scouting off is the embedded default."""
 
     mode: Literal["peer", "client", "router"] = Field("peer", description="Zenoh session mode")
@@ -67,7 +73,7 @@ class ZenohConfig(BaseModel):
     gossip_scouting: bool = Field(False, description="off for fixed endpoints; on when peers meet through a router")
 
 
-class ServiceConfig(BaseModel):
+class ServiceConfig(_Section):
     """The long-running process."""
 
     vehicle: str = Field("drone1", description="key prefix: macroloc/<vehicle>/...")
@@ -88,7 +94,7 @@ class ServiceConfig(BaseModel):
                            "pose: for a simulated vehicle whose clock waits for the service (demo --lockstep, tests)")
 
 
-class PlanningConfig(BaseModel):
+class PlanningConfig(_Section):
     """Occupancy grid and A* (paper §3.3)."""
 
     cell_m: float = Field(0.20, description="occupancy grid cell size, m")
@@ -98,7 +104,7 @@ class PlanningConfig(BaseModel):
     replan_period_s: float = Field(2.0, description="replan to the active goal from the current pose this often, s")
 
 
-class SimConfig(BaseModel):
+class SimConfig(_Section):
     """The camera simulator (`macroloc simulate`): flights through a building model and their recordings."""
 
     duration_s: float = Field(60.0, description="flight duration, s")
@@ -114,7 +120,7 @@ class SimConfig(BaseModel):
                                        "numbered n % 5 != 0 are used (the rest is the detector's test split)")
 
 
-class PerceptionConfig(BaseModel):
+class PerceptionConfig(_Section):
     """The perception chain (perception/): which door/window detector, and on which frames it runs."""
 
     detector_model: Path | None = Field(None, description="detector ONNX file with its JSON sidecar beside it; "
@@ -124,14 +130,13 @@ class PerceptionConfig(BaseModel):
     detect_every: int = Field(3, ge=1, description="replay: run the chain on every n-th stereo frame")
 
 
-class GraphConfig(BaseModel):
+class GraphConfig(_Section):
     """The pose graph and the localizer (graph/posegraph, graph/localizer): keyframes, association, status."""
 
     keyframe_translation_m: float = Field(0.25, description="a new keyframe after this much motion, m")
     keyframe_rotation_rad: float = Field(0.15, description="... or this much rotation, rad")
-    keyframe_interval_s: float = Field(0.34, description="... or this much time, s (replay; the service makes a "
-                                       "keyframe of a frame with sightings at least every 2 s, and of every one "
-                                       "while not localized)")
+    keyframe_interval_s: float = Field(0.34, description="... or this much time, s (the service and replay "
+                                       "alike; every frame with sightings is a keyframe while not localized)")
     associate_m: float = Field(0.6, description="a sighting this close to a same-type landmark re-observes it, m")
     cad_link_m: float = Field(0.5, description="once localized, a landmark this close to a CAD feature is linked, m")
     cad_link_max_turn_deg: float = Field(
@@ -141,8 +146,7 @@ class GraphConfig(BaseModel):
     degraded_after_s: float = Field(10.0, description="localized, but no sighting of a CAD-linked landmark "
                                     "for this long: degraded")
     lost_after_s: float = Field(30.0, description="... for this long: lost")
-    relinearize_threshold: float = Field(0.01, description="iSAM2 relinearization threshold (replay; the service "
-                                         "uses 0.01)")
+    relinearize_threshold: float = Field(0.01, description="iSAM2 relinearization threshold")
     registration_tolerance_m: float = Field(
         0.6, gt=0, description="registering the map to the model: an aligned landmark this close to a same-type "
         "CAD feature supports the pose, m (perception's landmarks lie 0.1-0.5 m off their feature: a tighter "
@@ -183,7 +187,7 @@ class GraphConfig(BaseModel):
         "windows seen at least 10 deg apart from one keyframe, for the walls to choose among")
 
 
-class RosConfig(BaseModel):
+class RosConfig(_Section):
     """ROS 2 through Zenoh (service/ros_out.py): CDR messages on the keys zenoh-bridge-ros2dds maps to ROS topics."""
 
     enabled: bool = Field(False, description="also publish ROS 2 messages (pose, odometry, path, tf, status) and take "
@@ -203,7 +207,7 @@ class RosConfig(BaseModel):
     rectified: bool = Field(False, description="the image topics carry rectified images (image_rect): not remapped")
 
 
-class Px4Config(BaseModel):
+class Px4Config(_Section):
     """PX4 through its uXRCE-DDS topics on Zenoh (service/px4.py): external vision odometry and offboard setpoints."""
 
     enabled: bool = Field(False, description="publish fmu/in/vehicle_visual_odometry, and fmu/in/trajectory_setpoint "
@@ -218,7 +222,7 @@ class Px4Config(BaseModel):
     reach_m: float = Field(0.5, gt=0, description="the setpoint moves to the next waypoint within this distance, m")
 
 
-class InputsConfig(BaseModel):
+class InputsConfig(_Section):
     """Limits on what the service takes from the wire (service/inputs.py): anything beyond them is dropped,
     counted by key and kind in the diagnostics, and logged once per kind."""
 

@@ -38,3 +38,11 @@ def test_every_key_is_in_the_reference() -> None:
         assert f"\n## {section}\n" in text
         for key in model.model_fields:
             assert f"| `{key}` |" in text
+
+
+def test_a_misspelt_key_inside_a_section_is_refused(tmp_path) -> None:  # noqa: ANN001
+    from macroloc.service.cli import main
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[graph]\nstorey_hintt = "Level 1"\n')
+    assert main(["dump-config", "--config", str(bad)]) == 2
