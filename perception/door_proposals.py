@@ -1,0 +1,250 @@
+"""Door candidates from geometry where the detector is blind (issue 32: close-up doors the CNN misses).
+
+A door is proposed where two long near-vertical LSD lines stand as far apart, in metres by stereo depth, as one of
+the model's doors is wide; their span fits one of its heights (or runs off the image's top or bottom); their tops
+are joined by a horizontal edge (or cut by the top border); and what lies between them is not nearer than the wall
+beside them (a doorway, a leaf recessed in its frame, or a flush leaf: never an object standing in front).
+All pair tests are numpy over the (N, N) pairs of lines; the lines come from LSD on the image at half resolution.
+
+Pixels: (u right, v down) of the full left image; depth in metres; points in the left camera's optical frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from perception.calib import StereoRig
+from perception.lines import JOIN_GAP_PX, LineConfig, detect_segments
+from perception.size_check import OpeningSizes, SizeTolerance, fitting
+from perception.stereo import back_project, to_gray
+
+
+@dataclass(frozen=True)
+class ProposalConfig:
+    """Limits of the door proposals; every one is derived from elsewhere (see the notes)."""
+
+    scale: float = 0.5  # LSD on the image at this scale: a door side a proposal needs is >= 2 x min_side_px long
+    max_tilt_deg: float = LineConfig.max_tilt_deg  # from vertical: the drone rolls up to ~20 deg (perception.lines)
+    join_offset_px: float = LineConfig.join_offset_px  # collinear pieces of one side (perception.lines) ...
+    join_gap_px: float = JOIN_GAP_PX  # ... whose ends lie within the paper's joining distance
+    min_side_px: float = 40.0  # full-resolution pixels: the smallest door of Office_A (1.52 m) 18 m away at f=480
+    strip_px: tuple[float, float] = (6.0, 24.0)  # the wall's depth from this far outside a side (WallPlaneConfig)
+    depth_tol_m: tuple[float, float] = (0.03, 0.0125)  # stereo's noise, a + b z^2 (WallPlaneConfig.threshold_m)
+    border_fraction: float = 40 / 480  # a side's end this near the border runs on past it (pipeline's margin)
+    max_proposals: int = 4  # per frame, best fit first: each costs an LSD refine and a 3D fit (~3 ms)
+
+
+@dataclass(frozen=True)
+class DoorProposal:
+    """A door candidate: its box (image pixels), measured width/height (m), depth (m), whether cut at the top or
+    bottom, the model size it fits, and `fit` in (0, 1]: 1 - the worst misfit over the tolerance."""
+
+    box_xyxy: tuple[float, float, float, float]
+    width_m: float
+    height_m: float
+    depth_m: float
+    cut_vertically: bool
+    model_wh_m: tuple[float, float]
+    fit: float
+
+
+@dataclass(frozen=True)
+class _Lines:
+    """Near-vertical lines, each top (u, v) and bottom (u, v), full-resolution pixels: (N, 2) each."""
+
+    top: np.ndarray
+    bottom: np.ndarray
+
+    def u_at(self, v: np.ndarray) -> np.ndarray:
+        """u of each line (N,) at rows v (N, ...) broadcast: the line through its ends."""
+        du = (self.bottom[:, 0] - self.top[:, 0]) / np.maximum(self.bottom[:, 1] - self.top[:, 1], 1e-9)
+        shape = (-1,) + (1,) * (np.ndim(v) - 1)
+        return self.top[:, 0].reshape(shape) + du.reshape(shape) * (v - self.top[:, 1].reshape(shape))
+
+
+def segments(gray: np.ndarray, cfg: ProposalConfig) -> tuple[np.ndarray, np.ndarray]:
+    """LSD's segments (S, 2, 2) of the image at `cfg.scale`, in full-resolution pixels: (near-vertical,
+    near-horizontal), each within max_tilt_deg."""
+    small = cv2.resize(gray, None, fx=cfg.scale, fy=cfg.scale, interpolation=cv2.INTER_AREA)
+    segs = np.array(detect_segments(small), float).reshape(-1, 2, 2) / cfg.scale
+    d = np.abs(segs[:, 1] - segs[:, 0])
+    tan = np.tan(np.radians(cfg.max_tilt_deg))
+    return segs[d[:, 0] <= d[:, 1] * tan], segs[d[:, 1] <= d[:, 0] * tan]
+
+
+def vertical_lines(segs: np.ndarray, cfg: ProposalConfig) -> _Lines:
+    """Near-vertical segments (S, 2, 2) oriented top first, collinear pieces joined, those >= min_side_px kept."""
+    segs = segs.copy()
+    flip = segs[:, 0, 1] > segs[:, 1, 1]
+    segs[flip] = segs[flip, ::-1]
+    top, bottom = _join(segs[:, 0], segs[:, 1], cfg)
+    keep = bottom[:, 1] - top[:, 1] >= cfg.min_side_px
+    return _Lines(top[keep], bottom[keep])
+
+
+def _join(top: np.ndarray, bottom: np.ndarray, cfg: ProposalConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Chain pieces, in order of their top, onto a line above whose extension passes within join_offset_px of the
+    piece's top and whose bottom lies within join_gap_px of it (or past it): LSD breaks a side into a handful."""
+    order = np.argsort(top[:, 1])
+    out_t, out_b = top[order].copy(), bottom[order].copy()
+    alive = np.ones(len(order), bool)
+    for k in range(len(order)):
+        prev = np.flatnonzero(alive[:k])
+        if not len(prev):
+            continue
+        t = out_t[k]
+        bt, bb = out_t[prev], out_b[prev]
+        slope = (bb[:, 0] - bt[:, 0]) / np.maximum(bb[:, 1] - bt[:, 1], 1e-9)
+        ok = (np.abs(bt[:, 0] + slope * (t[1] - bt[:, 1]) - t[0]) <= cfg.join_offset_px) \
+            & (t[1] - bb[:, 1] <= cfg.join_gap_px)
+        if ok.any():
+            i = prev[np.flatnonzero(ok)[0]]
+            if out_b[k, 1] > out_b[i, 1]:
+                out_b[i] = out_b[k]
+            alive[k] = False
+    return out_t[alive], out_b[alive]
+
+
+def _wall_depth_m(lines: _Lines, depth_m: np.ndarray, side: float, cfg: ProposalConfig) -> np.ndarray:
+    """Median depth (N,) of the strip `strip_px` outside each line, on its left (side -1) or right (+1): the wall
+    an opening stands in, where the line is the opening's side (NaN where the strip has none)."""
+    t = np.linspace(0.1, 0.9, 12)
+    v = lines.top[:, 1:2] * (1 - t) + lines.bottom[:, 1:2] * t  # (N, 12)
+    offsets = np.arange(cfg.strip_px[0], cfg.strip_px[1] + 1e-9, 6.0)
+    u = lines.u_at(v)[:, :, None] + side * offsets  # (N, 12, K)
+    z = _lookup(depth_m, u, np.broadcast_to(v[:, :, None], u.shape)).reshape(len(u), -1)
+    return _row_median(z, min_valid=4)
+
+
+def _top_edge_support(horizontal: np.ndarray, top_i: np.ndarray, top_j: np.ndarray,
+                      cfg: ProposalConfig) -> np.ndarray:
+    """(M,) fraction of the way from each top_i (M, 2) to top_j along which a near-horizontal segment (S, 2, 2)
+    lies within join_gap_px (the paper's joining distance) of the straight line between the two tops."""
+    if not len(horizontal) or not len(top_i):
+        return np.zeros(len(top_i))
+    grid = np.linspace(0.0, 1.0, 16)[None, :, None]
+    pts = top_i[:, None] * (1 - grid) + top_j[:, None] * grid  # (M, 16, 2)
+    p0, seg_d = horizontal[:, 0], horizontal[:, 1] - horizontal[:, 0]
+    rel = pts[:, :, None, :] - p0  # (M, 16, S, 2)
+    s = np.clip((rel * seg_d).sum(axis=-1) / np.maximum((seg_d ** 2).sum(axis=1), 1e-9), 0.0, 1.0)
+    dist2 = ((rel - s[..., None] * seg_d) ** 2).sum(axis=-1)
+    return np.asarray((dist2.min(axis=-1) <= cfg.join_gap_px ** 2).mean(axis=-1))
+
+
+def propose_doors(image: np.ndarray, depth_m: np.ndarray, rig: StereoRig, sizes: OpeningSizes,
+                  tol: SizeTolerance | None = None, cfg: ProposalConfig | None = None) -> list[DoorProposal]:
+    """Door candidates (best fit first, at most cfg.max_proposals, overlapping ones suppressed) in the left image
+    from its LSD lines, its depth (m, NaN unknown) and the model's door sizes."""
+    cfg, tol = cfg or ProposalConfig(), tol or SizeTolerance()
+    doors = sizes.wh_m("door")
+    gray = to_gray(image)
+    vertical, horizontal = segments(gray, cfg)
+    lines = vertical_lines(vertical, cfg)
+    n = len(lines.top)
+    if n < 2 or not len(doors):
+        return []
+    z_left, z_right = _wall_depth_m(lines, depth_m, -1.0, cfg), _wall_depth_m(lines, depth_m, 1.0, cfg)
+    i, j = np.nonzero(np.ones((n, n), bool))
+    v_top = np.maximum(lines.top[i, 1], lines.top[j, 1])
+    v_bot = np.minimum(lines.bottom[i, 1], lines.bottom[j, 1])
+    short = np.minimum(lines.bottom[i, 1] - lines.top[i, 1], lines.bottom[j, 1] - lines.top[j, 1])
+    v_mid = (v_top + v_bot) / 2
+    u_i, u_j = _u(lines, i, v_mid), _u(lines, j, v_mid)
+    zi, zj = z_left[i], z_right[j]
+    ok = (u_j > u_i) & (v_bot - v_top >= 0.5 * short) & np.isfinite(zi) & np.isfinite(zj)
+    i, j, v_mid, u_i, u_j, zi, zj = i[ok], j[ok], v_mid[ok], u_i[ok], u_j[ok], zi[ok], zj[ok]
+    if not len(i):
+        return []
+    p_i = back_project(np.column_stack([u_i, v_mid]), zi, rig)
+    p_j = back_project(np.column_stack([u_j, v_mid]), zj, rig)
+    width = np.linalg.norm(p_j - p_i, axis=1)
+    height = np.maximum(_length_m(lines, i, zi, rig), _length_m(lines, j, zj, rig))
+    h_img = gray.shape[0]
+    margin = cfg.border_fraction * h_img
+    top_v = np.minimum(lines.top[i, 1], lines.top[j, 1])
+    bot_v = np.maximum(lines.bottom[i, 1], lines.bottom[j, 1])
+    cut_top, cut = top_v < margin, (top_v < margin) | (bot_v > h_img - margin)
+    z = (zi + zj) / 2
+    tol_m = tol.floor_m + tol.per_m * z
+    fits = fitting(doors, width, height, tol_m, np.column_stack([np.zeros_like(cut), cut]))  # (M, doors)
+    keep = fits.any(axis=1)
+    keep[keep] = cut_top[keep] | (_top_edge_support(horizontal, lines.top[i[keep]], lines.top[j[keep]], cfg) >= 0.5)
+    inside = np.full(len(i), np.nan)
+    inside[keep] = _inside_depth_m(lines, i[keep], j[keep], depth_m)
+    keep &= ~(inside < z - (cfg.depth_tol_m[0] + cfg.depth_tol_m[1] * z ** 2))  # nearer than the wall: in front
+    return _best(lines, i, j, width, height, z, cut, fits, tol_m, doors, keep, cfg)
+
+
+def _u(lines: _Lines, k: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """u of lines k (M,) at rows v (M,)."""
+    t, b = lines.top[k], lines.bottom[k]
+    return t[:, 0] + (b[:, 0] - t[:, 0]) / np.maximum(b[:, 1] - t[:, 1], 1e-9) * (v - t[:, 1])
+
+
+def _length_m(lines: _Lines, k: np.ndarray, z: np.ndarray, rig: StereoRig) -> np.ndarray:
+    """Length (M,) of lines k, m, both ends back-projected at the wall's depth z beside them."""
+    return np.linalg.norm(back_project(lines.top[k], z, rig) - back_project(lines.bottom[k], z, rig), axis=1)
+
+
+def _inside_depth_m(lines: _Lines, i: np.ndarray, j: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+    """Median depth (M,) on a 5 x 5 grid over the middle half between lines i and j (NaN where none)."""
+    t = np.linspace(0.25, 0.75, 5)
+    v_top = np.maximum(lines.top[i, 1], lines.top[j, 1])
+    v_bot = np.minimum(lines.bottom[i, 1], lines.bottom[j, 1])
+    v = v_top[:, None] * (1 - t) + v_bot[:, None] * t  # (M, 5)
+    ui, uj = _u(lines, np.repeat(i, 5), v.ravel()).reshape(-1, 5), _u(lines, np.repeat(j, 5), v.ravel()).reshape(-1, 5)
+    u = ui[:, :, None] * (1 - t) + uj[:, :, None] * t  # (M, 5 rows, 5 columns)
+    z = _lookup(depth_m, u, np.broadcast_to(v[:, :, None], u.shape)).reshape(len(i), -1)
+    return _row_median(z, min_valid=1)
+
+
+def _lookup(depth_m: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Depth at the nearest pixels (any shape; NaN outside the image)."""
+    h, w = depth_m.shape
+    ui, vi = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+    inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+    out = np.full(ui.shape, np.nan)
+    out[inside] = depth_m[vi[inside], ui[inside]]
+    return out
+
+
+def _row_median(z: np.ndarray, min_valid: int) -> np.ndarray:
+    """The (lower) median of each row's finite values (R,), NaN where fewer than `min_valid` (np.nanmedian is 10x
+    slower on short rows)."""
+    n = np.isfinite(z).sum(axis=1)
+    ordered = np.sort(np.where(np.isfinite(z), z, np.inf), axis=1)
+    med = np.take_along_axis(ordered, np.maximum((n - 1) // 2, 0)[:, None], axis=1)[:, 0]
+    return np.where(n >= min_valid, med, np.nan)
+
+
+def _best(lines: _Lines, i: np.ndarray, j: np.ndarray, width: np.ndarray, height: np.ndarray, z: np.ndarray,
+          cut: np.ndarray, fits: np.ndarray, tol_m: np.ndarray, doors: np.ndarray, keep: np.ndarray,
+          cfg: ProposalConfig) -> list[DoorProposal]:
+    """The kept pairs as proposals, best fit first, a box overlapping a better one by IoU >= 0.3 dropped."""
+    out: list[DoorProposal] = []
+    boxes: list[np.ndarray] = []
+    misfit = np.where(fits, np.maximum(np.abs(width[:, None] - doors[:, 0]),
+                                       np.where(cut[:, None], 0.0, np.abs(height[:, None] - doors[:, 1]))), np.inf)
+    fit = 1.0 - misfit.min(axis=1) / tol_m
+    for k in np.flatnonzero(keep)[np.argsort(-fit[keep])]:
+        pts = np.vstack([lines.top[[i[k], j[k]]], lines.bottom[[i[k], j[k]]]])
+        box = np.array([pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max()])
+        if boxes and _iou(box, np.array(boxes)).max() >= 0.3:
+            continue
+        boxes.append(box)
+        w, h = doors[int(np.argmin(misfit[k]))]
+        out.append(DoorProposal((float(box[0]), float(box[1]), float(box[2]), float(box[3])), float(width[k]),
+                                float(height[k]), float(z[k]), bool(cut[k]), (float(w), float(h)), float(fit[k])))
+        if len(out) == cfg.max_proposals:
+            break
+    return out
+
+
+def _iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    lt, rb = np.maximum(box[:2], boxes[:, :2]), np.minimum(box[2:], boxes[:, 2:])
+    inter = np.prod(np.clip(rb - lt, 0, None), axis=1)
+    area = np.prod(box[2:] - box[:2])
+    return np.asarray(inter / np.maximum(area + np.prod(boxes[:, 2:] - boxes[:, :2], axis=1) - inter, 1e-9))
