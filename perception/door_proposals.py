@@ -85,9 +85,45 @@ def vertical_lines(segs: np.ndarray, cfg: ProposalConfig) -> _Lines:
     return _Lines(top[keep], bottom[keep])
 
 
+def _contrast(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """I(u + 2, v) - I(u - 2, v) at the nearest pixels (any shape; 0 outside the image)."""
+    h, w = img.shape
+    ui, vi = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+    inside = (ui >= 2) & (ui < w - 2) & (vi >= 0) & (vi < h)
+    ui, vi = np.clip(ui, 2, w - 3), np.clip(vi, 0, h - 1)
+    return np.where(inside, img[vi, ui + 2] - img[vi, ui - 2], 0.0)
+
+
+def extend_lines(lines: _Lines, gray: np.ndarray, cfg: ProposalConfig) -> _Lines:
+    """Each line grown along itself, up and down, by at most its own length, through rows whose horizontal
+    contrast has the line's sign and at least half its median, across gaps up to the joining distance: LSD stops
+    short of a side's ends where it fades into the corner's shading (perception.lines does the same in a box)."""
+    if not len(lines.top):
+        return lines
+    img = gray.astype(np.float32)
+    gap = int(round(cfg.join_gap_px / cfg.scale))
+    v_on = lines.top[:, 1:2] + (lines.bottom[:, 1:2] - lines.top[:, 1:2]) * np.linspace(0.0, 1.0, 24)
+    signed = np.median(_contrast(img, lines.u_at(v_on), v_on), axis=1)
+    steps = np.arange(1, img.shape[0])
+    length = lines.bottom[:, 1] - lines.top[:, 1]
+    ends = []
+    for sign, end in ((-1.0, lines.top), (1.0, lines.bottom)):
+        v = end[:, 1:2] + sign * steps
+        along = _contrast(img, lines.u_at(v), v) * np.sign(signed)[:, None]
+        strong = (along >= np.maximum(0.5 * np.abs(signed), 1.0)[:, None]) & (steps <= length[:, None])
+        weak = np.cumsum(np.pad(~strong, ((0, 0), (1, 0))), axis=1)
+        run = (weak[:, gap:] - weak[:, :-gap]) == gap  # a run of `gap` weak rows starts at this step
+        stop = np.where(run.any(axis=1), run.argmax(axis=1), len(steps))
+        grown = np.where(strong & (np.arange(len(steps)) < stop[:, None]), steps, 0).max(axis=1)
+        v_end = end[:, 1] + sign * grown
+        ends.append(np.column_stack([lines.u_at(v_end[:, None])[:, 0], v_end]))
+    return _Lines(ends[0], ends[1])
+
+
 def _join(top: np.ndarray, bottom: np.ndarray, cfg: ProposalConfig) -> tuple[np.ndarray, np.ndarray]:
     """Chain pieces, in order of their top, onto a line above whose extension passes within join_offset_px of the
-    piece's top and whose bottom lies within join_gap_px of it (or past it): LSD breaks a side into a handful."""
+    piece's top and whose bottom lies within join_gap_px of it (or past it): LSD breaks a side into a handful.
+    Both distances are the paper's in the image LSD ran on: / cfg.scale in full-resolution pixels."""
     order = np.argsort(top[:, 1])
     out_t, out_b = top[order].copy(), bottom[order].copy()
     alive = np.ones(len(order), bool)
@@ -98,8 +134,8 @@ def _join(top: np.ndarray, bottom: np.ndarray, cfg: ProposalConfig) -> tuple[np.
         t = out_t[k]
         bt, bb = out_t[prev], out_b[prev]
         slope = (bb[:, 0] - bt[:, 0]) / np.maximum(bb[:, 1] - bt[:, 1], 1e-9)
-        ok = (np.abs(bt[:, 0] + slope * (t[1] - bt[:, 1]) - t[0]) <= cfg.join_offset_px) \
-            & (t[1] - bb[:, 1] <= cfg.join_gap_px)
+        ok = (np.abs(bt[:, 0] + slope * (t[1] - bt[:, 1]) - t[0]) <= cfg.join_offset_px / cfg.scale) \
+            & (t[1] - bb[:, 1] <= cfg.join_gap_px / cfg.scale)
         if ok.any():
             i = prev[np.flatnonzero(ok)[0]]
             if out_b[k, 1] > out_b[i, 1]:
@@ -119,19 +155,19 @@ def _wall_depth_m(lines: _Lines, depth_m: np.ndarray, side: float, cfg: Proposal
     return _row_median(z, min_valid=4)
 
 
-def _top_edge_support(horizontal: np.ndarray, top_i: np.ndarray, top_j: np.ndarray,
-                      cfg: ProposalConfig) -> np.ndarray:
-    """(M,) fraction of the way from each top_i (M, 2) to top_j along which a near-horizontal segment (S, 2, 2)
-    lies within join_gap_px (the paper's joining distance) of the straight line between the two tops."""
-    if not len(horizontal) or not len(top_i):
-        return np.zeros(len(top_i))
-    grid = np.linspace(0.0, 1.0, 16)[None, :, None]
-    pts = top_i[:, None] * (1 - grid) + top_j[:, None] * grid  # (M, 16, 2)
-    p0, seg_d = horizontal[:, 0], horizontal[:, 1] - horizontal[:, 0]
-    rel = pts[:, :, None, :] - p0  # (M, 16, S, 2)
-    s = np.clip((rel * seg_d).sum(axis=-1) / np.maximum((seg_d ** 2).sum(axis=1), 1e-9), 0.0, 1.0)
-    dist2 = ((rel - s[..., None] * seg_d) ** 2).sum(axis=-1)
-    return np.asarray((dist2.min(axis=-1) <= cfg.join_gap_px ** 2).mean(axis=-1))
+def _top_edge_support(horizontal: np.ndarray, u_i: np.ndarray, u_j: np.ndarray, v_top: np.ndarray,
+                      gap_px: float) -> np.ndarray:
+    """(M,) fraction of 16 columns from u_i to u_j (M,) covered (within gap_px) by near-horizontal segments
+    (S, 2, 2) lying within gap_px of the pair's top row v_top (M,): the lintel meets the sides' tops."""
+    if not len(horizontal) or not len(u_i):
+        return np.zeros(len(u_i))
+    seg_v = horizontal[:, :, 1].mean(axis=1)
+    seg_u0, seg_u1 = horizontal[:, :, 0].min(axis=1) - gap_px, horizontal[:, :, 0].max(axis=1) + gap_px
+    in_rows = np.abs(seg_v - v_top[:, None]) <= gap_px  # (M, S)
+    grid = np.linspace(0.05, 0.95, 16)
+    u = u_i[:, None] * (1 - grid) + u_j[:, None] * grid  # (M, 16)
+    covered = in_rows[:, None, :] & (u[..., None] >= seg_u0) & (u[..., None] <= seg_u1)  # (M, 16, S)
+    return np.asarray(covered.any(axis=-1).mean(axis=-1))
 
 
 def propose_doors(image: np.ndarray, depth_m: np.ndarray, rig: StereoRig, sizes: OpeningSizes,
@@ -142,7 +178,7 @@ def propose_doors(image: np.ndarray, depth_m: np.ndarray, rig: StereoRig, sizes:
     doors = sizes.wh_m("door")
     gray = to_gray(image)
     vertical, horizontal = segments(gray, cfg)
-    lines = vertical_lines(vertical, cfg)
+    lines = extend_lines(vertical_lines(vertical, cfg), gray, cfg)
     n = len(lines.top)
     if n < 2 or not len(doors):
         return []
@@ -161,17 +197,18 @@ def propose_doors(image: np.ndarray, depth_m: np.ndarray, rig: StereoRig, sizes:
     p_i = back_project(np.column_stack([u_i, v_mid]), zi, rig)
     p_j = back_project(np.column_stack([u_j, v_mid]), zj, rig)
     width = np.linalg.norm(p_j - p_i, axis=1)
-    height = np.maximum(_length_m(lines, i, zi, rig), _length_m(lines, j, zj, rig))
+    z = (zi + zj) / 2
     h_img = gray.shape[0]
-    margin = cfg.border_fraction * h_img
     top_v = np.minimum(lines.top[i, 1], lines.top[j, 1])
     bot_v = np.maximum(lines.bottom[i, 1], lines.bottom[j, 1])
+    height = (bot_v - top_v) * z / rig.fy_px  # the two sides' LSD pieces together, at the wall's depth (eq. 2)
+    margin = cfg.border_fraction * h_img
     cut_top, cut = top_v < margin, (top_v < margin) | (bot_v > h_img - margin)
-    z = (zi + zj) / 2
     tol_m = tol.floor_m + tol.per_m * z
     fits = fitting(doors, width, height, tol_m, np.column_stack([np.zeros_like(cut), cut]))  # (M, doors)
-    keep = fits.any(axis=1)
-    keep[keep] = cut_top[keep] | (_top_edge_support(horizontal, lines.top[i[keep]], lines.top[j[keep]], cfg) >= 0.5)
+    keep: np.ndarray = np.asarray(fits.any(axis=1))
+    edge = _top_edge_support(horizontal, u_i[keep], u_j[keep], top_v[keep], cfg.join_gap_px / cfg.scale)
+    keep[keep] = cut_top[keep] | (edge >= 0.5)
     inside = np.full(len(i), np.nan)
     inside[keep] = _inside_depth_m(lines, i[keep], j[keep], depth_m)
     keep &= ~(inside < z - (cfg.depth_tol_m[0] + cfg.depth_tol_m[1] * z ** 2))  # nearer than the wall: in front
@@ -197,7 +234,7 @@ def _inside_depth_m(lines: _Lines, i: np.ndarray, j: np.ndarray, depth_m: np.nda
     v = v_top[:, None] * (1 - t) + v_bot[:, None] * t  # (M, 5)
     ui, uj = _u(lines, np.repeat(i, 5), v.ravel()).reshape(-1, 5), _u(lines, np.repeat(j, 5), v.ravel()).reshape(-1, 5)
     u = ui[:, :, None] * (1 - t) + uj[:, :, None] * t  # (M, 5 rows, 5 columns)
-    z = _lookup(depth_m, u, np.broadcast_to(v[:, :, None], u.shape)).reshape(len(i), -1)
+    z = _lookup(depth_m, u, np.broadcast_to(v[:, :, None], u.shape)).reshape(len(i), 25)
     return _row_median(z, min_valid=1)
 
 
