@@ -151,8 +151,9 @@ def real(sizes) -> dict[str, object]:  # type: ignore[no-untyped-def]
     """The rtabmap pairs (no BIM of that building: `sizes` is a stand-in model's)."""
     import cv2
 
-    from bench.eval_perception_real import PAIR
+    from bench.eval_perception_real import HAND_BOX_PX, PAIR
     from perception.calib import read_stereo_rig
+    from perception.detector import Detection
     from perception.model_check import ModelCheckedPerception
     from perception.pipeline import Perception, StereoPair
 
@@ -165,9 +166,11 @@ def real(sizes) -> dict[str, object]:  # type: ignore[no-untyped-def]
         pair = StereoPair(left, right, rig)
         dets = chain.detector.detect(pair.left)
         per: dict[str, object] = {"detections": [d.to_json() for d in dets]}
+        hand = [Detection("door", 1.0, HAND_BOX_PX[frame])]
         for mode, runner, given in (("cnn+size", ModelCheckedPerception(chain, sizes, proposals=None), dets),
                                     ("geometry", ModelCheckedPerception(chain, sizes), []),
-                                    ("fused", ModelCheckedPerception(chain, sizes), dets)):
+                                    ("fused", ModelCheckedPerception(chain, sizes), dets),
+                                    ("hand box+size", ModelCheckedPerception(chain, sizes, proposals=None), hand)):
             res = runner.process_detections(pair, given)
             per[mode] = {"features": [{k: v for k, v in f.to_json().items() if k != "corners_cam"}
                                       for f in res.features],

@@ -171,9 +171,12 @@ def _top_edge_support(horizontal: np.ndarray, u_i: np.ndarray, u_j: np.ndarray, 
 
 
 def propose_doors(image: np.ndarray, depth_m: np.ndarray, rig: StereoRig, sizes: OpeningSizes,
-                  tol: SizeTolerance | None = None, cfg: ProposalConfig | None = None) -> list[DoorProposal]:
+                  tol: SizeTolerance | None = None, cfg: ProposalConfig | None = None,
+                  gravity_cam: np.ndarray | None = None) -> list[DoorProposal]:
     """Door candidates (best fit first, at most cfg.max_proposals, overlapping ones suppressed) in the left image
-    from its LSD lines, its depth (m, NaN unknown) and the model's door sizes."""
+    from its LSD lines, its depth (m, NaN unknown) and the model's door sizes. A door stands on the floor the
+    vehicle flies above: where its bottom is in view it lies below the camera (along `gravity_cam`, a unit vector
+    in the camera frame, where known; else the camera's y axis: a level camera)."""
     cfg, tol = cfg or ProposalConfig(), tol or SizeTolerance()
     doors = sizes.wh_m("door")
     gray = to_gray(image)
@@ -206,7 +209,10 @@ def propose_doors(image: np.ndarray, depth_m: np.ndarray, rig: StereoRig, sizes:
     cut_top, cut = top_v < margin, (top_v < margin) | (bot_v > h_img - margin)
     tol_m = tol.floor_m + tol.per_m * z
     fits = fitting(doors, width, height, tol_m, np.column_stack([np.zeros_like(cut), cut]))  # (M, doors)
-    keep: np.ndarray = np.asarray(fits.any(axis=1))
+    down = np.array([0.0, 1.0, 0.0]) if gravity_cam is None else np.asarray(gravity_cam, float)
+    bottom_px = np.column_stack([(u_i + u_j) / 2, bot_v])
+    below = back_project(bottom_px, z, rig) @ (down / np.linalg.norm(down)) > 0  # the bottom under the camera
+    keep: np.ndarray = np.asarray(fits.any(axis=1) & (below | (bot_v > h_img - margin)))
     edge = _top_edge_support(horizontal, u_i[keep], u_j[keep], top_v[keep], cfg.join_gap_px / cfg.scale)
     keep[keep] = cut_top[keep] | (edge >= 0.5)
     inside = np.full(len(i), np.nan)
