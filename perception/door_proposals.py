@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 
 from perception.calib import StereoRig
-from perception.lines import JOIN_GAP_PX, LineConfig, detect_segments
+from perception.lines import JOIN_GAP_PX, LineConfig, Sides, detect_segments
+from perception.reconstruct import WallPlaneConfig, wall_plane
 from perception.size_check import OpeningSizes, SizeTolerance, fitting
 from perception.stereo import back_project, to_gray
 
@@ -35,12 +36,14 @@ class ProposalConfig:
     depth_tol_m: tuple[float, float] = (0.03, 0.0125)  # stereo's noise, a + b z^2 (WallPlaneConfig.threshold_m)
     border_fraction: float = 40 / 480  # a side's end this near the border runs on past it (pipeline's margin)
     max_proposals: int = 4  # per frame, best fit first: each costs an LSD refine and a 3D fit (~3 ms)
+    wall: WallPlaneConfig | None = WallPlaneConfig()  # the sides must stand in one wall (None: not checked)
 
 
 @dataclass(frozen=True)
 class DoorProposal:
     """A door candidate: its box (image pixels), measured width/height (m), depth (m), whether cut at the top or
-    bottom, the model size it fits, and `fit` in (0, 1]: 1 - the worst misfit over the tolerance."""
+    bottom, the model size it fits, `fit` in (0, 1]: 1 - the worst misfit over the tolerance, and the step in
+    depth from the wall beside it to what lies between its sides (a doorway: the room behind; a leaf: ~0)."""
 
     box_xyxy: tuple[float, float, float, float]
     width_m: float
@@ -49,6 +52,7 @@ class DoorProposal:
     cut_vertically: bool
     model_wh_m: tuple[float, float]
     fit: float
+    depth_step_m: float = float("nan")  # the depth between the sides minus the wall's beside them (NaN: unknown)
 
 
 @dataclass(frozen=True)
@@ -218,7 +222,8 @@ def propose_doors(image: np.ndarray, depth_m: np.ndarray, rig: StereoRig, sizes:
     inside = np.full(len(i), np.nan)
     inside[keep] = _inside_depth_m(lines, i[keep], j[keep], depth_m)
     keep &= ~(inside < z - (cfg.depth_tol_m[0] + cfg.depth_tol_m[1] * z ** 2))  # nearer than the wall: in front
-    return _best(lines, i, j, width, height, z, cut, fits, tol_m, doors, keep, cfg)
+    on_wall = _OnWall(depth_m, rig, gravity_cam, cfg.wall)
+    return _best(lines, i, j, width, height, z, cut, fits, tol_m, doors, keep, inside - z, on_wall, cfg)
 
 
 def _u(lines: _Lines, k: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -265,8 +270,9 @@ def _row_median(z: np.ndarray, min_valid: int) -> np.ndarray:
 
 def _best(lines: _Lines, i: np.ndarray, j: np.ndarray, width: np.ndarray, height: np.ndarray, z: np.ndarray,
           cut: np.ndarray, fits: np.ndarray, tol_m: np.ndarray, doors: np.ndarray, keep: np.ndarray,
-          cfg: ProposalConfig) -> list[DoorProposal]:
-    """The kept pairs as proposals, best fit first, a box overlapping a better one by IoU >= 0.3 dropped."""
+          step: np.ndarray, on_wall: _OnWall, cfg: ProposalConfig) -> list[DoorProposal]:
+    """The kept pairs as proposals, best fit first, a box overlapping a better one by IoU >= 0.3 dropped, and one
+    whose sides do not stand in one wall dropped (checked here, on the few that get this far: ~1 ms each)."""
     out: list[DoorProposal] = []
     boxes: list[np.ndarray] = []
     misfit = np.where(fits, np.maximum(np.abs(width[:, None] - doors[:, 0]),
@@ -277,13 +283,35 @@ def _best(lines: _Lines, i: np.ndarray, j: np.ndarray, width: np.ndarray, height
         box = np.array([pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max()])
         if boxes and _iou(box, np.array(boxes)).max() >= 0.3:
             continue
+        if not on_wall(lines, int(i[k]), int(j[k])):
+            continue
         boxes.append(box)
         w, h = doors[int(np.argmin(misfit[k]))]
         out.append(DoorProposal((float(box[0]), float(box[1]), float(box[2]), float(box[3])), float(width[k]),
-                                float(height[k]), float(z[k]), bool(cut[k]), (float(w), float(h)), float(fit[k])))
+                                float(height[k]), float(z[k]), bool(cut[k]), (float(w), float(h)), float(fit[k]),
+                                float(step[k])))
         if len(out) == cfg.max_proposals:
             break
     return out
+
+
+@dataclass(frozen=True)
+class _OnWall:
+    """Whether a pair of lines stands in one wall: `perception.reconstruct.wall_plane` on the depth beside the
+    sides and above the top (the chain's own test of the wall an opening sits in). A pair across a corner, or
+    between things at different depths, has its strips on different surfaces."""
+
+    depth_m: np.ndarray
+    rig: StereoRig
+    gravity_cam: np.ndarray | None
+    cfg: WallPlaneConfig | None
+
+    def __call__(self, lines: _Lines, i: int, j: int) -> bool:
+        if self.cfg is None:
+            return True
+        sides = Sides(np.stack([lines.top[i], lines.bottom[i]]), np.stack([lines.top[j], lines.bottom[j]]),
+                      (True, True))
+        return wall_plane(sides, self.depth_m, self.rig, self.gravity_cam, self.cfg) is not None
 
 
 def _iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
