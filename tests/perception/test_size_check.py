@@ -82,3 +82,19 @@ def test_the_chain_checks_a_reconstructed_door_against_the_model(model_door_m, s
         assert result.features[0].source == "cnn" and result.features[0].size.matched_wh_m == model_door_m
     else:
         assert not result.features and any(r.reason.startswith("size:") for r in result.rejected)
+
+
+def test_the_model_check_takes_the_models_sizes_as_plain_data():
+    """perception/ gains no import of graph/: the sizes come in as OpeningSizes, built by the caller."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2] / "perception"
+    imported = []
+    for name in ("size_check.py", "door_proposals.py", "model_check.py"):
+        for node in ast.walk(ast.parse((root / name).read_text())):
+            if isinstance(node, ast.ImportFrom):
+                imported.append(node.module or "")
+            elif isinstance(node, ast.Import):
+                imported += [a.name for a in node.names]
+    assert not [m for m in imported if m.split(".")[0] in ("graph", "service", "sim")]
