@@ -45,9 +45,10 @@ class OpeningSizes:
 @dataclass(frozen=True)
 class SizeTolerance:
     """How far a reconstructed width or height may lie from the true one: `floor_m + per_m * depth_m`, from the
-    chain's error measured on rendered frames with known truth (`bench.bench_size_check --measure`, Office_A sim
-    seeds 1-3, 453 frames, the detector's boxes matched to the truth: 98 % of 241 widths and heights not cut by
-    the border lie within it; the 95th percentile is 0.13-0.19 m from 2 to 9 m, 0.35 m beyond; docs/measurements.md).
+    chain's error measured on rendered frames with known truth (`bench.bench_size_check --measure`: Office_A sim
+    seeds 1-3, 453 frames, the detector's boxes matched to the truth; 98.2 % of 219 widths and heights not cut by
+    the border lie within it; their 95th percentile is 0.15-0.19 m from 3 to 9 m, 0.22-0.23 m nearer and beyond;
+    docs/measurements.md).
     Stereo's depth error grows as depth squared, but a width or height is a difference of two corners at the
     same depth, so its error grows with depth (the pixel error of a side times depth / f) plus a constant part
     (the box and the LSD side missing the frame by a few centimetres)."""
