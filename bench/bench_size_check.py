@@ -25,15 +25,15 @@ CLOSE_M = 3.5
 
 
 def _rig(camera: np.ndarray):  # type: ignore[no-untyped-def]
-    from perception.calib import StereoRig
+    from macroloc.perception.calib import StereoRig
 
     c = camera
     return StereoRig(float(c[0]), float(c[1]), float(c[2]), float(c[3]), float(c[4]), int(c[5]), int(c[6]))
 
 
 def building_sizes(path: Path):  # type: ignore[no-untyped-def]
-    from graph.bim import load_building
-    from perception.size_check import OpeningSizes
+    from macroloc.graph.bim import load_building
+    from macroloc.perception.size_check import OpeningSizes
 
     return OpeningSizes.of((f.type, f.width_m, f.height_m) for f in load_building(path).features)
 
@@ -46,7 +46,7 @@ def _truths(d: dict) -> np.ndarray:  # type: ignore[type-arg]
 
 def _match(boxes: list, scores: list, truth_boxes: np.ndarray) -> list[int]:  # type: ignore[type-arg]
     """For each feature (best score first) the truth index it takes, or -1."""
-    from perception.evaluate import iou_xyxy
+    from macroloc.perception.evaluate import iou_xyxy
 
     out = [-1] * len(boxes)
     if not boxes or not len(truth_boxes):
@@ -65,8 +65,8 @@ def _match(boxes: list, scores: list, truth_boxes: np.ndarray) -> list[int]:  # 
 
 
 def evaluate(frames: list[Path], sizes) -> dict[str, object]:  # type: ignore[no-untyped-def]
-    from perception.model_check import ModelCheckedPerception
-    from perception.pipeline import Perception, StereoPair
+    from macroloc.perception.model_check import ModelCheckedPerception
+    from macroloc.perception.pipeline import Perception, StereoPair
 
     chain = Perception.create()
     runners = {"cnn": ModelCheckedPerception(chain, None), "cnn+size": ModelCheckedPerception(chain, sizes,
@@ -116,7 +116,7 @@ def evaluate(frames: list[Path], sizes) -> dict[str, object]:  # type: ignore[no
 def measure(frames: list[Path]) -> dict[str, object]:
     """Width and height errors (measured - the model's) of the chain's features matched to a truth (any type),
     dimensions not cut by the border, by depth: the figure `SizeTolerance` is drawn from."""
-    from perception.pipeline import Perception, StereoPair
+    from macroloc.perception.pipeline import Perception, StereoPair
 
     chain = Perception.create()
     err, depth = [], []
@@ -140,7 +140,7 @@ def measure(frames: list[Path]) -> dict[str, object]:
         if s.any():
             out[f"{lo}-{hi} m"] = {"n": int(s.sum()), "p50": round(float(np.median(e[s])), 3),
                                    "p95": round(float(np.percentile(e[s], 95)), 3), "max": round(float(e[s].max()), 3)}
-    from perception.size_check import SizeTolerance
+    from macroloc.perception.size_check import SizeTolerance
 
     tol = SizeTolerance()
     out["within_tolerance"] = round(float(np.mean(e <= tol.floor_m + tol.per_m * z)), 3)
@@ -152,10 +152,10 @@ def real(sizes) -> dict[str, object]:  # type: ignore[no-untyped-def]
     import cv2
 
     from bench.eval_perception_real import HAND_BOX_PX, PAIR
-    from perception.calib import read_stereo_rig
-    from perception.detector import Detection
-    from perception.model_check import ModelCheckedPerception
-    from perception.pipeline import Perception, StereoPair
+    from macroloc.perception.calib import read_stereo_rig
+    from macroloc.perception.detector import Detection
+    from macroloc.perception.model_check import ModelCheckedPerception
+    from macroloc.perception.pipeline import Perception, StereoPair
 
     rig = read_stereo_rig(PAIR / "stereo_left.yaml", PAIR / "stereo_right.yaml")
     chain = Perception.create()

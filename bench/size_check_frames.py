@@ -19,8 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def render(building: Path, seeds: list[int], every: int, duration_s: float, out: Path) -> int:
     from bench.eval_perception_sim import order_tl_tr_br_bl
-    from sim.flight import FlightParams
-    from sim.simulator import SimulationParams, Simulator
+    from macroloc.sim.flight import FlightParams
+    from macroloc.sim.simulator import SimulationParams, Simulator
 
     out.mkdir(parents=True, exist_ok=True)
     n = 0

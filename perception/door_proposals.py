@@ -16,11 +16,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from perception.calib import StereoRig
-from perception.lines import JOIN_GAP_PX, LineConfig, Sides, detect_segments
-from perception.reconstruct import WallPlaneConfig, wall_plane
-from perception.size_check import OpeningSizes, SizeTolerance, fitting
-from perception.stereo import back_project, to_gray
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.lines import JOIN_GAP_PX, LineConfig, Sides, detect_segments
+from macroloc.perception.reconstruct import WallPlaneConfig, wall_plane
+from macroloc.perception.size_check import OpeningSizes, SizeTolerance, fitting
+from macroloc.perception.stereo import back_project, to_gray
 
 
 @dataclass(frozen=True)

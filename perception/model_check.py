@@ -18,12 +18,12 @@ from typing import Literal
 
 import numpy as np
 
-from perception.detector import Detection
-from perception.door_proposals import DoorProposal, ProposalConfig, propose_doors
-from perception.evaluate import iou_xyxy
-from perception.pipeline import ObservedFeature, Perception, PerceptionResult, Rejected, StereoPair
-from perception.size_check import OpeningSizes, SizeTolerance, SizeVerdict, check_size
-from perception.stereo import depth_from_disparity
+from macroloc.perception.detector import Detection
+from macroloc.perception.door_proposals import DoorProposal, ProposalConfig, propose_doors
+from macroloc.perception.evaluate import iou_xyxy
+from macroloc.perception.pipeline import ObservedFeature, Perception, PerceptionResult, Rejected, StereoPair
+from macroloc.perception.size_check import OpeningSizes, SizeTolerance, SizeVerdict, check_size
+from macroloc.perception.stereo import depth_from_disparity
 
 log = logging.getLogger(__name__)
 

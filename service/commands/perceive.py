@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import typer
 
 if TYPE_CHECKING:
-    from perception.size_check import OpeningSizes
+    from macroloc.perception.size_check import OpeningSizes
 
 
 def register(app: typer.Typer) -> None:
@@ -39,13 +39,13 @@ def register(app: typer.Typer) -> None:
         import cv2
         import numpy as np
 
-        from graph.errors import UserInputError
-        from perception.calib import read_stereo_rig
-        from perception.detector import DEFAULT_MODEL
-        from perception.draw import draw_features
-        from perception.model_check import ModelCheckedPerception
-        from perception.pipeline import Perception, StereoPair
-        from service.commands._io import existing_file, print_json, read_image
+        from macroloc.graph.errors import UserInputError
+        from macroloc.perception.calib import read_stereo_rig
+        from macroloc.perception.detector import DEFAULT_MODEL
+        from macroloc.perception.draw import draw_features
+        from macroloc.perception.model_check import ModelCheckedPerception
+        from macroloc.perception.pipeline import Perception, StereoPair
+        from macroloc.service.commands._io import existing_file, print_json, read_image
 
         rig = read_stereo_rig(calib_left, calib_right)
         images = []
@@ -86,8 +86,8 @@ def register(app: typer.Typer) -> None:
 
 def opening_sizes(building: Path) -> OpeningSizes:
     """The distinct sizes of the building's doors and windows standing in walls (skylights are not seen so)."""
-    from graph.bim import load_building
-    from perception.size_check import OpeningSizes
+    from macroloc.graph.bim import load_building
+    from macroloc.perception.size_check import OpeningSizes
 
     return OpeningSizes.of((f.type, f.width_m, f.height_m) for f in load_building(building).features
                            if f.orientation == "vertical")

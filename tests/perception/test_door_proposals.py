@@ -5,21 +5,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from perception.door_proposals import propose_doors
-from perception.evaluate import iou_xyxy
-from perception.size_check import OpeningSizes
-from perception.stereo import SgbmMatcher, depth_from_disparity
+from macroloc.perception.door_proposals import propose_doors
+from macroloc.perception.evaluate import iou_xyxy
+from macroloc.perception.size_check import OpeningSizes
+from macroloc.perception.stereo import SgbmMatcher, depth_from_disparity
 
 
 @pytest.fixture(scope="module")
 def close_up():  # noqa: ANN201 - (left, right, rig, truth box, door width/height)
     """The test room's 1.0 x 2.1 m door seen from 2.2 m, 10 deg off its normal, the camera 1.4 m above the floor:
     the door runs off the image's bottom (rendered: the look the detector was blind to)."""
-    from perception.calib import StereoRig
-    from sim.groundtruth import feature_half_depths, features_in_view
-    from sim.materials import dress_scene
-    from sim.render import CameraModel, Lighting, StereoRenderer
-    from sim.textures import make_texture_layers
+    from macroloc.perception.calib import StereoRig
+    from macroloc.sim.groundtruth import feature_half_depths, features_in_view
+    from macroloc.sim.materials import dress_scene
+    from macroloc.sim.render import CameraModel, Lighting, StereoRenderer
+    from macroloc.sim.textures import make_texture_layers
     from tests.sim.room import look_at, room_scene
 
     scene, features = room_scene()
@@ -42,8 +42,8 @@ def close_up():  # noqa: ANN201 - (left, right, rig, truth box, door width/heigh
 def test_a_rendered_close_up_door_is_found_without_the_detector(close_up):
     """The detector's box withheld: the chain on the geometry proposal alone gives a door of the model's size,
     flagged `geometry`."""
-    from perception.model_check import ModelCheckedPerception
-    from perception.pipeline import Perception, StereoPair
+    from macroloc.perception.model_check import ModelCheckedPerception
+    from macroloc.perception.pipeline import Perception, StereoPair
 
     left, right, rig, box = close_up
     sizes = OpeningSizes.of([("door", 1.0, 2.1), ("window", 1.5, 1.2)])

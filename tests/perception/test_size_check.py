@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from perception.size_check import OpeningSizes, SizeTolerance, check_size, fitting
+from macroloc.perception.size_check import OpeningSizes, SizeTolerance, check_size, fitting
 
 SIZES = OpeningSizes.of([("door", 1.067, 2.21), ("door", 0.81, 1.52), ("door", 1.98, 2.16), ("window", 1.2, 1.5),
                          ("window", 1.0, 1.0)])
@@ -68,9 +68,9 @@ def test_fitting_broadcasts_over_many_measurements():
 def test_the_chain_checks_a_reconstructed_door_against_the_model(model_door_m, status):
     """A 0.9 x 2.0 m door 3 m away on a textured wall, through the chain after the detector: confirmed where the
     model has a door of that size, rejected (with the reason) where its only door is 1.5 m wide."""
-    from perception.detector import Detection
-    from perception.model_check import ModelCheckedPerception
-    from perception.pipeline import Perception, StereoPair
+    from macroloc.perception.detector import Detection
+    from macroloc.perception.model_check import ModelCheckedPerception
+    from macroloc.perception.pipeline import Perception, StereoPair
     from tests.perception.helpers import RIG, door_pair
 
     left, right, _, box = door_pair(3.0, (0.9, 2.0))
