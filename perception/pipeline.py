@@ -130,11 +130,12 @@ class Perception:
         clock.lap("detect")
         return self.process_boxes(pair, detections, clock)
 
-    def process_boxes(self, pair: StereoPair, detections: list[Detection], clock: _Clock | None = None
-                      ) -> PerceptionResult:
-        """The chain after the detector, on given boxes (the detector's, or ground truth's for evaluation)."""
+    def process_boxes(self, pair: StereoPair, detections: list[Detection], clock: _Clock | None = None,
+                      depth_m: np.ndarray | None = None) -> PerceptionResult:
+        """The chain after the detector, on given boxes (the detector's, or ground truth's for evaluation);
+        `depth_m` (HxW, m, NaN unknown) where the caller has the left image's depth already."""
         clock = clock or _Clock()
-        depth_m = self._depth_m(pair, detections)
+        depth_m = self._depth_m(pair, detections) if depth_m is None else depth_m
         clock.lap("stereo")
         sides = [refine_box(pair.left, d.box_xyxy, self.lines) for d in detections]
         clock.lap("lines")

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
+
+if TYPE_CHECKING:
+    from macroloc.perception.size_check import OpeningSizes
 
 
 def register(app: typer.Typer) -> None:
@@ -18,13 +22,19 @@ def register(app: typer.Typer) -> None:
         plot: Path | None = typer.Option(None, "--plot", help="Image file to write with features and sides drawn."),
         gravity: str | None = typer.Option(None, "--gravity", help="Gravity in the camera frame 'gx,gy,gz' if known."),
         model: Path | None = typer.Option(None, "--model", help="ONNX detector (default: the shipped one)."),
+        building: Path | None = typer.Option(None, "--building", help="The building's model (IFC or mesh): its "
+                                             "doors' and windows' sizes check every feature, and doors are proposed "
+                                             "from geometry where the detector sees none."),
     ) -> None:
         """Run the perception chain (detect, LSD sides, SGBM depth, 3D corners) on one rectified stereo pair.
 
         JSON: {"features": [{"type", "score", "box_xyxy", "corners_cam": [\\[x, y, z] x 4], ...}], "rejected": [...]};
         corners in the left camera's optical frame (x right, y down, z forward), metres, TL, TR, BR, BL;
         "truncated": {"sideways", "vertically"} where the opening may run on past the image border (its corners on
-        that side are then the border's, not the opening's).
+        that side are then the border's, not the opening's); "source": "cnn" | "geometry" | "fused" (a detection a
+        geometry proposal agreed with); "size_check": "confirmed" | "rejected" | "unchecked" against the
+        --building's doors and windows, with "model_size_m": [width, height] of the size it fits and
+        "retyped_from" where that size is of the other kind ("unchecked" throughout without --building).
         """
         import cv2
         import numpy as np
@@ -33,6 +43,7 @@ def register(app: typer.Typer) -> None:
         from macroloc.perception.calib import read_stereo_rig
         from macroloc.perception.detector import DEFAULT_MODEL
         from macroloc.perception.draw import draw_features
+        from macroloc.perception.model_check import ModelCheckedPerception
         from macroloc.perception.pipeline import Perception, StereoPair
         from macroloc.service.commands._io import existing_file, print_json, read_image
 
@@ -54,16 +65,29 @@ def register(app: typer.Typer) -> None:
                 raise UserInputError(f"--gravity must be three finite numbers, not all zero, got {gravity!r}")
             gravity_cam = g / np.linalg.norm(g)
         chain = Perception.create(existing_file(model or DEFAULT_MODEL, "detector model"))
-        result = chain.process(StereoPair(images[0], images[1], rig, gravity_cam))
+        sizes = opening_sizes(building) if building is not None else None
+        result = ModelCheckedPerception(chain, sizes).process(StereoPair(images[0], images[1], rig, gravity_cam))
         if plot is not None:
             plot.parent.mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(plot), draw_features(images[0], result.features, result.rejected))
+            cv2.imwrite(str(plot), draw_features(images[0], [c.feature for c in result.features], result.rejected))
         if json_out:
-            print_json({"features": [f.to_json() for f in result.features],
+            print_json({"features": [c.to_json() for c in result.features],
                         "rejected": [{**r.detection.to_json(), "reason": r.reason} for r in result.rejected],
                         "timings_ms": {k: round(v, 2) for k, v in result.timings_ms.items()}})
             return
-        for f in result.features:
-            typer.echo(f"{f.type} {f.score:.2f}: {f.width_m:.2f} x {f.height_m:.2f} m, tilt {f.tilt_deg:.1f} deg, "
-                       f"centre {np.round(f.centroid_cam, 2).tolist()} m")
+        for c in result.features:
+            f, size = c.feature, c.size
+            fits = f", model {size.matched_wh_m[0]:.2f} x {size.matched_wh_m[1]:.2f} m" if size.matched_wh_m else ""
+            typer.echo(f"{f.type} {f.score:.2f} ({c.source}): {f.width_m:.2f} x {f.height_m:.2f} m, tilt "
+                       f"{f.tilt_deg:.1f} deg, centre {np.round(f.centroid_cam, 2).tolist()} m, "
+                       f"size {size.status}{fits}")
         typer.echo(f"{len(result.features)} features, {len(result.rejected)} detections rejected")
+
+
+def opening_sizes(building: Path) -> OpeningSizes:
+    """The distinct sizes of the building's doors and windows standing in walls (skylights are not seen so)."""
+    from macroloc.graph.bim import load_building
+    from macroloc.perception.size_check import OpeningSizes
+
+    return OpeningSizes.of((f.type, f.width_m, f.height_m) for f in load_building(building).features
+                           if f.orientation == "vertical")

@@ -91,3 +91,28 @@ def test_perceive_bad_input_is_one_line_and_exit_2(capsys, tmp_path: Path, probl
         args[args.index("--left") + 1] = str(small)
     code, out, err = _run(capsys, [*args, "--json"])
     assert code == 2 and out == "" and len(err.strip().splitlines()) == 1, err
+
+
+def test_perceive_reports_each_features_source_and_size_check(capsys, tmp_path: Path):
+    """Without a building every feature is `unchecked` and from the detector; with one (Office_A's sizes stand in
+    for the real building's), each is confirmed or unchecked with the model size it fits, or rejected for its
+    size with the reason."""
+    folder = shared_data("stereo/rtabmap_stereo_rect")
+    code, out, _ = _run(capsys, [*_pair_args(folder, "60"), "--json"])
+    assert code == 0
+    plain = json.loads(out)["features"]
+    assert all(f["size_check"] == "unchecked" and f["source"] == "cnn" for f in plain)
+    code, out, _ = _run(capsys, [*_pair_args(folder, "60"), "--json", "--building",
+                                 str(Path(__file__).parents[2] / "data" / "buildings" / "office_a.ifc")])
+    assert code == 0
+    doc = json.loads(out)
+    for f in doc["features"]:
+        assert f["source"] in ("cnn", "geometry", "fused") and f["size_check"] in ("confirmed", "unchecked")
+        assert f["size_check"] == "unchecked" or len(f["model_size_m"]) == 2
+    assert all(not r["reason"].startswith("size:") or "fits no model" in r["reason"] for r in doc["rejected"])
+
+
+def test_perceive_with_a_missing_building_is_one_line_and_exit_2(capsys, tmp_path: Path):
+    folder = shared_data("stereo/rtabmap_stereo_rect")
+    code, out, err = _run(capsys, [*_pair_args(folder), "--json", "--building", str(tmp_path / "none.ifc")])
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1, err
