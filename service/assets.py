@@ -68,6 +68,8 @@ def prepare_building(building: Path, graph: GraphConfig, planning: PlanningConfi
         return value
 
     model: BuildingModel = timed("features", lambda: load_building(building))  # type: ignore[assignment]
+    log.info("%s: preparing its other assets (each cached once built; `macroloc prepare` builds them ahead)",
+             building.name)
     timed("descriptor tables", lambda: index_for(model))
     if is_ifc(building):
         timed("obstacles", lambda: load_solids(building))

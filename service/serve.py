@@ -87,8 +87,6 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     if cfg.service.building is None:
         raise UserInputError("no building model: set service.building in the config or pass --building")
     building = Path(cfg.service.building)
-    log.info("%s: preparing its assets (cached after the first time: `macroloc prepare` builds them ahead)",
-             building.name)
     prepared = prepare_building(building, cfg.graph, cfg.planning)
     model = prepared.model
     geo = read_geo_reference(building)

@@ -33,7 +33,7 @@ def register(app: typer.Typer) -> None:
         "truncated": {"sideways", "vertically"} where the opening may run on past the image border (its corners on
         that side are then the border's, not the opening's); "source": "cnn" | "geometry" | "fused" (a detection a
         geometry proposal agreed with); "size_check": "confirmed" | "rejected" | "unchecked" against the
-        --building's doors and windows, with "model_size_m": [width, height] of the size it fits and
+        --building's doors and windows, with "model_size_m" (width, height, m) of the size it fits and
         "retyped_from" where that size is of the other kind ("unchecked" throughout without --building).
         """
         import cv2
