@@ -22,7 +22,8 @@ CACHE = Path("/tmp/macroloc-chain-frames")
 @dataclass(frozen=True)
 class ChainFrames:
     """left/right: (N, H, W, 3) uint8 BGR; rig: (fx, fy, cx, cy, baseline_m, w, h); T_cad_cam: (N, 4, 4);
-    boxes: per frame the true boxes ((type, (x0, y0, x1, y1)), ...) of the openings in view."""
+    boxes: per frame the true boxes ((type, (x0, y0, x1, y1)), ...) of the openings in view; corners_cam: per box its
+    true corners (4, 3) in the camera frame (TL, TR, BR, BL in the image), None unless all 4 are in view."""
 
     left: np.ndarray
     right: np.ndarray
@@ -30,17 +31,29 @@ class ChainFrames:
     T_cad_cam: np.ndarray
     boxes: list[list[tuple[str, tuple[float, float, float, float]]]]
     stamps_ns: np.ndarray
+    corners_cam: list[list[np.ndarray | None]]
 
 
-def _in_view(frame) -> list[tuple[str, tuple[float, float, float, float]]]:  # type: ignore[no-untyped-def]
-    return [(f.type, (float(f.box_xyxy[0]), float(f.box_xyxy[1]), float(f.box_xyxy[2]), float(f.box_xyxy[3])))
-            for f in frame.features if f.visible_fraction >= 0.5
+def _in_view(frame) -> list:  # type: ignore[no-untyped-def, type-arg]
+    return [f for f in frame.features if f.visible_fraction >= 0.5
             and (f.box_xyxy[2] - f.box_xyxy[0]) * (f.box_xyxy[3] - f.box_xyxy[1]) >= 150]
+
+
+def _boxes(frame) -> list[tuple[str, tuple[float, float, float, float]]]:  # type: ignore[no-untyped-def]
+    return [(f.type, (float(f.box_xyxy[0]), float(f.box_xyxy[1]), float(f.box_xyxy[2]), float(f.box_xyxy[3])))
+            for f in _in_view(frame)]
+
+
+def _corners(frame) -> list[list[list[float]] | None]:  # type: ignore[no-untyped-def]
+    from bench.eval_perception_sim import order_tl_tr_br_bl
+
+    return [order_tl_tr_br_bl(f.corners_cam, f.corners_px).tolist() if np.all(f.corner_visible) else None
+            for f in _in_view(frame)]
 
 
 def render(building: Path, seed: int, frames: int, duration_s: float) -> Path:
     """The cached file for these arguments, rendered first where absent."""
-    out = CACHE / f"{building.stem}-s{seed}-{frames}f-{int(duration_s)}s.npz"
+    out = CACHE / f"{building.stem}-s{seed}-{frames}f-{int(duration_s)}s-v2.npz"
     if out.exists():
         return out
     from sim.flight import FlightParams
@@ -58,12 +71,13 @@ def render(building: Path, seed: int, frames: int, duration_s: float) -> Path:
     rendered = [sim.render_at(i, float(times[i])) for i in range(start, start + frames)]
     sim.close()
     CACHE.mkdir(parents=True, exist_ok=True)
-    boxes = np.array([repr(_in_view(f)) for f in rendered])
+    boxes = np.array([repr(_boxes(f)) for f in rendered])
+    corners = np.array([repr(_corners(f)) for f in rendered])
     np.savez_compressed(out, left=np.stack([f.left_bgr for f in rendered]),
                         right=np.stack([f.right_bgr for f in rendered]),
                         rig=np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline_m, cam.width, cam.height]),
                         T_cad_cam=np.stack([f.T_cad_body @ sim.T_body_cam for f in rendered]),
-                        boxes=boxes, stamps_ns=np.array([f.stamp_ns for f in rendered]))
+                        boxes=boxes, stamps_ns=np.array([f.stamp_ns for f in rendered]), corners=corners)
     return out
 
 
@@ -72,7 +86,8 @@ def load(path: Path) -> ChainFrames:
 
     z = np.load(path)
     return ChainFrames(z["left"], z["right"], tuple(float(v) for v in z["rig"]), z["T_cad_cam"],
-                       [ast.literal_eval(str(b)) for b in z["boxes"]], z["stamps_ns"])
+                       [ast.literal_eval(str(b)) for b in z["boxes"]], z["stamps_ns"],
+                       [[None if c is None else np.array(c) for c in ast.literal_eval(str(f))] for f in z["corners"]])
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from perception.lines import LineConfig, _merge, _orient
+from perception.odometry import OdometryConfig
 
 
 def _angle_deg(seg: np.ndarray) -> float:
@@ -46,3 +47,7 @@ def join_segments_python(segments: list[np.ndarray], cfg: LineConfig | None = No
             if merged:
                 break
     return segs
+
+
+# The odometry's settings before issue 37 (perception.odometry.OdometryConfig's defaults then).
+OLD_ODOMETRY = OdometryConfig(n_features=2000)

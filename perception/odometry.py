@@ -39,7 +39,7 @@ from scipy.spatial.transform import Rotation
 
 from graph.rigid import rotation_angle_rad
 from perception.calib import StereoRig
-from perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
+from perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher, keypoint_points, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -83,13 +83,16 @@ class _Keyframe:
 class StereoOdometry:
     """Frame-to-keyframe stereo odometry (see module doc). Feed frames in time order."""
 
-    def __init__(self, rig: StereoRig, config: OdometryConfig | None = None) -> None:
+    def __init__(self, rig: StereoRig, config: OdometryConfig | None = None,
+                 disparity: SgbmMatcher | FrameDisparity | None = None) -> None:
+        """`disparity`: the frame's shared SGBM (FrameDisparity) where other consumers match the same frames;
+        None: its own, with `config.num_disparities`."""
         self.rig = rig
         self.config = config or OdometryConfig()
         self.orb = cv2.ORB_create(  # type: ignore[attr-defined]
             nfeatures=self.config.n_features, fastThreshold=self.config.fast_threshold)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-        self.sgbm = SgbmMatcher(SgbmConfig(num_disparities=self.config.num_disparities))
+        self.sgbm = disparity or SgbmMatcher(SgbmConfig(num_disparities=self.config.num_disparities))
         self.K = rig.K
         self._ref: _Keyframe | None = None
         self._T_last = np.eye(4)

@@ -26,7 +26,7 @@ from perception.reconstruct import (
     reconstruct_sides,
     wall_plane,
 )
-from perception.stereo import SgbmConfig, SgbmMatcher, depth_from_disparity
+from perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher, depth_from_disparity, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -109,20 +109,22 @@ class PerceptionResult:
 class Perception:
     """The whole chain with its components; `process(pair)` is the paper's §2.2 step by step."""
 
-    def __init__(self, detector: Detector, matcher: SgbmMatcher, lines: LineConfig | None = None,
+    def __init__(self, detector: Detector, matcher: SgbmMatcher | FrameDisparity, lines: LineConfig | None = None,
                  plausibility: PlausibilityConfig | None = None, wall: WallPlaneConfig | None = WallPlaneConfig()
                  ) -> None:
         self.detector = detector
-        self.matcher = matcher
+        self.matcher = matcher  # a FrameDisparity shares the frame's one SGBM with the depth points and odometry
         self.lines = lines or LineConfig()
         self.plausibility = plausibility or PlausibilityConfig()
         self.wall = wall  # corners on the wall's plane beside the opening, where it shows one (None: the sides')
         self.band_margin_px = 24  # rows of stereo context above and below the boxes
 
     @staticmethod
-    def create(model_path: Path | None = None, sgbm: SgbmConfig | None = None, threads: int = 2) -> Perception:
-        """The chain with the detector at `model_path` (None: the shipped one)."""
-        return Perception(Detector(model_path or DEFAULT_MODEL, threads=threads), SgbmMatcher(sgbm))
+    def create(model_path: Path | None = None, sgbm: SgbmConfig | None = None, threads: int = 2,
+               disparity: FrameDisparity | None = None) -> Perception:
+        """The chain with the detector at `model_path` (None: the shipped one); stereo from `disparity` (the
+        frame's shared SGBM) where given, else its own band SGBM with `sgbm`."""
+        return Perception(Detector(model_path or DEFAULT_MODEL, threads=threads), disparity or SgbmMatcher(sgbm))
 
     def process(self, pair: StereoPair) -> PerceptionResult:
         clock = _Clock()
@@ -136,7 +138,8 @@ class Perception:
         clock = clock or _Clock()
         depth_m = self._depth_m(pair, detections)
         clock.lap("stereo")
-        sides = [refine_box(pair.left, d.box_xyxy, self.lines) for d in detections]
+        gray = to_gray(pair.left) if detections else pair.left  # once for all boxes
+        sides = [refine_box(gray, d.box_xyxy, self.lines) for d in detections]
         clock.lap("lines")
         features: list[ObservedFeature] = []
         rejected: list[Rejected] = []
@@ -161,7 +164,7 @@ class Perception:
         margin = self.band_margin_px
         v0 = max(0, int(np.floor(min(d.box_xyxy[1] for d in detections))) - margin)
         v1 = min(h, int(np.ceil(max(d.box_xyxy[3] for d in detections))) + margin)
-        band = self.matcher.disparity_px(pair.left[v0:v1], pair.right[v0:v1])
+        band = self.matcher.rows_px(pair.left, pair.right, v0, v1)
         depth_m[v0:v1] = depth_from_disparity(band, pair.rig)
         return depth_m
 
