@@ -57,17 +57,17 @@ class Chain:
         return out
 
 
-def make_chains(rig) -> tuple[Chain, Chain]:  # type: ignore[no-untyped-def]
+def make_chains(rig, sgbm_scale: float = 1.0) -> tuple[Chain, Chain]:  # type: ignore[no-untyped-def]
     from bench.chain_old import OLD_ODOMETRY, join_segments_python
     from perception.odometry import StereoOdometry
     from perception.pipeline import Perception
-    from perception.stereo import FrameDisparity
+    from perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher
     from perception.threads import THREADS
     from service.frames import StereoDepth
 
     old = Chain("old", StereoOdometry(rig, OLD_ODOMETRY), StereoDepth(), Perception.create(threads=2),
                 join_segments_python)
-    shared = FrameDisparity()
+    shared = FrameDisparity(SgbmMatcher(SgbmConfig(num_disparities=128, scale=sgbm_scale)))
     new = Chain("new", StereoOdometry(rig, disparity=shared), StereoDepth(disparity=shared),
                 Perception.create(threads=THREADS.onnxruntime, disparity=shared), None)
     return old, new
@@ -127,6 +127,7 @@ def accuracy(old: Chain, new: Chain, truth: list[list[np.ndarray | None]]) -> di
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--sgbm-scale", type=float, default=1.0, help="the new chain's SGBM on the pair shrunk so")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     from bench.chain_frames import load, render
@@ -137,14 +138,15 @@ def main(argv: list[str] | None = None) -> None:
     fr = load(render(ROOT / "data" / "buildings" / "office_a.ifc", 1, 60, 30.0))
     fx, fy, cx, cy, baseline_m, w, h = fr.rig
     rig = StereoRig(fx, fy, cx, cy, baseline_m, int(w), int(h))
-    old, new = make_chains(rig)
+    old, new = make_chains(rig, args.sgbm_scale)
     n = min(args.frames, len(fr.left))
     for i in range(n):  # interleaved, frame by frame: both see the same load on the machine
         R = None if i == 0 else fr.T_cad_cam[i - 1][:3, :3].T @ fr.T_cad_cam[i][:3, :3]  # previous cam <- this
         for chain in (old, new):
             run_frame(chain, fr.left[i], fr.right[i], rig, fr.boxes[i], R)
     out: dict[str, Any] = {"frames": n, "openings": sum(len(b) for b in fr.boxes[:n]),
-                              "threads": THREADS.describe(), "budget_ms": round(BUDGET_MS, 1)}
+                              "threads": THREADS.describe(), "budget_ms": round(BUDGET_MS, 1),
+                          "sgbm_scale_new": args.sgbm_scale}
     for c in (old, new):
         cpu = {k: round(float(np.mean(v)), 2) for k, v in c.cpu_ms.items()}
         wall = {k: round(float(np.mean(v)), 2) for k, v in c.wall_ms.items()}
@@ -159,7 +161,7 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(out))
         return
     print(f"chain at 640x480, {n} rendered frames (Office_A seed 1), {out['openings']} openings in view; "
-          f"threads: {out['threads']}")
+          f"threads: {out['threads']}; new SGBM scale {args.sgbm_scale}")
     print(f"{'stage':<12} {'old CPU':>8} {'new CPU':>8} {'old wall':>9} {'new wall':>9}  (ms a frame, mean)")
     o, w = out["old"], out["new"]
     for stage in STAGES:

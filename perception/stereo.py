@@ -37,6 +37,8 @@ class SgbmConfig:
     speckle_window: int = 100
     speckle_range: int = 2
     three_way: bool = True
+    scale: float = 1.0  # < 1: matched on the pair shrunk by this factor (disparities and block too), then the
+    #                     disparity brought back to full size (nearest pixel, values / scale): 0.5 costs ~1/4
 
 
 class SgbmMatcher:
@@ -53,9 +55,11 @@ class SgbmMatcher:
     def __init__(self, config: SgbmConfig | None = None) -> None:
         c = config or SgbmConfig()
         self.config = c
+        self._disparities = max(16, int(round(c.num_disparities * c.scale / 16)) * 16)  # at the matched size
+        block = c.block_size if c.scale >= 1.0 else max(3, int(round(c.block_size * c.scale)) | 1)
         self._sgbm = cv2.StereoSGBM.create(
-            minDisparity=0, numDisparities=c.num_disparities, blockSize=c.block_size,
-            P1=8 * c.block_size**2, P2=32 * c.block_size**2, disp12MaxDiff=1,
+            minDisparity=0, numDisparities=self._disparities, blockSize=block,
+            P1=8 * block**2, P2=32 * block**2, disp12MaxDiff=1,
             uniquenessRatio=c.uniqueness_ratio, speckleWindowSize=c.speckle_window, speckleRange=c.speckle_range,
             mode=cv2.StereoSGBM_MODE_SGBM_3WAY if c.three_way else cv2.StereoSGBM_MODE_SGBM,
         )
@@ -66,13 +70,20 @@ class SgbmMatcher:
         if left.shape[:2] != right.shape[:2] or left.shape[0] * left.shape[1] > MAX_PIXELS or not left.size:
             raise ValueError(f"stereo pair of {left.shape[:2]} and {right.shape[:2]} pixels: not the same size, "
                              f"empty or over {MAX_PIXELS}")
-        pad = self.config.num_disparities
-        gl = cv2.copyMakeBorder(to_gray(left), 0, 0, pad, 0, cv2.BORDER_REPLICATE)
-        gr = cv2.copyMakeBorder(to_gray(right), 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+        pad, scale = self._disparities, self.config.scale
+        gl, gr = to_gray(left), to_gray(right)
+        if scale != 1.0:
+            size = (max(1, round(gl.shape[1] * scale)), max(1, round(gl.shape[0] * scale)))
+            gl, gr = (cv2.resize(g, size, interpolation=cv2.INTER_AREA) for g in (gl, gr))
+        gl = cv2.copyMakeBorder(gl, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+        gr = cv2.copyMakeBorder(gr, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
         raw = self._sgbm.compute(gl, gr)[:, pad:]
         disparity = raw.astype(np.float32) / 16.0  # SGBM returns fixed point with 4 fractional bits
         column = np.arange(disparity.shape[1], dtype=np.float32)
         disparity[(raw <= 0) | (disparity > column)] = np.nan  # no match, or the match left of the right image
+        if scale != 1.0:  # back to the pair's pixels: disparities in full-size pixels, each on its nearest
+            disparity = np.asarray(cv2.resize(disparity / scale, (left.shape[1], left.shape[0]),
+                                              interpolation=cv2.INTER_NEAREST), np.float32)
         return disparity
 
     def rows_px(self, left: np.ndarray, right: np.ndarray, v0: int, v1: int) -> np.ndarray:

@@ -118,15 +118,20 @@ def forward_T_body_cam(forward_m: float = 0.10, left_m: float = 0.06) -> np.ndar
     return T
 
 
-def make_perception_pipeline(threads: int = 2, detector_model: Path | None = None) -> PerceptionPipeline | None:
+def make_perception_pipeline(threads: int | None = None, detector_model: Path | None = None
+                             ) -> PerceptionPipeline | None:
     """The perception chain with the given detector (default: the shipped one), or None when it cannot load
-    (logged)."""
+    (logged). The libraries' threads follow perception.threads.THREADS (OpenCV's set here, process-wide);
+    `threads`: the detector's, instead of the plan's."""
     try:
         from perception.pipeline import Perception
         from perception.stereo import FrameDisparity
+        from perception.threads import set_threads
 
-        return PerceptionPipeline(Perception.create(detector_model, threads=threads, disparity=FrameDisparity()),
-                                  forward_T_body_cam())
+        plan = set_threads()
+        log.info("threads: %s", plan.describe())
+        chain = Perception.create(detector_model, threads=threads or plan.onnxruntime, disparity=FrameDisparity())
+        return PerceptionPipeline(chain, forward_T_body_cam())
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception
         log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)
         return None

@@ -280,9 +280,11 @@ class PerceptionSource:
             raise UserInputError("--observations perception: the perception chain (perception.pipeline) "
                                  "is not available; use --observations truth") from None
         from perception.stereo import FrameDisparity
+        from perception.threads import set_threads
 
+        plan = set_threads()  # the libraries' threads (OpenCV's process-wide), as in the service
         self.disparity = FrameDisparity()  # one SGBM a frame for the odometry, depth points and the chain
-        self.perception = Perception.create(detector_model, disparity=self.disparity)
+        self.perception = Perception.create(detector_model, threads=plan.onnxruntime, disparity=self.disparity)
         self.detect_every = detect_every
         self.odometry: VisualOdometry | VehicleOdometry | None = None
         self._n = 0
