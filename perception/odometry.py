@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class OdometryConfig:
-    n_features: int = 500  # kept a frame, spread over the grid below (2000 before issue 37, unspread)
+    n_features: int = 1000  # kept a frame, spread over the grid below (2000 before issue 37, unspread)
     detect_features: int = 2000  # ORB's keypoints before the grid picks `n_features` (only those are described)
     grid_cols: int = 8  # the image is cut into grid_cols x grid_rows cells; each keeps its strongest keypoints
     grid_rows: int = 6
