@@ -2,20 +2,23 @@
 the same run: visual odometry, depth points, detector, stereo, line refinement, reconstruction, stage by stage
 in CPU ms (the process's, all threads) and wall ms, beside the 30 frames/s target.
 
-    python -m bench.bench_chain [--frames 60] [--repeat 1] [--json]
+    python -m bench.bench_chain [--frames 60] [--sgbm-scale 1.0] [--json]
 
 Frames: bench.chain_frames (Office_A seed 1, 60 consecutive frames, rendered once and cached). The detector runs
 on every frame and is timed, but the boxes reconstructed are the true ones (the shipped detector finds few
 openings in these renders; the issue's figures are for a door in view). The gyroscope's rotation between frames
 is the true one. OLD: the chain as it was (its own band SGBM at 64 disparities, a full-frame SGBM at 128 for the
-depth points every third frame and another at the odometry's keyframes; the pure-Python segment joiner,
-bench.chain_old; ORB 2000). NEW: the chain as it is. Accuracy: each opening's corners, old against new and both
-against the truth; the odometry's drift against the true path. A benchmark: it prints figures, asserts nothing.
+depth points every third frame and another at the odometry's keyframes; the pure-Python segment joiner; the
+wall plane's RANSAC hypothesis by hypothesis and np.nanmedian; ORB 2000: bench.chain_old). NEW: the chain as it
+is. Old and new run frame by frame in turn, so both see the same load. Accuracy: each opening's corners, old
+against new and both against the truth; the odometry's drift against the true path. A benchmark: it prints
+figures, asserts nothing.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import time
 from collections.abc import Callable
@@ -43,7 +46,7 @@ class Chain:
     odometry: StereoOdometry
     depth: StereoDepth
     perception: Perception
-    join: Callable[..., list[np.ndarray]] | None
+    join: Callable[..., list[np.ndarray]] | None  # the old joiner; also: the old reconstruction (bench.chain_old)
     cpu_ms: dict[str, list[float]] = field(default_factory=dict)
     wall_ms: dict[str, list[float]] = field(default_factory=dict)
     features: list[list[Any]] = field(default_factory=list)
@@ -74,6 +77,7 @@ def make_chains(rig, sgbm_scale: float = 1.0) -> tuple[Chain, Chain]:  # type: i
 
 
 def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_prev_cur) -> None:  # type: ignore[no-untyped-def]
+    from bench.chain_old import old_reconstruction
     from perception.detector import Detection
     from perception.lines import refine_box
     from perception.pipeline import ObservedFeature, StereoPair
@@ -90,8 +94,9 @@ def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_p
     kw: dict[str, Any] = {} if chain.join is None else {"join": chain.join}
     sides = chain.lap("lines", lambda: [refine_box(g, d.box_xyxy, p.lines, **kw)
                                         for g in [to_gray(left)] for d in dets])
-    out = chain.lap("reconstruct", lambda: [p._reconstruct(d, s, depth_m, pair)
-                                            for d, s in zip(dets, sides, strict=True)])
+    with old_reconstruction() if chain.join is not None else contextlib.nullcontext():
+        out = chain.lap("reconstruct", lambda: [p._reconstruct(d, s, depth_m, pair)
+                                                for d, s in zip(dets, sides, strict=True)])
     chain.features.append([f if isinstance(f, ObservedFeature) else None for f in out])
 
 
