@@ -35,7 +35,7 @@ if TYPE_CHECKING:
 
 ROOT = Path(__file__).resolve().parents[1]
 BUDGET_MS = 1000.0 / 30.0
-STAGES = ("vo", "depth", "detect", "stereo", "lines", "reconstruct")
+STAGES = ("vo", "depth", "detect", "lines", "stereo", "reconstruct")
 
 
 @dataclass
@@ -77,7 +77,7 @@ def make_chains(rig, sgbm_scale: float = 1.0) -> tuple[Chain, Chain]:  # type: i
 
 
 def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_prev_cur) -> None:  # type: ignore[no-untyped-def]
-    from bench.chain_old import old_reconstruction
+    from bench.chain_old import band_depth_m, old_reconstruction
     from perception.detector import Detection
     from perception.lines import refine_box
     from perception.pipeline import ObservedFeature, StereoPair
@@ -90,10 +90,11 @@ def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_p
     chain.lap("depth", lambda: chain.depth(left, right, rig, np.eye(4)))
     chain.lap("detect", lambda: p.detector.detect(left))
     dets = [Detection(t, 1.0, b) for t, b in boxes]
-    depth_m = chain.lap("stereo", lambda: p._depth_m(pair, dets))
     kw: dict[str, Any] = {} if chain.join is None else {"join": chain.join}
     sides = chain.lap("lines", lambda: [refine_box(g, d.box_xyxy, p.lines, **kw)
                                         for g in [to_gray(left)] for d in dets])
+    depth_m = chain.lap("stereo", lambda: band_depth_m(p, pair, dets) if chain.join is not None
+                        else p._depth_m(pair, dets, sides))
     with old_reconstruction() if chain.join is not None else contextlib.nullcontext():
         out = chain.lap("reconstruct", lambda: [p._reconstruct(d, s, depth_m, pair)
                                                 for d, s in zip(dets, sides, strict=True)])

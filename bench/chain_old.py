@@ -147,3 +147,20 @@ def old_reconstruction() -> Iterator[None]:
         yield
     finally:
         perception.pipeline.wall_plane, perception.reconstruct.sample_depth_m = saved
+
+
+def band_depth_m(chain: perception.pipeline.Perception, pair: perception.pipeline.StereoPair,
+                 detections: list) -> np.ndarray:  # type: ignore[type-arg]
+    """Perception._depth_m before issue 37: the matcher on the band of rows the boxes span, every column."""
+    from perception.stereo import depth_from_disparity
+
+    h = pair.left.shape[0]
+    depth_m = np.full(pair.left.shape[:2], np.nan, np.float32)
+    if not detections:
+        return depth_m
+    margin = chain.band_margin_px
+    v0 = max(0, int(np.floor(min(d.box_xyxy[1] for d in detections))) - margin)
+    v1 = min(h, int(np.ceil(max(d.box_xyxy[3] for d in detections))) + margin)
+    band = chain.matcher.disparity_px(pair.left[v0:v1], pair.right[v0:v1])
+    depth_m[v0:v1] = depth_from_disparity(band, pair.rig)
+    return depth_m

@@ -70,7 +70,11 @@ class SgbmMatcher:
         if left.shape[:2] != right.shape[:2] or left.shape[0] * left.shape[1] > MAX_PIXELS or not left.size:
             raise ValueError(f"stereo pair of {left.shape[:2]} and {right.shape[:2]} pixels: not the same size, "
                              f"empty or over {MAX_PIXELS}")
-        pad, scale = self._disparities, self.config.scale
+        return self._match(left, right, self._disparities, 0)
+
+    def _match(self, left: np.ndarray, right: np.ndarray, pad: int, first_col: int) -> np.ndarray:
+        """Disparity of `left`, whose first column is the image's `first_col`, both padded by `pad` columns."""
+        scale = self.config.scale
         gl, gr = to_gray(left), to_gray(right)
         if scale != 1.0:
             size = (max(1, round(gl.shape[1] * scale)), max(1, round(gl.shape[0] * scale)))
@@ -79,17 +83,24 @@ class SgbmMatcher:
         gr = cv2.copyMakeBorder(gr, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
         raw = self._sgbm.compute(gl, gr)[:, pad:]
         disparity = raw.astype(np.float32) / 16.0  # SGBM returns fixed point with 4 fractional bits
-        column = np.arange(disparity.shape[1], dtype=np.float32)
+        column = np.arange(first_col, first_col + disparity.shape[1], dtype=np.float32)
         disparity[(raw <= 0) | (disparity > column)] = np.nan  # no match, or the match left of the right image
         if scale != 1.0:  # back to the pair's pixels: disparities in full-size pixels, each on its nearest
             disparity = np.asarray(cv2.resize(disparity / scale, (left.shape[1], left.shape[0]),
                                               interpolation=cv2.INTER_NEAREST), np.float32)
         return disparity
 
-    def rows_px(self, left: np.ndarray, right: np.ndarray, v0: int, v1: int) -> np.ndarray:
-        """Disparity of the left image's rows v0:v1 only, from those rows of the pair (the band a frame's boxes
-        span: less work than the whole frame)."""
-        return self.disparity_px(left[v0:v1], right[v0:v1])
+    def window_px(self, left: np.ndarray, right: np.ndarray, v0: int, v1: int, u0: int, u1: int) -> np.ndarray:
+        """Disparity of the left image's window [v0:v1, u0:u1] only (what a frame's openings need: less work than
+        the whole frame), matched on those rows from `num_disparities` columns left of u0 (where its matches can
+        lie) to 16 right of u1 (SGBM's paths along the row then reach the window's last columns from both sides);
+        padded as the whole frame is where u0 is nearer the left edge than that."""
+        w = left.shape[1]
+        if self.config.scale != 1.0:
+            return self.disparity_px(left[v0:v1], right[v0:v1])[:, u0:u1]
+        a0, b1 = max(0, u0 - self.config.num_disparities), min(w, u1 + 16)
+        pad = self.config.num_disparities - (u0 - a0)
+        return self._match(left[v0:v1, a0:b1], right[v0:v1, a0:b1], pad, a0)[:, u0 - a0:u1 - a0]
 
 
 class FrameDisparity:
@@ -98,8 +109,8 @@ class FrameDisparity:
     matches the whole frame, later calls on the same pair (the same array objects) get it back, or the rows
     asked for. Before issue 37 a frame could be matched three times (a 64-disparity band, then two full frames
     at 128: ~40 + 2 x 63 ms CPU at 640 x 480). The matcher's disparities serve all: 128 by default (down to
-    0.45 m with the simulated rig, see StereoDepth). Rows asked for before anything needed the whole frame are
-    matched alone (a band is cheaper), so the consumers of the whole frame go first in a frame. Frames must not
+    0.45 m with the simulated rig, see StereoDepth). A window asked for before anything needed the whole frame
+    is matched alone (cheaper), so the consumers of the whole frame go first in a frame. Frames must not
     be overwritten in place between calls."""
 
     def __init__(self, matcher: SgbmMatcher | None = None) -> None:
@@ -118,12 +129,13 @@ class FrameDisparity:
             self.computed += 1
         return self._disparity_px
 
-    def rows_px(self, left: np.ndarray, right: np.ndarray, v0: int, v1: int) -> np.ndarray:
-        """Rows v0:v1 of the whole frame's disparity where this pair has been matched, else those rows alone."""
+    def window_px(self, left: np.ndarray, right: np.ndarray, v0: int, v1: int, u0: int, u1: int) -> np.ndarray:
+        """The window [v0:v1, u0:u1] of the whole frame's disparity where this pair has been matched, else that
+        window alone (SgbmMatcher.window_px)."""
         if self._pair is not None and self._pair[0] is left and self._pair[1] is right:
-            return self._disparity_px[v0:v1]
+            return self._disparity_px[v0:v1, u0:u1]
         self.computed += 1
-        return self.matcher.rows_px(left, right, v0, v1)
+        return self.matcher.window_px(left, right, v0, v1, u0, u1)
 
 
 def depth_from_disparity(disparity_px: np.ndarray, rig: StereoRig) -> np.ndarray:
