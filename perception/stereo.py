@@ -67,9 +67,7 @@ class SgbmMatcher:
     def disparity_px(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         """Raises ValueError on images of different sizes or larger than MAX_PIXELS: OpenCV's matcher is never
         handed them (a 20000 x 20000 pair crashed the process in it)."""
-        if left.shape[:2] != right.shape[:2] or left.shape[0] * left.shape[1] > MAX_PIXELS or not left.size:
-            raise ValueError(f"stereo pair of {left.shape[:2]} and {right.shape[:2]} pixels: not the same size, "
-                             f"empty or over {MAX_PIXELS}")
+        _check_pair(left, right)
         return self._match(left, right, self._disparities, 0)
 
     def _match(self, left: np.ndarray, right: np.ndarray, pad: int, first_col: int) -> np.ndarray:
@@ -95,6 +93,7 @@ class SgbmMatcher:
         the whole frame), matched on those rows from `num_disparities` columns left of u0 (where its matches can
         lie) to 16 right of u1 (SGBM's paths along the row then reach the window's last columns from both sides);
         padded as the whole frame is where u0 is nearer the left edge than that."""
+        _check_pair(left, right)
         w = left.shape[1]
         if self.config.scale != 1.0:
             return self.disparity_px(left[v0:v1], right[v0:v1])[:, u0:u1]
@@ -103,10 +102,16 @@ class SgbmMatcher:
         return self._match(left[v0:v1, a0:b1], right[v0:v1, a0:b1], pad, a0)[:, u0 - a0:u1 - a0]
 
 
+def _check_pair(left: np.ndarray, right: np.ndarray) -> None:
+    if left.shape[:2] != right.shape[:2] or left.shape[0] * left.shape[1] > MAX_PIXELS or not left.size:
+        raise ValueError(f"stereo pair of {left.shape[:2]} and {right.shape[:2]} pixels: not the same size, "
+                         f"empty or over {MAX_PIXELS}")
+
+
 class FrameDisparity:
     """One SGBM per stereo frame, shared by whatever needs disparity in it (the perception chain's band, the
     depth points of service.frames.StereoDepth, the visual odometry's keyframes): the first call on a pair
-    matches the whole frame, later calls on the same pair (the same array objects) get it back, or the rows
+    matches the whole frame, later calls on the same pair (the same array objects) get it back, or the window
     asked for. Before issue 37 a frame could be matched three times (a 64-disparity band, then two full frames
     at 128: ~40 + 2 x 63 ms CPU at 640 x 480). The matcher's disparities serve all: 128 by default (down to
     0.45 m with the simulated rig, see StereoDepth). A window asked for before anything needed the whole frame
