@@ -29,9 +29,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from perception.odometry import StereoOdometry
-    from perception.pipeline import Perception
-    from service.frames import StereoDepth
+    from macroloc.perception.odometry import StereoOdometry
+    from macroloc.perception.pipeline import Perception
+    from macroloc.service.frames import StereoDepth
 
 ROOT = Path(__file__).resolve().parents[1]
 BUDGET_MS = 1000.0 / 30.0
@@ -62,11 +62,11 @@ class Chain:
 
 def make_chains(rig, sgbm_scale: float = 1.0) -> tuple[Chain, Chain]:  # type: ignore[no-untyped-def]
     from bench.chain_old import OLD_ODOMETRY, join_segments_python
-    from perception.odometry import StereoOdometry
-    from perception.pipeline import Perception
-    from perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher
-    from perception.threads import THREADS
-    from service.frames import StereoDepth
+    from macroloc.perception.odometry import StereoOdometry
+    from macroloc.perception.pipeline import Perception
+    from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher
+    from macroloc.perception.threads import THREADS
+    from macroloc.service.frames import StereoDepth
 
     old = Chain("old", StereoOdometry(rig, OLD_ODOMETRY), StereoDepth(), Perception.create(threads=2),
                 join_segments_python)
@@ -78,10 +78,10 @@ def make_chains(rig, sgbm_scale: float = 1.0) -> tuple[Chain, Chain]:  # type: i
 
 def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_prev_cur) -> None:  # type: ignore[no-untyped-def]
     from bench.chain_old import band_depth_m, old_reconstruction
-    from perception.detector import Detection
-    from perception.lines import refine_box
-    from perception.pipeline import ObservedFeature, StereoPair
-    from perception.stereo import to_gray
+    from macroloc.perception.detector import Detection
+    from macroloc.perception.lines import refine_box
+    from macroloc.perception.pipeline import ObservedFeature, StereoPair
+    from macroloc.perception.stereo import to_gray
 
     p = chain.perception
     pair = StereoPair(left, right, rig)
@@ -138,8 +138,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     from bench.chain_frames import load, render
-    from perception.calib import StereoRig
-    from perception.threads import THREADS, set_threads
+    from macroloc.perception.calib import StereoRig
+    from macroloc.perception.threads import THREADS, set_threads
 
     set_threads()
     fr = load(render(ROOT / "data" / "buildings" / "office_a.ifc", 1, 60, 30.0))

@@ -56,8 +56,8 @@ def render(building: Path, seed: int, frames: int, duration_s: float) -> Path:
     out = CACHE / f"{building.stem}-s{seed}-{frames}f-{int(duration_s)}s-v2.npz"
     if out.exists():
         return out
-    from sim.flight import FlightParams
-    from sim.simulator import SimulationParams, Simulator
+    from macroloc.sim.flight import FlightParams
+    from macroloc.sim.simulator import SimulationParams, Simulator
 
     sim = Simulator(building, SimulationParams(seed=seed, flight=FlightParams(duration_s=duration_s)))
     cam = sim.params.camera

@@ -12,11 +12,11 @@ import numpy as np
 
 import perception.pipeline
 import perception.reconstruct
-from perception.calib import StereoRig
-from perception.lines import LineConfig, Sides, _merge, _orient
-from perception.odometry import OdometryConfig
-from perception.reconstruct import WallPlaneConfig
-from perception.stereo import back_project
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.lines import LineConfig, Sides, _merge, _orient
+from macroloc.perception.odometry import OdometryConfig
+from macroloc.perception.reconstruct import WallPlaneConfig
+from macroloc.perception.stereo import back_project
 
 
 def _angle_deg(seg: np.ndarray) -> float:
@@ -152,7 +152,7 @@ def old_reconstruction() -> Iterator[None]:
 def band_depth_m(chain: perception.pipeline.Perception, pair: perception.pipeline.StereoPair,
                  detections: list) -> np.ndarray:  # type: ignore[type-arg]
     """Perception._depth_m before issue 37: the matcher on the band of rows the boxes span, every column."""
-    from perception.stereo import depth_from_disparity
+    from macroloc.perception.stereo import depth_from_disparity
 
     h = pair.left.shape[0]
     depth_m = np.full(pair.left.shape[:2], np.nan, np.float32)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perception.detector import Detection
+from macroloc.perception.detector import Detection
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Train the door/window detector and export it: `python -m perception.train` reproduces the shipped weights.
+"""Train the door/window detector and export it: `python -m macroloc.perception.train` reproduces the shipped weights.
 
 Data: the real facade photos (`../shared/data/images/facades`, fixed split: test = img_n with n % 5 == 0,
 never trained on; validation = a seeded 15 % of the rest, which sets the score threshold from its PR curve),
@@ -26,9 +26,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from perception.detector import CLASS_NAMES, REPORTED_TYPES, Detection, Detector, DetectorSpec
-from perception.evaluate import GroundTruth, PRCurve, best_f1_threshold, plot_pr, pr_curve
-from perception.trainset import (
+from macroloc.perception.detector import CLASS_NAMES, REPORTED_TYPES, Detection, Detector, DetectorSpec
+from macroloc.perception.evaluate import GroundTruth, PRCurve, best_f1_threshold, plot_pr, pr_curve
+from macroloc.perception.trainset import (
     FACADE_CLASS_MAP,
     Sample,
     augment,
@@ -187,7 +187,7 @@ def evaluate_onnx(detector: Detector, samples: list[Sample]) -> dict[str, PRCurv
 def train(args: argparse.Namespace) -> None:
     import torch
 
-    from perception.model import STRIDE_PX, TinyYolo
+    from macroloc.perception.model import STRIDE_PX, TinyYolo
 
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(1)
@@ -244,7 +244,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
            sim: list[Sample], train_s: float) -> None:
     import torch
 
-    from perception.model import STRIDE_PX
+    from macroloc.perception.model import STRIDE_PX
 
     args.out.mkdir(parents=True, exist_ok=True)
     args.report.mkdir(parents=True, exist_ok=True)
@@ -272,7 +272,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
                      "sim_fraction": args.sim_fraction, "rendered_flights": rendered_sources(sim),
                      "seconds": round(train_s)},
         "figures": figures,
-        "reproduce": "python -m perception.train",
+        "reproduce": "python -m macroloc.perception.train",
     }
     spec = DetectorSpec(CLASS_NAMES, INPUT_WH, STRIDE_PX, spec.anchors_px, threshold, spec.nms_iou, extra)
     onnx_path.with_suffix(".json").write_text(json.dumps(spec.to_json(), indent=1) + "\n")
@@ -285,7 +285,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m perception.train", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m macroloc.perception.train", description=__doc__.splitlines()[0])
     ap.add_argument("--facades", type=Path, default=SHARED_DATA / "images" / "facades")
     ap.add_argument("--sim", type=Path, nargs="*", default=[],
                     help="folders of rendered frames with YOLO labels; out/sim_yolo is made by bench.sim_trainset "

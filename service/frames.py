@@ -15,10 +15,10 @@ from typing import Protocol
 
 import numpy as np
 
-from graph.localizer import Sighting
-from graph.rigid import apply
-from service.recording import decode_image, matrix_from_pose
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.localizer import Sighting
+from macroloc.graph.rigid import apply
+from macroloc.service.recording import decode_image, matrix_from_pose
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ class StereoDepth:
                  disparity=None) -> None:  # noqa: ANN001 - perception.stereo.FrameDisparity
         """`disparity`: the frame's shared SGBM (perception.stereo.FrameDisparity) where the perception chain or
         the odometry match the same frames; None: its own, with `num_disparities`."""
-        from perception.stereo import SgbmConfig, SgbmMatcher
+        from macroloc.perception.stereo import SgbmConfig, SgbmMatcher
 
         self.matcher = disparity or SgbmMatcher(SgbmConfig(num_disparities=num_disparities))
         self.every = every
@@ -66,7 +66,7 @@ class StereoDepth:
         self._n = 0
 
     def __call__(self, left: np.ndarray, right: np.ndarray, rig, T_body_cam: np.ndarray) -> np.ndarray | None:  # noqa: ANN001 - StereoRig
-        from perception.stereo import back_project, depth_from_disparity, depth_grid
+        from macroloc.perception.stereo import back_project, depth_from_disparity, depth_grid
 
         n, self._n = self._n, self._n + 1
         if not self.every or n % self.every:
@@ -83,7 +83,7 @@ class PerceptionPipeline:
         """Every `depth_every`-th frame also gives stereo depth points (`points_body`, SGBM over the whole frame,
         every `depth_stride_px`-th pixel) for the surface check of registrations; 0: never. Where the chain's
         matcher is a shared FrameDisparity, the depth points take the frame's disparity from it (one SGBM)."""
-        from perception.stereo import FrameDisparity
+        from macroloc.perception.stereo import FrameDisparity
 
         self.perception = perception
         self.default_T_body_cam = default_T_body_cam
@@ -94,8 +94,8 @@ class PerceptionPipeline:
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
         """Frames come checked (service.inputs: sizes from the headers, equal left and right and camera info);
         a frame without camera info cannot be perceived and gives no sightings."""
-        from perception.calib import StereoRig
-        from perception.pipeline import StereoPair
+        from macroloc.perception.calib import StereoRig
+        from macroloc.perception.pipeline import StereoPair
 
         info = frame.info
         if not frame.HasField("info") or info.fx <= 0 or info.baseline_m <= 0:
@@ -124,9 +124,9 @@ def make_perception_pipeline(threads: int | None = None, detector_model: Path | 
     (logged). The libraries' threads follow perception.threads.THREADS (OpenCV's set here, process-wide);
     `threads`: the detector's, instead of the plan's."""
     try:
-        from perception.pipeline import Perception
-        from perception.stereo import FrameDisparity
-        from perception.threads import set_threads
+        from macroloc.perception.pipeline import Perception
+        from macroloc.perception.stereo import FrameDisparity
+        from macroloc.perception.threads import set_threads
 
         plan = set_threads()
         log.info("threads: %s", plan.describe())

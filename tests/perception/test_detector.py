@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from perception.detector import DEFAULT_MODEL, Detection, Detector, DetectorSpec, decode, letterbox, nms
-from perception.evaluate import GroundTruth, average_precision, best_f1_threshold, pr_curve
+from macroloc.perception.detector import DEFAULT_MODEL, Detection, Detector, DetectorSpec, decode, letterbox, nms
+from macroloc.perception.evaluate import GroundTruth, average_precision, best_f1_threshold, pr_curve
 from tests.conftest import shared_data
 
 

@@ -9,8 +9,8 @@ torch = pytest.importorskip("torch")
 
 
 def test_tiny_model_exports_to_onnx_and_decodes_like_torch(tmp_path: Path):
-    from perception.detector import Detector, DetectorSpec
-    from perception.model import STRIDE_PX, TinyYolo
+    from macroloc.perception.detector import Detector, DetectorSpec
+    from macroloc.perception.model import STRIDE_PX, TinyYolo
 
     torch.manual_seed(0)
     model = TinyYolo(n_anchors=2, n_classes=3).eval()
@@ -28,8 +28,8 @@ def test_tiny_model_exports_to_onnx_and_decodes_like_torch(tmp_path: Path):
 
 
 def test_loss_targets_and_one_gradient_step():
-    from perception.model import STRIDE_PX, TinyYolo
-    from perception.train import build_targets, yolo_loss
+    from macroloc.perception.model import STRIDE_PX, TinyYolo
+    from macroloc.perception.train import build_targets, yolo_loss
 
     anchors = np.array([[16.0, 32.0], [48.0, 24.0]])
     boxes = [np.array([[20.0, 10.0, 36.0, 42.0]]), np.zeros((0, 4))]

@@ -3,8 +3,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from perception.detector import PAD_VALUE
-from perception.trainset import (
+from macroloc.perception.detector import PAD_VALUE
+from macroloc.perception.trainset import (
     ROTATIONS_DEG,
     Sample,
     _affine,
@@ -30,7 +30,7 @@ def test_yolo_labels_map_to_door_window_neither(tmp_path: Path):
     label = tmp_path / "x.txt"
     label.write_text("5 0.5 0.5 0.2 0.4\n0 0.25 0.25 0.1 0.1\n4 0.1 0.1 0.1 0.1\n"
                      "3 0.7 0.7 0.2 0.2\n9 0.5 0.5 0.1 0.1\n")
-    from perception.trainset import FACADE_CLASS_MAP
+    from macroloc.perception.trainset import FACADE_CLASS_MAP
 
     boxes, classes = read_yolo_labels(label, 200, 100, FACADE_CLASS_MAP)
     assert classes.tolist() == [0, 1, 1, 2]
@@ -86,7 +86,7 @@ def test_test_split_rule(n: int):
 
 
 def test_a_trained_model_names_the_flights_its_rendered_frames_came_from():
-    from perception.train import rendered_sources
+    from macroloc.perception.train import rendered_sources
 
     def sample(name: str) -> Sample:
         return Sample(name, np.zeros((4, 4, 3), np.uint8), np.zeros((0, 4)), np.zeros(0, int))
