@@ -9,7 +9,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-BENCHMARKS = ("bench_localize", "bench_posegraph", "bench_perception", "bench_zenoh", "bench_render",
+BENCHMARKS = ("bench_localize", "bench_posegraph", "bench_perception", "bench_chain", "bench_zenoh", "bench_render",
               "bench_obstacles", "bench_place", "bench_state")
 
 

@@ -7,6 +7,7 @@ Pixels: (u right, v down) of the full image. A segment is `(2, 2)` float: [[u0, 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -48,26 +49,32 @@ def _orient(seg: np.ndarray) -> np.ndarray:
     return seg if seg[0, 1] <= seg[1, 1] else seg[::-1]
 
 
-def _angle_deg(seg: np.ndarray) -> float:
-    """Undirected angle of a segment in [0, 180) degrees."""
-    d = seg[1] - seg[0]
-    return float(np.degrees(np.arctan2(d[1], d[0])) % 180.0)
+def _angles_deg(segs: np.ndarray) -> np.ndarray:
+    """Undirected angles (N,) in [0, 180) degrees of segments (N, 2, 2)."""
+    d = segs[:, 1] - segs[:, 0]
+    return np.degrees(np.arctan2(d[:, 1], d[:, 0])) % 180.0
 
 
-def _angle_diff_deg(a: float, b: float) -> float:
-    d = abs(a - b) % 180.0
-    return min(d, 180.0 - d)
+def _angle_diff_deg(a: np.ndarray, b: np.ndarray | float) -> np.ndarray:
+    """Differences of undirected angles (degrees, broadcast), in [0, 90]."""
+    d = np.abs(a - b) % 180.0
+    return np.minimum(d, 180.0 - d)
 
 
-def _joinable(a: np.ndarray, b: np.ndarray, cfg: LineConfig) -> bool:
-    if _angle_diff_deg(_angle_deg(a), _angle_deg(b)) > cfg.join_angle_deg:
-        return False
-    gap = min(np.linalg.norm(p - q) for p in a for q in b)
-    if gap > cfg.join_gap_px:
-        return False
-    d = (a[1] - a[0]) / max(np.linalg.norm(a[1] - a[0]), 1e-9)
-    normal = np.array([-d[1], d[0]])
-    return bool(np.max(np.abs((b - a[0]) @ normal)) <= cfg.join_offset_px)
+def _joinable(a: np.ndarray, b: np.ndarray, cfg: LineConfig) -> np.ndarray:
+    """Whether each segment of `a` (N, 2, 2) joins the one of `b` (M, 2, 2): (N, M) bool. Not symmetric: the
+    collinearity is measured from the line of `a`'s segment (as the paper's pairwise test, first against later).
+    Angles within `join_angle_deg`, nearest endpoints within `join_gap_px`, `b`'s ends within `join_offset_px`
+    of `a`'s line."""
+    ok = _angle_diff_deg(_angles_deg(a)[:, None], _angles_deg(b)[None]) <= cfg.join_angle_deg
+    ends = a[:, None, :, None, :] - b[None, :, None, :, :]  # (N, M, 2 ends of a, 2 ends of b, uv)
+    gap = np.sqrt(np.min(np.sum(ends * ends, axis=-1), axis=(2, 3)))
+    ok &= gap <= cfg.join_gap_px
+    d = a[:, 1] - a[:, 0]
+    d = d / np.maximum(np.sqrt(np.sum(d * d, axis=1)), 1e-9)[:, None]
+    normal = np.stack([-d[:, 1], d[:, 0]], axis=1)  # (N, 2)
+    offset = np.einsum("nmku,nu->nmk", b[None] - a[:, None, None, 0], normal)  # b's ends from a's line
+    return ok & (np.max(np.abs(offset), axis=2) <= cfg.join_offset_px)
 
 
 def _merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -79,22 +86,21 @@ def _merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def join_segments(segments: list[np.ndarray], cfg: LineConfig | None = None) -> list[np.ndarray]:
-    """Join broken segments (angle <= 2 deg, endpoint gap <= 10 px, collinear) until none can be joined."""
+    """Join broken segments (angle <= 2 deg, endpoint gap <= 10 px, collinear) until none can be joined.
+
+    The first joinable pair (i < j, in index order) is merged into i and j dropped, and the search starts over:
+    the pairwise test runs once over all pairs as numpy (an (N, N) table), and after each merge only the merged
+    segment's row and column are tested again."""
     cfg = cfg or LineConfig()
-    segs = [_orient(np.asarray(s, np.float64).reshape(2, 2)) for s in segments]
-    merged = True
-    while merged:
-        merged = False
-        for i in range(len(segs)):
-            for j in range(i + 1, len(segs)):
-                if _joinable(segs[i], segs[j], cfg):
-                    segs[i] = _merge(segs[i], segs[j])
-                    del segs[j]
-                    merged = True
-                    break
-            if merged:
-                break
-    return segs
+    segs = np.array([_orient(np.asarray(s, np.float64).reshape(2, 2)) for s in segments]).reshape(-1, 2, 2)
+    table = np.triu(_joinable(segs, segs, cfg), k=1)
+    while (first := np.flatnonzero(table)).size:
+        i, j = divmod(int(first[0]), len(segs))
+        segs[i] = _merge(segs[i], segs[j])
+        segs, table = np.delete(segs, j, axis=0), np.delete(np.delete(table, j, axis=0), j, axis=1)
+        table[i, i + 1:] = _joinable(segs[i:i + 1], segs[i + 1:], cfg)[0]
+        table[:i, i] = _joinable(segs[:i], segs[i:i + 1], cfg)[:, 0]
+    return list(segs)
 
 
 def detect_segments(gray: np.ndarray) -> list[np.ndarray]:
@@ -170,8 +176,14 @@ def _pick_side(cands: list[np.ndarray], edge_u: float, cfg: LineConfig) -> np.nd
     return cands[best]
 
 
-def refine_box(image: np.ndarray, box_xyxy: tuple[float, float, float, float], cfg: LineConfig | None = None) -> Sides:
-    """The two vertical sides of the feature inside a detection box (image pixels)."""
+Joiner = Callable[[list[np.ndarray], LineConfig], list[np.ndarray]]
+
+
+def refine_box(image: np.ndarray, box_xyxy: tuple[float, float, float, float], cfg: LineConfig | None = None,
+               join: Joiner = join_segments) -> Sides:
+    """The two vertical sides of the feature inside a detection box (image pixels; `image` grey or BGR: a frame
+    with several boxes is best given grey, converted once). `join`: the segment joiner (bench.bench_chain passes
+    the pure-Python one this replaced, to compare)."""
     cfg = cfg or LineConfig()
     gray = to_gray(image)
     h_img, w_img = gray.shape
@@ -180,8 +192,10 @@ def refine_box(image: np.ndarray, box_xyxy: tuple[float, float, float, float], c
     cx0, cy0 = int(max(0, np.floor(x0 - cfg.margin * bw))), int(max(0, np.floor(y0 - cfg.margin * bh)))
     cx1, cy1 = int(min(w_img, np.ceil(x1 + cfg.margin * bw))), int(min(h_img, np.ceil(y1 + cfg.margin * bh)))
     segs = [s + np.array([cx0, cy0]) for s in detect_segments(np.ascontiguousarray(gray[cy0:cy1, cx0:cx1]))]
-    vertical = [s for s in segs if _angle_diff_deg(_angle_deg(s), 90.0) <= cfg.max_tilt_deg]
-    joined = [_orient(s) for s in join_segments(vertical, cfg)]
+    if segs:
+        tilt_deg = _angle_diff_deg(_angles_deg(np.array(segs)), 90.0)
+        segs = [s for s, t in zip(segs, tilt_deg, strict=True) if t <= cfg.max_tilt_deg]
+    joined = [_orient(s) for s in join(segs, cfg)]
     long_enough = [s for s in joined if s[1, 1] - s[0, 1] >= cfg.min_length * bh]
     left = _pick_side([s for s in long_enough if -cfg.side_band_out * bw <= s[:, 0].mean() - x0 <= cfg.side_band * bw],
                       x0, cfg)

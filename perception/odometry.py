@@ -39,14 +39,17 @@ from scipy.spatial.transform import Rotation
 
 from macroloc.graph.rigid import rotation_angle_rad
 from macroloc.perception.calib import StereoRig
-from macroloc.perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
+from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher, keypoint_points, to_gray
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class OdometryConfig:
-    n_features: int = 2000
+    n_features: int = 1000  # kept a frame, spread over the grid below (2000 before issue 37, unspread)
+    detect_features: int = 2000  # ORB's keypoints before the grid picks `n_features` (only those are described)
+    grid_cols: int = 8  # the image is cut into grid_cols x grid_rows cells; each keeps its strongest keypoints
+    grid_rows: int = 6
     fast_threshold: int = 7  # rendered walls are low in contrast: a lower FAST threshold keeps features
     min_disparity_px: float = 1.0
     num_disparities: int = 128  # SGBM's search range at keyframes: depth down to fx * baseline / 128 (0.45 m)
@@ -83,13 +86,16 @@ class _Keyframe:
 class StereoOdometry:
     """Frame-to-keyframe stereo odometry (see module doc). Feed frames in time order."""
 
-    def __init__(self, rig: StereoRig, config: OdometryConfig | None = None) -> None:
+    def __init__(self, rig: StereoRig, config: OdometryConfig | None = None,
+                 disparity: SgbmMatcher | FrameDisparity | None = None) -> None:
+        """`disparity`: the frame's shared SGBM (FrameDisparity) where other consumers match the same frames;
+        None: its own, with `config.num_disparities`."""
         self.rig = rig
         self.config = config or OdometryConfig()
         self.orb = cv2.ORB_create(  # type: ignore[attr-defined]
-            nfeatures=self.config.n_features, fastThreshold=self.config.fast_threshold)
+            nfeatures=self.config.detect_features, fastThreshold=self.config.fast_threshold)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-        self.sgbm = SgbmMatcher(SgbmConfig(num_disparities=self.config.num_disparities))
+        self.sgbm = disparity or SgbmMatcher(SgbmConfig(num_disparities=self.config.num_disparities))
         self.K = rig.K
         self._ref: _Keyframe | None = None
         self._T_last = np.eye(4)
@@ -106,7 +112,8 @@ class StereoOdometry:
         refitted to the same matches. lost_position: where tracking is lost, called with the pose coasted at the
         last velocity (T_odom_cam, the gyro's rotation) for the camera's position to take instead (e.g. with the
         height dead-reckoned on the IMU, perception.inertial); None from it, or no callable: the coasted pose."""
-        kp, desc = self.orb.detectAndCompute(to_gray(left), None)
+        gray = to_gray(left)
+        kp, desc = self.orb.compute(gray, self._spread(self.orb.detect(gray, None), gray.shape))
         kp = list(kp)
         desc = desc if desc is not None else np.zeros((0, 32), np.uint8)
         if self._ref is None:
@@ -131,6 +138,27 @@ class StereoOdometry:
         if self._should_rekey(T_ref_cam, inliers):
             self._ref = self._keyframe(T, left, right, kp, desc)
         return OdometryResult(T, inliers, True)
+
+    def _spread(self, keypoints: tuple, shape: tuple[int, ...]) -> list:  # type: ignore[type-arg]
+        """At most `n_features` keypoints spread over the image: each grid cell keeps its strongest, as many as
+        an equal share, and what cells with fewer leave goes to the strongest of the rest. Matching cost grows
+        with the count squared (2000 a frame: 24 ms of brute-force matching here), and features bunched on one
+        textured patch constrain the pose less than the same number spread."""
+        c = self.config
+        if len(keypoints) <= c.n_features:
+            return list(keypoints)
+        h, w = shape[:2]
+        uv = np.array([k.pt for k in keypoints])
+        response = np.array([k.response for k in keypoints])
+        cell = (np.minimum(uv[:, 1] * c.grid_rows // h, c.grid_rows - 1) * c.grid_cols
+                + np.minimum(uv[:, 0] * c.grid_cols // w, c.grid_cols - 1)).astype(np.int64)
+        order = np.lexsort((-response, cell))  # by cell, strongest first within each
+        first = np.searchsorted(cell[order], cell[order], side="left")
+        rank = np.empty(len(order), np.int64)
+        rank[order] = np.arange(len(order)) - first  # 0 for a cell's strongest
+        share = c.n_features // (c.grid_cols * c.grid_rows)
+        keep = np.lexsort((-response, rank >= share, ))[:c.n_features]  # the cells' shares first, then the strongest
+        return [keypoints[i] for i in keep]
 
     def _agree_with_gyro(self, T_ref_cam: np.ndarray, R_ref_cam_gyro: np.ndarray) -> np.ndarray:
         """T_ref_cam with the gyro's rotation where they disagree by more than `gyro_tolerance_rad` (PnP took a

@@ -26,7 +26,7 @@ from macroloc.perception.reconstruct import (
     reconstruct_sides,
     wall_plane,
 )
-from macroloc.perception.stereo import SgbmConfig, SgbmMatcher, depth_from_disparity
+from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher, depth_from_disparity, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -109,20 +109,22 @@ class PerceptionResult:
 class Perception:
     """The whole chain with its components; `process(pair)` is the paper's §2.2 step by step."""
 
-    def __init__(self, detector: Detector, matcher: SgbmMatcher, lines: LineConfig | None = None,
+    def __init__(self, detector: Detector, matcher: SgbmMatcher | FrameDisparity, lines: LineConfig | None = None,
                  plausibility: PlausibilityConfig | None = None, wall: WallPlaneConfig | None = WallPlaneConfig()
                  ) -> None:
         self.detector = detector
-        self.matcher = matcher
+        self.matcher = matcher  # a FrameDisparity shares the frame's one SGBM with the depth points and odometry
         self.lines = lines or LineConfig()
         self.plausibility = plausibility or PlausibilityConfig()
         self.wall = wall  # corners on the wall's plane beside the opening, where it shows one (None: the sides')
         self.band_margin_px = 24  # rows of stereo context above and below the boxes
 
     @staticmethod
-    def create(model_path: Path | None = None, sgbm: SgbmConfig | None = None, threads: int = 2) -> Perception:
-        """The chain with the detector at `model_path` (None: the shipped one)."""
-        return Perception(Detector(model_path or DEFAULT_MODEL, threads=threads), SgbmMatcher(sgbm))
+    def create(model_path: Path | None = None, sgbm: SgbmConfig | None = None, threads: int = 2,
+               disparity: FrameDisparity | None = None) -> Perception:
+        """The chain with the detector at `model_path` (None: the shipped one); stereo from `disparity` (the
+        frame's shared SGBM) where given, else its own band SGBM with `sgbm`."""
+        return Perception(Detector(model_path or DEFAULT_MODEL, threads=threads), disparity or SgbmMatcher(sgbm))
 
     def process(self, pair: StereoPair) -> PerceptionResult:
         clock = _Clock()
@@ -135,10 +137,12 @@ class Perception:
         """The chain after the detector, on given boxes (the detector's, or ground truth's for evaluation);
         `depth_m` (HxW, m, NaN unknown) where the caller has the left image's depth already."""
         clock = clock or _Clock()
-        depth_m = self._depth_m(pair, detections) if depth_m is None else depth_m
-        clock.lap("stereo")
-        sides = [refine_box(pair.left, d.box_xyxy, self.lines) for d in detections]
+        gray = to_gray(pair.left) if detections else pair.left  # once for all boxes
+        sides = [refine_box(gray, d.box_xyxy, self.lines) for d in detections]
         clock.lap("lines")
+        if depth_m is None:
+            depth_m = self._depth_m(pair, detections, sides)  # after the sides: the columns depth is read in
+        clock.lap("stereo")
         features: list[ObservedFeature] = []
         rejected: list[Rejected] = []
         for det, side in zip(detections, sides, strict=True):
@@ -152,18 +156,24 @@ class Perception:
             log.debug("rejected %s %.2f at %s: %s", r.detection.type, r.detection.score, r.detection.box_xyxy, r.reason)
         return PerceptionResult(features, rejected, detections, clock.laps)
 
-    def _depth_m(self, pair: StereoPair, detections: list[Detection]) -> np.ndarray:
+    def _depth_m(self, pair: StereoPair, detections: list[Detection], sides: list[Sides]) -> np.ndarray:
         """Depth (m, NaN unknown) of the left image, computed only on the band of rows the boxes span (plus a
-        margin): depth is read nowhere else, and a frame without detections needs no stereo at all."""
-        h = pair.left.shape[0]
+        margin) and the columns from left of the leftmost side to right of the rightmost by what reconstruction
+        reads beside them (the wall's strips, `far_px`, and the sides' inward samples): depth is read nowhere
+        else, and a frame without detections needs no stereo at all."""
+        h, w = pair.left.shape[:2]
         depth_m = np.full(pair.left.shape[:2], np.nan, np.float32)
         if not detections:
             return depth_m
         margin = self.band_margin_px
         v0 = max(0, int(np.floor(min(d.box_xyxy[1] for d in detections))) - margin)
         v1 = min(h, int(np.ceil(max(d.box_xyxy[3] for d in detections))) + margin)
-        band = self.matcher.disparity_px(pair.left[v0:v1], pair.right[v0:v1])
-        depth_m[v0:v1] = depth_from_disparity(band, pair.rig)
+        u_sides = np.concatenate([np.r_[s.left_px[:, 0], s.right_px[:, 0]] for s in sides])
+        beside = (self.wall.far_px if self.wall is not None else 0.0) + 16.0  # + the samples' windows, rounding
+        u0 = int(np.clip(np.floor(u_sides.min() - beside), 0, w - 1))
+        u1 = int(np.clip(np.ceil(u_sides.max() + beside) + 1, u0 + 1, w))
+        window = self.matcher.window_px(pair.left, pair.right, v0, v1, u0, u1)
+        depth_m[v0:v1, u0:u1] = depth_from_disparity(window, pair.rig)
         return depth_m
 
     def _reconstruct(self, det: Detection, sides: Sides, depth_m: np.ndarray,

@@ -208,18 +208,16 @@ def wall_plane(sides: Sides, depth_m: np.ndarray, rig: StereoRig, gravity_cam: n
     group = np.repeat(np.arange(len(strips)), [len(s) for s in strips])
     tol = cfg.threshold_m[0] + cfg.threshold_m[1] * pts[:, 2] ** 2
     rng = np.random.default_rng(0)
-    best, best_n = None, 0
-    for _ in range(cfg.iterations):
-        a, b, c = pts[rng.choice(len(pts), 3, replace=False)]
-        n = np.cross(b - a, c - a)
-        if np.linalg.norm(n) < 1e-9:
-            continue
-        n /= np.linalg.norm(n)
-        inliers = np.abs(pts @ n - n @ a) <= tol
-        if inliers.sum() > best_n:
-            best, best_n = inliers, int(inliers.sum())
-    if best is None:
+    abc = pts[np.array([rng.choice(len(pts), 3, replace=False) for _ in range(cfg.iterations)])]  # (I, 3, 3)
+    normals = np.cross(abc[:, 1] - abc[:, 0], abc[:, 2] - abc[:, 0])  # all hypotheses at once
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms >= 1e-9
+    normals = normals[ok] / norms[ok, None]
+    inliers = np.abs(pts @ normals.T - np.einsum("ij,ij->i", normals, abc[ok, 0])) <= tol[:, None]  # (N, I)
+    counts = inliers.sum(axis=0)
+    if not counts.size or counts.max() == 0:
         return None
+    best = inliers[:, int(np.argmax(counts))]  # the first hypothesis with the most inliers
     for _ in range(2):  # refit to the inliers, then take the inliers of the refit
         centroid = pts[best].mean(axis=0)
         n = np.linalg.svd(pts[best] - centroid, full_matrices=False)[2][2]

@@ -54,10 +54,13 @@ class StereoDepth:
     much of its view, and the true pose then put 0.86 of the window's points on the model's walls, below the 0.9 a
     pose must reach (0.97 with 128; `macroloc demo --observations perception`, seed 1)."""
 
-    def __init__(self, every: int = 3, stride_px: int = 16, num_disparities: int = 128) -> None:
+    def __init__(self, every: int = 3, stride_px: int = 16, num_disparities: int = 128,
+                 disparity=None) -> None:  # noqa: ANN001 - perception.stereo.FrameDisparity
+        """`disparity`: the frame's shared SGBM (perception.stereo.FrameDisparity) where the perception chain or
+        the odometry match the same frames; None: its own, with `num_disparities`."""
         from macroloc.perception.stereo import SgbmConfig, SgbmMatcher
 
-        self.matcher = SgbmMatcher(SgbmConfig(num_disparities=num_disparities))
+        self.matcher = disparity or SgbmMatcher(SgbmConfig(num_disparities=num_disparities))
         self.every = every
         self.stride_px = stride_px
         self._n = 0
@@ -78,10 +81,14 @@ class PerceptionPipeline:
     def __init__(self, perception, default_T_body_cam: np.ndarray,  # noqa: ANN001 - perception.Perception
                  depth_every: int = 3, depth_stride_px: int = 16) -> None:
         """Every `depth_every`-th frame also gives stereo depth points (`points_body`, SGBM over the whole frame,
-        every `depth_stride_px`-th pixel) for the surface check of registrations; 0: never."""
+        every `depth_stride_px`-th pixel) for the surface check of registrations; 0: never. Where the chain's
+        matcher is a shared FrameDisparity, the depth points take the frame's disparity from it (one SGBM)."""
+        from macroloc.perception.stereo import FrameDisparity
+
         self.perception = perception
         self.default_T_body_cam = default_T_body_cam
-        self.depth = StereoDepth(depth_every, depth_stride_px)
+        shared = perception.matcher if isinstance(perception.matcher, FrameDisparity) else None
+        self.depth = StereoDepth(depth_every, depth_stride_px, disparity=shared)
         self.points_body: np.ndarray | None = None  # the last frame's depth points, when it measured them
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
@@ -97,8 +104,8 @@ class PerceptionPipeline:
         left, right = decode_image(frame.left), decode_image(frame.right)
         rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam
+        self.points_body = self.depth(left, right, rig, T_body_cam)  # first: the chain's band reuses its SGBM
         result = self.perception.process(StereoPair(left, right, rig, stamp_ns=frame.header.stamp_ns))
-        self.points_body = self.depth(left, right, rig, T_body_cam)
         return [Sighting(f.type, apply(T_body_cam, f.corners_cam), truncated=f.truncated)
                 for f in result.features]
 
@@ -111,13 +118,20 @@ def forward_T_body_cam(forward_m: float = 0.10, left_m: float = 0.06) -> np.ndar
     return T
 
 
-def make_perception_pipeline(threads: int = 2, detector_model: Path | None = None) -> PerceptionPipeline | None:
+def make_perception_pipeline(threads: int | None = None, detector_model: Path | None = None
+                             ) -> PerceptionPipeline | None:
     """The perception chain with the given detector (default: the shipped one), or None when it cannot load
-    (logged)."""
+    (logged). The libraries' threads follow perception.threads.THREADS (OpenCV's set here, process-wide);
+    `threads`: the detector's, instead of the plan's."""
     try:
         from macroloc.perception.pipeline import Perception
+        from macroloc.perception.stereo import FrameDisparity
+        from macroloc.perception.threads import set_threads
 
-        return PerceptionPipeline(Perception.create(detector_model, threads=threads), forward_T_body_cam())
+        plan = set_threads()
+        log.info("threads: %s", plan.describe())
+        chain = Perception.create(detector_model, threads=threads or plan.onnxruntime, disparity=FrameDisparity())
+        return PerceptionPipeline(chain, forward_T_body_cam())
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception
         log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)
         return None

@@ -25,6 +25,7 @@ from macroloc.service.recording import FlightFrame, matrix_from_pose
 if TYPE_CHECKING:
     from macroloc.perception.calib import StereoRig
     from macroloc.perception.odometry import StereoOdometry
+    from macroloc.perception.stereo import FrameDisparity
 
 log = logging.getLogger(__name__)
 
@@ -148,17 +149,21 @@ class VisualOdometry:
     specific force (perception.gravity), and `points_body` the stereo depth points the service would measure on
     that frame (service.frames.StereoDepth: every third frame), or None."""
 
-    def __init__(self) -> None:
+    def __init__(self, disparity: FrameDisparity | None = None) -> None:
+        """`disparity`: the frame's one SGBM, shared by the odometry's keyframes, the depth points and (given to
+        it too) the perception chain; None: a new one for the odometry and the depth points."""
         from macroloc.perception.gravity import GravityEstimator
         from macroloc.perception.inertial import InertialDeadReckoning
+        from macroloc.perception.stereo import FrameDisparity
         from macroloc.service.frames import StereoDepth
 
+        self._disparity = disparity or FrameDisparity()
         self._odometry: StereoOdometry | None = None
         self._T_odom_cam0: np.ndarray | None = None
         self._last_imu_ns: int | None = None
         self._gravity = GravityEstimator()
         self._inertial = InertialDeadReckoning()
-        self._depth = StereoDepth()
+        self._depth = StereoDepth(disparity=self._disparity)
         self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
         self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
         self.dead_reckoned_s = 0.0  # the last frame's seconds of dead reckoning (tracking lost)
@@ -171,7 +176,7 @@ class VisualOdometry:
         T_body_cam = matrix_from_pose(info.T_body_cam)
         if self._odometry is None:
             rig = _rig(info)
-            self._odometry = StereoOdometry(rig)
+            self._odometry = StereoOdometry(rig, disparity=self._disparity)
             T_odom_body0 = np.eye(4)
             up_body = _up_from_imu(frame)
             if up_body is not None:
@@ -215,12 +220,12 @@ class VehicleOdometry:
     a drone's VIO), as the service takes it from the vehicle's odometry key: the sample at the frame's stamp (else
     the newest before it). `up_body` and `points_body` as `VisualOdometry` gives them."""
 
-    def __init__(self) -> None:
+    def __init__(self, disparity: FrameDisparity | None = None) -> None:
         from macroloc.perception.gravity import GravityEstimator
         from macroloc.service.frames import StereoDepth
 
         self._gravity = GravityEstimator()
-        self._depth = StereoDepth()
+        self._depth = StereoDepth(disparity=disparity)
         self._T_odom_body: np.ndarray | None = None
         self.points_body: np.ndarray | None = None
         self.up_body: np.ndarray | None = None
@@ -274,7 +279,12 @@ class PerceptionSource:
         except ImportError:
             raise UserInputError("--observations perception: the perception chain (perception.pipeline) "
                                  "is not available; use --observations truth") from None
-        self.perception = Perception.create(detector_model)
+        from macroloc.perception.stereo import FrameDisparity
+        from macroloc.perception.threads import set_threads
+
+        plan = set_threads()  # the libraries' threads (OpenCV's process-wide), as in the service
+        self.disparity = FrameDisparity()  # one SGBM a frame for the odometry, depth points and the chain
+        self.perception = Perception.create(detector_model, threads=plan.onnxruntime, disparity=self.disparity)
         self.detect_every = detect_every
         self.odometry: VisualOdometry | VehicleOdometry | None = None
         self._n = 0
@@ -287,7 +297,7 @@ class PerceptionSource:
         T_body_cam = matrix_from_pose(info.T_body_cam)
         left, right = decode_image(frame.stereo.left), decode_image(frame.stereo.right)
         if self.odometry is None:
-            self.odometry = VehicleOdometry() if frame.odometry else VisualOdometry()
+            self.odometry = VehicleOdometry(self.disparity) if frame.odometry else VisualOdometry(self.disparity)
             log.info("odometry: %s", "the vehicle's, recorded" if frame.odometry else "stereo visual odometry")
         T_odom_body = self.odometry(frame, left, right)
         up_body = self.odometry.up_body

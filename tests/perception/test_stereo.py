@@ -1,7 +1,15 @@
 import numpy as np
 import pytest
 
-from macroloc.perception.stereo import SgbmMatcher, back_project, depth_from_disparity, ray_cam, sample_depth_m
+from macroloc.perception.stereo import (
+    FrameDisparity,
+    SgbmConfig,
+    SgbmMatcher,
+    back_project,
+    depth_from_disparity,
+    ray_cam,
+    sample_depth_m,
+)
 from tests.perception.helpers import RIG, fronto_parallel_pair
 
 
@@ -78,3 +86,25 @@ def test_the_matcher_is_never_handed_unequal_empty_or_oversized_pairs() -> None:
     with pytest.raises(ValueError, match="over"):
         matcher.disparity_px(tall, tall)
     assert matcher.disparity_px(left, left).shape == (48, 64)
+
+
+@pytest.mark.parametrize("u0", [10, 300])  # near the left edge (padded) and inside (real columns left of it)
+def test_a_window_matches_as_the_whole_frame_does(u0: int) -> None:
+    left, right = fronto_parallel_pair(3.0)
+    matcher = SgbmMatcher(SgbmConfig(num_disparities=64))
+    whole = matcher.disparity_px(left, right)[100:300, u0:u0 + 200]
+    window = matcher.window_px(left, right, 100, 300, u0, u0 + 200)
+    assert window.shape == whole.shape
+    both = np.isfinite(whole) & np.isfinite(window)
+    assert both.mean() > 0.9 and np.median(np.abs(window[both] - whole[both])) < 0.05
+
+
+def test_a_frame_is_matched_once_for_all_who_ask() -> None:
+    left, right = fronto_parallel_pair(3.0)
+    shared = FrameDisparity(SgbmMatcher(SgbmConfig(num_disparities=64)))
+    whole = shared.disparity_px(left, right)
+    assert shared.disparity_px(left, right) is whole
+    assert np.array_equal(shared.window_px(left, right, 10, 50, 100, 200), whole[10:50, 100:200], equal_nan=True)
+    assert shared.computed == 1
+    shared.disparity_px(left.copy(), right)  # another pair (another array)
+    assert shared.computed == 2

@@ -1,0 +1,41 @@
+"""How many threads each library's pool may use for the chain, so that the two cores are not fought over.
+
+The chain runs frame after frame on one worker thread; its heavy calls are OpenCV's (SGBM, ORB, LSD, the
+matcher, PnP) and onnxruntime's (the detector). Each library keeps its own pool: left at their defaults, OpenCV
+sizes its pool to the cores and onnxruntime its intra-op pool too, so on 2 cores 2 + 2 worker threads plus the
+service's intake threads (and any other process) share two cores, and a pool waiting at a barrier for a
+descheduled thread stalls the whole call. The rule: OpenCV gets the cores (`opencv`, its calls are long enough
+to split, SGBM's rows in stripes), onnxruntime one thread (`onnxruntime`: the detector's net is too small to
+split: 5.5 ms CPU a frame with 1 intra-op thread and with 2, rendered 640 x 480 frames; perception.detector also
+turns its pool's spinning off). OpenCV's CPU time is the same with 1 or 2 threads (SGBM at 128 disparities
+69-71 ms, ORB 6.6-6.8 ms, LSD on a box 3.5 ms); 2 lets a long call finish in about half the time where the other
+core is free. Measured on a machine loaded by other jobs (load average 10 on 2 cores), where wall times said
+nothing. Call `set_threads` once, at the composition root (the service's pipeline, the replay's perception
+source, benchmarks); library code never changes them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ThreadPlan:
+    opencv: int = 2  # cv2.setNumThreads
+    onnxruntime: int = 1  # the detector's intra-op threads (inter-op: 1)
+
+    def describe(self) -> str:
+        import cv2
+
+        return f"OpenCV {cv2.getNumThreads()} (plan {self.opencv}), onnxruntime intra-op {self.onnxruntime}"
+
+
+THREADS = ThreadPlan()
+
+
+def set_threads(plan: ThreadPlan = THREADS) -> ThreadPlan:
+    """Apply the plan's OpenCV setting (process-wide); the detector takes `plan.onnxruntime` when it is made."""
+    import cv2
+
+    cv2.setNumThreads(plan.opencv)
+    return plan
