@@ -14,33 +14,45 @@ from __future__ import annotations
 import logging
 from collections import deque
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
 from macroloc.graph.far import refined_by_bearings, resection_candidates
 from macroloc.graph.features import CentroidsByType
-from macroloc.graph.params import LocalizerParams
+from macroloc.graph.params import FarParams, Ranges
 from macroloc.graph.relocalize import Alignment, distinct_poses
 from macroloc.graph.rigid import apply, make_T, rot_z
 
 log = logging.getLogger(__name__)
 
+
+class RangeSigma(Protocol):
+    """A sighting's position sigma (m) at a range (m), or at each of an array of ranges."""
+
+    def __call__(self, range_m: Ranges, /) -> Ranges: ...
+
+
 FarMap = tuple[np.ndarray, np.ndarray, np.ndarray]  # types (K,), their keyframes' cameras (K, 3), centroids (K, 3)
 
 
 class FarSightings:
-    """The far sightings of the newest `surface_window_keyframes` keyframes (see module doc)."""
+    """The far sightings of the newest `keyframes` keyframes (see module doc)."""
 
-    def __init__(self, params: LocalizerParams, viewer_body: np.ndarray, centroids_cad: CentroidsByType,
+    def __init__(self, params: FarParams, keyframes: int, position_sigma_m: RangeSigma,
+                 viewer_body: np.ndarray, centroids_cad: CentroidsByType,
                  T_map_body: Callable[[int], np.ndarray]) -> None:
-        """`viewer_body` (3,): the camera's position in the body frame; `centroids_cad(type)`: the model's feature
-        centroids (N, 3); `T_map_body(i)`: keyframe i's current estimate (the pose graph's)."""
+        """`keyframes`: how many recent keyframes' far sightings are kept; `position_sigma_m(range_m)`: a
+        sighting's position sigma at a range, m (`LandmarkParams.position_sigma_m`); `viewer_body` (3,): the
+        camera's position in the body frame; `centroids_cad(type)`: the model's feature centroids (N, 3);
+        `T_map_body(i)`: keyframe i's current estimate (the pose graph's)."""
         self.params = params
+        self.position_sigma_m = position_sigma_m
         self._viewer_body = viewer_body
         self._centroids_cad = centroids_cad
         self._T_map_body = T_map_body
         # (keyframe, types (K,), centroids (K, 3) body frame)
-        self._window: deque[tuple[int, list[str], np.ndarray]] = deque(maxlen=params.surface_window_keyframes)
+        self._window: deque[tuple[int, list[str], np.ndarray]] = deque(maxlen=keyframes)
 
     def add(self, i: int, kinds: list[str], centroids_body: np.ndarray) -> None:
         """Keyframe i's far sightings: their types and centroids (K, 3), body frame."""
@@ -98,7 +110,7 @@ class FarSightings:
             d = np.linalg.norm(to_features[..., :2], axis=-1)  # (H, k, F)
             aside = np.einsum("hkfi,hki->hkf", to_features[..., :2], ray[..., :2]) >= cos_tol * d * r
             up = np.abs(np.arctan2(to_features[..., 2], d) - np.arctan2(ray[..., 2:3], r)) <= elevation_tol
-            near = np.abs(d - r) <= 3 * p.position_sigma_m(r)
+            near = np.abs(d - r) <= 3 * self.position_sigma_m(r)
             explained += np.any(aside & up & near, axis=2).sum(axis=1)
         return explained / len(kinds)
 
@@ -157,7 +169,7 @@ class FarSightings:
         poses = []
         for camera_map, kinds, centroids_map in self.pairs()[-p.far_pairs:]:
             poses.append(resection_candidates(camera_map, centroids_map, self._centroids_cad(kinds[0]),
-                                              self._centroids_cad(kinds[1]), p.position_sigma_m,
+                                              self._centroids_cad(kinds[1]), self.position_sigma_m,
                                               same_features=kinds[0] == kinds[1]))
         if not poses or not sum(len(T) for T in poses):
             return Alignment("not_localized", None)
@@ -181,4 +193,4 @@ class FarSightings:
         kinds, cameras, centroids = far
         features = {str(k): self._centroids_cad(str(k)) for k in np.unique(kinds)}
         return refined_by_bearings(T_cad_map, cameras, centroids, kinds, features, np.radians(p.far_bearing_sigma_deg),
-                                   p.position_sigma_m, np.radians(p.far_bearing_deg))
+                                   self.position_sigma_m, np.radians(p.far_bearing_deg))

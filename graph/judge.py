@@ -21,7 +21,7 @@ from typing import Generic, NamedTuple, TypeVar
 import numpy as np
 
 from macroloc.graph.features import CentroidsByType
-from macroloc.graph.params import LocalizerParams
+from macroloc.graph.params import JudgeParams
 from macroloc.graph.relocalize import Alignment
 from macroloc.graph.rigid import apply, make_T, rot_z, rotation_angle_deg
 from macroloc.graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surfaces
@@ -34,9 +34,15 @@ FarRivals = Callable[[np.ndarray, list[np.ndarray]], list[np.ndarray]]  # (T_bes
 class SurfaceJudge:
     """Weighs candidate poses against the model's surfaces (see module doc)."""
 
-    def __init__(self, surfaces: SurfaceIndex, params: LocalizerParams, centroids_cad: CentroidsByType) -> None:
+    def __init__(self, surfaces: SurfaceIndex, params: JudgeParams, centroids_cad: CentroidsByType,
+                 registration_tolerance_m: float, surface_fit_sigma_m: float) -> None:
+        """`centroids_cad(type)`: the model's feature centroids (N, 3); `registration_tolerance_m`: how near a CAD
+        feature a turned candidate must keep a landmark (the registrar's tolerance, `RegistrationParams`);
+        `surface_fit_sigma_m`: a point's distance to its wall, model against reality, in the fits (`refined`)."""
         self.surfaces = surfaces
         self.params = params
+        self.registration_tolerance_m = registration_tolerance_m
+        self.surface_fit_sigma_m = surface_fit_sigma_m
         self._centroids_cad = centroids_cad
         self.checks: list[tuple[int, list[float]]] = []  # (stamp_ns, score of each candidate pose)
         self.screens: list[tuple[int, list[float]]] = []  # (candidates, their screening scores, best first)
@@ -208,7 +214,7 @@ class SurfaceJudge:
         def by_a_feature(turns: np.ndarray) -> np.ndarray:  # (K, H) turns -> (K, H) landmarks by a CAD feature
             x = turned(turns, centres)
             return sum((np.min(np.linalg.norm(x[:, :, i, None, :] - self._centroids_cad(kind), axis=-1), axis=-1,
-                               initial=np.inf) <= p.registration_tolerance_m).astype(int)
+                               initial=np.inf) <= self.registration_tolerance_m).astype(int)
                        for i, kind in enumerate(kinds))
 
         def supports(turns: np.ndarray) -> np.ndarray:  # (K, H) turns -> (K, H) supports, -1 where doors are lost
@@ -259,7 +265,7 @@ class SurfaceJudge:
         points_map = points_map[:: max(1, int(np.ceil(len(points_map) / 500)))]  # a pose's fit needs no more
         # the points are in the map frame, not around one camera: no range-dependent noise in their weights
         fit = align_to_surfaces(self.surfaces, points_map, T_cad_map, iterations=8, depth_sigma_per_m2=0.0,
-                                max_distance_m=self.params.surface_refine_m, sigma_m=self.params.surface_fit_sigma_m,
+                                max_distance_m=self.params.surface_refine_m, sigma_m=self.surface_fit_sigma_m,
                                 hold_height=True)
         if fit is None:
             return T_cad_map

@@ -27,7 +27,7 @@ from macroloc.graph.features import BuildingModel, CentroidsByType
 from macroloc.graph.judge import Choice, SurfaceJudge
 from macroloc.graph.landmarks import closer_flip, feature_frame_cad, is_vertical, observed_frame
 from macroloc.graph.mapstore import KeyframeView, StoredLandmark, StoredMap
-from macroloc.graph.params import LocalizerParams
+from macroloc.graph.params import LocalizerParams, RegistrationParams
 from macroloc.graph.posegraph import CAD_LINK_POSITION_SIGMAS, CAD_LINK_SIGMAS, PoseGraph
 from macroloc.graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
@@ -75,9 +75,12 @@ class Localizer:
         self.features = {f.id: f for f in model.features}
         centroids_cad = CentroidsByType(self.features.values())
         # the components: the recent keyframes' depth points and far sightings, and the walls' judgement
-        self.depth = DepthWindow(self.params.surface_window_keyframes, self.viewer_body, graph.T_map_body)
-        self.far = FarSightings(self.params, self.viewer_body, centroids_cad, graph.T_map_body)
-        self.judge = None if surfaces is None else SurfaceJudge(surfaces, self.params, centroids_cad)
+        self.depth = DepthWindow(self.params.depth.surface_window_keyframes, self.viewer_body, graph.T_map_body)
+        p = self.params
+        self.far = FarSightings(p.far, p.depth.surface_window_keyframes, p.landmarks.position_sigma_m,
+                                self.viewer_body, centroids_cad, graph.T_map_body)
+        self.judge = None if surfaces is None else SurfaceJudge(
+            surfaces, p.judge, centroids_cad, p.registration.registration_tolerance_m, p.fit.surface_fit_sigma_m)
         self.landmarks: dict[int, Landmark] = {}
         self.links: dict[int, str] = {}  # landmark key -> CAD feature id
         self.status = "exploring"
@@ -170,7 +173,7 @@ class Localizer:
         T_prev_curr = np.linalg.inv(self._T_odom_prev) @ T_odom_body
         T_map_body = self.graph.T_map_body(self.graph.n_keyframes - 1) @ T_prev_curr
         travelled = float(np.linalg.norm(T_prev_curr[:3, 3])) + 0.05  # + a floor: hovering still drifts
-        p = self.params
+        p = self.params.odometry
         sigma_m = np.hypot(p.odometry_sigma_per_m * travelled, p.odometry_dead_reckoned_sigma_mps * dead_reckoned_s)
         sigmas = np.r_[np.full(3, p.odometry_rot_sigma_per_m * travelled), np.full(3, sigma_m)]  # [rot; trans]
         self._T_odom_prev = T_odom_body
@@ -210,8 +213,8 @@ class Localizer:
             return None
         T_body_rect = observed_frame(s.corners_body, up_body, self.viewer_body)
         rng = float(np.linalg.norm(T_body_rect[:3, 3] - self.viewer_body))
-        if rng > p.max_range_m:
-            if rng <= p.far_range_m:
+        if rng > p.landmarks.max_range_m:
+            if rng <= p.landmarks.far_range_m:
                 far.append(s)
             return None
         T_map_rect = T_map_body @ T_body_rect
@@ -235,7 +238,7 @@ class Localizer:
     def _sighting_sigmas(self, s: Sighting, range_m: float) -> np.ndarray:
         """[rot; trans] sigmas of a sighting, the translation along the rectangle's own axes (u along the wall,
         n its normal, z up): stereo noise grows with range squared; a side cut by the image border is loose."""
-        p = self.params
+        p = self.params.landmarks
         sigma_m = p.position_sigma_m(range_m)
         trans = np.full(3, sigma_m)
         if s.truncated[0]:
@@ -246,7 +249,7 @@ class Localizer:
 
     def _associate(self, kind: str, T_map_rect: np.ndarray) -> int | None:
         """The same-type landmark nearest to the sighting within `associate_m`, or None (a new landmark)."""
-        best, best_d = None, self.params.associate_m
+        best, best_d = None, self.params.landmarks.associate_m
         for j, lm in self.landmarks.items():
             if lm.type != kind:
                 continue
@@ -259,7 +262,7 @@ class Localizer:
     def _confirmed(self) -> list[int]:
         """Landmarks seen often enough to take part in a registration."""
         return [j for j, lm in sorted(self.landmarks.items())
-                if lm.n_sightings >= self.params.min_sightings_to_register]
+                if lm.n_sightings >= self.params.registration.min_sightings_to_register]
 
     def _should_register(self, stamp_ns: int) -> bool:
         """While not localized: when a landmark was confirmed since the last attempt, or (with the surface
@@ -270,13 +273,14 @@ class Localizer:
         if not self._can_check_surfaces():
             return n >= self.registrar.min_landmarks and n > self._registered_with
         last_ns, last_points = self._registered_at
-        more_walls = (stamp_ns - last_ns) * 1e-9 >= self.params.surface_retry_s and self.depth.n_points > last_points
+        retry_s = self.params.registration.surface_retry_s
+        more_walls = (stamp_ns - last_ns) * 1e-9 >= retry_s and self.depth.n_points > last_points
         if n < self.registrar.candidates_from:
-            return more_walls and self.params.far_resection and len(self.far) >= self.params.far_min_sightings
+            return more_walls and self.params.far.far_resection and len(self.far) >= self.params.far.far_min_sightings
         return n > self._registered_with or more_walls
 
     def _can_check_surfaces(self) -> bool:
-        return self.judge is not None and self.depth.n_points >= self.params.surface_min_points
+        return self.judge is not None and self.depth.n_points >= self.params.depth.surface_min_points
 
     def _choose_by_surfaces(self, result: Alignment, stamp_ns: int) -> Choice:
         """The registrar's answer and candidates weighed against the walls (graph.judge); without depth points
@@ -307,7 +311,7 @@ class Localizer:
         if sigmas is not None:
             information[2, 2] = sigmas[1] ** -2.0
             information[3, 3] = information[4, 4] = sigmas[0] ** -2.0
-        information[5, 5] = p.far_height_sigma_m ** -2.0
+        information[5, 5] = p.far.far_height_sigma_m ** -2.0
         self.graph.add_cad_pose(i, T_cad_map @ self.graph.T_map_body(i), information)
 
     def _register(self, stamp_ns: int) -> None:
@@ -371,14 +375,15 @@ class Localizer:
                 check = self.judge.check(apply(T_cad_map, points_map), origins_map, T_cad_map)
                 log.info("placed in the stored map: %.2f of %d points on surfaces, %.2f seen through walls",
                          check.support, len(points_map), check.seen_through)
-                if check.seen_through > p.surface_refuse_seen_through:
+                if check.seen_through > p.judge.surface_refuse_seen_through:
                     return
             log.info("localized by place recognition in the stored map")
             self.graph.add_anchor(np.linalg.inv(T_cad_map))
             self._anchored_at = i
             self.registrations.append((stamp_ns, "localized"))
             self.status = "localized"
-        sigmas = np.r_[np.full(3, np.radians(p.placed_sigma_deg)), np.full(3, p.placed_sigma_m)]  # [rot; trans]
+        a = p.anchor
+        sigmas = np.r_[np.full(3, np.radians(a.placed_sigma_deg)), np.full(3, a.placed_sigma_m)]  # [rot; trans]
         self.graph.add_cad_pose(i, T_cad_body, np.diag(sigmas**-2.0))
         self.placed.append(i)
         self._last_link_ns = stamp_ns
@@ -410,15 +415,15 @@ class Localizer:
         measured T_cad_body with the fit's information: the walls hold the pose where the doors' corners are
         coarse, the floor holds its height; without floor points (`floor_body` None) the height is held as it is."""
         T_cad_map = self.graph.T_cad_map()
-        if not self.params.surface_fit or self.surfaces is None or T_cad_map is None:
+        if not self.params.fit.surface_fit or self.surfaces is None or T_cad_map is None:
             return
         T_guess = T_cad_map @ self.graph.T_map_body(i)
         fit = align_to_surfaces(self.surfaces, points_body, T_guess, floor_body,
-                                sigma_m=self.params.surface_fit_sigma_m, hold_height=floor_body is None)
+                                sigma_m=self.params.fit.surface_fit_sigma_m, hold_height=floor_body is None)
         if fit is None:
             return
         step = np.linalg.inv(T_guess) @ fit.T_cad_body
-        if np.linalg.norm(step[:3, 3]) > self.params.surface_fit_max_correction_m or \
+        if np.linalg.norm(step[:3, 3]) > self.params.fit.surface_fit_max_correction_m or \
                 rotation_angle_deg(step[:3, :3]) > self._max_fit_turn_deg(i):
             return
         self.graph.add_cad_pose(i, fit.T_cad_body, fit.information)
@@ -430,8 +435,8 @@ class Localizer:
         (a pose found by one door carries that door's orientation error, a few degrees, until the walls turn it
         back), less once it is held by the walls and more doors (a larger turn is then a fit to a wrong wall)."""
         p = self.params
-        settling = self._anchored_at is not None and i - self._anchored_at < p.surface_fit_settling_keyframes
-        return p.surface_fit_settling_turn_deg if settling else p.surface_fit_max_turn_deg
+        settling = self._anchored_at is not None and i - self._anchored_at < p.fit.surface_fit_settling_keyframes
+        return p.fit.surface_fit_settling_turn_deg if settling else p.fit.surface_fit_max_turn_deg
 
     def _link_new_landmarks(self, stamp_ns: int) -> None:
         """Landmarks not yet linked that lie within `cad_link_m` of a same-type CAD feature are linked."""
@@ -453,7 +458,7 @@ class Localizer:
             self.graph.update()
 
     def _nearest_feature(self, kind: str, xyz_cad: np.ndarray, exclude: set[str]) -> str | None:
-        best, best_d = None, self.params.cad_link_m
+        best, best_d = None, self.params.anchor.cad_link_m
         for f in self.features.values():
             if f.type != kind or f.orientation != "vertical" or f.id in exclude:
                 continue
@@ -475,7 +480,7 @@ class Localizer:
         T_cad_pred = T_cad_map @ self.graph.T_map_rect(j)
         T_cad_rect = closer_flip(feature_frame_cad(feature), T_cad_pred)
         turn_deg = rotation_angle_deg(T_cad_rect[:3, :3].T @ T_cad_pred[:3, :3])
-        oriented = turn_deg <= self.params.cad_link_max_turn_deg
+        oriented = turn_deg <= self.params.anchor.cad_link_max_turn_deg
         if not oriented:
             log.info("landmark %d linked to %s by its position only: its orientation is %.1f deg off", j, fid,
                      turn_deg)
@@ -486,7 +491,7 @@ class Localizer:
         if self.status not in ("localized", "degraded", "lost") or self._last_link_ns is None:
             return
         silent_s = (stamp_ns - self._last_link_ns) * 1e-9
-        p = self.params
+        p = self.params.status
         self.status = "lost" if silent_s > p.lost_after_s else "degraded" if silent_s > p.degraded_after_s \
             else "localized"
 
@@ -515,25 +520,26 @@ class Localizer:
                         matches=dict(self.links))
 
 
-def model_registrar(model: BuildingModel, params: LocalizerParams, storey_hint: str | None = None,
+def model_registrar(model: BuildingModel, params: RegistrationParams, storey_hint: str | None = None,
                     with_surfaces: bool = False, method: str = "robust") -> ModelRegistrar:
-    """The registrar against the whole model, from the localizer's parameters (one place for replay and the
-    service): candidates from `verified_min_landmarks` on when the surface check can decide among them. Then it
-    also seeds hypotheses from every landmark (up to its `max_seeds`), not only until a pose explains half of them
-    (`registration_early_stop`): with perception's false and misplaced doors, two seeds can both be wrong, and
-    a wrong pose explaining half the landmarks at a 0.6 m tolerance then stops the search with the true pose
+    """The registrar against the whole model, from the localizer's registration parameters (one place for replay
+    and the service): candidates from `verified_min_landmarks` on when the surface check can decide among them.
+    Then it also seeds hypotheses from every landmark (up to its `max_seeds`), not only until a pose explains half
+    of them (`registration_early_stop`): with perception's false and misplaced doors, two seeds can both be wrong,
+    and a wrong pose explaining half the landmarks at a 0.6 m tolerance then stops the search with the true pose
     never hypothesised (perception, Office_A seed 7: 4 of 7 landmarks, `ambiguous` from 8.8 to 15.6 s, the walls
     refusing every candidate; seeded from all, the walls took the true pose at 5.6 s)."""
-    seeding = {"early_stop_fraction": params.registration_early_stop} if with_surfaces and method == "robust" else {}
+    early_stop = params.registration_early_stop if with_surfaces and method == "robust" else None
     return ModelRegistrar(model, method=method, storey_hint=storey_hint,
-                          min_landmarks=params.registration_min_landmarks, tolerance_m=params.registration_tolerance_m,
-                          candidates_from=params.verified_min_landmarks if with_surfaces else None, **seeding)
+                          min_landmarks=params.registration_min_landmarks,
+                          registration_tolerance_m=params.registration_tolerance_m,
+                          candidates_from=params.verified_min_landmarks if with_surfaces else None,
+                          early_stop_fraction=early_stop)
 
 
-def stored_registrar(model: BuildingModel, known: list[KnownRect], params: LocalizerParams,
+def stored_registrar(model: BuildingModel, known: list[KnownRect], params: RegistrationParams,
                      with_surfaces: bool = False) -> StoredMapRegistrar:
     """The registrar against a stored map's CAD-linked features (re-localization): localized from two agreeing
     landmarks; with the surface check, candidate poses from `verified_min_landmarks` on, for the walls."""
     return StoredMapRegistrar(known, min_landmarks=2, model=model,
                               candidates_from=params.verified_min_landmarks if with_surfaces else None)
-

@@ -14,7 +14,7 @@ Two methods behind one entry point, `register()`:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -43,10 +43,17 @@ class PaperParams:
     seed: int = 0
 
 
-def register(model: BuildingModel, obs: ObservationSet, method: str = "robust", **params) -> RegistrationResult:
-    """Estimate T_cad_map from observations in the map frame. See the module docstring for the methods."""
+def register(model: BuildingModel, obs: ObservationSet, method: str = "robust",
+             params: RobustParams | PaperParams | None = None, **overrides: float) -> RegistrationResult:
+    """Estimate T_cad_map from observations in the map frame. See the module docstring for the methods.
+    `params`: the method's typed parameters (None: its defaults); `overrides`: fields of them to change by name
+    (the CLI's and the config's, e.g. `inlier_threshold_m=0.3`)."""
     if method not in METHODS:
         raise UserInputError(f"unknown method {method!r} (expected one of {', '.join(METHODS)})")
+    kind = PaperParams if method == "paper" else RobustParams
+    if params is not None and not isinstance(params, kind):
+        raise TypeError(f"method {method!r} takes {kind.__name__}, not {type(params).__name__}")
+    chosen = kind(**overrides) if params is None else replace(params, **overrides)  # type: ignore[arg-type]
     index = index_for(model)  # pre-processing (cached per building): not part of the registration time
     t0 = time.perf_counter()
     if obs.storey_hint is not None:
@@ -54,10 +61,10 @@ def register(model: BuildingModel, obs: ObservationSet, method: str = "robust", 
             raise UserInputError(f"hints.storey {obs.storey_hint!r} is not a storey of this building "
                                  f"({', '.join(sorted(set(index.storeys.tolist())))})")
         index = index.for_storey(obs.storey_hint)
-    if method == "paper":
-        result = register_paper(index, obs.observations, PaperParams(**params))
+    if isinstance(chosen, PaperParams):
+        result = register_paper(index, obs.observations, chosen)
     else:
-        result = register_robust(index, obs, RobustParams(**params))
+        result = register_robust(index, obs, chosen)
     result.elapsed_ms = (time.perf_counter() - t0) * 1000.0
     return result
 
