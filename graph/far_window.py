@@ -121,13 +121,10 @@ class FarSightings:
         sighting's horizontal bearing from its keyframe's camera, `far_elevation_deg` of its elevation and 3 of
         its sigmas (`sighting_sigma_m`) of its horizontal range. A stereo pair places a door 15 m away to a metre
         along its line of sight but to a fraction of a degree across it: the bearings tell apart poses that the
-        walls near by fit alike. The candidate's heading is known less well: from one door and the walls it is
-        ~2 deg off (`perception`, Office_A seed 4: the one-door candidate, 1.9 deg off, explained 0.56 of its 16
-        far sightings as it stood and 0.94 turned; the true pose 0.69, the rest of the boxes 3-5 deg aside), hence
-        the turn. The elevation is allowed more: the vertical is the weak part of a candidate from one door (the
-        walls' fit holds its height). With the visual odometry (truth-vo, Office_A seed 4) the true one-door
-        candidate put the far doors 2.5-3.6 deg low at 8 m and 0.2-1.4 deg aside; the two-door one 0.04 deg low.
-        A door a storey up or down is 17 deg or more off at 10 m."""
+        walls near by fit alike. The candidate's heading is known less well (from one door and the walls, a
+        degree or two off), hence the turn. The elevation is allowed more: the vertical is the weak part of a
+        candidate from one door (the walls' fit holds its height), and a door a storey up or down is still far
+        outside it (docs/measurements.md, "Far sightings' tolerances")."""
         p = self.params
         pivot = apply(T_cad_map @ T_map_newest, self._viewer_body[None])[0]
         n_turns = int(round(p.far_turn_deg / p.far_turn_step_deg)) if p.far_turn_step_deg > 0 else 0
@@ -156,11 +153,9 @@ class FarSightings:
         widest such pair matched to every pair of same-type features of the model (`graph.far`); those explaining
         `far_min_explained` of the far sightings (`fractions`, `far_resection_sightings` of them, evenly drawn),
         one of each place (1 m, 5 deg), most explaining first. None is the registrar's answer: the walls choose
-        (graph.judge), with the full margin (no landmark vouches for any of them).
-
-        Office_A seed 2 (`truth`) sees no door within the sighting range for 14 s, but three beyond it, 13 m away,
-        from the first seconds: at 3 s the true pose is among 1310 candidates from one pair (0.15 m and 0.6 deg
-        off), 368 places explain the far sightings, and the walls set it apart. `far`: `in_map`."""
+        (graph.judge), with the full margin (no landmark vouches for any of them). `far`: `in_map`. A flight that
+        sees doors only beyond the sighting range for its first seconds is localized by them
+        (docs/measurements.md, "Far sightings' tolerances")."""
         p = self.params
         if far is None:
             return Alignment("not_localized", None)
@@ -185,8 +180,8 @@ class FarSightings:
 
     def refined(self, T_cad_map: np.ndarray, far: FarMap | None) -> tuple[np.ndarray, np.ndarray | None]:
         """A pose resected from far sightings, fitted to all of the window's far sightings' bearings (`graph.far`):
-        one pair's coarse ranges put it 0.15-0.3 m off (`truth`, Office_A seed 2), the keyframes' bearings
-        triangulate it. `far`: `in_map`. With it, the fit's sigmas [m, rad] (None where too few were explained)."""
+        one pair's coarse ranges put it tenths of a metre off, the keyframes' bearings triangulate it. `far`:
+        `in_map`. With it, the fit's sigmas [m, rad] (None where too few were explained)."""
         p = self.params
         if far is None:
             return T_cad_map, None

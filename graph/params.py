@@ -72,10 +72,9 @@ class AnchorParams:
 
 @dataclass(frozen=True)
 class DepthParams:
-    """The recent keyframes' depth points (graph.depth_window) and far sightings (graph.far_window) kept."""
+    """How many recent keyframes' depth points (graph.depth_window) and far sightings (graph.far_window) are kept."""
 
     surface_window_keyframes: int = 60  # the depth points of this many recent keyframes check a registration
-    surface_min_points: int = 200  # fewer points than this: no check (the registration needs the landmarks above)
 
 
 @dataclass(frozen=True)
@@ -102,6 +101,7 @@ class FarParams:
 class JudgeParams:
     """The walls' judgement of candidate poses (graph.judge.SurfaceJudge)."""
 
+    surface_min_points: int = 200  # fewer points than this: no check (the registration needs the landmarks above)
     surface_min_support: float = 0.9  # a pose must put this fraction of the points on the model's surfaces ...
     surface_margin: float = 0.3  # ... and every other candidate pose this much less (of points on surfaces and in
     #                               sight, with the model's walls: SurfaceCheck.score) ...
