@@ -142,8 +142,8 @@ class Anchoring:
         CAD frame: its horizontal position and heading with the bearings' sigmas (`sigmas`, [m, rad]; none where
         they were too few), its height with `far_height_sigma_m` (the far doors' elevations: the walls do not see
         it), roll and pitch left to gravity. Without it, fits to walls far away would move the pose off the
-        bearings' and, with no door to hold it, its height would wander (docs/measurements.md, "The far
-        resection's pose holds the keyframe")."""
+        bearings' and, with no door to hold it, its height would wander
+        (docs/measurements.md, "The far resection's pose holds the keyframe")."""
         i = self.graph.n_keyframes - 1
         information = np.zeros((6, 6))  # [rot; trans], body tangent
         if sigmas is not None:

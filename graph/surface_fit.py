@@ -10,8 +10,8 @@ error of the few doors it was found by.
 The keyframe that anchors the graph is fitted before the registration's doors are linked (linked first, the pose
 is where their coarse positions put it, and the fit from there may be refused as too large), to the walls alone
 with its height held (the candidate's height is the registration's), and by the window's points, those the pose
-was chosen and fitted by (`SurfaceJudge.refined`), not the keyframe's alone (docs/measurements.md, "The anchoring
-keyframe is fitted by the window's points").
+was chosen and fitted by (`SurfaceJudge.refined`), not the keyframe's alone
+(docs/measurements.md, "The anchoring keyframe is fitted by the window's points").
 
 Frames: body (x forward, y left, z up), map (the flight's odometry frame, z up), cad (the model's). Metres.
 """
