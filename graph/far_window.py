@@ -14,33 +14,45 @@ from __future__ import annotations
 import logging
 from collections import deque
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
 from macroloc.graph.far import refined_by_bearings, resection_candidates
 from macroloc.graph.features import CentroidsByType
-from macroloc.graph.params import LocalizerParams
+from macroloc.graph.params import FarParams, Ranges
 from macroloc.graph.relocalize import Alignment, distinct_poses
 from macroloc.graph.rigid import apply, make_T, rot_z
 
 log = logging.getLogger(__name__)
 
+
+class RangeSigma(Protocol):
+    """A sighting's position sigma (m) at a range (m), or at each of an array of ranges."""
+
+    def __call__(self, range_m: Ranges, /) -> Ranges: ...
+
+
 FarMap = tuple[np.ndarray, np.ndarray, np.ndarray]  # types (K,), their keyframes' cameras (K, 3), centroids (K, 3)
 
 
 class FarSightings:
-    """The far sightings of the newest `surface_window_keyframes` keyframes (see module doc)."""
+    """The far sightings of the newest `keyframes` keyframes (see module doc)."""
 
-    def __init__(self, params: LocalizerParams, viewer_body: np.ndarray, centroids_cad: CentroidsByType,
+    def __init__(self, params: FarParams, keyframes: int, position_sigma_m: RangeSigma,
+                 viewer_body: np.ndarray, centroids_cad: CentroidsByType,
                  T_map_body: Callable[[int], np.ndarray]) -> None:
-        """`viewer_body` (3,): the camera's position in the body frame; `centroids_cad(type)`: the model's feature
-        centroids (N, 3); `T_map_body(i)`: keyframe i's current estimate (the pose graph's)."""
+        """`keyframes`: how many recent keyframes' far sightings are kept; `position_sigma_m(range_m)`: a
+        sighting's position sigma at a range, m (`LandmarkParams.position_sigma_m`); `viewer_body` (3,): the
+        camera's position in the body frame; `centroids_cad(type)`: the model's feature centroids (N, 3);
+        `T_map_body(i)`: keyframe i's current estimate (the pose graph's)."""
         self.params = params
+        self.position_sigma_m = position_sigma_m
         self._viewer_body = viewer_body
         self._centroids_cad = centroids_cad
         self._T_map_body = T_map_body
         # (keyframe, types (K,), centroids (K, 3) body frame)
-        self._window: deque[tuple[int, list[str], np.ndarray]] = deque(maxlen=params.surface_window_keyframes)
+        self._window: deque[tuple[int, list[str], np.ndarray]] = deque(maxlen=keyframes)
 
     def add(self, i: int, kinds: list[str], centroids_body: np.ndarray) -> None:
         """Keyframe i's far sightings: their types and centroids (K, 3), body frame."""
@@ -98,7 +110,7 @@ class FarSightings:
             d = np.linalg.norm(to_features[..., :2], axis=-1)  # (H, k, F)
             aside = np.einsum("hkfi,hki->hkf", to_features[..., :2], ray[..., :2]) >= cos_tol * d * r
             up = np.abs(np.arctan2(to_features[..., 2], d) - np.arctan2(ray[..., 2:3], r)) <= elevation_tol
-            near = np.abs(d - r) <= 3 * p.position_sigma_m(r)
+            near = np.abs(d - r) <= 3 * self.position_sigma_m(r)
             explained += np.any(aside & up & near, axis=2).sum(axis=1)
         return explained / len(kinds)
 
@@ -109,13 +121,10 @@ class FarSightings:
         sighting's horizontal bearing from its keyframe's camera, `far_elevation_deg` of its elevation and 3 of
         its sigmas (`sighting_sigma_m`) of its horizontal range. A stereo pair places a door 15 m away to a metre
         along its line of sight but to a fraction of a degree across it: the bearings tell apart poses that the
-        walls near by fit alike. The candidate's heading is known less well: from one door and the walls it is
-        ~2 deg off (`perception`, Office_A seed 4: the one-door candidate, 1.9 deg off, explained 0.56 of its 16
-        far sightings as it stood and 0.94 turned; the true pose 0.69, the rest of the boxes 3-5 deg aside), hence
-        the turn. The elevation is allowed more: the vertical is the weak part of a candidate from one door (the
-        walls' fit holds its height). With the visual odometry (truth-vo, Office_A seed 4) the true one-door
-        candidate put the far doors 2.5-3.6 deg low at 8 m and 0.2-1.4 deg aside; the two-door one 0.04 deg low.
-        A door a storey up or down is 17 deg or more off at 10 m."""
+        walls near by fit alike. The candidate's heading is known less well (from one door and the walls, a
+        degree or two off), hence the turn. The elevation is allowed more: the vertical is the weak part of a
+        candidate from one door (the walls' fit holds its height), and a door a storey up or down is still far
+        outside it (docs/measurements.md, "Far sightings' tolerances")."""
         p = self.params
         pivot = apply(T_cad_map @ T_map_newest, self._viewer_body[None])[0]
         n_turns = int(round(p.far_turn_deg / p.far_turn_step_deg)) if p.far_turn_step_deg > 0 else 0
@@ -144,11 +153,9 @@ class FarSightings:
         widest such pair matched to every pair of same-type features of the model (`graph.far`); those explaining
         `far_min_explained` of the far sightings (`fractions`, `far_resection_sightings` of them, evenly drawn),
         one of each place (1 m, 5 deg), most explaining first. None is the registrar's answer: the walls choose
-        (graph.judge), with the full margin (no landmark vouches for any of them).
-
-        Office_A seed 2 (`truth`) sees no door within the sighting range for 14 s, but three beyond it, 13 m away,
-        from the first seconds: at 3 s the true pose is among 1310 candidates from one pair (0.15 m and 0.6 deg
-        off), 368 places explain the far sightings, and the walls set it apart. `far`: `in_map`."""
+        (graph.judge), with the full margin (no landmark vouches for any of them). `far`: `in_map`. A flight that
+        sees doors only beyond the sighting range for its first seconds is localized by them
+        (docs/measurements.md, "Far sightings' tolerances")."""
         p = self.params
         if far is None:
             return Alignment("not_localized", None)
@@ -157,7 +164,7 @@ class FarSightings:
         poses = []
         for camera_map, kinds, centroids_map in self.pairs()[-p.far_pairs:]:
             poses.append(resection_candidates(camera_map, centroids_map, self._centroids_cad(kinds[0]),
-                                              self._centroids_cad(kinds[1]), p.position_sigma_m,
+                                              self._centroids_cad(kinds[1]), self.position_sigma_m,
                                               same_features=kinds[0] == kinds[1]))
         if not poses or not sum(len(T) for T in poses):
             return Alignment("not_localized", None)
@@ -173,12 +180,12 @@ class FarSightings:
 
     def refined(self, T_cad_map: np.ndarray, far: FarMap | None) -> tuple[np.ndarray, np.ndarray | None]:
         """A pose resected from far sightings, fitted to all of the window's far sightings' bearings (`graph.far`):
-        one pair's coarse ranges put it 0.15-0.3 m off (`truth`, Office_A seed 2), the keyframes' bearings
-        triangulate it. `far`: `in_map`. With it, the fit's sigmas [m, rad] (None where too few were explained)."""
+        one pair's coarse ranges put it tenths of a metre off, the keyframes' bearings triangulate it. `far`:
+        `in_map`. With it, the fit's sigmas [m, rad] (None where too few were explained)."""
         p = self.params
         if far is None:
             return T_cad_map, None
         kinds, cameras, centroids = far
         features = {str(k): self._centroids_cad(str(k)) for k in np.unique(kinds)}
         return refined_by_bearings(T_cad_map, cameras, centroids, kinds, features, np.radians(p.far_bearing_sigma_deg),
-                                   p.position_sigma_m, np.radians(p.far_bearing_deg))
+                                   self.position_sigma_m, np.radians(p.far_bearing_deg))

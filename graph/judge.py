@@ -16,12 +16,12 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from functools import partial
-from typing import Generic, NamedTuple, TypeVar
+from typing import Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
 
 from macroloc.graph.features import CentroidsByType
-from macroloc.graph.params import LocalizerParams
+from macroloc.graph.params import JudgeParams
 from macroloc.graph.relocalize import Alignment
 from macroloc.graph.rigid import apply, make_T, rot_z, rotation_angle_deg
 from macroloc.graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surfaces
@@ -34,9 +34,15 @@ FarRivals = Callable[[np.ndarray, list[np.ndarray]], list[np.ndarray]]  # (T_bes
 class SurfaceJudge:
     """Weighs candidate poses against the model's surfaces (see module doc)."""
 
-    def __init__(self, surfaces: SurfaceIndex, params: LocalizerParams, centroids_cad: CentroidsByType) -> None:
+    def __init__(self, surfaces: SurfaceIndex, params: JudgeParams, centroids_cad: CentroidsByType,
+                 registration_tolerance_m: float, surface_fit_sigma_m: float) -> None:
+        """`centroids_cad(type)`: the model's feature centroids (N, 3); `registration_tolerance_m`: how near a CAD
+        feature a turned candidate must keep a landmark (the registrar's tolerance, `RegistrationParams`);
+        `surface_fit_sigma_m`: a point's distance to its wall, model against reality, in the fits (`refined`)."""
         self.surfaces = surfaces
         self.params = params
+        self.registration_tolerance_m = registration_tolerance_m
+        self.surface_fit_sigma_m = surface_fit_sigma_m
         self._centroids_cad = centroids_cad
         self.checks: list[tuple[int, list[float]]] = []  # (stamp_ns, score of each candidate pose)
         self.screens: list[tuple[int, list[float]]] = []  # (candidates, their screening scores, best first)
@@ -48,6 +54,18 @@ class SurfaceJudge:
         """A new registration attempt: the poses fitted and checked in the last one are forgotten (the points
         and the keyframes' estimates have moved since)."""
         self._fitted, self._checked = PerPose(), PerPose()
+
+    def can_check(self, n_points: int) -> bool:
+        """Whether `n_points` depth points are enough to judge poses by (`surface_min_points`)."""
+        return n_points >= self.params.surface_min_points
+
+    def contradicts(self, T_cad_map: np.ndarray, points_map: np.ndarray, origins_map: np.ndarray) -> bool:
+        """Whether the walls contradict the pose T_cad_map: more than `surface_refuse_seen_through` of the depth
+        points `points_map` (N, 3) would be seen through a wall from `origins_map` (N, 3), map frame."""
+        check = self.check(apply(T_cad_map, points_map), origins_map, T_cad_map)
+        log.info("a pose given: %.2f of %d points on surfaces, %.2f seen through walls", check.support,
+                 len(points_map), check.seen_through)
+        return check.seen_through > self.params.surface_refuse_seen_through
 
     def choose(self, result: Alignment, stamp_ns: int, points_map: np.ndarray, origins_map: np.ndarray,
                landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals) -> Choice:
@@ -61,11 +79,8 @@ class SurfaceJudge:
         it puts `surface_min_support` of the points on the surfaces, lets at most `surface_max_seen_through` be
         seen through a wall, and every other candidate scores `surface_margin` less, or `surface_margin_unfit` less
         where that candidate does not fit the walls itself (`fits`) and every candidate explains two landmarks
-        or more (a pose the walls contradict is a weaker rival: perception demo seed 1, a corridor 18.6 m along
-        put 0.71-0.86 of the points on the walls against the true pose's 0.97-0.99, and held the status
-        ambiguous 15 s at 0.14-0.29 below it; from one door the candidates are coarse and the true one may fit
-        badly: on the duplex it was 2.8 deg off, 42 % of its points seen through a wall, its twin 0.994); the
-        registrar's 'localized'
+        or more: a pose the walls contradict is a weaker rival, but from one door the candidates are coarse and
+        the true one may fit badly (docs/measurements.md, "The walls' margins"). The registrar's 'localized'
         stands unless another candidate beats it by that margin or more than `surface_refuse_seen_through` of the
         points would have been seen through a wall (the walls contradict it), and is refused where the walls
         confirm a different pose. Few points on the surfaces alone do not refuse it: a true pose among furniture
@@ -73,8 +88,8 @@ class SurfaceJudge:
 
         Candidates from one landmark are first turned to the walls' heading (`turned`); where then none fits,
         those from up to `surface_turn_max_inliers` are turned too and all are weighed again. Turned, wrong poses
-        fit better too (`truth`, Office_A seed 4: wrong two-door poses from 0.45-0.59 to 0.67-0.73 against the true
-        0.96, rivals within the margin), so a pose from two or three doors is turned only when it must be."""
+        fit better too, so a pose from two or three doors is turned only when it must be (docs/measurements.md,
+        "Turning candidates to the walls")."""
         p = self.params
         T_reg = result.T_cad_map if result.status == "localized" else None
         if T_reg is not None:
@@ -176,12 +191,11 @@ class SurfaceJudge:
         among the headings that leave as many landmarks within `registration_tolerance_m` of a same-type CAD
         feature, searched in steps of twice `surface_turn_step_deg`, then one step either side.
 
-        A pose from one door has the heading of that door's normal, which perception's corners get wrong by
-        ~20 deg on a door seen obliquely (Office_A seed 4: a door seen through another doorway, whose jamb hides
-        one of its sides; its normal was off by a median 18 deg in 69 sightings over 16 s, 66 of them the same
-        way); one from two or three doors a few metres apart, whose corners are coarse at range, by 5-13 deg
-        (Office_A seed 5: 1.45 m and 12.9 deg, then 0.6 m and 5.3 deg). The wall fit (`refined`) moves a pose
-        only so far; the walls around a door hold its heading over metres, not over the door's width."""
+        A pose from one door has the heading of that door's normal, which perception's corners get wrong by tens
+        of degrees on a door seen obliquely; one from two or three doors a few metres apart, whose corners are
+        coarse at range, by several degrees (docs/measurements.md, "Turning candidates to the walls"). The wall fit
+        (`refined`) moves a pose only so far; the walls around a door hold its heading over metres, not over the
+        door's width."""
         p = self.params
         poses = [T for T, _ in candidates]
         few = [k for k, (_, n) in enumerate(candidates) if fewest <= n <= most]
@@ -208,7 +222,7 @@ class SurfaceJudge:
         def by_a_feature(turns: np.ndarray) -> np.ndarray:  # (K, H) turns -> (K, H) landmarks by a CAD feature
             x = turned(turns, centres)
             return sum((np.min(np.linalg.norm(x[:, :, i, None, :] - self._centroids_cad(kind), axis=-1), axis=-1,
-                               initial=np.inf) <= p.registration_tolerance_m).astype(int)
+                               initial=np.inf) <= self.registration_tolerance_m).astype(int)
                        for i, kind in enumerate(kinds))
 
         def supports(turns: np.ndarray) -> np.ndarray:  # (K, H) turns -> (K, H) supports, -1 where doors are lost
@@ -259,12 +273,44 @@ class SurfaceJudge:
         points_map = points_map[:: max(1, int(np.ceil(len(points_map) / 500)))]  # a pose's fit needs no more
         # the points are in the map frame, not around one camera: no range-dependent noise in their weights
         fit = align_to_surfaces(self.surfaces, points_map, T_cad_map, iterations=8, depth_sigma_per_m2=0.0,
-                                max_distance_m=self.params.surface_refine_m, sigma_m=self.params.surface_fit_sigma_m,
+                                max_distance_m=self.params.surface_refine_m, sigma_m=self.surface_fit_sigma_m,
                                 hold_height=True)
         if fit is None:
             return T_cad_map
         moved = np.linalg.norm(apply(np.linalg.inv(T_cad_map) @ fit.T_cad_body, points_map) - points_map, axis=1)
         return fit.T_cad_body if float(moved.mean()) <= self.params.surface_refine_m else T_cad_map
+
+
+class Judge(Protocol):
+    """What the localizer asks of the walls (`SurfaceJudge`; `NullJudge` without a model's surfaces)."""
+
+    def new_attempt(self) -> None: ...
+
+    def can_check(self, n_points: int) -> bool: ...
+
+    def contradicts(self, T_cad_map: np.ndarray, points_map: np.ndarray, origins_map: np.ndarray) -> bool: ...
+
+    def choose(self, result: Alignment, stamp_ns: int, points_map: np.ndarray, origins_map: np.ndarray,
+               landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals) -> Choice: ...
+
+
+class NullJudge:
+    """No model surfaces to judge by: no pose is ever checked, and so none is chosen by the walls (only the
+    registrar's own 'localized' counts)."""
+
+    def new_attempt(self) -> None:
+        pass
+
+    def can_check(self, n_points: int) -> bool:
+        return False
+
+    def contradicts(self, T_cad_map: np.ndarray, points_map: np.ndarray, origins_map: np.ndarray) -> bool:
+        return False
+
+    def choose(self, result: Alignment, stamp_ns: int, points_map: np.ndarray, origins_map: np.ndarray,
+               landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals) -> Choice:
+        T_reg = result.T_cad_map if result.status == "localized" else None
+        return Choice(T_reg, T_reg is not None)
 
 
 class PerPose(Generic[V]):

@@ -1,9 +1,15 @@
-"""The localizer's parameters: one typed, documented set shared by its components (graph.localizer, graph.judge,
-graph.far_window, graph.depth_window). Metres, seconds, degrees where named so."""
+"""The localizer's parameters: one small frozen dataclass per component, composed in `LocalizerParams`. Each
+component receives its own (the judge `JudgeParams`, the far sightings `FarParams`, ...), never the whole set.
+
+They live in this one leaf module (numpy only) so that the service's config (service/config.py) can take its
+defaults from them without importing the components (graph.judge pulls in scipy); the components re-export
+theirs (`from macroloc.graph.judge import JudgeParams`). A field's name is its config key's where the config
+sets it (`[graph] surface_margin` is `JudgeParams.surface_margin`). Metres, seconds, degrees where named so.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TypeVar
 
 import numpy as np
@@ -12,19 +18,69 @@ Ranges = TypeVar("Ranges", float, np.ndarray)
 
 
 @dataclass(frozen=True)
-class LocalizerParams:
-    associate_m: float = 0.6  # a sighting within this of a same-type landmark re-observes it
-    cad_link_m: float = 0.5  # once localized: a landmark within this of a same-type CAD feature is linked ...
-    cad_link_max_turn_deg: float = 8.0  # ... its orientation too where it lies within this of the feature's
+class OdometryParams:
+    """The odometry factor between consecutive keyframes (the localizer's prediction)."""
+
     odometry_sigma_per_m: float = 0.03  # translation sigma per metre travelled (drift model of the odometry)
     odometry_rot_sigma_per_m: float = 0.01  # rad per metre travelled
     odometry_dead_reckoned_sigma_mps: float = 0.5  # translation sigma per second the odometry lost track and only
     #                                               extrapolated (a drone's speed it could not see change)
+
+
+@dataclass(frozen=True)
+class LandmarkParams:
+    """Sightings into landmarks (graph.landmarks): association, range, and the sighting factor's sigmas."""
+
+    associate_m: float = 0.6  # a sighting within this of a same-type landmark re-observes it
     sighting_sigma_m: tuple[float, float] = (0.03, 0.004)  # sigma = a + b * range^2 (stereo) of a sighting's position
     sighting_sigma_rad: tuple[float, float] = (0.03, 0.012)  # same for its orientation (plane of noisy corners)
     truncated_sigma_m: float = 0.5  # position sigma along an axis on which the sighting is cut by the image border
     max_range_m: float = 7.0  # sightings further away are no landmarks: their corners are too coarse ...
-    far_range_m: float = 20.0  # ... but up to this range their bearings check candidate poses (`FarSightings`):
+    far_range_m: float = 20.0  # ... but up to this range their bearings check candidate poses (`FarSightings`)
+
+    def position_sigma_m(self, range_m: Ranges) -> Ranges:
+        """A sighting's position sigma at a range (stereo: it grows with range squared, `sighting_sigma_m`),
+        metres; of each of an array of ranges too."""
+        a, b = self.sighting_sigma_m
+        return a + b * range_m**2
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """When and how the map's landmarks are registered to the model (the registrar, graph.registrar)."""
+
+    min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
+    registration_tolerance_m: float = 0.6  # an aligned landmark this close to a same-type CAD feature supports a
+    #                                        pose: the registrar's inlier and ambiguity tolerance, the judge's turns'
+    registration_min_landmarks: int = 4  # the model registrar answers 'localized' from this many landmarks ...
+    verified_min_landmarks: int = 1  # ... and offers candidate poses from this many, for the surface check
+    registration_early_stop: float = 1.0  # with the surface check, it stops seeding hypotheses once a pose explains
+    #                                       this fraction of the landmarks (1.0: never; see `model_registrar`)
+    surface_retry_s: float = 1.0  # with no new landmark, the check is retried this often as the walls come in view
+
+
+@dataclass(frozen=True)
+class AnchorParams:
+    """Holding the graph to the model once localized: landmarks linked to CAD features, keyframes placed in a
+    stored map."""
+
+    cad_link_m: float = 0.5  # once localized: a landmark within this of a same-type CAD feature is linked ...
+    cad_link_max_turn_deg: float = 8.0  # ... its orientation too where it lies within this of the feature's
+    placed_sigma_m: float = 0.15  # a keyframe placed in a stored map (place recognition): its pose's sigmas in
+    placed_sigma_deg: float = 2.0  # the CAD frame, the stored keyframe's error and PnP's together
+
+
+@dataclass(frozen=True)
+class DepthParams:
+    """How many recent keyframes' depth points (graph.depth_window) and far sightings (graph.far_window) are kept."""
+
+    surface_window_keyframes: int = 60  # the depth points of this many recent keyframes check a registration
+
+
+@dataclass(frozen=True)
+class FarParams:
+    """The doors and windows seen beyond the sighting range (graph.far_window.FarSightings)."""
+
     far_bearing_deg: float = 3.0  # a far sighting is explained where a same-type CAD feature lies within this
     #                               horizontal bearing of it, seen from the keyframe's camera, and 3 sigmas of its range
     far_elevation_deg: float = 5.0  # ... and within this of its elevation (a one-door candidate's height is coarse)
@@ -39,13 +95,12 @@ class LocalizerParams:
     far_resection_sightings: int = 60  # the candidates are judged by this many of the far sightings, evenly drawn
     far_height_sigma_m: float = 0.2  # the pose taken holds the anchoring keyframe's height with this sigma ...
     far_bearing_sigma_deg: float = 0.5  # ... and is fitted to the far bearings with this one (`FarSightings.refined`)
-    min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
-    registration_tolerance_m: float = 0.6  # the model registrar's inlier / ambiguity tolerance (see GraphConfig)
-    registration_min_landmarks: int = 4  # the model registrar answers 'localized' from this many landmarks ...
-    registration_early_stop: float = 1.0  # with the surface check, it stops seeding hypotheses once a pose explains
-    #                                       this fraction of the landmarks (1.0: never; see `model_registrar`)
-    verified_min_landmarks: int = 1  # ... and offers candidate poses from this many, for the surface check
-    surface_window_keyframes: int = 60  # the depth points of this many recent keyframes check a registration
+
+
+@dataclass(frozen=True)
+class JudgeParams:
+    """The walls' judgement of candidate poses (graph.judge.SurfaceJudge)."""
+
     surface_min_points: int = 200  # fewer points than this: no check (the registration needs the landmarks above)
     surface_min_support: float = 0.9  # a pose must put this fraction of the points on the model's surfaces ...
     surface_margin: float = 0.3  # ... and every other candidate pose this much less (of points on surfaces and in
@@ -54,7 +109,6 @@ class LocalizerParams:
     #                                     (candidates from two landmarks or more: `SurfaceJudge.choose`) ...
     surface_max_seen_through: float = 0.1  # ... and let at most this fraction be seen through a wall
     surface_refuse_seen_through: float = 0.25  # a registrar's own answer is refused where more are seen through one
-    surface_retry_s: float = 1.0  # with no new landmark, the check is retried this often as the walls come in view
     surface_refine_m: float = 0.6  # each candidate pose is first fitted to the walls, moving the points at most this
     surface_screen_top: int = 8  # of more candidates (one door: every alike door of the model, from both sides),
     surface_screen_points: int = 200  # only the best this many by these many points, unfitted, are fitted and checked
@@ -62,20 +116,39 @@ class LocalizerParams:
     surface_turn_step_deg: float = 3.0  # these steps, to the heading that puts most points on the walls (`turned`)
     surface_turn_points: int = 100  # ... judged by this many points; where no candidate then fits the walls, so is
     surface_turn_max_inliers: int = 3  # one from up to this many doors, keeping as many by a CAD feature
+
+
+@dataclass(frozen=True)
+class SurfaceFitParams:
+    """Once localized, each keyframe's depth points fitted to the model's walls and floor (graph.surfaces)."""
+
     surface_fit: bool = True  # once localized, each keyframe's depth points fitted to the walls join the graph
     surface_fit_max_correction_m: float = 0.5  # a fit that moves the pose further is not trusted (wrong wall) ...
     surface_fit_max_turn_deg: float = 5.0  # ... nor one that turns it further ...
     surface_fit_settling_turn_deg: float = 10.0  # ... but this far in the first keyframes after localizing, while the
-    surface_fit_settling_keyframes: int = 10  # pose's heading is the few doors' it was found by (one: ~6 deg off)
-    surface_fit_sigma_m: float = 0.05  # a fitted point's distance to its wall, model against reality (m)
-    placed_sigma_m: float = 0.15  # a keyframe placed in a stored map (place recognition): its pose's sigmas in
-    placed_sigma_deg: float = 2.0  # the CAD frame, the stored keyframe's error and PnP's together
+    surface_fit_settling_keyframes: int = 10  # pose's heading is the few doors' it was found by
+    surface_fit_sigma_m: float = 0.05  # a fitted point's distance to its wall, model against reality (m); the
+    #                                    judge's fits of candidate poses use it too
+
+
+@dataclass(frozen=True)
+class StatusParams:
+    """The localized status decaying while no CAD-linked landmark is seen."""
+
     degraded_after_s: float = 10.0  # localized but no CAD-linked sighting for this long
     lost_after_s: float = 30.0
 
-    def position_sigma_m(self, range_m: Ranges) -> Ranges:
-        """A sighting's position sigma at a range (stereo: it grows with range squared, `sighting_sigma_m`),
-        metres; of each of an array of ranges too."""
-        a, b = self.sighting_sigma_m
-        return a + b * range_m**2
 
+@dataclass(frozen=True)
+class LocalizerParams:
+    """The localizer's parameters, one part per component (see module doc)."""
+
+    odometry: OdometryParams = field(default_factory=OdometryParams)
+    landmarks: LandmarkParams = field(default_factory=LandmarkParams)
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
+    anchor: AnchorParams = field(default_factory=AnchorParams)
+    depth: DepthParams = field(default_factory=DepthParams)
+    far: FarParams = field(default_factory=FarParams)
+    judge: JudgeParams = field(default_factory=JudgeParams)
+    fit: SurfaceFitParams = field(default_factory=SurfaceFitParams)
+    status: StatusParams = field(default_factory=StatusParams)

@@ -1,8 +1,8 @@
 """Registration strategies for the localizer: the map's landmarks -> T_cad_map and matches.
 
-`ModelRegistrar` asks the foundation's robust registration (`graph.registration.register`, descriptor
-matching + RANSAC) to place the map's landmarks in the whole building model; while that module is absent it
-falls back to the rectangle-hypothesis alignment of `graph.relocalize` over the model's vertical features.
+`ModelRegistrar` asks the registration (`graph.registration.register`: the robust method's rectangle-seeded
+hypotheses, or the paper's descriptor matching + RANSAC) to place the map's landmarks in the whole building
+model, with the method's typed parameters (`RobustParams`, `PaperParams`).
 `StoredMapRegistrar` re-localizes into a stored map: only the landmarks a previous flight linked to the
 model are candidates, so a couple of sightings settle it.
 """
@@ -11,13 +11,18 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
 
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.landmarks import feature_frame_cad
+from macroloc.graph.model_index import index_for
+from macroloc.graph.observations import Observation, ObservationSet
+from macroloc.graph.registration import PaperParams, register
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect, align_rectangles
+from macroloc.graph.robust import RobustParams, single_rectangle_poses
 
 log = logging.getLogger(__name__)
 
@@ -38,55 +43,49 @@ class ModelRegistrar:
     """Registration against the whole building model (see module doc)."""
 
     def __init__(self, model: BuildingModel, method: str = "robust", storey_hint: str | None = None,
-                 min_landmarks: int = 3, tolerance_m: float | None = None, candidates_from: int | None = None,
-                 **register_params: float) -> None:
+                 min_landmarks: int = 3, registration_tolerance_m: float | None = None,
+                 candidates_from: int | None = None, early_stop_fraction: float | None = None) -> None:
         """`min_landmarks`: registration is tried from this many landmarks on (the robust method then also
         accepts a pose with as many inliers: with gravity, two rectangles fix a pose, and its ambiguity test
-        answers 'ambiguous' where the building repeats them); `tolerance_m`: how far (m) an aligned landmark
-        may lie from its CAD feature and still support a pose (the method's inlier tolerance, and the robust
-        method's ambiguity tolerance; None: the method's defaults); `candidates_from`: with fewer landmarks
+        answers 'ambiguous' where the building repeats them); `registration_tolerance_m`: how far (m) an aligned
+        landmark may lie from its CAD feature and still support a pose (the method's inlier tolerance, and the
+        robust method's ambiguity tolerance; None: the method's defaults); `candidates_from`: with fewer landmarks
         than `min_landmarks` but at least this many (robust method), the candidate poses come back as
-        'ambiguous', for other evidence to decide (the localizer's surface check); None: `min_landmarks`."""
+        'ambiguous', for other evidence to decide (the localizer's surface check); None: `min_landmarks`;
+        `early_stop_fraction`: the robust method's (None: its default)."""
         self.model = model
         self.method = method
         self.storey_hint = storey_hint
         self.min_landmarks = min_landmarks
         self.candidates_from = min(min_landmarks, candidates_from or min_landmarks) if method == "robust" \
             else min_landmarks
-        self.register_params = dict(register_params)
-        if method == "robust":  # from one landmark the candidates are its alike features' (`_one_landmark`)
-            self.register_params.setdefault("min_inliers", max(2, self.candidates_from))
-            if self.candidates_from < min_landmarks:  # below min_landmarks the walls choose: offer them every pose
-                self.register_params.setdefault("complete_below", min_landmarks)
-        if tolerance_m is not None:
-            self.register_params["inlier_threshold_m"] = tolerance_m
-            if method == "robust":
-                self.register_params["ambiguity_tau_m"] = tolerance_m
+        self.params = self._method_params(registration_tolerance_m, early_stop_fraction)
         self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
                        if f.orientation == "vertical" and (storey_hint is None or f.storey == storey_hint)]
-        try:
-            from macroloc.graph import registration
-        except ImportError:
-            log.warning("graph.registration absent: registering with the rectangle-hypothesis alignment")
-            self._register = None
-        else:
-            self._register = registration.register
-            from macroloc.graph.model_index import index_for
+        index_for(model)  # the per-building preprocessing (cached): done here, before the first frame
 
-            index_for(model)  # the per-building preprocessing (cached): done here, before the first frame
+    def _method_params(self, tolerance_m: float | None, early_stop_fraction: float | None
+                       ) -> RobustParams | PaperParams:
+        """The registration method's parameters: its defaults but for the tolerance and, robust, the seeding."""
+        if self.method != "robust":
+            return PaperParams() if tolerance_m is None else PaperParams(inlier_threshold_m=tolerance_m)
+        params = RobustParams(min_inliers=max(2, self.candidates_from))  # from one landmark: `_one_landmark`
+        if self.candidates_from < self.min_landmarks:  # below min_landmarks the walls choose: offer them every pose
+            params = replace(params, complete_below=self.min_landmarks)
+        if early_stop_fraction is not None:
+            params = replace(params, early_stop_fraction=early_stop_fraction)
+        if tolerance_m is not None:
+            params = replace(params, inlier_threshold_m=tolerance_m, ambiguity_tau_m=tolerance_m)
+        return params
 
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
-        if self._register is None:
-            return align_rectangles(landmarks, self._known, min_inliers=self.min_landmarks)
         if len(landmarks) == 1:
             return self._one_landmark(landmarks[0], corners_map[0])
-        from macroloc.graph.observations import Observation, ObservationSet
-
         obs = [Observation(type=lm.type, centroid_map=lm.T_map_rect[:3, 3], corners_map=c)
                for lm, c in zip(landmarks, corners_map, strict=True)]
         gravity_map = np.array([0.0, 0.0, -1.0])  # the map frame's z is up
-        result = self._register(self.model, ObservationSet(obs, gravity_map, self.storey_hint), method=self.method,
-                                **self.register_params)
+        result = register(self.model, ObservationSet(obs, gravity_map, self.storey_hint), method=self.method,
+                          params=self.params)
         matches = [(landmarks[i].key, fid) for i, fid in result.matches]
         status = result.status
         if status == "localized" and result.inliers < self.min_landmarks:  # a candidate, not an answer
@@ -95,10 +94,8 @@ class ModelRegistrar:
 
     def _one_landmark(self, landmark: ObservedRect, corners_map: np.ndarray | None) -> Alignment:
         """One door or window: a candidate pose for every alike feature of the model (`_one_rectangle`)."""
-        from macroloc.graph.robust import RobustParams
-
-        tolerance = float(self.register_params.get("size_tolerance_m", RobustParams.size_tolerance_m))
-        return _one_rectangle(self.model, landmark, corners_map, self.storey_hint, tolerance)
+        robust = self.params if isinstance(self.params, RobustParams) else RobustParams()
+        return _one_rectangle(self.model, landmark, corners_map, self.storey_hint, robust.size_tolerance_m)
 
 
 class StoredMapRegistrar:
@@ -174,9 +171,6 @@ def _one_rectangle(model: BuildingModel, landmark: ObservedRect, corners_map: np
     """One door or window: a candidate pose for every feature of the model alike to it (of `storey_hint`; among
     the ids `among`), from either side (`graph.robust.single_rectangle_poses`), for the walls to choose among;
     never an answer by itself."""
-    from macroloc.graph.model_index import index_for
-    from macroloc.graph.robust import RobustParams, single_rectangle_poses
-
     if corners_map is None:
         return Alignment("not_localized", None)
     index = index_for(model).for_storey(storey_hint)

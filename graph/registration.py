@@ -14,7 +14,7 @@ Two methods behind one entry point, `register()`:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -23,40 +23,14 @@ from macroloc.graph.errors import UserInputError
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.model_index import ModelIndex, index_for
 from macroloc.graph.observations import Observation, ObservationSet
+from macroloc.graph.registration_types import RegistrationResult, corner_correspondences, majority_storey
 from macroloc.graph.rigid import make_T, weighted_rigid_fit
+from macroloc.graph.robust import RobustParams, register_robust
+
+__all__ = ["METHODS", "PaperParams", "RegistrationResult", "corner_correspondences", "descriptor_matches",
+           "hypothesis_count", "majority_storey", "register", "register_paper"]
 
 METHODS = ("robust", "paper")
-
-
-@dataclass
-class RegistrationResult:
-    """status: 'localized' | 'ambiguous' | 'not_localized'; T_cad_map maps map-frame points into the CAD frame.
-
-    For 'ambiguous', T_cad_map is the best of the competing poses, `alternatives` holds the others, and `matches`
-    is empty (no observation can be tied to one CAD feature).
-    """
-
-    status: str
-    T_cad_map: np.ndarray | None
-    matches: list[tuple[int, str]]
-    inliers: int
-    storey: str | None
-    elapsed_ms: float = 0.0
-    alternatives: list[np.ndarray] = field(default_factory=list)
-    diagnostics: dict = field(default_factory=dict)
-    candidates: list[tuple[np.ndarray, int]] = field(default_factory=list)  # distinct poses, inliers; best first
-
-    def to_json(self) -> dict:
-        return {
-            "status": self.status,
-            "T_cad_map": None if self.T_cad_map is None else np.round(self.T_cad_map, 6).tolist(),
-            "matches": [{"observation": i, "feature": fid} for i, fid in self.matches],
-            "inliers": self.inliers,
-            "storey": self.storey,
-            "elapsed_ms": round(self.elapsed_ms, 3),
-            "alternatives": [np.round(T, 6).tolist() for T in self.alternatives],
-            "diagnostics": self.diagnostics,
-        }
 
 
 @dataclass(frozen=True)
@@ -69,10 +43,17 @@ class PaperParams:
     seed: int = 0
 
 
-def register(model: BuildingModel, obs: ObservationSet, method: str = "robust", **params) -> RegistrationResult:
-    """Estimate T_cad_map from observations in the map frame. See the module docstring for the methods."""
+def register(model: BuildingModel, obs: ObservationSet, method: str = "robust",
+             params: RobustParams | PaperParams | None = None, **overrides: float) -> RegistrationResult:
+    """Estimate T_cad_map from observations in the map frame. See the module docstring for the methods.
+    `params`: the method's typed parameters (None: its defaults); `overrides`: fields of them to change by name
+    (the CLI's and the config's, e.g. `inlier_threshold_m=0.3`)."""
     if method not in METHODS:
         raise UserInputError(f"unknown method {method!r} (expected one of {', '.join(METHODS)})")
+    kind = PaperParams if method == "paper" else RobustParams
+    if params is not None and not isinstance(params, kind):
+        raise TypeError(f"method {method!r} takes {kind.__name__}, not {type(params).__name__}")
+    chosen = kind(**overrides) if params is None else replace(params, **overrides)  # type: ignore[arg-type]
     index = index_for(model)  # pre-processing (cached per building): not part of the registration time
     t0 = time.perf_counter()
     if obs.storey_hint is not None:
@@ -80,39 +61,12 @@ def register(model: BuildingModel, obs: ObservationSet, method: str = "robust", 
             raise UserInputError(f"hints.storey {obs.storey_hint!r} is not a storey of this building "
                                  f"({', '.join(sorted(set(index.storeys.tolist())))})")
         index = index.for_storey(obs.storey_hint)
-    if method == "paper":
-        result = register_paper(index, obs.observations, PaperParams(**params))
+    if isinstance(chosen, PaperParams):
+        result = register_paper(index, obs.observations, chosen)
     else:
-        from macroloc.graph.robust import RobustParams, register_robust
-
-        result = register_robust(index, obs, RobustParams(**params))
+        result = register_robust(index, obs, chosen)
     result.elapsed_ms = (time.perf_counter() - t0) * 1000.0
     return result
-
-
-def majority_storey(index: ModelIndex, feature_indices: list[int]) -> str | None:
-    if not feature_indices:
-        return None
-    values, counts = np.unique(index.storeys[feature_indices], return_counts=True)
-    return str(values[int(np.argmax(counts))])
-
-
-def corner_correspondences(T: np.ndarray, obs: list[Observation], pairs: list[tuple[int, int]],
-                           index: ModelIndex) -> tuple[np.ndarray, np.ndarray]:
-    """Point pairs (map, CAD) for a refinement: each observed corner with the nearest corner of its matched CAD
-    feature under T (corners come unordered); centroids for centroid-only observations."""
-    with_c = [(i, j) for i, j in pairs if obs[i].corners_map is not None]
-    without = [(i, j) for i, j in pairs if obs[i].corners_map is None]
-    src = [np.array([obs[i].centroid_map for i, _ in without], dtype=float).reshape(-1, 3)]
-    dst = [index.centroids[[j for _, j in without]].reshape(-1, 3)]
-    if with_c:
-        oc = np.stack([np.asarray(obs[i].corners_map) for i, _ in with_c])  # (P, 4, 3) map
-        cc = index.corners[[j for _, j in with_c]]  # (P, 4, 3) CAD
-        moved = oc @ T[:3, :3].T + T[:3, 3]
-        nearest = np.argmin(np.linalg.norm(moved[:, :, None, :] - cc[:, None, :, :], axis=3), axis=2)
-        src.append(oc.reshape(-1, 3))
-        dst.append(np.take_along_axis(cc, nearest[:, :, None], axis=1).reshape(-1, 3))
-    return np.concatenate(src), np.concatenate(dst)
 
 
 # ----------------------------------------------------------------------------- the paper's method

@@ -23,7 +23,7 @@ import numpy as np
 from macroloc.graph.features import FEATURE_TYPES
 from macroloc.graph.model_index import TYPE_SEPARATION_M, ModelIndex
 from macroloc.graph.observations import Observation, ObservationSet
-from macroloc.graph.registration import RegistrationResult, corner_correspondences, majority_storey
+from macroloc.graph.registration_types import RegistrationResult, corner_correspondences, majority_storey
 from macroloc.graph.rigid import (
     apply,
     levelled,

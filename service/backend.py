@@ -60,7 +60,8 @@ class RestoredRegistrar:
                  fallback: Registrar, agree_m: float = 0.4, params: LocalizerParams | None = None,
                  with_surfaces: bool = False) -> None:
         self.T_cad_map_saved = T_cad_map_saved
-        stored = stored_registrar(model, linked, params or LocalizerParams(), with_surfaces) if linked else None
+        stored = stored_registrar(model, linked, (params or LocalizerParams()).registration, with_surfaces) \
+            if linked else None
         # the saved landmarks' few poses first (checked by the walls), the whole model's where they fail
         self.chain: Registrar = FirstOfRegistrar([stored, fallback]) if stored is not None else fallback
         self.agree_m = agree_m
@@ -142,7 +143,7 @@ class LocalizerBackend:
         """`surfaces`: the model's walls, to check registrations against the frames' depth (graph.surfaces)."""
         params = params or BackendParams()
         localizer = params.localizer or LocalizerParams()
-        fallback = model_registrar(model, localizer, params.storey_hint, surfaces is not None, method)
+        fallback = model_registrar(model, localizer.registration, params.storey_hint, surfaces is not None, method)
         if snapshot is None:
             return cls(model, fallback, params, surfaces=surfaces)
         features = {f.id: f for f in model.features}

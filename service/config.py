@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from macroloc.graph.errors import UserInputError
+from macroloc.graph.params import AnchorParams, FarParams, JudgeParams, LandmarkParams, RegistrationParams, StatusParams
 from macroloc.perception.image_header import DEFAULT_MAX_PIXELS
 
 
@@ -130,6 +131,11 @@ class PerceptionConfig(_Section):
     detect_every: int = Field(3, ge=1, description="replay: run the chain on every n-th stereo frame")
 
 
+# the localizer's defaults, written once (graph.params): the [graph] keys below take theirs from these
+_LANDMARKS, _ANCHOR, _STATUS = LandmarkParams(), AnchorParams(), StatusParams()
+_REGISTRATION, _JUDGE, _FAR = RegistrationParams(), JudgeParams(), FarParams()
+
+
 class GraphConfig(_Section):
     """The pose graph and the localizer (graph/posegraph, graph/localizer): keyframes, association, status."""
 
@@ -137,18 +143,25 @@ class GraphConfig(_Section):
     keyframe_rotation_rad: float = Field(0.15, description="... or this much rotation, rad")
     keyframe_interval_s: float = Field(0.34, description="... or this much time, s (the service and replay "
                                        "alike; every frame with sightings is a keyframe while not localized)")
-    associate_m: float = Field(0.6, description="a sighting this close to a same-type landmark re-observes it, m")
-    cad_link_m: float = Field(0.5, description="once localized, a landmark this close to a CAD feature is linked, m")
+    associate_m: float = Field(
+        _LANDMARKS.associate_m,
+        description="a sighting this close to a same-type landmark re-observes it, m")
+    cad_link_m: float = Field(
+        _ANCHOR.cad_link_m,
+        description="once localized, a landmark this close to a CAD feature is linked, m")
     cad_link_max_turn_deg: float = Field(
-        8.0, ge=0, description="... by its orientation too where that lies within this of the CAD feature's, deg "
+        _ANCHOR.cad_link_max_turn_deg, ge=0,
+        description="... by its orientation too where that lies within this of the CAD feature's, deg "
         "(else by its position only: a door's plane from its corners can be far off on a door seen obliquely, and "
         "would turn the flight to fit it)")
-    degraded_after_s: float = Field(10.0, description="localized, but no sighting of a CAD-linked landmark "
-                                    "for this long: degraded")
-    lost_after_s: float = Field(30.0, description="... for this long: lost")
+    degraded_after_s: float = Field(
+        _STATUS.degraded_after_s,
+        description="localized, but no sighting of a CAD-linked landmark for this long: degraded")
+    lost_after_s: float = Field(_STATUS.lost_after_s, description="... for this long: lost")
     relinearize_threshold: float = Field(0.01, description="iSAM2 relinearization threshold")
     registration_tolerance_m: float = Field(
-        0.6, gt=0, description="registering the map to the model: an aligned landmark this close to a same-type "
+        _REGISTRATION.registration_tolerance_m, gt=0,
+        description="registering the map to the model: an aligned landmark this close to a same-type "
         "CAD feature supports the pose, m (perception's landmarks lie 0.1-0.5 m off their feature: a tighter "
         "tolerance leaves the right pose too few inliers to beat its rivals)")
     storey_hint: str | None = Field(
@@ -156,7 +169,8 @@ class GraphConfig(_Section):
         "registration then considers only that storey's doors and windows. Storeys built alike are otherwise "
         "told apart only by what differs between them, and the status stays ambiguous until that is seen")
     registration_min_landmarks: int = Field(
-        4, ge=2, description="registration is tried once this many landmarks have been seen twice, and a pose "
+        _REGISTRATION.registration_min_landmarks, ge=2,
+        description="registration is tried once this many landmarks have been seen twice, and a pose "
         "must explain as many. With gravity two doors fix a pose, but at the tolerance above a building of a "
         "hundred alike doors offers chance fits of three landmarks (a wrong localization was seen with 3)")
     surface_check: bool = Field(
@@ -167,23 +181,32 @@ class GraphConfig(_Section):
         True, description="in that check, count against a pose the points it would have the camera see through "
         "a wall or column of the model; turn off for a model whose glass partitions are modelled as walls")
     surface_turn_deg: float = Field(
-        24.0, ge=0, description="in that check, a candidate pose from one to three doors is first turned about "
+        _JUDGE.surface_turn_deg, ge=0,
+        description="in that check, a candidate pose from one to three doors is first turned about "
         "one of them, within this, to the heading that fits the walls best while keeping its doors by theirs in the "
         "model, deg (from one door its heading is the door's plane: perception's is ~20 deg off on a door seen "
         "obliquely; from two or three a few metres apart 5-13 deg off); 0: not turned")
+    surface_margin: float = Field(
+        _JUDGE.surface_margin, ge=0, description="in that check, a candidate pose is taken only where every "
+        "different candidate scores this much less (the fraction of the depth points on the model's surfaces and in "
+        "sight); a smaller margin localizes sooner and risks a wrong pose where the building repeats itself")
     verified_min_landmarks: int = Field(
-        1, ge=1, description="with the surface check, candidate poses are weighed from this many landmarks. "
+        _REGISTRATION.verified_min_landmarks, ge=1,
+        description="with the surface check, candidate poses are weighed from this many landmarks. "
         "From one door or window (gravity known) they are every alike feature of the model, seen from either side; "
         "the walls must single one out")
     surface_retry_s: float = Field(
-        1.0, gt=0, description="while not localized and no new landmark came, the walls weigh the candidate poses "
+        _REGISTRATION.surface_retry_s, gt=0,
+        description="while not localized and no new landmark came, the walls weigh the candidate poses "
         "again this often as more of them is seen, s (each check costs 0.1-0.4 s of CPU on a 2-core machine)")
     far_range_m: float = Field(
-        20.0, ge=0, description="doors and windows seen beyond the 7 m sighting range, up to this range, check "
+        _LANDMARKS.far_range_m, ge=0,
+        description="doors and windows seen beyond the 7 m sighting range, up to this range, check "
         "candidate poses by their bearings and, before any door came within range, resect the pose, m "
         "(their stereo range is coarse, their bearing good to a fraction of a degree)")
     far_resection: bool = Field(
-        True, description="before any door came within the sighting range, candidate poses from two far doors or "
+        _FAR.far_resection,
+        description="before any door came within the sighting range, candidate poses from two far doors or "
         "windows seen at least 10 deg apart from one keyframe, for the walls to choose among")
 
 

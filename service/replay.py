@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
@@ -21,6 +21,7 @@ from macroloc.graph.features import BuildingModel
 from macroloc.graph.keyframes import KeyframePolicy
 from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, model_registrar, stored_registrar
 from macroloc.graph.mapstore import StoredMap
+from macroloc.graph.params import StatusParams
 from macroloc.graph.posegraph import IsamSettings, PoseGraph
 from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.rigid import rotation_angle_deg
@@ -119,15 +120,17 @@ def _round(v: float | None, nd: int = 4) -> float | None:
 
 def settings_from_config(graph: GraphConfig) -> tuple[LocalizerParams, KeyframePolicy, IsamSettings]:
     """The factory's half that reads the config: typed constructor arguments for the components."""
-    params = LocalizerParams(associate_m=graph.associate_m, cad_link_m=graph.cad_link_m,
-                             cad_link_max_turn_deg=graph.cad_link_max_turn_deg,
-                             surface_turn_deg=graph.surface_turn_deg,
-                             registration_tolerance_m=graph.registration_tolerance_m,
+    d = LocalizerParams()
+    params = LocalizerParams(
+        landmarks=replace(d.landmarks, associate_m=graph.associate_m, far_range_m=graph.far_range_m),
+        registration=replace(d.registration, registration_tolerance_m=graph.registration_tolerance_m,
                              registration_min_landmarks=graph.registration_min_landmarks,
                              verified_min_landmarks=graph.verified_min_landmarks,
-                             surface_retry_s=graph.surface_retry_s, far_range_m=graph.far_range_m,
-                             far_resection=graph.far_resection,
-                             degraded_after_s=graph.degraded_after_s, lost_after_s=graph.lost_after_s)
+                             surface_retry_s=graph.surface_retry_s),
+        anchor=replace(d.anchor, cad_link_m=graph.cad_link_m, cad_link_max_turn_deg=graph.cad_link_max_turn_deg),
+        far=replace(d.far, far_resection=graph.far_resection),
+        judge=replace(d.judge, surface_turn_deg=graph.surface_turn_deg, surface_margin=graph.surface_margin),
+        status=StatusParams(degraded_after_s=graph.degraded_after_s, lost_after_s=graph.lost_after_s))
     policy = KeyframePolicy(graph.keyframe_translation_m, graph.keyframe_rotation_rad, graph.keyframe_interval_s)
     return params, policy, IsamSettings(relinearize_threshold=graph.relinearize_threshold)
 
@@ -138,9 +141,10 @@ def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey
     """The factory: registration against a stored map when one is given, else against the whole model; with
     the model's surfaces, registrations are checked against the depth points (graph.surfaces)."""
     p = params or LocalizerParams()
-    registrar: Registrar = model_registrar(model, p, storey_hint, surfaces is not None)
+    registrar: Registrar = model_registrar(model, p.registration, storey_hint, surfaces is not None)
     if stored is not None:
-        registrar = FirstOfRegistrar([stored_registrar(model, stored.known_rects(model), p, surfaces is not None),
+        registrar = FirstOfRegistrar([stored_registrar(model, stored.known_rects(model), p.registration,
+                                                       surfaces is not None),
                                       registrar])
     return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam, surfaces=surfaces)
 

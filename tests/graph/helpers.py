@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import fields, replace
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from macroloc.graph.features import MacroFeature
+from macroloc.graph.params import LocalizerParams
 from macroloc.graph.rectangle import opening_rectangle
 from macroloc.graph.rigid import make_T
 
@@ -36,3 +39,15 @@ def random_building(rng: np.random.Generator, n: int = 40, size_m: float = 40.0)
         r = opening_rectangle(box_vertices(centre, normal, w, h))
         out.append(MacroFeature(f"F{i:03d}", kind, "L1", r.corners, r.centroid, r.normal, r.width_m, r.height_m))
     return out
+
+
+def localizer_params(base: LocalizerParams | None = None, **changes: object) -> LocalizerParams:
+    """`base` (None: the defaults) with fields of its parts changed by their names (`surface_min_points=100` is
+    `DepthParams.surface_min_points`): a test's shorthand for the nested `LocalizerParams`."""
+    base = base or LocalizerParams()
+    parts = {part.name: getattr(base, part.name) for part in fields(base)}
+    for name, value in changes.items():
+        owners = [k for k, part in parts.items() if name in {f.name for f in fields(part)}]
+        assert len(owners) == 1, f"{name} is no field of one part of LocalizerParams"
+        parts[owners[0]] = replace(parts[owners[0]], **{name: value})
+    return LocalizerParams(**parts)  # type: ignore[arg-type]

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from macroloc.graph.far_window import FarSightings
 from macroloc.graph.features import BuildingModel, CentroidsByType, MacroFeature
-from macroloc.graph.params import LocalizerParams
+from macroloc.graph.params import DepthParams, FarParams, LandmarkParams
 from macroloc.graph.rigid import apply, make_T, rot_z, rotation_angle_deg
 
 DOORS_CAD = np.array([[0.0, 0.0, 1.05], [12.0, 1.0, 1.05], [3.0, 14.0, 1.05], [14.0, 11.0, 1.05],
@@ -27,9 +27,10 @@ def model() -> BuildingModel:
 
 
 def window(T_cad_map: np.ndarray, T_map_bodies: list[np.ndarray], seen: list[list[int]],
-           params: LocalizerParams | None = None) -> FarSightings:
+           params: FarParams | None = None) -> FarSightings:
     """A window whose keyframe k (at T_map_bodies[k]) saw the doors `seen[k]`, exactly."""
-    far = FarSightings(params or LocalizerParams(far_min_sightings=3), VIEWER_BODY, CentroidsByType(model().features),
+    far = FarSightings(params or FarParams(far_min_sightings=3), DepthParams().surface_window_keyframes,
+                       LandmarkParams().position_sigma_m, VIEWER_BODY, CentroidsByType(model().features),
                        lambda i: T_map_bodies[i])
     for i, (T_map_body, doors) in enumerate(zip(T_map_bodies, seen, strict=True)):
         T_body_cad = np.linalg.inv(T_cad_map @ T_map_body)
@@ -62,7 +63,7 @@ def test_a_pair_counts_only_where_its_bearings_are_far_enough_apart() -> None:
     far = window(T_cad_map, T_map_bodies, [[1, 3], [1], [0, 4]])
     pairs = far.pairs()
     assert [kinds for _, kinds, _ in pairs] == [("door", "door")] * 2  # keyframes 0 and 2; 1 saw one door
-    apart = window(T_cad_map, T_map_bodies, [[1, 3], [], []], LocalizerParams(far_pair_min_deg=60.0)).pairs()
+    apart = window(T_cad_map, T_map_bodies, [[1, 3], [], []], FarParams(far_pair_min_deg=60.0)).pairs()
     assert apart == []  # doors 1 and 3 are 53 deg apart from (4, 3)
 
 

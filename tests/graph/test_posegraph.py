@@ -13,6 +13,7 @@ import pytest
 from macroloc.graph.landmarks import feature_frame_cad
 from macroloc.graph.localizer import Localizer, LocalizerParams
 from macroloc.graph.mapstore import StoredMap
+from macroloc.graph.params import RegistrationParams
 from macroloc.graph.posegraph import ANCHOR, IsamSettings, PoseGraph, X
 from macroloc.graph.registrar import FirstOfRegistrar, StoredMapRegistrar
 from macroloc.graph.relocalize import KnownRect
@@ -349,7 +350,8 @@ def test_the_registration_sees_a_door_by_the_median_of_its_sightings(corridor) -
         return corners + (np.sign(along) * by_m / 2.0)[:, None] * u
 
     lifted = corners + np.where(corners[:, 2] < centre[2], 0.5, 0.0)[:, None] * np.array([0.0, 0.0, 1.0])
-    loc = Localizer(corridor, PoseGraph(), Spy(), LocalizerParams(min_sightings_to_register=4))  # at the 4th
+    at_the_4th = LocalizerParams(registration=RegistrationParams(min_sightings_to_register=4))
+    loc = Localizer(corridor, PoseGraph(), Spy(), at_the_4th)
     for k, c in enumerate([widened(0.57), corners, corners, widened(0.1)]):
         loc.add_keyframe(k * 100_000_000, T_cad_body, [Sighting("door", c)], UP)
     (lm,) = loc.landmarks.values()
@@ -358,7 +360,8 @@ def test_the_registration_sees_a_door_by_the_median_of_its_sightings(corridor) -
     assert np.linalg.norm(rect[1] - rect[0]) == pytest.approx(target.width_m + 0.05, abs=1e-6)
     assert np.linalg.norm(rect[3] - rect[0]) == pytest.approx(target.height_m, abs=1e-6)
     assert np.allclose(rect.mean(axis=0), loc.graph.T_map_rect(lm.key)[:3, 3])
-    cut = Localizer(corridor, PoseGraph(), Spy(), LocalizerParams(min_sightings_to_register=2))
+    cut = Localizer(corridor, PoseGraph(), Spy(),
+                    LocalizerParams(registration=RegistrationParams(min_sightings_to_register=2)))
     for k, c in enumerate([lifted, corners]):
         cut.add_keyframe(k * 100_000_000, T_cad_body, [Sighting("door", c, truncated=(False, k == 0))], UP)
     (lm,) = cut.landmarks.values()

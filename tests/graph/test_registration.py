@@ -283,7 +283,7 @@ def test_one_landmark_is_never_an_answer_by_itself(office_model) -> None:
     from macroloc.graph.relocalize import ObservedRect
 
     registrar = ModelRegistrar(office_model, min_landmarks=4, candidates_from=1)
-    assert registrar.candidates_from == 1 and registrar.register_params["min_inliers"] == 2
+    assert registrar.candidates_from == 1 and registrar.params.min_inliers == 2
     for f in office_model.features[:5]:
         result = registrar([ObservedRect(0, f.type, feature_frame_cad(f))], [f.corners_cad])
         assert result.status == "ambiguous" and result.matches == [] and result.T_cad_map is None
@@ -301,7 +301,8 @@ def test_the_localizers_registrar_seeds_from_every_landmark(office_model) -> Non
     import json
     from pathlib import Path
 
-    from macroloc.graph.localizer import LocalizerParams, model_registrar
+    from macroloc.graph.localizer import model_registrar
+    from macroloc.graph.params import RegistrationParams
     from macroloc.graph.relocalize import ObservedRect
 
     doc = json.loads((Path(__file__).parent / "data" / "office_a_perception_landmarks.json").read_text())
@@ -311,13 +312,13 @@ def test_the_localizers_registrar_seeds_from_every_landmark(office_model) -> Non
     centre_map = np.mean([lm.T_map_rect[:3, 3] for lm in landmarks], axis=0)
 
     def nearest_to_truth(early_stop: float) -> tuple[float, float]:
-        registrar = model_registrar(office_model, LocalizerParams(registration_early_stop=early_stop),
+        registrar = model_registrar(office_model, RegistrationParams(registration_early_stop=early_stop),
                                     with_surfaces=True)
         result = registrar(landmarks, corners)
         return min((float(np.linalg.norm(apply(T, centre_map) - apply(T_true, centre_map))),
                     rotation_angle_deg(T[:3, :3] @ T_true[:3, :3].T)) for T, _ in result.candidates)
 
-    off_m, off_deg = nearest_to_truth(LocalizerParams().registration_early_stop)
+    off_m, off_deg = nearest_to_truth(RegistrationParams().registration_early_stop)
     assert off_m < 0.5 and off_deg < 5.0
     off_m, off_deg = nearest_to_truth(0.5)  # the registrar's own default
     assert off_m > 0.5 or off_deg > 5.0

@@ -29,6 +29,7 @@ from macroloc.graph.surfaces import (
     band_points,
     floor_points,
 )
+from tests.graph.helpers import localizer_params
 from tests.graph.scenes import corridor_model, door, make_T, rot_z, sightings_from
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -274,7 +275,7 @@ def fly_in_room(room: SurfaceIndex | None, registrar: Registrar, with_points: bo
     room's walls around the flight; `params`: LocalizerParams beside the defaults."""
     model = corridor_model()
     rng = np.random.default_rng(3)
-    loc = Localizer(model, PoseGraph(), registrar, LocalizerParams(surface_min_points=100, **params),  # type: ignore[arg-type]
+    loc = Localizer(model, PoseGraph(), registrar, localizer_params(surface_min_points=100, **params),  # type: ignore[arg-type]
                     surfaces=room)
     T_cad_body_doors = make_T(np.eye(3), np.array([1.0, 0.0, 1.4]))  # where two doors are in view
     for k in range(3):
@@ -405,7 +406,7 @@ def fly_seeing(room: SurfaceIndex, registrar: CandidatesRegistrar, cameras_cad: 
     and two door sightings for the registrar (which ignores where they are)."""
     model = corridor_model()
     rng = np.random.default_rng(6)
-    loc = Localizer(model, PoseGraph(), registrar, params or LocalizerParams(surface_min_points=100), surfaces=room)
+    loc = Localizer(model, PoseGraph(), registrar, params or localizer_params(surface_min_points=100), surfaces=room)
     sightings = sightings_from(model, make_T(np.eye(3), np.array([1.0, 0.0, 1.4])))[:2]
     for k, xy in enumerate(cameras_cad):
         T_cad_body = make_T(np.eye(3), np.array([xy[0], xy[1], 1.4]))
@@ -440,7 +441,7 @@ def test_a_candidate_a_little_off_is_fitted_to_the_walls_before_the_check(room_w
     off = T_TRUE @ make_T(rot_z(np.radians(3.0)), np.array([0.3, -0.2, 0.0]))
     cameras = [np.array([8.0, 2.0]), np.array([8.3, 2.5]), np.array([8.6, 3.0])]
     unfitted = fly_seeing(room_with_walls, CandidatesRegistrar([off, T_WRONG]), cameras,
-                          LocalizerParams(surface_min_points=100, surface_refine_m=0.0))
+                          localizer_params(surface_min_points=100, surface_refine_m=0.0))
     assert unfitted.status == "ambiguous" and max(unfitted.judge.checks[-1][1]) < 0.9
     fitted = fly_seeing(room_with_walls, CandidatesRegistrar([off, T_WRONG]), cameras)
     assert fitted.status == "localized"
@@ -611,7 +612,7 @@ def test_the_check_is_retried_as_the_walls_come_into_view(room: SurfaceIndex) ->
     registrar = CandidatesRegistrar([half_turn @ T_TRUE, T_TRUE])
     model = corridor_model()
     rng = np.random.default_rng(5)
-    loc = Localizer(model, PoseGraph(), registrar, LocalizerParams(surface_min_points=100), surfaces=room)
+    loc = Localizer(model, PoseGraph(), registrar, localizer_params(surface_min_points=100), surfaces=room)
     sightings = sightings_from(model, make_T(np.eye(3), np.array([1.0, 0.0, 1.4])))[:2]
     statuses = []
     for k in range(8):
@@ -648,7 +649,7 @@ def fly_facing_doors(model: BuildingModel, room: SurfaceIndex, seen: tuple[str, 
     is appended to `estimates`, where given. `depth_offset` (k, xyz): keyframe k's depth points are that far off
     (CAD frame, m), as a biased stereo frame's are."""
     registrar = ModelRegistrar(model, min_landmarks=4, candidates_from=1)
-    params = params or LocalizerParams(surface_min_points=100)
+    params = params or localizer_params(surface_min_points=100)
     loc = Localizer(model, PoseGraph(), registrar, params, surfaces=room)
     rng = np.random.default_rng(8)
     for k in range(keyframes):
@@ -699,7 +700,7 @@ def test_a_door_seen_turned_is_turned_back_by_the_walls(room_with_walls: Surface
     hold it: the keyframe that localizes is fitted to them before the door is linked, and each later one from
     there (fitted after the link, each fit was refused as a turn too large, and the flight ended 14 deg off)."""
     model = doors_on_the_room(FOURTEEN_DOORS)
-    base = LocalizerParams(surface_min_points=100)
+    base = localizer_params(surface_min_points=100)
     loc = fly_facing_doors(model, room_with_walls, ("D03",), (9.0, 3.5), -np.pi / 2, base, seen_turn_deg=15.0,
                               keyframes=12)
     assert loc.status == "localized" and loc.links == {0: "D03"}
@@ -707,11 +708,11 @@ def test_a_door_seen_turned_is_turned_back_by_the_walls(room_with_walls: Surface
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.1
     assert rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T) < 1.0
     not_turned = fly_facing_doors(model, room_with_walls, ("D03",), (9.0, 3.5), -np.pi / 2,
-                                  replace(base, surface_turn_deg=0.0), seen_turn_deg=15.0, keyframes=12)
+                                  localizer_params(base, surface_turn_deg=0.0), seen_turn_deg=15.0, keyframes=12)
     assert not_turned.status != "localized" and not_turned.graph.T_cad_map() is None
     for surface_fit, turned_deg in ((False, (5.0, 90.0)), (True, (0.0, 1.0))):
         oriented = fly_facing_doors(model, room_with_walls, ("D03",), (9.0, 3.5), -np.pi / 2,
-                                    replace(base, cad_link_max_turn_deg=180.0, surface_fit=surface_fit),
+                                    localizer_params(base, cad_link_max_turn_deg=180.0, surface_fit=surface_fit),
                                     seen_turn_deg=15.0, keyframes=12)
         T_oriented = oriented.graph.T_cad_map()
         assert oriented.status == "localized" and T_oriented is not None
@@ -728,7 +729,7 @@ def test_two_doors_seen_turned_are_turned_back_by_the_walls(room_with_walls: Sur
     the two doors are linked (linked first, they pulled it 0.09 m and 1.6 deg off). Turning only candidates from
     one door, none fits."""
     model = doors_on_the_room(FOURTEEN_DOORS)
-    base = LocalizerParams(surface_min_points=100)
+    base = localizer_params(surface_min_points=100)
     estimates: list[Estimate] = []
     loc = fly_facing_doors(model, room_with_walls, seen, (9.0, 3.5), -np.pi / 2, base, seen_turn_deg=8.0,
                            keyframes=6, estimates=estimates)
@@ -741,7 +742,7 @@ def test_two_doors_seen_turned_are_turned_back_by_the_walls(room_with_walls: Sur
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
     assert rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T) < 0.5
     one_door_only = fly_facing_doors(model, room_with_walls, seen, (9.0, 3.5), -np.pi / 2,
-                                     replace(base, surface_turn_max_inliers=1), seen_turn_deg=8.0, keyframes=6)
+                                     localizer_params(base, surface_turn_max_inliers=1), seen_turn_deg=8.0, keyframes=6)
     assert one_door_only.status == "ambiguous" and one_door_only.graph.T_cad_map() is None
 
 
@@ -754,8 +755,8 @@ def test_the_keyframe_that_localizes_is_fitted_by_the_window_s_points(room_with_
     model = doors_on_the_room(FOURTEEN_DOORS)
 
     def first_pose_error_m(window_keyframes: int) -> float:
-        params = LocalizerParams(surface_min_points=100, min_sightings_to_register=4,
-                                 surface_window_keyframes=window_keyframes)
+        params = localizer_params(surface_min_points=100, min_sightings_to_register=4,
+                                  surface_window_keyframes=window_keyframes)
         estimates: list[Estimate] = []
         fly_facing_doors(model, room_with_walls, ("D03",), (9.0, 3.5), -np.pi / 2, params, keyframes=6,
                          estimates=estimates, depth_offset=(3, np.array([0.25, 0.0, 0.0])))
@@ -834,7 +835,7 @@ def test_a_far_doors_bearing_tells_apart_poses_the_walls_fit_alike() -> None:
     box.walls = WallVoxels.from_mesh(v, f[:8])
     near = [((7.0, 0.0), (0, 1)), ((5.0, 7.0), (0, -1))]  # D00 and its half-turned twin D01
     model = doors_on_the_room([*near, ((0.0, 3.5), (1, 0))])
-    params = LocalizerParams(surface_min_points=100)
+    params = localizer_params(surface_min_points=100)
     loc = fly_seeing_a_far_door(model, box, params)
     assert loc.status == "localized" and len(loc.landmarks) == 1
     T_cad_map = loc.graph.T_cad_map()
@@ -844,7 +845,7 @@ def test_a_far_doors_bearing_tells_apart_poses_the_walls_fit_alike() -> None:
     assert loc.far.explained(T_cad_map, loc.far.in_map(), newest) == 1.0
     second, best = sorted(loc.judge.checks[-1][1])[-2:]
     assert best - second < 0.05  # the walls alone fit the half-turn as well
-    without_far = fly_seeing_a_far_door(model, box, replace(params, far_range_m=params.max_range_m))
+    without_far = fly_seeing_a_far_door(model, box, localizer_params(params, far_range_m=params.landmarks.max_range_m))
     assert without_far.status == "ambiguous" and without_far.graph.T_cad_map() is None
     twins = doors_on_the_room([*near, ((0.0, 3.5), (1, 0)), ((12.0, 3.5), (-1, 0))])
     assert fly_seeing_a_far_door(twins, box, params).status == "ambiguous"
@@ -868,7 +869,7 @@ def test_a_candidate_a_few_degrees_off_still_explains_the_far_door_it_sees(off_d
     box = SurfaceIndex.from_mesh(v, f[:8], SurfaceParams(spacing_m=0.05))
     box.walls = WallVoxels.from_mesh(v, f[:8])
     model = doors_on_the_room([((7.0, 0.0), (0, 1)), ((5.0, 7.0), (0, -1)), ((0.0, 3.5), (1, 0))])
-    params = LocalizerParams(surface_min_points=100)
+    params = localizer_params(surface_min_points=100)
     loc = fly_seeing_a_far_door(model, box, params)
     T_cad_map = loc.graph.T_cad_map()
     assert T_cad_map is not None
@@ -883,10 +884,10 @@ def test_a_candidate_a_few_degrees_off_still_explains_the_far_door_it_sees(off_d
     newest = loc.graph.T_map_body(loc.graph.n_keyframes - 1)
     T_off = turned(sign * off_deg, camera)
     assert loc.far.explained(T_off, far, newest) == 1.0
-    loc.far.params = replace(params, far_turn_deg=0.0)
+    loc.far.params = replace(params.far, far_turn_deg=0.0)
     assert loc.far.explained(T_off, far, newest) == 0.0
     assert loc.far.explained(T_cad_map, far, newest) == 1.0
-    loc.far.params = params
+    loc.far.params = params.far
     half_turned = turned(180.0, np.array([6.0, 3.5, 0.0]))  # the box room's centre: its walls fit alike
     assert loc.far.explained(half_turned, far, newest) == 0.0
 
@@ -900,10 +901,10 @@ def test_the_walls_turn_back_a_pose_localized_degrees_off(room_with_walls: Surfa
     R = rot_z(np.radians(8.0))
     T_off = make_T(R, pivot - R @ pivot) @ T_TRUE  # 8 deg off about the flight's start
     cameras = [np.array([8.0 + 0.2 * k, 3.5 - 0.1 * k]) for k in range(10)]
-    base = LocalizerParams(surface_min_points=100, surface_refine_m=0.0)
+    base = localizer_params(surface_min_points=100, surface_refine_m=0.0)
     errors = []
-    never_settling = replace(base, surface_fit_settling_keyframes=0)
-    for params in (base, replace(base, surface_fit_settling_turn_deg=5.0), never_settling):
+    never_settling = localizer_params(base, surface_fit_settling_keyframes=0)
+    for params in (base, localizer_params(base, surface_fit_settling_turn_deg=5.0), never_settling):
         loc = fly_seeing(room_with_walls, CandidatesRegistrar([T_off], localized=True), cameras, params)
         T_cad_map = loc.graph.T_cad_map()
         assert loc.status == "localized" and T_cad_map is not None
@@ -926,8 +927,8 @@ def fly_placed(room: SurfaceIndex, cameras_cad: list[np.ndarray], placed_T_cad_m
     """Keyframes at `cameras_cad` (map frame T_TRUE's), `every_s` apart, seeing the room's walls and no door;
     each placed in a stored map as if by place recognition at T_cad_map = `placed_T_cad_map` (None: never)."""
     rng = np.random.default_rng(8)
-    loc = Localizer(corridor_model(), PoseGraph(), SilentRegistrar(), params or LocalizerParams(surface_min_points=100),
-                    surfaces=room)
+    params = params or localizer_params(surface_min_points=100)
+    loc = Localizer(corridor_model(), PoseGraph(), SilentRegistrar(), params, surfaces=room)
     for k, xy in enumerate(cameras_cad):
         T_cad_body = make_T(np.eye(3), np.array([xy[0], xy[1], 1.4]))
         T_map_body = np.linalg.inv(T_TRUE) @ T_cad_body
@@ -958,7 +959,7 @@ def test_placements_hold_the_pose_and_keep_the_status_alive(room_with_walls: Sur
     """Placed keyframes are CAD-linked measurements: 12 s with no door leaves the status `localized`, where
     one placement only would let it degrade (after `degraded_after_s`)."""
     cameras = [np.array([6.5 + 0.1 * k, 6.0 - 0.1 * k]) for k in range(13)]
-    params = LocalizerParams(surface_min_points=100, surface_fit=False)
+    params = localizer_params(surface_min_points=100, surface_fit=False)
     once = Localizer(corridor_model(), PoseGraph(), SilentRegistrar(), params, surfaces=room_with_walls)
     always = fly_placed(room_with_walls, cameras, T_TRUE, params)
     for k, xy in enumerate(cameras):
@@ -977,7 +978,7 @@ def test_doors_beyond_the_sighting_range_and_the_walls_localize(room_with_walls:
     model = doors_on_the_room(FOURTEEN_DOORS)
     runs = {}
     for resect in (True, False):
-        params = LocalizerParams(surface_min_points=100, max_range_m=2.0, far_resection=resect)
+        params = localizer_params(surface_min_points=100, max_range_m=2.0, far_resection=resect)
         registrar = ModelRegistrar(model, min_landmarks=4, candidates_from=1)
         loc = Localizer(model, PoseGraph(), registrar, params, surfaces=room_with_walls)
         rng = np.random.default_rng(3)

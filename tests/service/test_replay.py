@@ -266,8 +266,10 @@ def test_the_graph_section_reaches_the_localizer(tmp_path: Path) -> None:
     path.write_text("[graph]\ncad_link_max_turn_deg = 4.5\nsurface_turn_deg = 0.0\nassociate_m = 0.7\n"
                     "surface_retry_s = 2.5\nfar_range_m = 12.0\nfar_resection = false\n")
     params, _, _ = settings_from_config(load_config(path).graph)
-    assert (params.cad_link_max_turn_deg, params.surface_turn_deg, params.associate_m) == (4.5, 0.0, 0.7)
-    assert (params.surface_retry_s, params.far_range_m, params.far_resection) == (2.5, 12.0, False)
+    assert (params.anchor.cad_link_max_turn_deg, params.judge.surface_turn_deg, params.landmarks.associate_m) == \
+        (4.5, 0.0, 0.7)
+    assert (params.registration.surface_retry_s, params.landmarks.far_range_m, params.far.far_resection) == \
+        (2.5, 12.0, False)
 
 
 def test_the_vehicles_recorded_odometry_places_each_frame() -> None:

@@ -1,0 +1,185 @@
+"""Anchoring the map to the building model: registration attempts while exploring, keyframes placed in a stored
+map, and the status that follows.
+
+While not localized, the confirmed landmarks are registered to the model (the registrar, graph.registrar) when a
+landmark was confirmed since the last attempt, or, with the surface check, when `surface_retry_s` passed and more
+depth points came in: the walls decide as they are seen. With no landmark yet, candidate poses are resected from
+the doors seen beyond the sighting range (graph.far_window). The registrar's answer and candidates are weighed
+against the walls (graph.judge); where the walls confirm none of them, the next registrar's are (a stored map's
+few poses first, the whole model's after: `FirstOfRegistrar`). A pose taken anchors the graph, the anchoring
+keyframe is fitted to the walls (graph.surface_fit), and the registration's matches and then every landmark near
+a CAD feature are linked (graph.cad_links).
+
+Frames: map (the flight's odometry frame, z up), body, cad (the model's); T_cad_map maps map points into cad.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Protocol
+
+import numpy as np
+
+from macroloc.graph.cad_links import CadLinks
+from macroloc.graph.depth_window import DepthWindow
+from macroloc.graph.far_window import FarSightings
+from macroloc.graph.judge import Choice, Judge
+from macroloc.graph.landmark_map import LandmarkMap
+from macroloc.graph.params import AnchorParams, FarParams, RegistrationParams, StatusParams
+from macroloc.graph.posegraph import PoseGraph
+from macroloc.graph.registrar import Registrar
+from macroloc.graph.relocalize import Alignment
+
+log = logging.getLogger(__name__)
+
+
+class Fitter(Protocol):
+    """The keyframes' fits to the model's surfaces (graph.surface_fit)."""
+
+    def anchored_at(self, i: int) -> None: ...
+
+    def fit_newest(self, anchoring: bool = False) -> None: ...
+
+
+class Anchoring:
+    """The map's anchoring to the model and the status (see module doc)."""
+
+    def __init__(self, params: RegistrationParams, anchor: AnchorParams, far_params: FarParams,
+                 status: StatusParams, graph: PoseGraph, registrar: Registrar, judge: Judge, depth: DepthWindow,
+                 far: FarSightings, landmarks: LandmarkMap, links: CadLinks, fitter: Fitter) -> None:
+        self.params, self.anchor, self.far_params, self.status_params = params, anchor, far_params, status
+        self.graph, self.registrar, self.judge = graph, registrar, judge
+        self.depth, self.far, self.landmarks, self.links, self.fitter = depth, far, landmarks, links, fitter
+        self.status = "exploring"  # exploring | localized | ambiguous | degraded | lost
+        self.inliers = 0
+        self.registrations: list[tuple[int, str]] = []  # (stamp_ns, status) of every registration attempt
+        self.placed: list[int] = []  # keyframes placed in a stored map (place recognition) and taken
+        self._registered_with = 0
+        self._registered_at: tuple[int, int] = (0, 0)  # (stamp_ns, depth points) of the last registration
+
+    def confirmed(self) -> list[int]:
+        """The landmarks seen often enough (`min_sightings_to_register`) to take part in a registration."""
+        return self.landmarks.confirmed(self.params.min_sightings_to_register)
+
+    def can_check_surfaces(self) -> bool:
+        return self.judge.can_check(self.depth.n_points)
+
+    def should_register(self, stamp_ns: int) -> bool:
+        """While not localized: when a landmark was confirmed since the last attempt, or (with the surface
+        check) when `surface_retry_s` passed and more depth points came in: the walls decide as they are seen."""
+        if self.status not in ("exploring", "ambiguous"):
+            return False
+        n = len(self.confirmed())
+        if not self.can_check_surfaces():
+            return n >= self.registrar.min_landmarks and n > self._registered_with
+        last_ns, last_points = self._registered_at
+        retry_s = self.params.surface_retry_s
+        more_walls = (stamp_ns - last_ns) * 1e-9 >= retry_s and self.depth.n_points > last_points
+        if n < self.registrar.candidates_from:
+            return more_walls and self.far_params.far_resection and len(self.far) >= self.far_params.far_min_sightings
+        return n > self._registered_with or more_walls
+
+    def register(self, stamp_ns: int) -> None:
+        """Register the map's landmarks (or, with none, the far sightings) to the model; on success anchor the
+        graph to the CAD frame."""
+        keys = self.confirmed()
+        observed, corners = self.landmarks.observed(keys)
+        far = None if keys else self.far.in_map()  # resecting from far sightings: once for the attempt
+        result = self.registrar(observed, corners) if keys else self.far.resected(far)
+        self.judge.new_attempt()
+        choice = self._choose(result, stamp_ns)
+        # the walls confirm none of the candidates: the next registrar's, unless two of these fit the walls alike
+        # and the next one's candidates hold them (`Alignment.fallback_holds_these`): it cannot tell them apart
+        # either. Otherwise a fuller registrar may (the model's doors that a stored map lacks), or may answer
+        # 'localized' by itself.
+        while choice.T_cad_map is None and not (choice.rivals_fit and result.fallback_holds_these) \
+                and result.fallback is not None:
+            result = result.fallback()
+            choice = self._choose(result, stamp_ns)
+        T_cad_map, registrars = choice.T_cad_map, choice.registrars
+        far_sigmas = None
+        if T_cad_map is not None and not keys:
+            T_cad_map, far_sigmas = self.far.refined(T_cad_map, far)
+        self._registered_with = len(keys)
+        self._registered_at = (stamp_ns, self.depth.n_points)
+        self.inliers = result.inliers
+        if T_cad_map is None:
+            status = "exploring" if result.status == "not_localized" else "ambiguous"
+            self.registrations.append((stamp_ns, status))
+            self.status = status
+            log.info("registration of %d landmarks: %s (%d inliers)", len(keys), result.status, result.inliers)
+            return
+        self.registrations.append((stamp_ns, "localized"))
+        log.info("localized with %d inliers of %d landmarks (%d matches)", result.inliers, len(keys),
+                 len(result.matches))
+        self.graph.add_anchor(np.linalg.inv(T_cad_map))
+        self.fitter.anchored_at(self.graph.n_keyframes - 1)
+        self.fitter.fit_newest(anchoring=True)  # at the pose the walls chose, before the doors' links
+        if not keys:  # resected from far doors: their bearings hold the pose while no door does
+            self._add_far_pose(T_cad_map, far_sigmas)
+        if registrars:  # the registrar's own pose (fitted to the walls): its matches hold
+            for j, fid in result.matches:
+                self.links.link(j, fid, T_cad_map)
+        self.status = "localized"
+        self.links.last_link_ns = stamp_ns
+        self.graph.update(extra_iterations=2)
+        self.links.link_new(self.landmarks.landmarks, stamp_ns)
+
+    def _choose(self, result: Alignment, stamp_ns: int) -> Choice:
+        """The registrar's answer and candidates weighed against the walls (graph.judge); without enough depth
+        points only the registrar's own 'localized' counts."""
+        T_reg = result.T_cad_map if result.status == "localized" else None
+        if not self.can_check_surfaces():
+            return Choice(T_reg, T_reg is not None)
+        points_map, origins_map = self.depth.points_map()
+        T_newest = self.graph.T_map_body(self.graph.n_keyframes - 1)
+        return self.judge.choose(result, stamp_ns, points_map, origins_map,
+                                 self.landmarks.centres_map(self.confirmed()),
+                                 lambda T_best, rivals: self.far.not_contradicted(T_best, rivals, T_newest))
+
+    def _add_far_pose(self, T_cad_map: np.ndarray, sigmas: np.ndarray | None) -> None:
+        """The newest keyframe's pose resected from far sightings (`FarSightings.refined`) as a measurement in the
+        CAD frame: its horizontal position and heading with the bearings' sigmas (`sigmas`, [m, rad]; none where
+        they were too few), its height with `far_height_sigma_m` (the far doors' elevations: the walls do not see
+        it), roll and pitch left to gravity. Without it, fits to walls far away would move the pose off the
+        bearings' and, with no door to hold it, its height would wander
+        (docs/measurements.md, "The far resection's pose holds the keyframe")."""
+        i = self.graph.n_keyframes - 1
+        information = np.zeros((6, 6))  # [rot; trans], body tangent
+        if sigmas is not None:
+            information[2, 2] = sigmas[1] ** -2.0
+            information[3, 3] = information[4, 4] = sigmas[0] ** -2.0
+        information[5, 5] = self.far_params.far_height_sigma_m ** -2.0
+        self.graph.add_cad_pose(i, T_cad_map @ self.graph.T_map_body(i), information)
+
+    def place(self, i: int, stamp_ns: int, T_cad_body: np.ndarray) -> None:
+        """Keyframe i placed in a stored map (its pose there times the map's T_cad_map): before the graph is
+        anchored, it anchors it, unless the walls contradict it (`SurfaceJudge.contradicts`); then (and once
+        anchored) it enters the graph as a measured T_cad_body, robustly, and counts as a CAD-linked sighting for
+        the status: the stored map's keyframes were linked to the model."""
+        if not self.graph.has_anchor:
+            T_cad_map = T_cad_body @ np.linalg.inv(self.graph.T_map_body(i))
+            if self.can_check_surfaces() and self.judge.contradicts(T_cad_map, *self.depth.points_map()):
+                return
+            log.info("localized by place recognition in the stored map")
+            self.graph.add_anchor(np.linalg.inv(T_cad_map))
+            self.fitter.anchored_at(i)
+            self.registrations.append((stamp_ns, "localized"))
+            self.status = "localized"
+        a = self.anchor
+        sigmas = np.r_[np.full(3, np.radians(a.placed_sigma_deg)), np.full(3, a.placed_sigma_m)]  # [rot; trans]
+        self.graph.add_cad_pose(i, T_cad_body, np.diag(sigmas**-2.0))
+        self.placed.append(i)
+        self.links.last_link_ns = stamp_ns
+        self.graph.update(extra_iterations=2)
+        self.links.link_new(self.landmarks.landmarks, stamp_ns)
+
+    def update_status(self, stamp_ns: int) -> None:
+        """Localized, degraded or lost by how long no CAD-linked landmark was seen (`StatusParams`)."""
+        last_ns = self.links.last_link_ns
+        if self.status not in ("localized", "degraded", "lost") or last_ns is None:
+            return
+        silent_s = (stamp_ns - last_ns) * 1e-9
+        p = self.status_params
+        self.status = "lost" if silent_s > p.lost_after_s else "degraded" if silent_s > p.degraded_after_s \
+            else "localized"
