@@ -33,8 +33,9 @@ def register(app: typer.Typer) -> None:
         steps: int = typer.Option(2400, "--steps", min=1, help="Training steps (batches of 16)."),
         threads: int = typer.Option(2, "--threads", min=1, help="CPU threads for training."),
         facades: Path | None = typer.Option(None, "--facades", help="Real door/window photos with YOLO labels "
-                                            "(images/, labels/; default: ../shared/data/images/facades); half of "
-                                            "each batch, and the held-out test split reported."),
+                                            "(images/, labels/; default: ../shared/data/images/facades); with the "
+                                            "real indoor photos (../shared/data/images/indoor_doors, where present) "
+                                            "half of each batch, and the held-out test splits reported."),
         json_out: bool = typer.Option(False, "--json", help="Print {model, frames, doors, windows, figures}."),
     ) -> None:
         """Adapt the door/window detector to one building: render seeded flights through its model, label every

@@ -24,7 +24,8 @@ def register(app: typer.Typer) -> None:
         JSON: {"features": [{"type", "score", "box_xyxy", "corners_cam": [\\[x, y, z] x 4], ...}], "rejected": [...]};
         corners in the left camera's optical frame (x right, y down, z forward), metres, TL, TR, BR, BL;
         "truncated": {"sideways", "vertically"} where the opening may run on past the image border (its corners on
-        that side are then the border's, not the opening's).
+        that side are then the border's, not the opening's). A rejected detection carries the detector's own
+        "truncated" (bool: its box within 2 px of the image border) beside its "reason".
         """
         import cv2
         import numpy as np
