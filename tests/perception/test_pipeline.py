@@ -64,7 +64,7 @@ def test_implausible_shapes_are_rejected_with_a_reason():
 
 def test_runtime_needs_neither_torch_nor_the_service():
     code = ("import sys, perception.pipeline, perception.detector, perception.calib, perception.evaluate, "
-            "perception.train, perception.trainset, perception.draw; "
+            "perception.train, perception.trainset, perception.draw, perception.detector_eval; "
             "bad = [m for m in ('torch', 'zenoh', 'service', 'typer') if m in sys.modules]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
