@@ -1,11 +1,13 @@
 """The detector's figures on the held-out real test photos (never trained on), new beside old, from one run.
 
-    python -m bench.eval_detector [--old /tmp/old/detector.onnx] [--json out/detector/compare.json]
+    python -m bench.eval_detector [--old /tmp/old/detector.onnx] [--rendered DIR] [--json out/detector/compare.json]
 
 Indoor test split: `perception.trainset.split_indoor` (seed 0, by source photo); facade test split: img_n with
 n % 5 == 0. Per model: door AP50 / AP30 and precision/recall at the model's own threshold, doors by height fraction
 and doors cut by the border (indoor), windows and doors on the facades. The old model defaults to the shipped one
-before issue 32 (from git). A benchmark: it prints figures, it asserts nothing.
+before issue 32 (from git). `--rendered DIR` adds rendered frames with YOLO labels (0 door, 1 window) of a building
+never trained on, e.g. Office_A exported by `sim.export.render_training_frames`. A benchmark: it prints figures, it
+asserts nothing.
 """
 
 from __future__ import annotations
@@ -23,16 +25,19 @@ SHARED = Path(os.environ.get("MACROLOC_SHARED_DATA", ROOT.parent / "shared" / "d
 TARGET_AP50 = 0.85
 
 
-def score(model: Path, threads: int) -> dict[str, object]:
+def score(model: Path, threads: int, rendered: Path | None) -> dict[str, object]:
     from perception import detector_eval
     from perception.detector import Detector
-    from perception.train import load_facades, load_indoor
+    from perception.train import load_facades, load_indoor, load_sim
 
     detector = Detector(model, threads=threads)
     t = detector.spec.score_threshold
     out: dict[str, object] = {"threshold": t}
-    for name, samples in (("indoor_test", load_indoor(SHARED / "indoor_doors", 0)["test"]),
-                          ("facade_test", load_facades(SHARED / "facades", 0)["test"])):
+    parts = [("indoor_test", load_indoor(SHARED / "indoor_doors", 0)["test"]),
+             ("facade_test", load_facades(SHARED / "facades", 0)["test"])]
+    if rendered is not None:
+        parts.append(("rendered", load_sim([rendered])))
+    for name, samples in parts:
         dets, truths = detector_eval.detect_all(detector, samples)
         out[name] = detector_eval.figures(samples, dets, truths, t, subsets=name == "indoor_test")
     return out
@@ -53,6 +58,8 @@ def lines(name: str, fig: dict) -> list[str]:  # type: ignore[type-arg]
         rows.append(f"    door {k:<10} {_pr(v)}")
     for k in ("window", "door"):
         rows.append(f"  facade {k:<6} {_pr(fac[k])}")
+    for k in ("door", "window") if "rendered" in fig else ():
+        rows.append(f"  rendered {k:<6} {_pr(fig['rendered'][k])}")
     return rows
 
 
@@ -61,6 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--new", type=Path, default=None, help="ONNX model (default: the shipped one)")
     ap.add_argument("--old", type=Path, default=None)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--rendered", type=Path, default=None, help="folder of rendered frames (images/, labels/)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     from perception.detector import DEFAULT_MODEL
@@ -69,7 +77,7 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         old = args.old or old_from_git(Path(tmp))
         for name, path in [("new", args.new or DEFAULT_MODEL)] + ([("old", old)] if old else []):
-            report[name] = score(path, args.threads)
+            report[name] = score(path, args.threads, args.rendered)
             print("\n".join(lines(name, report[name])), flush=True)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
