@@ -38,10 +38,10 @@ def peak_rss_mb(pid: int) -> float:
 
 def main() -> None:
     sys.path.insert(0, str(ROOT))
-    from graph.bim import load_building
-    from service.recording import encode_image
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
-    from service.zenoh_io import session_config
+    from macroloc.graph.bim import load_building
+    from macroloc.service.recording import encode_image
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.zenoh_io import session_config
     from tests.perception.helpers import png_bomb
     from tests.service.helpers import FakeFlight, free_port, loopback, wait_for, yaw_T
     from tests.service.test_hostile_inputs import _frame

@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
-    from perception.detector import DEFAULT_MODEL, Detector
+    from macroloc.perception.detector import DEFAULT_MODEL, Detector
 
     cv2.setNumThreads(args.threads)
     frame = load_frame()

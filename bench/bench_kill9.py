@@ -37,9 +37,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT))
-    from graph.bim import load_building
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
-    from service.zenoh_io import session_config
+    from macroloc.graph.bim import load_building
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.zenoh_io import session_config
     from tests.service.helpers import FakeFlight, free_port, loopback, wait_for, yaw_T
     from tests.service.test_service import Collector, fly
 

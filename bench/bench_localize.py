@@ -32,7 +32,7 @@ def bench_knn(centroids: np.ndarray) -> list[str]:
 def bench_matching() -> list[str]:
     import cv2
 
-    from graph.descriptor import _as_bytes, match_top_k
+    from macroloc.graph.descriptor import _as_bytes, match_top_k
 
     rng = np.random.default_rng(0)
     out = []
@@ -52,9 +52,9 @@ def bench_matching() -> list[str]:
 
 
 def bench_localize(building: Path, n: int = 60) -> list[str]:
-    from graph.bim import load_building
-    from graph.evaluation import ScenarioParams, make_scenario
-    from graph.registration import register
+    from macroloc.graph.bim import load_building
+    from macroloc.graph.evaluation import ScenarioParams, make_scenario
+    from macroloc.graph.registration import register
 
     model = load_building(building)
     out = []
@@ -78,7 +78,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--building", type=Path, default=ROOT / "data" / "buildings" / "office_a.ifc")
     args = ap.parse_args()
-    from graph.bim import load_building
+    from macroloc.graph.bim import load_building
 
     model = load_building(args.building)
     print(f"# bench_localize on {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")

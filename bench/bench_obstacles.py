@@ -24,8 +24,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def depth_points(building: Path, n_frames: int, stride: int) -> tuple[list[np.ndarray], list[np.ndarray], float]:
     """CAD-frame points of every stride-th pixel of the rendered depth along a flight, with camera origins."""
-    from sim.flight import FlightParams
-    from sim.simulator import SimulationParams, Simulator
+    from macroloc.sim.flight import FlightParams
+    from macroloc.sim.simulator import SimulationParams, Simulator
 
     sim = Simulator(building, SimulationParams(seed=1, flight=FlightParams(duration_s=30.0)))
     cam = sim.params.camera
@@ -46,7 +46,7 @@ def depth_points(building: Path, n_frames: int, stride: int) -> tuple[list[np.nd
 
 
 def bench(building: Path, n_frames: int, stride: int) -> list[str]:
-    from service.planning_grid import ObstacleLayer, OccupancyGrid
+    from macroloc.service.planning_grid import ObstacleLayer, OccupancyGrid
 
     clouds, origins, z_fly = depth_points(building, n_frames, stride)
     cell_m = 0.2

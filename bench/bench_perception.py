@@ -24,8 +24,8 @@ BUDGET_MS = 1000.0 / 30.0
 
 
 def load_pair():  # type: ignore[no-untyped-def]
-    from perception.calib import StereoRig, read_stereo_rig
-    from perception.pipeline import StereoPair
+    from macroloc.perception.calib import StereoRig, read_stereo_rig
+    from macroloc.perception.pipeline import StereoPair
 
     if PAIR.exists():
         rig = read_stereo_rig(PAIR / "stereo_left.yaml", PAIR / "stereo_right.yaml")
@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     cv2.setNumThreads(2)
-    from perception.pipeline import Perception
+    from macroloc.perception.pipeline import Perception
 
     chain = Perception.create(threads=2)
     pair, source = load_pair()
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> None:
             laps.setdefault(k, []).append(v)
     # A frame with one door: the hand-drawn double-door box of bench.eval_perception_real (the detector misses it).
     from bench.eval_perception_real import HAND_BOX_PX
-    from perception.detector import Detection
+    from macroloc.perception.detector import Detection
 
     door = [Detection("door", 1.0, HAND_BOX_PX["50"])]
     laps_door: dict[str, list[float]] = {}

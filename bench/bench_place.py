@@ -24,15 +24,15 @@ ROOT = Path(__file__).resolve().parents[1]
 def main() -> None:
     import cv2
 
-    from graph.bim import load_building
-    from perception.calib import StereoRig
-    from perception.place import PlaceRecognizer
-    from service.cli import main as cli
-    from service.places import KeyframePlaces
-    from service.planning_grid import surfaces_for
-    from service.recording import decode_image, matrix_from_pose, read_flight
-    from service.replay import replay
-    from service.replay_sources import TruthSource
+    from macroloc.graph.bim import load_building
+    from macroloc.perception.calib import StereoRig
+    from macroloc.perception.place import PlaceRecognizer
+    from macroloc.service.cli import main as cli
+    from macroloc.service.places import KeyframePlaces
+    from macroloc.service.planning_grid import surfaces_for
+    from macroloc.service.recording import decode_image, matrix_from_pose, read_flight
+    from macroloc.service.replay import replay
+    from macroloc.service.replay_sources import TruthSource
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flight", type=Path)

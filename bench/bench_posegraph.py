@@ -16,12 +16,12 @@ import time
 import numpy as np
 
 from bench.common import row, time_ms
-from graph.features import BuildingModel, MacroFeature
-from graph.landmarks import feature_frame_cad
-from graph.localizer import Localizer, Sighting
-from graph.posegraph import PoseGraph
-from graph.registrar import StoredMapRegistrar
-from graph.relocalize import KnownRect
+from macroloc.graph.features import BuildingModel, MacroFeature
+from macroloc.graph.landmarks import feature_frame_cad
+from macroloc.graph.localizer import Localizer, Sighting
+from macroloc.graph.posegraph import PoseGraph
+from macroloc.graph.registrar import StoredMapRegistrar
+from macroloc.graph.relocalize import KnownRect
 
 LOOP_X_M, LOOP_Y_M, STEP_M = 40.0, 20.0, 0.3
 

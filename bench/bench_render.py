@@ -23,8 +23,8 @@ TARGET_FPS = 60.0
 
 
 def bench_render(building: Path, n_frames: int) -> list[str]:
-    from sim.flight import FlightParams
-    from sim.simulator import SimulationParams, Simulator
+    from macroloc.sim.flight import FlightParams
+    from macroloc.sim.simulator import SimulationParams, Simulator
 
     t0 = time.perf_counter()
     sim = Simulator(building, SimulationParams(seed=1, flight=FlightParams(duration_s=60.0)))
@@ -56,8 +56,8 @@ def bench_render(building: Path, n_frames: int) -> list[str]:
 
 
 def bench_flight(building: Path, flight_s: float) -> list[str]:
-    from service.commands.simulate import simulate_to_mcap
-    from service.config import load_config
+    from macroloc.service.commands.simulate import simulate_to_mcap
+    from macroloc.service.config import load_config
 
     cfg = load_config(None)
     cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"duration_s": flight_s})})

@@ -24,10 +24,10 @@ BUILDINGS = {"Office_A": ROOT / "data/buildings/office_a.ifc",
 
 
 def main() -> None:
-    from graph.bim import load_building
-    from service.replay import replay
-    from service.replay_sources import TruthSource
-    from service.truth_flight import write_truth_flight
+    from macroloc.graph.bim import load_building
+    from macroloc.service.replay import replay
+    from macroloc.service.replay_sources import TruthSource
+    from macroloc.service.truth_flight import write_truth_flight
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0,1,2")

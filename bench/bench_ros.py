@@ -23,15 +23,15 @@ from pathlib import Path
 import numpy as np
 
 from bench.bench_zenoh import _free_port, stereo_images
-from sim.vehicle import level_pose
+from macroloc.sim.vehicle import level_pose
 
 ROOT = Path(__file__).resolve().parents[1]
 OFFICE = ROOT / "data" / "buildings" / "office_a.ifc"
 
 
 def _observations(model, T_cad_body: np.ndarray, stamp_ns: int, rng: np.random.Generator):  # noqa: ANN001, ANN202
-    from service.recording import vector3
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.recording import vector3
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     msg = pb.ObservedFeatures()
     msg.header.stamp_ns, msg.header.frame_id = stamp_ns, "body"
@@ -48,12 +48,12 @@ def _observations(model, T_cad_body: np.ndarray, stamp_ns: int, rng: np.random.G
 def run(frames: int, rate_hz: float = 30.0) -> dict:
     import zenoh
 
-    from graph.bim import load_building
-    from service.config import ZenohConfig
-    from service.recording import encode_image, pose_from_matrix, vector3
-    from service.ros_types import from_cdr, stamp_ns_of
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
-    from service.zenoh_io import Keys, declare_publisher, session_config
+    from macroloc.graph.bim import load_building
+    from macroloc.service.config import ZenohConfig
+    from macroloc.service.recording import encode_image, pose_from_matrix, vector3
+    from macroloc.service.ros_types import from_cdr, stamp_ns_of
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.zenoh_io import Keys, declare_publisher, session_config
 
     model = load_building(OFFICE)
     port = _free_port()

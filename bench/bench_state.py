@@ -26,9 +26,9 @@ NEW_PER_SAVE = 10  # views made between two saves (5 s of flight at ~1 m/s, one 
 def main() -> None:
     from scipy.spatial.transform import Rotation
 
-    from graph.mapstore import KeyframeView, StoredMap, carried_views
-    from service.state import MapStore, view_to_wire
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
+    from macroloc.service.state import MapStore, view_to_wire
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     rng = np.random.default_rng(0)
 

@@ -38,7 +38,7 @@ def _free_port() -> int:
 def stereo_images() -> tuple[np.ndarray, np.ndarray, str]:
     """A 640x480 BGR stereo pair: rendered in the office if the simulator works here, else synthetic texture."""
     try:
-        from sim.simulator import SimulationParams, Simulator
+        from macroloc.sim.simulator import SimulationParams, Simulator
 
         sim = Simulator(ROOT / "data" / "buildings" / "office_a.ifc", SimulationParams(seed=1))
         frame = sim.render_at(30, 1.0)
@@ -56,10 +56,10 @@ def run(pipeline: str, frames: int, rates_hz: list[float]) -> dict:
     each rate = frames answered / time; sustained fps = the best throughput with >= 95 % of frames answered."""
     import zenoh
 
-    from service.config import ZenohConfig
-    from service.recording import encode_image, pose_from_matrix
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
-    from service.zenoh_io import Keys, declare_publisher, session_config
+    from macroloc.service.config import ZenohConfig
+    from macroloc.service.recording import encode_image, pose_from_matrix
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.zenoh_io import Keys, declare_publisher, session_config
 
     port = _free_port()
     env = dict(os.environ, MACROLOC_SERVICE__PERCEPTION=str(pipeline == "perception").lower(),

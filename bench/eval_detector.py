@@ -26,9 +26,9 @@ TARGET_AP50 = 0.85
 
 
 def score(model: Path, threads: int, rendered: Path | None) -> dict[str, object]:
-    from perception import detector_eval
-    from perception.detector import Detector
-    from perception.train import load_facades, load_indoor, load_sim
+    from macroloc.perception import detector_eval
+    from macroloc.perception.detector import Detector
+    from macroloc.perception.train import load_facades, load_indoor, load_sim
 
     detector = Detector(model, threads=threads)
     t = detector.spec.score_threshold
@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rendered", type=Path, default=None, help="folder of rendered frames (images/, labels/)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    from perception.detector import DEFAULT_MODEL
+    from macroloc.perception.detector import DEFAULT_MODEL
 
     report = {}
     with tempfile.TemporaryDirectory() as tmp:

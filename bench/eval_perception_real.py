@@ -28,10 +28,10 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "perception")
     args = ap.parse_args(argv)
-    from perception.calib import read_stereo_rig
-    from perception.detector import Detection
-    from perception.draw import draw_features
-    from perception.pipeline import Perception, StereoPair
+    from macroloc.perception.calib import read_stereo_rig
+    from macroloc.perception.detector import Detection
+    from macroloc.perception.draw import draw_features
+    from macroloc.perception.pipeline import Perception, StereoPair
 
     rig = read_stereo_rig(PAIR / "stereo_left.yaml", PAIR / "stereo_right.yaml")
     chain = Perception.create()

@@ -41,19 +41,19 @@ def order_tl_tr_br_bl(corners_cam: np.ndarray, corners_px: np.ndarray) -> np.nda
 
 
 def _iou(a, b) -> float:  # type: ignore[no-untyped-def]
-    from perception.evaluate import iou_xyxy
+    from macroloc.perception.evaluate import iou_xyxy
 
     return float(iou_xyxy(np.asarray([a], float), np.asarray([b], float))[0, 0])
 
 
 def run(building: Path, seeds: list[int], every: int, duration_s: float,
         model: Path | None = None) -> dict[str, object]:
-    from perception.calib import StereoRig
-    from perception.detector import Detection
-    from perception.evaluate import GroundTruth, pr_curve
-    from perception.pipeline import Perception, StereoPair
-    from sim.flight import FlightParams
-    from sim.simulator import SimulationParams, Simulator
+    from macroloc.perception.calib import StereoRig
+    from macroloc.perception.detector import Detection
+    from macroloc.perception.evaluate import GroundTruth, pr_curve
+    from macroloc.perception.pipeline import Perception, StereoPair
+    from macroloc.sim.flight import FlightParams
+    from macroloc.sim.simulator import SimulationParams, Simulator
 
     chain = Perception.create(model)
     errors: dict[str, dict[str, list[float]]] = {"detector": {}, "oracle_boxes": {}}

@@ -5,7 +5,7 @@ written as a left image with YOLO labels (0 door, 1 window) by `sim.export.YoloE
 
 Office_A is kept out: it is the building "not used in training" on which `bench.eval_perception_sim` scores the
 detector on rendered frames. Only the exported frames are rendered (no MCAP), which is ~10x faster than
-`macroloc simulate --yolo`. Called by `python -m perception.train` when its rendered-frames folder is missing.
+`macroloc simulate --yolo`. Called by `python -m macroloc.perception.train` when its rendered-frames folder is missing.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 
 def export(out: Path, buildings: tuple[str, ...] = TRAIN_BUILDINGS, seeds: tuple[int, ...] = SEEDS,
            duration_s: float = 40.0, every: int = 6) -> dict[str, int]:
-    from sim.export import render_training_frames
+    from macroloc.sim.export import render_training_frames
 
     totals = {"images": 0, "door": 0, "window": 0}
     for name in buildings:

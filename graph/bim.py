@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.errors import BuildingError
-from graph.features import BuildingModel, MacroFeature
+from macroloc.graph.errors import BuildingError
+from macroloc.graph.features import BuildingModel, MacroFeature
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ def load_building(path: str | Path, mesh_rules: dict | None = None, use_cache: b
     if suffix not in IFC_SUFFIXES | MESH_SUFFIXES:
         raise BuildingError(f"unsupported building model type {suffix!r} (IFC, or a mesh: OBJ, GLB, DAE, ...)")
     if suffix in IFC_SUFFIXES:
-        from graph.bim_ifc import check_complete_step
+        from macroloc.graph.bim_ifc import check_complete_step
 
         check_complete_step(path)  # before the cache: a truncated file must never be answered from it
     sha = file_sha256(path)
@@ -76,11 +76,11 @@ def load_building(path: str | Path, mesh_rules: dict | None = None, use_cache: b
         except (ValueError, KeyError):
             log.warning("ignoring unreadable cache file %s", cached)
     if suffix in IFC_SUFFIXES:
-        from graph.bim_ifc import read_ifc_features
+        from macroloc.graph.bim_ifc import read_ifc_features
 
         features, report = read_ifc_features(path)
     else:
-        from graph.bim_mesh import read_mesh_features
+        from macroloc.graph.bim_mesh import read_mesh_features
 
         features, report = read_mesh_features(path, mesh_rules)
     features, merged = merge_duplicates(features)

@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from graph.errors import BuildingError
-from graph.features import FeatureType, MacroFeature
-from graph.rectangle import Rectangle, least_width_direction, opening_rectangle
+from macroloc.graph.errors import BuildingError
+from macroloc.graph.features import FeatureType, MacroFeature
+from macroloc.graph.rectangle import Rectangle, least_width_direction, opening_rectangle
 
 log = logging.getLogger(__name__)
 

@@ -29,9 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from graph.errors import BuildingError
-from graph.features import FeatureType, MacroFeature
-from graph.rectangle import opening_rectangle
+from macroloc.graph.errors import BuildingError
+from macroloc.graph.features import FeatureType, MacroFeature
+from macroloc.graph.rectangle import opening_rectangle
 
 log = logging.getLogger(__name__)
 

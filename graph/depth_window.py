@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from graph.rigid import apply
+from macroloc.graph.rigid import apply
 
 
 class DepthWindow:

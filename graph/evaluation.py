@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from graph.features import BuildingModel
-from graph.observations import Observation, ObservationSet
-from graph.registration import RegistrationResult, register
-from graph.rigid import apply, invert, make_T, rot_z, rotation_angle_deg
+from macroloc.graph.features import BuildingModel
+from macroloc.graph.observations import Observation, ObservationSet
+from macroloc.graph.registration import RegistrationResult, register
+from macroloc.graph.rigid import apply, invert, make_T, rot_z, rotation_angle_deg
 
 SUCCESS_ROT_DEG, SUCCESS_TRANS_M, WRONG_TRANS_M = 2.0, 0.15, 0.5
 OTHER = {"door": "window", "window": "door"}

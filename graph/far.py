@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from graph.rigid import rot_z
+from macroloc.graph.rigid import rot_z
 
 
 def resection_candidates(camera_map: np.ndarray, centroids_map: np.ndarray, features_a_cad: np.ndarray,

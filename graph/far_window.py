@@ -17,11 +17,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from graph.far import refined_by_bearings, resection_candidates
-from graph.features import CentroidsByType
-from graph.params import LocalizerParams
-from graph.relocalize import Alignment, distinct_poses
-from graph.rigid import apply, make_T, rot_z
+from macroloc.graph.far import refined_by_bearings, resection_candidates
+from macroloc.graph.features import CentroidsByType
+from macroloc.graph.params import LocalizerParams
+from macroloc.graph.relocalize import Alignment, distinct_poses
+from macroloc.graph.rigid import apply, make_T, rot_z
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ from typing import Literal
 
 import numpy as np
 
-from graph.errors import UserInputError
+from macroloc.graph.errors import UserInputError
 
 FeatureType = Literal["door", "window"]
 FEATURE_TYPES: tuple[FeatureType, ...] = ("door", "window")

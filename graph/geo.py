@@ -111,7 +111,7 @@ def read_geo_reference(path: Path) -> GeoReference | None:
     """The geo-reference of an IFC file (module doc), or None where it has none (or it is not an IFC file)."""
     if Path(path).suffix.lower() != ".ifc":
         return None
-    from graph.bim_ifc import open_ifc
+    from macroloc.graph.bim_ifc import open_ifc
 
     return geo_reference_of(open_ifc(Path(path)))
 

@@ -20,11 +20,11 @@ from typing import Generic, NamedTuple, TypeVar
 
 import numpy as np
 
-from graph.features import CentroidsByType
-from graph.params import LocalizerParams
-from graph.relocalize import Alignment
-from graph.rigid import apply, make_T, rot_z, rotation_angle_deg
-from graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surfaces
+from macroloc.graph.features import CentroidsByType
+from macroloc.graph.params import LocalizerParams
+from macroloc.graph.relocalize import Alignment
+from macroloc.graph.rigid import apply, make_T, rot_z, rotation_angle_deg
+from macroloc.graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surfaces
 
 log = logging.getLogger(__name__)
 V = TypeVar("V")

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graph.rigid import rotation_angle_rad
+from macroloc.graph.rigid import rotation_angle_rad
 
 
 @dataclass(frozen=True)

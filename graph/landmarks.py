@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from graph.features import MacroFeature
+from macroloc.graph.features import MacroFeature
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 FLIP_ABOUT_UP = np.diag([-1.0, -1.0, 1.0, 1.0])  # rotation by pi about the rectangle's z axis

@@ -21,19 +21,19 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from graph.depth_window import DepthWindow
-from graph.far_window import FarSightings
-from graph.features import BuildingModel, CentroidsByType
-from graph.judge import Choice, SurfaceJudge
-from graph.landmarks import closer_flip, feature_frame_cad, is_vertical, observed_frame
-from graph.mapstore import KeyframeView, StoredLandmark, StoredMap
-from graph.params import LocalizerParams
-from graph.posegraph import CAD_LINK_POSITION_SIGMAS, CAD_LINK_SIGMAS, PoseGraph
-from graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
-from graph.relocalize import Alignment, KnownRect, ObservedRect
-from graph.rigid import apply, levelled, rotation_angle_deg
-from graph.sightings import Landmark, Sighting
-from graph.surfaces import SurfaceIndex, align_to_surfaces, band_points, floor_points
+from macroloc.graph.depth_window import DepthWindow
+from macroloc.graph.far_window import FarSightings
+from macroloc.graph.features import BuildingModel, CentroidsByType
+from macroloc.graph.judge import Choice, SurfaceJudge
+from macroloc.graph.landmarks import closer_flip, feature_frame_cad, is_vertical, observed_frame
+from macroloc.graph.mapstore import KeyframeView, StoredLandmark, StoredMap
+from macroloc.graph.params import LocalizerParams
+from macroloc.graph.posegraph import CAD_LINK_POSITION_SIGMAS, CAD_LINK_SIGMAS, PoseGraph
+from macroloc.graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
+from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
+from macroloc.graph.rigid import apply, levelled, rotation_angle_deg
+from macroloc.graph.sightings import Landmark, Sighting
+from macroloc.graph.surfaces import SurfaceIndex, align_to_surfaces, band_points, floor_points
 
 __all__ = ["Estimate", "Landmark", "Localizer", "LocalizerParams", "Sighting", "model_registrar", "stored_registrar"]
 

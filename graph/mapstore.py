@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from graph.errors import UserInputError
-from graph.features import BuildingModel
-from graph.landmarks import feature_frame_cad
-from graph.relocalize import KnownRect
+from macroloc.graph.errors import UserInputError
+from macroloc.graph.features import BuildingModel
+from macroloc.graph.landmarks import feature_frame_cad
+from macroloc.graph.relocalize import KnownRect
 
 MAP_VERSION = 2
 VIEW_SPACING_M, VIEW_SPACING_DEG = 0.5, 15.0  # one view of a place will do within this of another

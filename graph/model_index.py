@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from graph.descriptor import DescriptorTables, build_tables, describe
-from graph.features import FEATURE_TYPES, BuildingModel, MacroFeature
+from macroloc.graph.descriptor import DescriptorTables, build_tables, describe
+from macroloc.graph.features import FEATURE_TYPES, BuildingModel, MacroFeature
 
 TYPE_SEPARATION_M = 1.0e4  # the type axis of the lifted k-d tree: farther than any real distance
 
@@ -100,7 +100,7 @@ def index_for(model: BuildingModel) -> ModelIndex:
     """
     if model.sha256 in _CACHE:
         return _CACHE[model.sha256]
-    from graph.bim import cache_dir, cache_key
+    from macroloc.graph.bim import cache_dir, cache_key
 
     key = cache_key(model.sha256, {"kind": "descriptor-tables", "n": len(model.features)})
     path = cache_dir() / f"tables-{key}.npz"

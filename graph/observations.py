@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graph.errors import UserInputError
-from graph.features import FEATURE_TYPES
+from macroloc.graph.errors import UserInputError
+from macroloc.graph.features import FEATURE_TYPES
 
 MAX_COORD_M = 1e5  # 100 km: no building's map frame reaches it; beyond it the arithmetic loses the centimetres
 MAX_FEATURES = 10_000  # more than the doors and windows of any one view of a building: refused, not searched

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from graph.rigid import levelled
+from macroloc.graph.rigid import levelled
 
 log = logging.getLogger(__name__)
 

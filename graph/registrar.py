@@ -15,9 +15,9 @@ from typing import Protocol
 
 import numpy as np
 
-from graph.features import BuildingModel
-from graph.landmarks import feature_frame_cad
-from graph.relocalize import Alignment, KnownRect, ObservedRect, align_rectangles
+from macroloc.graph.features import BuildingModel
+from macroloc.graph.landmarks import feature_frame_cad
+from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect, align_rectangles
 
 log = logging.getLogger(__name__)
 
@@ -65,13 +65,13 @@ class ModelRegistrar:
         self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
                        if f.orientation == "vertical" and (storey_hint is None or f.storey == storey_hint)]
         try:
-            from graph import registration
+            from macroloc.graph import registration
         except ImportError:
             log.warning("graph.registration absent: registering with the rectangle-hypothesis alignment")
             self._register = None
         else:
             self._register = registration.register
-            from graph.model_index import index_for
+            from macroloc.graph.model_index import index_for
 
             index_for(model)  # the per-building preprocessing (cached): done here, before the first frame
 
@@ -80,7 +80,7 @@ class ModelRegistrar:
             return align_rectangles(landmarks, self._known, min_inliers=self.min_landmarks)
         if len(landmarks) == 1:
             return self._one_landmark(landmarks[0], corners_map[0])
-        from graph.observations import Observation, ObservationSet
+        from macroloc.graph.observations import Observation, ObservationSet
 
         obs = [Observation(type=lm.type, centroid_map=lm.T_map_rect[:3, 3], corners_map=c)
                for lm, c in zip(landmarks, corners_map, strict=True)]
@@ -95,7 +95,7 @@ class ModelRegistrar:
 
     def _one_landmark(self, landmark: ObservedRect, corners_map: np.ndarray | None) -> Alignment:
         """One door or window: a candidate pose for every alike feature of the model (`_one_rectangle`)."""
-        from graph.robust import RobustParams
+        from macroloc.graph.robust import RobustParams
 
         tolerance = float(self.register_params.get("size_tolerance_m", RobustParams.size_tolerance_m))
         return _one_rectangle(self.model, landmark, corners_map, self.storey_hint, tolerance)
@@ -174,8 +174,8 @@ def _one_rectangle(model: BuildingModel, landmark: ObservedRect, corners_map: np
     """One door or window: a candidate pose for every feature of the model alike to it (of `storey_hint`; among
     the ids `among`), from either side (`graph.robust.single_rectangle_poses`), for the walls to choose among;
     never an answer by itself."""
-    from graph.model_index import index_for
-    from graph.robust import RobustParams, single_rectangle_poses
+    from macroloc.graph.model_index import index_for
+    from macroloc.graph.robust import RobustParams, single_rectangle_poses
 
     if corners_map is None:
         return Alignment("not_localized", None)

@@ -18,12 +18,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from graph.descriptor import describe, match_top_k
-from graph.errors import UserInputError
-from graph.features import BuildingModel
-from graph.model_index import ModelIndex, index_for
-from graph.observations import Observation, ObservationSet
-from graph.rigid import make_T, weighted_rigid_fit
+from macroloc.graph.descriptor import describe, match_top_k
+from macroloc.graph.errors import UserInputError
+from macroloc.graph.features import BuildingModel
+from macroloc.graph.model_index import ModelIndex, index_for
+from macroloc.graph.observations import Observation, ObservationSet
+from macroloc.graph.rigid import make_T, weighted_rigid_fit
 
 METHODS = ("robust", "paper")
 
@@ -83,7 +83,7 @@ def register(model: BuildingModel, obs: ObservationSet, method: str = "robust", 
     if method == "paper":
         result = register_paper(index, obs.observations, PaperParams(**params))
     else:
-        from graph.robust import RobustParams, register_robust
+        from macroloc.graph.robust import RobustParams, register_robust
 
         result = register_robust(index, obs, RobustParams(**params))
     result.elapsed_ms = (time.perf_counter() - t0) * 1000.0

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from graph.landmarks import FLIP_ABOUT_UP
-from graph.rigid import rotation_angle_rad
+from macroloc.graph.landmarks import FLIP_ABOUT_UP
+from macroloc.graph.rigid import rotation_angle_rad
 
 NORMAL_COS_MIN = np.cos(np.radians(35.0))  # |n_obs . n_known| above this: same wall direction
 CHUNK = 256  # hypotheses scored at once (memory: CHUNK x observed x known x 3 floats)

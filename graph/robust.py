@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graph.features import FEATURE_TYPES
-from graph.model_index import TYPE_SEPARATION_M, ModelIndex
-from graph.observations import Observation, ObservationSet
-from graph.registration import RegistrationResult, corner_correspondences, majority_storey
-from graph.rigid import (
+from macroloc.graph.features import FEATURE_TYPES
+from macroloc.graph.model_index import TYPE_SEPARATION_M, ModelIndex
+from macroloc.graph.observations import Observation, ObservationSet
+from macroloc.graph.registration import RegistrationResult, corner_correspondences, majority_storey
+from macroloc.graph.rigid import (
     apply,
     levelled,
     make_T,

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from perception.detector import CLASS_NAMES, REPORTED_TYPES, Detection, Detector, at_border
-from perception.evaluate import BoxFilter, GroundTruth, PRCurve, pr_curve
-from perception.trainset import Sample
+from macroloc.perception.detector import CLASS_NAMES, REPORTED_TYPES, Detection, Detector, at_border
+from macroloc.perception.evaluate import BoxFilter, GroundTruth, PRCurve, pr_curve
+from macroloc.perception.trainset import Sample
 
 SIZE_BINS = (("lt_0.25", 0.0, 0.25), ("0.25_0.75", 0.25, 0.75), ("gt_0.75", 0.75, float("inf")))
 

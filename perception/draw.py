@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from perception.detector import Detection, to_bgr
+from macroloc.perception.detector import Detection, to_bgr
 
 COLOURS_BGR = {"door": (40, 180, 255), "window": (255, 160, 40)}
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perception.detector import Detection
+from macroloc.perception.detector import Detection
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perception.gravity import end_velocities
+from macroloc.perception.gravity import end_velocities
 
 
 @dataclass(frozen=True)

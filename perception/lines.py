@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from perception.stereo import to_gray
+from macroloc.perception.stereo import to_gray
 
 log = logging.getLogger(__name__)
 

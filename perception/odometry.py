@@ -37,9 +37,9 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from graph.rigid import rotation_angle_rad
-from perception.calib import StereoRig
-from perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
+from macroloc.graph.rigid import rotation_angle_rad
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
 
 log = logging.getLogger(__name__)
 

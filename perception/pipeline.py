@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from perception.calib import StereoRig
-from perception.detector import DEFAULT_MODEL, Detection, Detector
-from perception.lines import LineConfig, Sides, refine_box
-from perception.reconstruct import (
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.detector import DEFAULT_MODEL, Detection, Detector
+from macroloc.perception.lines import LineConfig, Sides, refine_box
+from macroloc.perception.reconstruct import (
     PlausibilityConfig,
     WallPlaneConfig,
     check_plausible,
@@ -26,7 +26,7 @@ from perception.reconstruct import (
     reconstruct_sides,
     wall_plane,
 )
-from perception.stereo import SgbmConfig, SgbmMatcher, depth_from_disparity
+from macroloc.perception.stereo import SgbmConfig, SgbmMatcher, depth_from_disparity
 
 log = logging.getLogger(__name__)
 

@@ -25,9 +25,9 @@ import cv2
 import faiss
 import numpy as np
 
-from graph.mapstore import KeyframeView
-from perception.calib import StereoRig
-from perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
+from macroloc.graph.mapstore import KeyframeView
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
 
 
 @dataclass(frozen=True)

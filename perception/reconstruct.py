@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perception.calib import StereoRig
-from perception.lines import Sides
-from perception.stereo import back_project, ray_cam, sample_depth_m
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.lines import Sides
+from macroloc.perception.stereo import back_project, ray_cam, sample_depth_m
 
 log = logging.getLogger(__name__)
 

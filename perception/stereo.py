@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from perception.calib import StereoRig
+from macroloc.perception.calib import StereoRig
 
 log = logging.getLogger(__name__)
 

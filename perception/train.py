@@ -1,4 +1,4 @@
-"""Train the door/window detector and export it: `python -m perception.train` reproduces the shipped weights.
+"""Train the door/window detector and export it: `python -m macroloc.perception.train` reproduces the shipped weights.
 
 Data: real indoor photos (`../shared/data/images/indoor_doors`, split 80/10/10 by source photo, seeded:
 `perception.trainset.split_indoor`) fill `--indoor-fraction` of each batch, the real facade photos
@@ -29,10 +29,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from perception import detector_eval
-from perception.detector import CLASS_NAMES, Detector, DetectorSpec
-from perception.evaluate import best_f1_threshold, plot_pr
-from perception.trainset import (
+from macroloc.perception import detector_eval
+from macroloc.perception.detector import CLASS_NAMES, Detector, DetectorSpec
+from macroloc.perception.evaluate import best_f1_threshold, plot_pr
+from macroloc.perception.trainset import (
     FACADE_CLASS_MAP,
     INDOOR_CLASS_MAP,
     Sample,
@@ -202,7 +202,7 @@ def ensure_sim_frames(dirs: list[Path]) -> list[Path]:
 def train(args: argparse.Namespace) -> None:
     import torch
 
-    from perception.model import STRIDE_PX, TinyYolo
+    from macroloc.perception.model import STRIDE_PX, TinyYolo
 
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(1)
@@ -270,7 +270,7 @@ def export_only(args: argparse.Namespace) -> None:
     """Export and score the EMA weights a finished run saved (`--export-only CHECKPOINT`)."""
     import torch
 
-    from perception.model import TinyYolo
+    from macroloc.perception.model import TinyYolo
 
     ckpt = torch.load(args.export_only, weights_only=False)
     model = TinyYolo(N_ANCHORS, len(CLASS_NAMES), int(ckpt["width"]))
@@ -289,7 +289,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
            sim: list[Sample], train_s: float) -> None:
     import torch
 
-    from perception.model import STRIDE_PX
+    from macroloc.perception.model import STRIDE_PX
 
     args.out.mkdir(parents=True, exist_ok=True)
     args.report.mkdir(parents=True, exist_ok=True)
@@ -327,7 +327,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
                      "rendered_flights": rendered_sources(sim), "threads": args.threads, "seconds": round(train_s),
                      "machine": f"{os.cpu_count()} CPU cores (shared)"},
         "figures": figures,
-        "reproduce": "python -m perception.train",
+        "reproduce": "python -m macroloc.perception.train",
     }
     spec = DetectorSpec(CLASS_NAMES, INPUT_WH, STRIDE_PX, spec.anchors_px, threshold, spec.nms_iou, extra)
     onnx_path.with_suffix(".json").write_text(json.dumps(spec.to_json(), indent=1) + "\n")
@@ -338,7 +338,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m perception.train", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m macroloc.perception.train", description=__doc__.splitlines()[0])
     ap.add_argument("--facades", type=Path, default=SHARED_DATA / "images" / "facades")
     ap.add_argument("--indoor", type=Path, default=SHARED_DATA / "images" / "indoor_doors")
     ap.add_argument("--indoor-fraction", type=float, default=0.6,

@@ -24,7 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from perception.detector import PAD_VALUE
+from macroloc.perception.detector import PAD_VALUE
 
 log = logging.getLogger(__name__)
 

@@ -20,9 +20,9 @@ from typing import Any, Protocol
 import numpy as np
 import zenoh
 
-from graph.features import BuildingModel
-from service.planning_grid import OccupancyGrid
-from service.recording import (
+from macroloc.graph.features import BuildingModel
+from macroloc.service.planning_grid import OccupancyGrid
+from macroloc.service.recording import (
     TOPIC_GROUND_TRUTH,
     TOPIC_STEREO,
     FlightWriter,
@@ -30,9 +30,9 @@ from service.recording import (
     pose_from_matrix,
     vector3,
 )
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
-from service.zenoh_io import Keys, declare_publisher
-from sim.vehicle import DriftingOdometry, KinematicDrone, yaw_of
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.zenoh_io import Keys, declare_publisher
+from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, yaw_of
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +116,7 @@ class RenderedStereoCamera:
     def __init__(self, building: Path, seed: int, ground_truth: bool = False) -> None:
         """`ground_truth`: also give each frame's GroundTruth (key "ground_truth": the true pose, the doors and
         windows in view and the depth), for a recording; it is not published."""
-        from sim.simulator import SimulationParams, Simulator
+        from macroloc.sim.simulator import SimulationParams, Simulator
 
         self.ground_truth = ground_truth
         self.sim = Simulator(building, SimulationParams(seed=seed))
@@ -126,7 +126,7 @@ class RenderedStereoCamera:
         self._k = 0
 
     def measure(self, stamp_ns: int, T_cad_body: np.ndarray) -> list[tuple[str, Any]]:
-        from service.recording import encode_image
+        from macroloc.service.recording import encode_image
 
         self._k += 1
         left, right = self.sim.renderer.render_stereo(T_cad_body @ self.sim.T_body_cam, self.sim.lighting,
@@ -141,8 +141,8 @@ class RenderedStereoCamera:
 
     def _truth(self, stamp_ns: int, T_cad_body: np.ndarray, left: Any) -> pb.GroundTruth:  # noqa: ANN401 - a render
         """The frame's ground truth as `macroloc simulate` records it (its depth in 1 mm steps)."""
-        from service.recording import add_features_in_view, depth_image_mm
-        from sim.groundtruth import features_in_view
+        from macroloc.service.recording import add_features_in_view, depth_image_mm
+        from macroloc.sim.groundtruth import features_in_view
 
         truth = pb.GroundTruth(header=pb.Header(stamp_ns=stamp_ns, frame_id="cam_left", seq=self._k),
                                T_cad_body=pose_from_matrix(T_cad_body), T_body_cam=self.info.T_body_cam,

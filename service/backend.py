@@ -24,22 +24,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graph.features import BuildingModel
-from graph.geo import GeoReference
-from graph.keyframes import KeyframePolicy
-from graph.landmarks import feature_frame_cad
-from graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
-from graph.mapstore import KeyframeView, StoredMap, carried_views
-from graph.posegraph import PoseGraph
-from graph.registrar import FirstOfRegistrar, Registrar
-from graph.relocalize import Alignment, KnownRect, ObservedRect
-from graph.surfaces import SurfaceIndex
-from perception.gravity import GravityEstimator
-from service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn
-from service.places import Placed
-from service.recording import matrix_from_pose, pose_from_matrix, vector3
-from service.state import view_from_wire
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.features import BuildingModel
+from macroloc.graph.geo import GeoReference
+from macroloc.graph.keyframes import KeyframePolicy
+from macroloc.graph.landmarks import feature_frame_cad
+from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
+from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
+from macroloc.graph.posegraph import PoseGraph
+from macroloc.graph.registrar import FirstOfRegistrar, Registrar
+from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
+from macroloc.graph.surfaces import SurfaceIndex
+from macroloc.perception.gravity import GravityEstimator
+from macroloc.service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn
+from macroloc.service.places import Placed
+from macroloc.service.recording import matrix_from_pose, pose_from_matrix, vector3
+from macroloc.service.state import view_from_wire
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

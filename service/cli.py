@@ -16,7 +16,7 @@ import typer
 if TYPE_CHECKING:
     from typer._click.exceptions import ClickException as ClickExceptionType
 
-from graph.errors import UserInputError
+from macroloc.graph.errors import UserInputError
 
 COMMAND_MODULES = (
     "features",
@@ -49,9 +49,9 @@ app = typer.Typer(
 def _register_all() -> None:
     for name in COMMAND_MODULES:
         try:
-            module = importlib.import_module(f"service.commands.{name}")
+            module = importlib.import_module(f"macroloc.service.commands.{name}")
         except ModuleNotFoundError as exc:
-            if exc.name == f"service.commands.{name}":
+            if exc.name == f"macroloc.service.commands.{name}":
                 continue  # command not built yet
             raise
         module.register(app)
@@ -63,7 +63,7 @@ def _root(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars on stderr (they show only at a "
                                "terminal, never on stdout)."),
 ) -> None:
-    from service.progress import set_quiet
+    from macroloc.service.progress import set_quiet
 
     set_quiet(quiet)
     logging.basicConfig(

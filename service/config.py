@@ -15,8 +15,8 @@ from typing import Literal
 from pydantic import BaseModel, Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from graph.errors import UserInputError
-from perception.image_header import DEFAULT_MAX_PIXELS
+from macroloc.graph.errors import UserInputError
+from macroloc.perception.image_header import DEFAULT_MAX_PIXELS
 
 
 class LocalizeConfig(BaseModel):
@@ -117,7 +117,7 @@ class PerceptionConfig(BaseModel):
     detector_model: Path | None = Field(None, description="detector ONNX file with its JSON sidecar beside it; "
                                         "default: the shipped perception/models/detector.onnx (trained on real "
                                         "photos). A detector adapted to one building is trained on renders of its "
-                                        "model: python -m perception.train --sim FOLDER --out DIR")
+                                        "model: python -m macroloc.perception.train --sim FOLDER --out DIR")
     detect_every: int = Field(3, ge=1, description="replay: run the chain on every n-th stereo frame")
 
 

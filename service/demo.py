@@ -23,14 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.bim import load_building
-from graph.errors import UserInputError
-from graph.features import BuildingModel
-from graph.rigid import apply
-from service.config import MacrolocConfig, load_config
-from service.planning import GoalSpec, Planner, PlanningError
-from service.planning_grid import Space
-from service.recording import FlightWriter
+from macroloc.graph.bim import load_building
+from macroloc.graph.errors import UserInputError
+from macroloc.graph.features import BuildingModel
+from macroloc.graph.rigid import apply
+from macroloc.service.config import MacrolocConfig, load_config
+from macroloc.service.planning import GoalSpec, Planner, PlanningError
+from macroloc.service.planning_grid import Space
+from macroloc.service.recording import FlightWriter
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +83,8 @@ class DemoResult:
 def choose_route(planner: Planner, seed: int, params: DemoParams) -> tuple[str, Space, np.ndarray]:
     """A seeded take-off point in front of a door of the lowest storey, from where a turn on the spot shows
     several doors and windows, and a goal room 10-25 m away that the planner connects to it."""
-    from service.agent import TruthSensor
-    from sim.vehicle import level_pose
+    from macroloc.service.agent import TruthSensor
+    from macroloc.sim.vehicle import level_pose
 
     rng = np.random.default_rng(seed)
     storey = take_off_storey(planner.model)
@@ -158,12 +158,12 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     """One closed-loop flight; the service and the agent each on their own Zenoh session (loopback)."""
     import zenoh
 
-    from service.agent import RenderedStereoCamera, Sensor, TruthSensor, VehicleAgent
-    from service.serve import build_service
-    from service.state import NullMapStore
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
-    from service.zenoh_io import session_config
-    from sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
+    from macroloc.service.agent import RenderedStereoCamera, Sensor, TruthSensor, VehicleAgent
+    from macroloc.service.serve import build_service
+    from macroloc.service.state import NullMapStore
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.zenoh_io import session_config
+    from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
 
     params = params or DemoParams()
     wall_start = time.monotonic()
@@ -314,8 +314,8 @@ def _recorder(building: Path, params: DemoParams) -> Iterator[FlightWriter | Non
     if params.record is None:
         yield None
         return
-    from graph.bim import file_sha256
-    from service.recording import FlightMetadata
+    from macroloc.graph.bim import file_sha256
+    from macroloc.service.recording import FlightMetadata
 
     meta = FlightMetadata(building=building.name, building_sha256=file_sha256(building), seed=params.seed,
                           extra={"generator": "macroloc demo", "observations": params.observations})

@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from graph.features import BuildingModel
-from service.recording import FlightFrame, decode_image, matrix_from_pose
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.features import BuildingModel
+from macroloc.service.recording import FlightFrame, decode_image, matrix_from_pose
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 
@@ -243,7 +243,7 @@ class SimulationChannels:
     def frame(self, stereo: pb.StereoFrame, T_cad_body: np.ndarray, T_body_cam: np.ndarray) -> None:
         c, s = self.channels, stereo.header.stamp_ns
         if self._first:
-            from service.plots import wall_segments_xy
+            from macroloc.service.plots import wall_segments_xy
 
             z = float(T_cad_body[2, 3])
             walls = wall_segments_xy(self.wall_mesh, z) if self.wall_mesh is not None else None
@@ -288,7 +288,7 @@ class ReplayRecorder:
         self.last_stamp_ns = s
 
     def _model(self, stamp_ns: int, matched: set[str], T_cad_body: np.ndarray | None) -> None:
-        from service.plots import wall_segments_xy
+        from macroloc.service.plots import wall_segments_xy
 
         if self._wall_z is None:  # the flight's height at its start, else the doors' and windows' middle height
             self._wall_z = float(T_cad_body[2, 3]) if T_cad_body is not None else \

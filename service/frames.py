@@ -15,10 +15,10 @@ from typing import Protocol
 
 import numpy as np
 
-from graph.localizer import Sighting
-from graph.rigid import apply
-from service.recording import decode_image, matrix_from_pose
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.localizer import Sighting
+from macroloc.graph.rigid import apply
+from macroloc.service.recording import decode_image, matrix_from_pose
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ class StereoDepth:
     pose must reach (0.97 with 128; `macroloc demo --observations perception`, seed 1)."""
 
     def __init__(self, every: int = 3, stride_px: int = 16, num_disparities: int = 128) -> None:
-        from perception.stereo import SgbmConfig, SgbmMatcher
+        from macroloc.perception.stereo import SgbmConfig, SgbmMatcher
 
         self.matcher = SgbmMatcher(SgbmConfig(num_disparities=num_disparities))
         self.every = every
@@ -63,7 +63,7 @@ class StereoDepth:
         self._n = 0
 
     def __call__(self, left: np.ndarray, right: np.ndarray, rig, T_body_cam: np.ndarray) -> np.ndarray | None:  # noqa: ANN001 - StereoRig
-        from perception.stereo import back_project, depth_from_disparity, depth_grid
+        from macroloc.perception.stereo import back_project, depth_from_disparity, depth_grid
 
         n, self._n = self._n, self._n + 1
         if not self.every or n % self.every:
@@ -87,8 +87,8 @@ class PerceptionPipeline:
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
         """Frames come checked (service.inputs: sizes from the headers, equal left and right and camera info);
         a frame without camera info cannot be perceived and gives no sightings."""
-        from perception.calib import StereoRig
-        from perception.pipeline import StereoPair
+        from macroloc.perception.calib import StereoRig
+        from macroloc.perception.pipeline import StereoPair
 
         info = frame.info
         if not frame.HasField("info") or info.fx <= 0 or info.baseline_m <= 0:
@@ -115,7 +115,7 @@ def make_perception_pipeline(threads: int = 2, detector_model: Path | None = Non
     """The perception chain with the given detector (default: the shipped one), or None when it cannot load
     (logged)."""
     try:
-        from perception.pipeline import Perception
+        from macroloc.perception.pipeline import Perception
 
         return PerceptionPipeline(Perception.create(detector_model, threads=threads), forward_T_body_cam())
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception

@@ -24,12 +24,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from google.protobuf.message import DecodeError, Message
 
-from perception.image_header import DEFAULT_MAX_PIXELS, ImageHeaderError, check_encoded
-from service.health import DropCounter
-from service.planning import GoalSpec
-from service.recording import matrix_from_pose
-from service.stamps import StampGate
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.perception.image_header import DEFAULT_MAX_PIXELS, ImageHeaderError, check_encoded
+from macroloc.service.health import DropCounter
+from macroloc.service.planning import GoalSpec
+from macroloc.service.recording import matrix_from_pose
+from macroloc.service.stamps import StampGate
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 FEATURE_TYPES = {"door", "window"}
 OBS_FRAMES = {"map", "body", "cam_left"}

@@ -21,12 +21,12 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from graph.geo import GeoReference
-from graph.localizer import Estimate
-from service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
-from service.frames import FramePipeline, NullPipeline
-from service.health import DropCounter, LatencyWindow, RateMeter
-from service.inputs import (
+from macroloc.graph.geo import GeoReference
+from macroloc.graph.localizer import Estimate
+from macroloc.service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
+from macroloc.service.frames import FramePipeline, NullPipeline
+from macroloc.service.health import DropCounter, LatencyWindow, RateMeter
+from macroloc.service.inputs import (
     ClockReset,
     GoalIn,
     ImuIn,
@@ -37,17 +37,17 @@ from service.inputs import (
     OdometryIn,
     StereoIn,
 )
-from service.places import KeyframePlaces, Placed
-from service.planning import GoalSpec, Planner, PlanningError
-from service.recording import matrix_from_pose
-from service.ros_out import NullRosInputs, RosInputs
-from service.ros_sensors import RosSensorInputs, RosSensorTopics
-from service.state import MapStore
-from service.systemd import Notifier, NullNotifier
-from service.vehicle_out import NullVehicleOutput, VehicleOutput
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
-from service.workqueue import CountingRing, WorkQueue
-from service.zenoh_io import PROTOBUF, Keys, declare_publisher
+from macroloc.service.places import KeyframePlaces, Placed
+from macroloc.service.planning import GoalSpec, Planner, PlanningError
+from macroloc.service.recording import matrix_from_pose
+from macroloc.service.ros_out import NullRosInputs, RosInputs
+from macroloc.service.ros_sensors import RosSensorInputs, RosSensorTopics
+from macroloc.service.state import MapStore
+from macroloc.service.systemd import Notifier, NullNotifier
+from macroloc.service.vehicle_out import NullVehicleOutput, VehicleOutput
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.workqueue import CountingRing, WorkQueue
+from macroloc.service.zenoh_io import PROTOBUF, Keys, declare_publisher
 
 log = logging.getLogger(__name__)
 
@@ -283,7 +283,7 @@ class LocalizationService:
                 self.backend.up_body
         placed = self._place(ev, T_odom_body, up_body, status)
         if ev.frame.HasField("depth") and self.backend.localizer.surfaces is not None:
-            from service.frames import depth_points_body
+            from macroloc.service.frames import depth_points_body
 
             points_body = depth_points_body(ev.frame, stride_px=20, max_range_m=8.0)  # the vehicle's depth
         with self._lock:
@@ -314,7 +314,7 @@ class LocalizationService:
         calibration, or nothing due)."""
         if T_odom_body is None:
             return None
-        from service.frames import forward_T_body_cam
+        from macroloc.service.frames import forward_T_body_cam
 
         info = ev.frame.info
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_T_body_cam()
@@ -323,7 +323,7 @@ class LocalizationService:
 
     def _add_obstacles(self, frame: pb.StereoFrame, T_cad_body: np.ndarray) -> None:
         """Depth seen by the vehicle (CAD frame) into the planner's obstacle layer of the current storey."""
-        from service.frames import depth_points_body
+        from macroloc.service.frames import depth_points_body
 
         points_body = depth_points_body(frame)
         if len(points_body):

@@ -14,11 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graph.mapstore import VIEW_SPACING_DEG, VIEW_SPACING_M, KeyframeView, StoredMap
-from graph.rigid import rotation_angle_deg
-from perception.calib import StereoRig
-from perception.place import PlaceConfig, PlaceRecognizer
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.mapstore import VIEW_SPACING_DEG, VIEW_SPACING_M, KeyframeView, StoredMap
+from macroloc.graph.rigid import rotation_angle_deg
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.place import PlaceConfig, PlaceRecognizer
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ class KeyframePlaces:
         describe = self.keep_views and self._view_due(T_odom_body)
         if not place and not describe:
             return Placed(None, None)
-        from service.recording import decode_image
+        from macroloc.service.recording import decode_image
 
         recognizer = self._recognizer_for(frame, T_body_cam)
         left = decode_image(frame.left)

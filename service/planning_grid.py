@@ -23,10 +23,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from graph.bim import cache_dir, file_sha256
+from macroloc.graph.bim import cache_dir, file_sha256
 
 if TYPE_CHECKING:
-    from graph.surfaces import SurfaceIndex, WallVoxels
+    from macroloc.graph.surfaces import SurfaceIndex, WallVoxels
 
 log = logging.getLogger(__name__)
 
@@ -131,8 +131,8 @@ def surfaces_for(building: Path, line_of_sight: bool = True) -> SurfaceIndex | N
     registrations then go unchecked. Cached by the file's SHA-256 and the surface parameters."""
     import hashlib
 
-    from graph.bim import is_ifc
-    from graph.surfaces import SurfaceIndex, SurfaceParams
+    from macroloc.graph.bim import is_ifc
+    from macroloc.graph.surfaces import SurfaceIndex, SurfaceParams
 
     if not is_ifc(building):
         log.info("%s: no surface check of registrations (IFC models only)", Path(building).name)
@@ -165,7 +165,7 @@ def wall_voxels(ifc_path: Path) -> WallVoxels:
     """The walls and columns of an IFC model (`OPAQUE`; their openings subtracted: a camera sees through doorways
     and windows) as voxels for line-of-sight checks (graph.surfaces.WallVoxels); cached by the file's SHA-256
     (reading the geometry takes seconds)."""
-    from graph.surfaces import WallVoxels
+    from macroloc.graph.surfaces import WallVoxels
 
     cached = cache_dir() / f"opaque-voxels-v{MESH_CACHE_VERSION}-{file_sha256(ifc_path)[:32]}.npy"
     if cached.exists():

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from graph.features import BuildingModel, MacroFeature
+from macroloc.graph.features import BuildingModel, MacroFeature
 
 log = logging.getLogger(__name__)
 
@@ -44,16 +44,16 @@ def load_wall_mesh(path: str | Path):
     (already metres); a mesh or Gazebo world: graph.bim_mesh.read_wall_mesh.
     """
     path = Path(path)
-    from graph.bim import is_ifc
+    from macroloc.graph.bim import is_ifc
 
     if not is_ifc(path):
-        from graph.bim_mesh import read_wall_mesh
+        from macroloc.graph.bim_mesh import read_wall_mesh
 
         return read_wall_mesh(path)
     import ifcopenshell.geom
     import trimesh
 
-    from graph.bim_ifc import geometry_settings, open_ifc
+    from macroloc.graph.bim_ifc import geometry_settings, open_ifc
 
     ifc = open_ifc(path)
     walls = list(ifc.by_type("IfcWall"))
@@ -210,7 +210,7 @@ def plot_floor_plans(model: BuildingModel, out_png: str | Path, wall_mesh: Any =
 
 def _kde_panel(ax: Any, samples: np.ndarray, edges: np.ndarray, scale: float, unit: str, what: str,
                domain: tuple[float, float] = (-np.inf, np.inf)) -> None:
-    from graph.descriptor import kde_density
+    from macroloc.graph.descriptor import kde_density
 
     x = np.asarray(samples, dtype=float) * scale  # metres -> m, radians -> degrees: for a person to read
     if len(x) == 0:
@@ -233,7 +233,7 @@ def _kde_panel(ax: Any, samples: np.ndarray, edges: np.ndarray, scale: float, un
 def plot_kde_bins(model: BuildingModel, out_png: str | Path) -> Path:
     """The descriptor's look-up tables: histogram of the model's 5-NN distances and angles, their KDE and the
     bin edges at its local minima (paper Figures 6 and 13), two panels; returns the PNG path."""
-    from graph.descriptor import build_tables
+    from macroloc.graph.descriptor import build_tables
 
     plt = _pyplot()
     tables = build_tables(model.centroids_cad())

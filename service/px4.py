@@ -24,12 +24,12 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from graph.localizer import Estimate
-from graph.rigid import rotation_angle_rad
-from service.ned import R_FLU_FRD, R_NED_ENU, T_ned_frd_from_T_enu_flu, quat_wxyz_from_matrix, yaw_ned_from_yaw_enu
-from service.ros_types import msg, to_cdr
-from service.vehicle_out import Motion, waypoints_arrays
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.localizer import Estimate
+from macroloc.graph.rigid import rotation_angle_rad
+from macroloc.service.ned import R_FLU_FRD, R_NED_ENU, T_ned_frd_from_T_enu_flu, quat_wxyz_from_matrix, yaw_ned_from_yaw_enu
+from macroloc.service.ros_types import msg, to_cdr
+from macroloc.service.vehicle_out import Motion, waypoints_arrays
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from graph.errors import UserInputError
-from perception.image_header import DEFAULT_MAX_PIXELS as DEFAULT_MAX_IMAGE_PIXELS
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.errors import UserInputError
+from macroloc.perception.image_header import DEFAULT_MAX_PIXELS as DEFAULT_MAX_IMAGE_PIXELS
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +111,7 @@ def decode_image(image: pb.Image, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) ->
     declare them; UserInputError otherwise (a recording's image, or the service's after its input checks)."""
     import cv2
 
-    from perception.image_header import ImageHeaderError, check_encoded
+    from macroloc.perception.image_header import ImageHeaderError, check_encoded
 
     h, w = image.height, image.width
     if not (w > 0 and h > 0 and w * h <= max_pixels):

@@ -17,21 +17,21 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from graph.features import BuildingModel
-from graph.keyframes import KeyframePolicy
-from graph.localizer import Estimate, Localizer, LocalizerParams, model_registrar, stored_registrar
-from graph.mapstore import StoredMap
-from graph.posegraph import IsamSettings, PoseGraph
-from graph.registrar import FirstOfRegistrar, Registrar
-from graph.rigid import rotation_angle_deg
-from graph.surfaces import SurfaceIndex
-from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
-from service.places import KeyframePlaces, Placed
-from service.recording import FlightFrame
-from service.replay_sources import FrameInput, ObservationSource, TruthSource
+from macroloc.graph.features import BuildingModel
+from macroloc.graph.keyframes import KeyframePolicy
+from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, model_registrar, stored_registrar
+from macroloc.graph.mapstore import StoredMap
+from macroloc.graph.posegraph import IsamSettings, PoseGraph
+from macroloc.graph.registrar import FirstOfRegistrar, Registrar
+from macroloc.graph.rigid import rotation_angle_deg
+from macroloc.graph.surfaces import SurfaceIndex
+from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
+from macroloc.service.places import KeyframePlaces, Placed
+from macroloc.service.recording import FlightFrame
+from macroloc.service.replay_sources import FrameInput, ObservationSource, TruthSource
 
 if TYPE_CHECKING:
-    from service.config import GraphConfig
+    from macroloc.service.config import GraphConfig
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +156,7 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
     Foxglove: service.foxglove_out.ReplayRecorder)."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
-    from service.recording import matrix_from_pose, read_flight
+    from macroloc.service.recording import matrix_from_pose, read_flight
 
     source = source or TruthSource()
     policy = policy or KeyframePolicy()
@@ -197,7 +197,7 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
         _record(trace, t_s, est, matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None,
                 is_kf, len(inputs.sightings))
     if localizer is None:
-        from graph.errors import UserInputError
+        from macroloc.graph.errors import UserInputError
 
         raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
     recorder.finish(localizer)

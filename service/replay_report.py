@@ -12,9 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from graph.features import BuildingModel
-from graph.mapstore import StoredMap
-from service.replay import ReplayResult
+from macroloc.graph.features import BuildingModel
+from macroloc.graph.mapstore import StoredMap
+from macroloc.service.replay import ReplayResult
 
 STATUS_LEVEL = {"exploring": 0, "ambiguous": 1, "localized": 2, "degraded": 3, "lost": 4}
 
@@ -72,7 +72,7 @@ def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: 
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
 
-    from service.plots import WALL_COLOUR, wall_segments_xy
+    from macroloc.service.plots import WALL_COLOUR, wall_segments_xy
 
     tr = result.trace
     true_xyz = np.array([T[:3, 3] for T in tr.T_true])

@@ -17,14 +17,14 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from graph.errors import UserInputError
-from graph.localizer import Sighting
-from graph.rigid import apply, rot_z, rotation_aligning, rotation_angle_rad
-from service.recording import FlightFrame, matrix_from_pose
+from macroloc.graph.errors import UserInputError
+from macroloc.graph.localizer import Sighting
+from macroloc.graph.rigid import apply, rot_z, rotation_aligning, rotation_angle_rad
+from macroloc.service.recording import FlightFrame, matrix_from_pose
 
 if TYPE_CHECKING:
-    from perception.calib import StereoRig
-    from perception.odometry import StereoOdometry
+    from macroloc.perception.calib import StereoRig
+    from macroloc.perception.odometry import StereoOdometry
 
 log = logging.getLogger(__name__)
 
@@ -94,8 +94,8 @@ class TruthSource:
         """Points of the true depth image on a grid, with the stereo depth noise, body frame."""
         if not gt.HasField("depth"):
             return None
-        from perception.stereo import back_project, depth_grid
-        from service.recording import decode_image
+        from macroloc.perception.stereo import back_project, depth_grid
+        from macroloc.service.recording import decode_image
 
         uv, z = depth_grid(decode_image(gt.depth), self.noise.depth_stride_px, 0.3)
         z = z + self.depth_rng.normal(0, 1, len(z)) * self.noise.depth_sigma_per_m2 * z * z
@@ -149,9 +149,9 @@ class VisualOdometry:
     that frame (service.frames.StereoDepth: every third frame), or None."""
 
     def __init__(self) -> None:
-        from perception.gravity import GravityEstimator
-        from perception.inertial import InertialDeadReckoning
-        from service.frames import StereoDepth
+        from macroloc.perception.gravity import GravityEstimator
+        from macroloc.perception.inertial import InertialDeadReckoning
+        from macroloc.service.frames import StereoDepth
 
         self._odometry: StereoOdometry | None = None
         self._T_odom_cam0: np.ndarray | None = None
@@ -165,7 +165,7 @@ class VisualOdometry:
         self._last_stamp_ns: int | None = None
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        from perception.odometry import StereoOdometry
+        from macroloc.perception.odometry import StereoOdometry
 
         info = frame.stereo.info
         T_body_cam = matrix_from_pose(info.T_body_cam)
@@ -216,8 +216,8 @@ class VehicleOdometry:
     the newest before it). `up_body` and `points_body` as `VisualOdometry` gives them."""
 
     def __init__(self) -> None:
-        from perception.gravity import GravityEstimator
-        from service.frames import StereoDepth
+        from macroloc.perception.gravity import GravityEstimator
+        from macroloc.service.frames import StereoDepth
 
         self._gravity = GravityEstimator()
         self._depth = StereoDepth()
@@ -249,7 +249,7 @@ class TruthFeaturesWithVisualOdometry:
         self.odometry = VisualOdometry()
 
     def __call__(self, frame: FlightFrame) -> FrameInput:
-        from service.recording import decode_image
+        from macroloc.service.recording import decode_image
 
         inputs = self.truth(frame)
         T_odom_body = self.odometry(frame, decode_image(frame.stereo.left), decode_image(frame.stereo.right))
@@ -270,7 +270,7 @@ class PerceptionSource:
 
     def __init__(self, detect_every: int = 3, detector_model: Path | None = None) -> None:
         try:
-            from perception.pipeline import Perception
+            from macroloc.perception.pipeline import Perception
         except ImportError:
             raise UserInputError("--observations perception: the perception chain (perception.pipeline) "
                                  "is not available; use --observations truth") from None
@@ -280,8 +280,8 @@ class PerceptionSource:
         self._n = 0
 
     def __call__(self, frame: FlightFrame) -> FrameInput:
-        from perception.pipeline import StereoPair
-        from service.recording import decode_image
+        from macroloc.perception.pipeline import StereoPair
+        from macroloc.service.recording import decode_image
 
         info = frame.stereo.info
         T_body_cam = matrix_from_pose(info.T_body_cam)
@@ -325,7 +325,7 @@ def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:
 
 def _rig(info) -> StereoRig:  # noqa: ANN001 - pb.CameraInfo
     """The stereo rig a recorded frame's CameraInfo describes."""
-    from perception.calib import StereoRig
+    from macroloc.perception.calib import StereoRig
 
     return StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
 

@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from graph.errors import UserInputError
-from service.config import ZenohConfig
-from service.recording import FlightFrame, matrix_from_pose, pose_from_matrix, read_flight, vector3
-from service.replay_sources import ObservationSource
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
-from service.zenoh_io import Keys, declare_publisher, session_config
+from macroloc.graph.errors import UserInputError
+from macroloc.service.config import ZenohConfig
+from macroloc.service.recording import FlightFrame, matrix_from_pose, pose_from_matrix, read_flight, vector3
+from macroloc.service.replay_sources import ObservationSource
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.zenoh_io import Keys, declare_publisher, session_config
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +156,7 @@ def replay_command(flight: Path | Iterable[FlightFrame], source: ObservationSour
     result = replay_over_zenoh(flight, cfg, vehicle, source, speed)
     doc = result.to_json()
     if json_out:
-        from service.commands._io import print_json
+        from macroloc.service.commands._io import print_json
 
         print_json(doc)
     else:

@@ -11,10 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from graph.errors import UserInputError
-from service.config import CameraConfig
-from service.recording import FlightFrame, encode_image
-from service.ros_in import (
+from macroloc.graph.errors import UserInputError
+from macroloc.service.config import CameraConfig
+from macroloc.service.recording import FlightFrame, encode_image
+from macroloc.service.ros_in import (
     CameraCalibration,
     StereoRectifier,
     TransformTree,
@@ -24,7 +24,7 @@ from service.ros_in import (
     pose_message,
     stamp_ns,
 )
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 
@@ -213,7 +213,7 @@ def _split(samples: list, s: int) -> tuple[list, list]:
 
 def default_T_body_cam(baseline_m: float) -> np.ndarray:
     """The configured mounting where a bag has no /tf_static: the simulator's forward stereo pair."""
-    from sim.simulator import forward_camera_T_body_cam
+    from macroloc.sim.simulator import forward_camera_T_body_cam
 
     return forward_camera_T_body_cam(baseline_m)
 

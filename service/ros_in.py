@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from graph.errors import UserInputError
-from service.recording import pose_from_matrix, vector3
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.errors import UserInputError
+from macroloc.service.recording import pose_from_matrix, vector3
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

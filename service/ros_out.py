@@ -24,13 +24,13 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from graph.localizer import Estimate
-from service.inputs import GoalIn
-from service.ned import cov_ros_from_gtsam, quat_wxyz_from_matrix
-from service.planning import GoalSpec
-from service.ros_types import from_cdr, header, msg, to_cdr
-from service.vehicle_out import Motion, waypoints_arrays
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.localizer import Estimate
+from macroloc.service.inputs import GoalIn
+from macroloc.service.ned import cov_ros_from_gtsam, quat_wxyz_from_matrix
+from macroloc.service.planning import GoalSpec
+from macroloc.service.ros_types import from_cdr, header, msg, to_cdr
+from macroloc.service.vehicle_out import Motion, waypoints_arrays
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

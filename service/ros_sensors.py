@@ -21,15 +21,15 @@ from typing import Any
 
 import numpy as np
 
-from graph.errors import UserInputError
-from perception.image_header import ImageHeaderError, check_encoded
-from service.health import DropCounter
-from service.inputs import ImuIn, InputParser, StereoIn
-from service.recording import encode_image
-from service.ros_bag_frames import default_T_body_cam
-from service.ros_in import CameraCalibration, StereoRectifier, any_image_array, imu_message, stamp_ns
-from service.ros_types import from_cdr
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.errors import UserInputError
+from macroloc.perception.image_header import ImageHeaderError, check_encoded
+from macroloc.service.health import DropCounter
+from macroloc.service.inputs import ImuIn, InputParser, StereoIn
+from macroloc.service.recording import encode_image
+from macroloc.service.ros_bag_frames import default_T_body_cam
+from macroloc.service.ros_in import CameraCalibration, StereoRectifier, any_image_array, imu_message, stamp_ns
+from macroloc.service.ros_types import from_cdr
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

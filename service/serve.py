@@ -10,13 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.errors import UserInputError
-from service.config import MacrolocConfig
-from service.frames import FramePipeline, NullPipeline
-from service.node import LocalizationService, ServiceParams
-from service.ros_sensors import RosSensorTopics
-from service.state import MapStore
-from service.systemd import Notifier, notifier_from_environment
+from macroloc.graph.errors import UserInputError
+from macroloc.service.config import MacrolocConfig
+from macroloc.service.frames import FramePipeline, NullPipeline
+from macroloc.service.node import LocalizationService, ServiceParams
+from macroloc.service.ros_sensors import RosSensorTopics
+from macroloc.service.state import MapStore
+from macroloc.service.systemd import Notifier, notifier_from_environment
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +25,7 @@ def make_pipeline(cfg: MacrolocConfig) -> FramePipeline:
     """The stereo-frame pipeline: the perception chain when service.perception is on and it loads, else none
     (frames still give a pose from the odometry; sightings then come on the observations key)."""
     if cfg.service.perception:
-        from service.frames import make_perception_pipeline
+        from macroloc.service.frames import make_perception_pipeline
 
         pipeline = make_perception_pipeline(detector_model=cfg.perception.detector_model)
         if pipeline is not None:
@@ -36,8 +36,8 @@ def make_pipeline(cfg: MacrolocConfig) -> FramePipeline:
 def make_vehicle_io(cfg: MacrolocConfig, session, T_enu_cad=None):  # noqa: ANN001, ANN201
     """The ROS 2 / PX4 outputs and the ROS inputs the config enables ([ros], [px4]); null objects otherwise.
     `T_enu_cad`: the model's geo-reference (graph.geo), which makes PX4's pose frame true NED."""
-    from service.ros_out import NullRosInputs, RosFrames, RosInputs, RosKeys, RosOutput
-    from service.vehicle_out import NullVehicleOutput, VehicleOutput, VehicleOutputs
+    from macroloc.service.ros_out import NullRosInputs, RosFrames, RosInputs, RosKeys, RosOutput
+    from macroloc.service.vehicle_out import NullVehicleOutput, VehicleOutput, VehicleOutputs
 
     outputs: list[VehicleOutput] = []
     inputs: RosInputs | NullRosInputs = NullRosInputs()
@@ -51,7 +51,7 @@ def make_vehicle_io(cfg: MacrolocConfig, session, T_enu_cad=None):  # noqa: ANN0
     if cfg.px4.enabled:
         import numpy as np
 
-        from service.px4 import Px4Keys, Px4Messages, Px4Output, ResetCounter
+        from macroloc.service.px4 import Px4Keys, Px4Messages, Px4Output, ResetCounter
 
         x = cfg.px4
         reset = ResetCounter(x.reset_jump_m, float(np.deg2rad(x.reset_jump_deg)))
@@ -65,7 +65,7 @@ def make_vehicle_io(cfg: MacrolocConfig, session, T_enu_cad=None):  # noqa: ANN0
 def ros_sensor_topics(cfg: MacrolocConfig) -> RosSensorTopics:
     """The ROS sensor topics [ros] names, as Zenoh keys (zenoh-bridge-ros2dds: the topic without its leading
     slash, under the namespace); none unless [ros] is enabled."""
-    from service.ros_out import RosKeys
+    from macroloc.service.ros_out import RosKeys
 
     r = cfg.ros
     if not r.enabled:
@@ -78,12 +78,12 @@ def ros_sensor_topics(cfg: MacrolocConfig) -> RosSensorTopics:
 def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  # noqa: ANN001
                   notifier: Notifier | None = None) -> LocalizationService:
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
-    from graph.bim import load_building
-    from graph.geo import read_geo_reference
-    from service.backend import BackendParams, LocalizerBackend
-    from service.inputs import limits_from_config
-    from service.planning import Planner
-    from service.replay import settings_from_config
+    from macroloc.graph.bim import load_building
+    from macroloc.graph.geo import read_geo_reference
+    from macroloc.service.backend import BackendParams, LocalizerBackend
+    from macroloc.service.inputs import limits_from_config
+    from macroloc.service.planning import Planner
+    from macroloc.service.replay import settings_from_config
 
     if cfg.service.building is None:
         raise UserInputError("no building model: set service.building in the config or pass --building")
@@ -100,7 +100,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                                    keyframe_min_rotation_rad=cfg.graph.keyframe_rotation_rad,
                                    localizer=localizer_params,
                                    storey_hint=model.checked_storey(cfg.graph.storey_hint))
-    from service.planning_grid import surfaces_for
+    from macroloc.service.planning_grid import surfaces_for
 
     surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight) if cfg.graph.surface_check else None
     log.info("%s: surfaces ready; the planning grid next", building.name)
@@ -126,7 +126,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
 def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,
           on_ready: Callable[[LocalizationService], None] | None = None) -> None:
     """Run the service until SIGTERM/SIGINT (or `stop`); the map is saved on the way out."""
-    from service.zenoh_io import describe_exposure, open_session, session_config
+    from macroloc.service.zenoh_io import describe_exposure, open_session, session_config
 
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():

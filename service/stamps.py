@@ -13,7 +13,7 @@ import logging
 import time
 from collections.abc import Callable
 
-from service.health import DropCounter
+from macroloc.service.health import DropCounter
 
 log = logging.getLogger(__name__)
 

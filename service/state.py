@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 from google.protobuf.message import DecodeError
 
-from graph.mapstore import KeyframeView
-from service.recording import matrix_from_pose, pose_from_matrix, poses_from_matrices
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.mapstore import KeyframeView
+from macroloc.service.recording import matrix_from_pose, pose_from_matrix, poses_from_matrices
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.features import BuildingModel, MacroFeature
-from sim.render import CameraModel  # the simulator's camera: one camera model for rendered and truth flights
+from macroloc.graph.features import BuildingModel, MacroFeature
+from macroloc.sim.render import CameraModel  # the simulator's camera: one camera model for rendered and truth flights
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,7 @@ def wall_mesh(path: Path):  # noqa: ANN201 - trimesh.Trimesh
     import ifcopenshell.geom
     import trimesh
 
-    from graph.bim_ifc import geometry_settings, open_ifc
+    from macroloc.graph.bim_ifc import geometry_settings, open_ifc
 
     ifc = open_ifc(path)
     elements = [e for t in WALL_TYPES for e in ifc.by_type(t)]
@@ -75,7 +75,7 @@ def floor_plan(path: Path, model: BuildingModel, storey: str) -> FloorPlan:
     """The storey's wall cuts, cached beside the feature cache (by file hash and storey)."""
     import trimesh
 
-    from graph.bim import cache_dir, cache_key
+    from macroloc.graph.bim import cache_dir, cache_key
 
     # cache_key hashes the storey name with SHA-256: Python's hash() of a str changes from process to process
     cached = cache_dir() / f"floorplan-{cache_key(model.sha256, {'storey': storey})}.npz"
@@ -293,9 +293,9 @@ def write_truth_flight(building: Path, out: Path, seed: int = 0, duration_s: flo
     hovers and turns once on the spot for `spin_s` seconds, then flies at `speed_mps`. `start`: "random" (any
     waypoint) or "open" (one of the three waypoints with the most features in line of sight: taking off in a
     corridor or hall rather than in a closet)."""
-    from graph.bim import load_building
-    from service.recording import FlightMetadata, FlightWriter, pose_from_matrix, vector3
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.graph.bim import load_building
+    from macroloc.service.recording import FlightMetadata, FlightWriter, pose_from_matrix, vector3
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     camera = camera or CameraModel()
     model = load_building(building)

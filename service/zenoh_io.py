@@ -15,8 +15,8 @@ from typing import Any
 
 import zenoh
 
-from graph.errors import UserInputError
-from service.config import ZenohConfig
+from macroloc.graph.errors import UserInputError
+from macroloc.service.config import ZenohConfig
 
 log = logging.getLogger(__name__)
 SECURE_PROTOCOLS = ("tls", "quic")  # encrypted and authenticated by the TLS configuration

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.groundtruth import FeatureInView
+from macroloc.sim.groundtruth import FeatureInView
 
 COLOURS_BGR = {"door": (40, 200, 40), "window": (230, 140, 30)}
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.groundtruth import FeatureInView
+from macroloc.sim.groundtruth import FeatureInView
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +81,8 @@ def render_training_frames(building: Path, out_dir: Path, seeds: tuple[int, ...]
     labels; only those frames are rendered. Returns the counts {"images", "door", "window"}."""
     import time
 
-    from sim.flight import FlightParams
-    from sim.simulator import SimulationParams, Simulator
+    from macroloc.sim.flight import FlightParams
+    from macroloc.sim.simulator import SimulationParams, Simulator
 
     totals = {"images": 0, "door": 0, "window": 0}
     for seed in seeds:

@@ -19,9 +19,9 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation, Slerp
 
-from graph.errors import BuildingError
-from graph.features import MacroFeature
-from sim.scene import COVERING, DOOR, SLAB, WINDOW, SceneGeometry
+from macroloc.graph.errors import BuildingError
+from macroloc.graph.features import MacroFeature
+from macroloc.sim.scene import COVERING, DOOR, SLAB, WINDOW, SceneGeometry
 
 log = logging.getLogger(__name__)
 

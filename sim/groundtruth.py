@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graph.features import MacroFeature
-from sim.render import CameraModel
-from sim.scene import SceneGeometry
+from macroloc.graph.features import MacroFeature
+from macroloc.sim.render import CameraModel
+from macroloc.sim.scene import SceneGeometry
 
 
 @dataclass
@@ -39,7 +39,7 @@ class FeatureInView:
 
 def feature_half_depths(scene: SceneGeometry, features: list[MacroFeature]) -> np.ndarray:
     """(F,) half thickness of each feature's geometry along its normal, metres (0.05 when it has none)."""
-    from sim.materials import feature_instance_map
+    from macroloc.sim.materials import feature_instance_map
 
     inst = feature_instance_map(features)
     out = np.full(len(features), 0.05)

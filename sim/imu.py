@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sim.flight import GRAVITY_MPS2, Trajectory
+from macroloc.sim.flight import GRAVITY_MPS2, Trajectory
 
 
 @dataclass(frozen=True)

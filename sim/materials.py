@@ -12,9 +12,9 @@ import zlib
 
 import numpy as np
 
-from graph.features import MacroFeature
-from sim import textures as tx
-from sim.render import (
+from macroloc.graph.features import MacroFeature
+from macroloc.sim import textures as tx
+from macroloc.sim.render import (
     FLAG_CLOSED,
     FLAG_DETAIL,
     FLAGS_COLUMN,
@@ -24,7 +24,7 @@ from sim.render import (
     KIND_WINDOW_FRAME,
     VERTEX_FLOATS,
 )
-from sim.scene import COVERING, DOOR, FURNITURE, OTHER, SLAB, STAIR, WALL, WINDOW, SceneGeometry
+from macroloc.sim.scene import COVERING, DOOR, FURNITURE, OTHER, SLAB, STAIR, WALL, WINDOW, SceneGeometry
 
 WALL_TINTS = ((0.95, 0.94, 0.9), (0.9, 0.92, 0.95), (0.96, 0.9, 0.8), (0.85, 0.9, 0.85), (0.8, 0.8, 0.82),
               (0.95, 0.85, 0.85), (0.75, 0.8, 0.9))

@@ -140,7 +140,7 @@ class ChunkIndex:
 
 
 def _shader(name: str) -> str:
-    return resources.files("sim").joinpath("shaders", name).read_text()
+    return resources.files("macroloc.sim").joinpath("shaders", name).read_text()
 
 
 class StereoRenderer:

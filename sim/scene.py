@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.bim import IFC_SUFFIXES, MESH_SUFFIXES, cache_dir, cache_key, file_sha256
-from graph.errors import BuildingError
+from macroloc.graph.bim import IFC_SUFFIXES, MESH_SUFFIXES, cache_dir, cache_key, file_sha256
+from macroloc.graph.errors import BuildingError
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +157,7 @@ def orient_closed_solids(triangles: np.ndarray, tri_element: np.ndarray,
 def _read_ifc(path: Path, sha: str) -> SceneGeometry:
     import ifcopenshell.geom
 
-    from graph.bim_ifc import geometry_settings, open_ifc
+    from macroloc.graph.bim_ifc import geometry_settings, open_ifc
 
     ifc = open_ifc(path)
     iterator = ifcopenshell.geom.iterator(geometry_settings(), ifc, max(1, min(2, os.cpu_count() or 1)))
@@ -222,7 +222,7 @@ MESH_NAME_CLASSES = (("sign", OTHER), ("door", DOOR), ("window", WINDOW), ("glas
 def _read_mesh(path: Path, sha: str) -> SceneGeometry:
     """A mesh file (through graph.bim_mesh's reader: names, node transforms, declared unit) or a Gazebo
     `.world` (its models placed at their poses): one element per node, class from the node's names."""
-    from graph.bim_mesh import model_mesh_file, world_includes
+    from macroloc.graph.bim_mesh import model_mesh_file, world_includes
 
     parts: list[tuple[str, list[str], np.ndarray, np.ndarray]] = []
     if path.suffix.lower() == ".world":
@@ -253,7 +253,7 @@ def _read_mesh(path: Path, sha: str) -> SceneGeometry:
 
 def _mesh_nodes(path: Path) -> list[tuple[str, list[str], np.ndarray, np.ndarray]]:
     """[(node name, its names, (N, 3) vertices in metres, (M, 3) faces)] of one mesh file."""
-    from graph.bim_mesh import read_nodes
+    from macroloc.graph.bim_mesh import read_nodes
 
     nodes, unit_m, _ = read_nodes(path)
     scale = unit_m if unit_m else 1.0  # metres per file unit (the hospital's DAE files: centimetres)

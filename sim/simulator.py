@@ -20,16 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.bim import load_building
-from graph.errors import UserInputError
-from graph.features import BuildingModel, MacroFeature
-from sim.flight import FlightParams, FreeSpace, Trajectory, doors_crossed, plan_flight
-from sim.groundtruth import FeatureInView, feature_half_depths, features_in_view
-from sim.imu import ImuNoise, ImuSamples, simulate_imu
-from sim.materials import dress_scene
-from sim.render import CameraModel, Lighting, StereoRenderer
-from sim.scene import load_scene
-from sim.textures import facade_crops, make_texture_layers
+from macroloc.graph.bim import load_building
+from macroloc.graph.errors import UserInputError
+from macroloc.graph.features import BuildingModel, MacroFeature
+from macroloc.sim.flight import FlightParams, FreeSpace, Trajectory, doors_crossed, plan_flight
+from macroloc.sim.groundtruth import FeatureInView, feature_half_depths, features_in_view
+from macroloc.sim.imu import ImuNoise, ImuSamples, simulate_imu
+from macroloc.sim.materials import dress_scene
+from macroloc.sim.render import CameraModel, Lighting, StereoRenderer
+from macroloc.sim.scene import load_scene
+from macroloc.sim.textures import facade_crops, make_texture_layers
 
 log = logging.getLogger(__name__)
 

@@ -42,13 +42,13 @@ def office_path() -> Path:
 
 @pytest.fixture(scope="session")
 def office_model(office_path: Path):
-    from graph.bim import load_building
+    from macroloc.graph.bim import load_building
 
     return load_building(office_path)
 
 
 @pytest.fixture(scope="session")
 def duplex_model(duplex_path: Path):
-    from graph.bim import load_building
+    from macroloc.graph.bim import load_building
 
     return load_building(duplex_path)

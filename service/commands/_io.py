@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from graph.errors import UserInputError
+from macroloc.graph.errors import UserInputError
 
 
 def existing_file(path: Path, what: str) -> Path:
@@ -27,10 +27,10 @@ def read_image(path: Path, what: str, flags: int, max_pixels: int | None = None)
     import cv2
     import numpy as np
 
-    from perception.image_header import ImageHeaderError, check_encoded, encoded_size
+    from macroloc.perception.image_header import ImageHeaderError, check_encoded, encoded_size
 
     if max_pixels is None:
-        from service.config import load_config
+        from macroloc.service.config import load_config
 
         max_pixels = load_config().inputs.max_image_pixels
     data = existing_file(path, what).read_bytes()
@@ -50,7 +50,7 @@ def read_image(path: Path, what: str, flags: int, max_pixels: int | None = None)
 def _check_with_pillow(path: Path, max_pixels: int) -> None:
     from PIL import Image, UnidentifiedImageError
 
-    from perception.image_header import ImageHeaderError
+    from macroloc.perception.image_header import ImageHeaderError
 
     try:
         with Image.open(path) as image:  # lazy: the header only

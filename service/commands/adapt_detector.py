@@ -9,7 +9,7 @@ import typer
 
 
 def _seeds(text: str) -> tuple[int, ...]:
-    from graph.errors import UserInputError
+    from macroloc.graph.errors import UserInputError
 
     try:
         seeds = tuple(int(s) for s in text.split(",") if s.strip())
@@ -50,22 +50,22 @@ def register(app: typer.Typer) -> None:
         import json
         import logging
 
-        from graph.errors import UserInputError
-        from service.commands._io import existing_file, print_json
+        from macroloc.graph.errors import UserInputError
+        from macroloc.service.commands._io import existing_file, print_json
 
         existing_file(building, "building model")
         seed_list = _seeds(seeds)
         if importlib.util.find_spec("torch") is None:
             raise UserInputError("adapt-detector trains with torch, which is not installed: "
                                  "pip install -e '.[train]' (or make train)")
-        from perception.train import SHARED_DATA
-        from perception.train import main as train_main
-        from sim.export import render_training_frames
+        from macroloc.perception.train import SHARED_DATA
+        from macroloc.perception.train import main as train_main
+        from macroloc.sim.export import render_training_frames
 
         photos = facades or SHARED_DATA / "images" / "facades"
         if not (photos / "images").is_dir() or not (photos / "labels").is_dir():
             raise UserInputError(f"no facade photos with labels at {photos} (images/, labels/): give --facades")
-        from service.progress import is_quiet
+        from macroloc.service.progress import is_quiet
 
         if not is_quiet():
             logging.getLogger().setLevel(logging.INFO)  # rendering and training take minutes: show progress

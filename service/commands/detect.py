@@ -24,9 +24,9 @@ def register(app: typer.Typer) -> None:
         """
         import cv2
 
-        from perception.detector import DEFAULT_MODEL, Detector
-        from perception.draw import draw_detections
-        from service.commands._io import existing_file, print_json, read_image
+        from macroloc.perception.detector import DEFAULT_MODEL, Detector
+        from macroloc.perception.draw import draw_detections
+        from macroloc.service.commands._io import existing_file, print_json, read_image
 
         model_path = existing_file(model or DEFAULT_MODEL, "detector model")
         loaded = []

@@ -20,7 +20,7 @@ def register(app: typer.Typer) -> None:
         import json
         import sys
 
-        from service.config import load_config
+        from macroloc.service.config import load_config
 
         doc = load_config(config).model_dump(mode="json")
         if not toml_out:

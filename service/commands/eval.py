@@ -31,12 +31,12 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
         from rich.progress import Progress
 
-        from graph.bim import load_building
-        from graph.errors import UserInputError
-        from graph.evaluation import ScenarioParams, evaluate, make_scenario
-        from graph.model_index import index_for
-        from graph.registration import descriptor_matches
-        from service.commands._io import print_json
+        from macroloc.graph.bim import load_building
+        from macroloc.graph.errors import UserInputError
+        from macroloc.graph.evaluation import ScenarioParams, evaluate, make_scenario
+        from macroloc.graph.model_index import index_for
+        from macroloc.graph.registration import descriptor_matches
+        from macroloc.service.commands._io import print_json
 
         bad = [v for v in variant if v not in VARIANTS]
         if bad:

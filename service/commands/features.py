@@ -19,9 +19,9 @@ def register(app: typer.Typer) -> None:
 
         Features are cached per building file (its SHA-256) in ~/.cache/macroloc, so a second run is fast.
         """
-        from graph.bim import load_building
-        from graph.geo import read_geo_reference
-        from service.commands._io import print_json
+        from macroloc.graph.bim import load_building
+        from macroloc.graph.geo import read_geo_reference
+        from macroloc.service.commands._io import print_json
 
         model = load_building(building)
         geo = read_geo_reference(building)

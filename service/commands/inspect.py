@@ -27,8 +27,8 @@ def kde_path_for(plot: Path) -> Path:
 
 def inspect_building(building: Path, plot: Path | None, walls: bool = True) -> dict:
     """Load the building and draw its pictures; returns {"plots": [paths], "storeys": counts, "features": n}."""
-    from graph.bim import load_building
-    from graph.errors import UserInputError
+    from macroloc.graph.bim import load_building
+    from macroloc.graph.errors import UserInputError
 
     model = load_building(building)
     plots: list[str] = []
@@ -37,7 +37,7 @@ def inspect_building(building: Path, plot: Path | None, walls: bool = True) -> d
             raise UserInputError(f"--plot must name a .png file, got {plot}")
         if not plot.parent.exists():
             raise UserInputError(f"folder for --plot does not exist: {plot.parent}")
-        from service.plots import load_wall_mesh, plot_floor_plans, plot_kde_bins
+        from macroloc.service.plots import load_wall_mesh, plot_floor_plans, plot_kde_bins
 
         wall_mesh = load_wall_mesh(building) if walls else None
         plots.append(str(plot_floor_plans(model, plot, wall_mesh=wall_mesh)))
@@ -68,7 +68,7 @@ def register(app: typer.Typer) -> None:
         The floor plan draws doors black and windows blue (the paper's Figure 1) with short labels (D0, W3, ...),
         each opening's normal as a thin tick, and the walls cut 1.2 m above each storey's floor in grey.
         """
-        from service.commands._io import existing_file, print_json
+        from macroloc.service.commands._io import existing_file, print_json
 
         existing_file(building, "building model")
         result = inspect_building(building, plot, walls=not no_walls)

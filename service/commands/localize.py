@@ -23,10 +23,10 @@ def register(app: typer.Typer) -> None:
         the observations about equally well (a symmetric building, identical storeys: add "hints": {"storey": NAME}
         to OBS.json to settle the storey), or `not_localized`.
         """
-        from graph.bim import load_building
-        from graph.observations import parse_observations
-        from graph.registration import register as run_registration
-        from service.commands._io import print_json, read_json
+        from macroloc.graph.bim import load_building
+        from macroloc.graph.observations import parse_observations
+        from macroloc.graph.registration import register as run_registration
+        from macroloc.service.commands._io import print_json, read_json
 
         obs = parse_observations(read_json(observations, "observations file"))
         model = load_building(building)

@@ -30,12 +30,12 @@ def register(app: typer.Typer) -> None:
         import cv2
         import numpy as np
 
-        from graph.errors import UserInputError
-        from perception.calib import read_stereo_rig
-        from perception.detector import DEFAULT_MODEL
-        from perception.draw import draw_features
-        from perception.pipeline import Perception, StereoPair
-        from service.commands._io import existing_file, print_json, read_image
+        from macroloc.graph.errors import UserInputError
+        from macroloc.perception.calib import read_stereo_rig
+        from macroloc.perception.detector import DEFAULT_MODEL
+        from macroloc.perception.draw import draw_features
+        from macroloc.perception.pipeline import Perception, StereoPair
+        from macroloc.service.commands._io import existing_file, print_json, read_image
 
         rig = read_stereo_rig(calib_left, calib_right)
         images = []

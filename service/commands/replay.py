@@ -61,20 +61,20 @@ def register(app: typer.Typer) -> None:
         wrong_localizations (entries into `localized` more than 1 m or 10 deg off), wrong_while_localized_s
         (flight time `localized` while that far off, e.g. after a drift) and status_final.
         """
-        from graph.bim import load_building
-        from graph.errors import UserInputError
-        from graph.mapstore import StoredMap, carried_views
-        from service.commands._io import existing_file, print_json
-        from service.config import load_config
-        from service.replay import replay as run_replay
-        from service.replay import settings_from_config
-        from service.replay_sources import (
+        from macroloc.graph.bim import load_building
+        from macroloc.graph.errors import UserInputError
+        from macroloc.graph.mapstore import StoredMap, carried_views
+        from macroloc.service.commands._io import existing_file, print_json
+        from macroloc.service.config import load_config
+        from macroloc.service.replay import replay as run_replay
+        from macroloc.service.replay import settings_from_config
+        from macroloc.service.replay_sources import (
             ObservationSource,
             PerceptionSource,
             TruthFeaturesWithVisualOdometry,
             TruthSource,
         )
-        from service.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
+        from macroloc.service.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
 
         if not flight.exists():
             raise UserInputError(f"recording not found: {flight}")
@@ -87,13 +87,13 @@ def register(app: typer.Typer) -> None:
             raise UserInputError("a ROS 2 bag holds no ground-truth doors and windows: use --observations perception")
         cfg = load_config(config)
         bag_stats = BagStats()
-        from service.progress import track
-        from service.recording import stereo_frame_count
+        from macroloc.service.progress import track
+        from macroloc.service.recording import stereo_frame_count
 
         frames = track(open_flight(flight, RosTopics.parse(topic or []), cfg.camera, bag_stats),
                        f"replay {flight.name}", total=None if is_bag else stereo_frame_count(flight))
         if over_zenoh:  # the service perceives the frames itself unless truth observations are sent along
-            from service.replay_zenoh import replay_command
+            from macroloc.service.replay_zenoh import replay_command
 
             if out is not None:
                 raise UserInputError("--out records an in-process replay; with --over-zenoh, record the service")
@@ -104,7 +104,7 @@ def register(app: typer.Typer) -> None:
         detector = cfg.perception.detector_model
         if observations == "perception" and detector is not None:
             existing_file(detector, "detector model (perception.detector_model)")
-        from service.progress import step
+        from macroloc.service.progress import step
 
         with step(f"reading {building.name} (its first time: a minute or more, cached after)"):
             model = load_building(building)
@@ -116,18 +116,18 @@ def register(app: typer.Typer) -> None:
         storey = model.checked_storey(storey if storey is not None else cfg.graph.storey_hint)
         surfaces = None
         if cfg.graph.surface_check:
-            from service.planning_grid import surfaces_for
+            from macroloc.service.planning_grid import surfaces_for
 
             with step(f"preparing {building.name}'s surfaces (its first time: minutes, cached after)"):
                 surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
-        from service.places import KeyframePlaces
+        from macroloc.service.places import KeyframePlaces
 
         places = KeyframePlaces(stored, keep_views=save_map is not None)
         recorder = None
         with contextlib.ExitStack() as stack:
             if out is not None:
-                from service.foxglove_out import FoxgloveWriter, ReplayRecorder
-                from service.plots import load_wall_mesh
+                from macroloc.service.foxglove_out import FoxgloveWriter, ReplayRecorder
+                from macroloc.service.plots import load_wall_mesh
 
                 recorder = ReplayRecorder(stack.enter_context(FoxgloveWriter(out)), model, load_wall_mesh(building))
             result = run_replay(frames, model, source, stored=stored, storey_hint=storey, policy=policy,
@@ -138,8 +138,8 @@ def register(app: typer.Typer) -> None:
                 new_map.carried = carried_views(new_map.placed_views(), new_map.T_cad_map, stored)
             new_map.save(save_map)
         if report is not None:
-            from service.plots import load_wall_mesh
-            from service.replay_report import write_report
+            from macroloc.service.plots import load_wall_mesh
+            from macroloc.service.replay_report import write_report
 
             write_report(result, model, report, load_wall_mesh(building), stored, config=cfg.model_dump(mode="json"))
         doc = result.to_json()

@@ -28,9 +28,9 @@ def register(app: typer.Typer) -> None:
         """
         import logging
 
-        from service.config import load_config
-        from service.logs import configure_logging
-        from service.serve import serve as run
+        from macroloc.service.config import load_config
+        from macroloc.service.logs import configure_logging
+        from macroloc.service.serve import serve as run
 
         overrides: dict[str, dict] = {"service": {}, "zenoh": {}, "ros": {}, "px4": {}}
         for section, key, value in (("service", "building", building), ("service", "vehicle", vehicle),

@@ -13,8 +13,8 @@ import numpy as np
 import typer
 
 if TYPE_CHECKING:
-    from service.config import MacrolocConfig
-    from sim.simulator import SimFrame, Simulator
+    from macroloc.service.config import MacrolocConfig
+    from macroloc.sim.simulator import SimFrame, Simulator
 
 log = logging.getLogger(__name__)
 
@@ -48,9 +48,9 @@ def register(app: typer.Typer) -> None:
         Topics: /stereo (StereoFrame), /imu (Imu), /ground_truth (GroundTruth: T_cad_body, T_body_cam, every
         door/window in view with corners in the left camera frame, depth), /ground_truth/instances (mask).
         """
-        from graph.errors import UserInputError
-        from service.commands._io import existing_file, print_json
-        from service.config import load_config
+        from macroloc.graph.errors import UserInputError
+        from macroloc.service.commands._io import existing_file, print_json
+        from macroloc.service.config import load_config
 
         existing_file(building, "building model")
         if duration is not None and not (duration > 0 and np.isfinite(duration)):
@@ -74,9 +74,9 @@ def register(app: typer.Typer) -> None:
 
 def simulation_params(cfg: MacrolocConfig, seed: int, storey: str | None,  # noqa: ANN201 - SimulationParams
                       appearance_seed: int | None = None):
-    from sim.flight import FlightParams
-    from sim.render import CameraModel
-    from sim.simulator import SimulationParams
+    from macroloc.sim.flight import FlightParams
+    from macroloc.sim.render import CameraModel
+    from macroloc.sim.simulator import SimulationParams
 
     c = cfg.camera
     camera = CameraModel(width=c.width, height=c.height, fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy, baseline_m=c.baseline_m)
@@ -85,7 +85,7 @@ def simulation_params(cfg: MacrolocConfig, seed: int, storey: str | None,  # noq
                      rate_hz=cfg.sim.imu_rate_hz)
     photos = cfg.sim.facade_photos
     if photos is not None and not (photos / "images").is_dir():
-        from graph.errors import UserInputError
+        from macroloc.graph.errors import UserInputError
 
         raise UserInputError(f"sim.facade_photos: {photos} has no images/ folder")
     return SimulationParams(seed=seed, appearance_seed=appearance_seed, storey=storey, camera=camera,
@@ -103,17 +103,17 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
     """
     import cv2
 
-    from service.progress import track
-    from service.recording import FlightMetadata, FlightWriter
-    from sim.contact_sheet import annotate
-    from sim.contact_sheet import contact_sheet as make_sheet
-    from sim.simulator import Simulator
+    from macroloc.service.progress import track
+    from macroloc.service.recording import FlightMetadata, FlightWriter
+    from macroloc.sim.contact_sheet import annotate
+    from macroloc.sim.contact_sheet import contact_sheet as make_sheet
+    from macroloc.sim.simulator import Simulator
 
     t_start = time.perf_counter()
     sim = Simulator(building, simulation_params(cfg, seed, storey, appearance_seed))
     exporter = None
     if yolo_dir is not None:
-        from sim.export import YoloExporter
+        from macroloc.sim.export import YoloExporter
 
         exporter = YoloExporter(yolo_dir, f"{building.stem}_s{seed}_{_slug(sim.storey)}", every_n=yolo_every)
     imu = sim.imu()
@@ -130,8 +130,8 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
     imu_ns = np.round(imu.stamps_s * 1e9).astype(np.int64)
     try:
         with FlightWriter(out, meta) as writer:
-            from service.foxglove_out import SimulationChannels
-            from service.plots import load_wall_mesh
+            from macroloc.service.foxglove_out import SimulationChannels
+            from macroloc.service.plots import load_wall_mesh
 
             foxglove = SimulationChannels(writer.write, sim.model, load_wall_mesh(building))
             for i, t in enumerate(track(times, f"simulate {building.name}", total=len(times))):
@@ -171,8 +171,8 @@ def _slug(text: str) -> str:
 
 
 def imu_message(imu, k: int, stamp_ns: int):  # noqa: ANN001, ANN201 - (ImuSamples, index) -> pb.Imu
-    from service.recording import vector3
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.recording import vector3
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     return pb.Imu(header=pb.Header(stamp_ns=stamp_ns, frame_id="body", seq=k),
                   accel_mps2=vector3(imu.accel_mps2[k]), gyro_radps=vector3(imu.gyro_radps[k]))
@@ -180,8 +180,8 @@ def imu_message(imu, k: int, stamp_ns: int):  # noqa: ANN001, ANN201 - (ImuSampl
 
 def frame_messages(frame: SimFrame, sim: Simulator, cfg: MacrolocConfig):  # noqa: ANN201 - protobuf messages
     """(StereoFrame, GroundTruth, instance mask Image) of one simulated frame (contract: service/recording.py)."""
-    from service.recording import add_features_in_view, depth_image_mm, encode_image, pose_from_matrix
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.recording import add_features_in_view, depth_image_mm, encode_image, pose_from_matrix
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     cam = sim.params.camera
     T_body_cam = pose_from_matrix(sim.T_body_cam)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from graph.features import MacroFeature
-from graph.rectangle import opening_rectangle
-from graph.rigid import make_T
+from macroloc.graph.features import MacroFeature
+from macroloc.graph.rectangle import opening_rectangle
+from macroloc.graph.rigid import make_T
 
 
 def random_T(rng: np.random.Generator, max_translation_m: float = 20.0, yaw_only: bool = False) -> np.ndarray:

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from graph.features import BuildingModel, MacroFeature
-from graph.landmarks import frame_from_normal
+from macroloc.graph.features import BuildingModel, MacroFeature
+from macroloc.graph.landmarks import frame_from_normal
 
 
 def rot_z(yaw: float) -> np.ndarray:
@@ -56,7 +56,7 @@ def straight_flight(n: int, step_m: float = 0.3, z: float = 1.4, yaw_wobble: flo
 def sightings_from(model: BuildingModel, T_cad_body: np.ndarray, max_range_m: float = 6.0,
                    rng: np.random.Generator | None = None, sigma_m: float = 0.0) -> list:
     """Sightings (body-frame corners) of every feature in front of the body within range."""
-    from graph.localizer import Sighting
+    from macroloc.graph.localizer import Sighting
 
     out = []
     T_body_cad = np.linalg.inv(T_cad_body)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import graph.bim_ifc
-from graph.bim import load_building, merge_duplicates
-from graph.features import BuildingModel, MacroFeature
+from macroloc.graph.bim import load_building, merge_duplicates
+from macroloc.graph.features import BuildingModel, MacroFeature
 
 
 def _counts(model: BuildingModel) -> Counter:
@@ -120,8 +120,8 @@ def test_duplicates_are_merged() -> None:
 def test_an_ifczip_reads_as_its_ifc_and_is_cached(fzk_path: Path, tmp_path: Path) -> None:
     import zipfile
 
-    from graph.bim import cache_dir, is_ifc
-    from service.plots import load_wall_mesh
+    from macroloc.graph.bim import cache_dir, is_ifc
+    from macroloc.service.plots import load_wall_mesh
 
     zipped = tmp_path / "fzk_haus.ifcZIP"
     with zipfile.ZipFile(zipped, "w", zipfile.ZIP_DEFLATED) as zf:

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from graph.bim import load_building
-from graph.bim_mesh import read_mesh_features
-from graph.errors import BuildingError
+from macroloc.graph.bim import load_building
+from macroloc.graph.bim_mesh import read_mesh_features
+from macroloc.graph.errors import BuildingError
 from tests.conftest import shared_data
 
 HOSPITAL = "bim/aws_hospital"

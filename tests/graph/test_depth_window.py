@@ -6,8 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.depth_window import DepthWindow
-from graph.rigid import apply, make_T, rot_z
+from macroloc.graph.depth_window import DepthWindow
+from macroloc.graph.rigid import apply, make_T, rot_z
 
 VIEWER_BODY = np.array([0.1, 0.0, 0.05])
 

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.descriptor import (
+from macroloc.graph.descriptor import (
     build_tables,
     describe,
     encode,
@@ -17,7 +17,7 @@ from graph.descriptor import (
     neighbour_geometry,
     silverman_bandwidth,
 )
-from graph.rigid import apply
+from macroloc.graph.rigid import apply
 from tests.graph.helpers import random_T
 
 
@@ -57,7 +57,7 @@ def test_distance_field_is_the_length_of_vec_i_and_angle_is_to_the_base() -> Non
 
 
 def test_layout_of_figure_7() -> None:
-    from graph.descriptor import DescriptorTables
+    from macroloc.graph.descriptor import DescriptorTables
 
     # one edge at 0.5: values below -> bin 0, above -> bin 1
     tables = DescriptorTables(np.zeros(1), np.zeros(1), np.array([0.5]), np.array([0.5]))

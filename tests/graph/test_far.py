@@ -6,8 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.far import refined_by_bearings, resection_candidates
-from graph.rigid import apply, make_T, rot_z, rotation_angle_deg
+from macroloc.graph.far import refined_by_bearings, resection_candidates
+from macroloc.graph.rigid import apply, make_T, rot_z, rotation_angle_deg
 
 
 def sigma_m(range_m):  # noqa: ANN001, ANN201 (the localizer's default: 0.03 + 0.004 r^2)

@@ -7,10 +7,10 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.far_window import FarSightings
-from graph.features import BuildingModel, CentroidsByType, MacroFeature
-from graph.params import LocalizerParams
-from graph.rigid import apply, make_T, rot_z, rotation_angle_deg
+from macroloc.graph.far_window import FarSightings
+from macroloc.graph.features import BuildingModel, CentroidsByType, MacroFeature
+from macroloc.graph.params import LocalizerParams
+from macroloc.graph.rigid import apply, make_T, rot_z, rotation_angle_deg
 
 DOORS_CAD = np.array([[0.0, 0.0, 1.05], [12.0, 1.0, 1.05], [3.0, 14.0, 1.05], [14.0, 11.0, 1.05],
                       [-9.0, 6.0, 1.05], [20.0, -4.0, 1.05]])

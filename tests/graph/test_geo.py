@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from graph.geo import dms_to_deg, geo_reference_of, read_geo_reference
+from macroloc.graph.geo import dms_to_deg, geo_reference_of, read_geo_reference
 
 
 def _metres_per_deg_lat(lat_deg: float, h_m: float) -> float:

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.landmarks import FLIP_ABOUT_UP, closer_flip, frame_from_normal, is_vertical, observed_frame
+from macroloc.graph.landmarks import FLIP_ABOUT_UP, closer_flip, frame_from_normal, is_vertical, observed_frame
 from tests.graph.scenes import door, make_T, rot_z
 
 angles = st.floats(-np.pi, np.pi, allow_nan=False)

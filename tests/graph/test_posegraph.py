@@ -10,12 +10,12 @@ import gtsam
 import numpy as np
 import pytest
 
-from graph.landmarks import feature_frame_cad
-from graph.localizer import Localizer, LocalizerParams
-from graph.mapstore import StoredMap
-from graph.posegraph import ANCHOR, IsamSettings, PoseGraph, X
-from graph.registrar import FirstOfRegistrar, StoredMapRegistrar
-from graph.relocalize import KnownRect
+from macroloc.graph.landmarks import feature_frame_cad
+from macroloc.graph.localizer import Localizer, LocalizerParams
+from macroloc.graph.mapstore import StoredMap
+from macroloc.graph.posegraph import ANCHOR, IsamSettings, PoseGraph, X
+from macroloc.graph.registrar import FirstOfRegistrar, StoredMapRegistrar
+from macroloc.graph.relocalize import KnownRect
 from tests.graph.scenes import (
     corridor_model,
     drifting_odometry,
@@ -120,7 +120,7 @@ def test_injected_wrong_matches_do_not_drag_the_estimate(corridor) -> None:
 
 
 def test_without_the_robust_loss_wrong_matches_would_drag_it(corridor, monkeypatch) -> None:
-    import graph.posegraph as pg
+    import macroloc.graph.posegraph as pg
 
     monkeypatch.setattr(pg, "robust", lambda sigmas, cauchy_k=2.0: pg.diagonal(sigmas))
     poses = straight_flight(60)
@@ -153,8 +153,8 @@ def test_save_load_relocalize_round_trip(corridor, tmp_path) -> None:
 
 
 def test_keyframe_views_survive_save_and_load(corridor, tmp_path) -> None:
-    from graph.errors import UserInputError
-    from graph.mapstore import KeyframeView
+    from macroloc.graph.errors import UserInputError
+    from macroloc.graph.mapstore import KeyframeView
 
     poses = straight_flight(5)
     loc = Localizer(corridor, PoseGraph(), model_registrar(corridor), LocalizerParams())
@@ -185,7 +185,7 @@ def test_keyframe_views_survive_save_and_load(corridor, tmp_path) -> None:
 def test_an_earlier_maps_views_are_carried_where_the_new_map_has_none(corridor, tmp_path) -> None:
     """carried_views: the earlier map's views moved into the new map's frame (both linked to the CAD frame),
     less those near one of the new map's own; they survive save and load and are placed by, after its own."""
-    from graph.mapstore import KeyframeView, carried_views
+    from macroloc.graph.mapstore import KeyframeView, carried_views
 
     rng = np.random.default_rng(4)
 
@@ -212,7 +212,7 @@ def test_an_earlier_maps_views_are_carried_where_the_new_map_has_none(corridor, 
 
 
 def test_a_map_from_another_building_is_refused(corridor, tmp_path) -> None:
-    from graph.errors import UserInputError
+    from macroloc.graph.errors import UserInputError
 
     path = StoredMap("another-sha", None).save(tmp_path / "map.json")
     with pytest.raises(UserInputError):
@@ -269,7 +269,7 @@ def test_a_sighting_cut_by_the_image_border_barely_moves_its_landmark_along_that
     """Three clean sightings of a door and three cut by the image border, whose corners stop at the border
     and so put the door 0.3 m off along the cut axis. Flagged as truncated, they must move the landmark less
     than a tenth as far as the same sightings unflagged."""
-    from graph.localizer import Sighting
+    from macroloc.graph.localizer import Sighting
 
     T_cad_body = make_T(np.eye(3), np.array([0.0, 0.0, 1.4]))
     target = next(f for f in corridor.features if f.type == "door")
@@ -297,7 +297,7 @@ def test_a_door_first_seen_cut_by_the_border_takes_its_width_from_uncut_sighting
     the door's edge. The registration takes the door's size from the landmark, so once an uncut sighting came
     its width is the uncut ones' (Office_A seed 10: the cut sighting's 0.61 m wide corners kept the door from
     matching its 1.07 m CAD door); a sighting cut again does not count."""
-    from graph.localizer import Sighting
+    from macroloc.graph.localizer import Sighting
 
     T_cad_body = make_T(np.eye(3), np.array([0.0, 0.0, 1.4]))
     target = next(f for f in corridor.features if f.type == "door")
@@ -326,8 +326,8 @@ def test_the_registration_sees_a_door_by_the_median_of_its_sightings(corridor) -
     1.07 m door), then seen right twice and once 0.1 m wide: the registrar is handed a rectangle of the median
     width about the landmark's pose, not the first sighting's corners, so the size check lets the true door be a
     candidate. Cut sides (here: the bottom, always) do not count towards the height unless every sighting is cut."""
-    from graph.localizer import Sighting
-    from graph.relocalize import Alignment
+    from macroloc.graph.localizer import Sighting
+    from macroloc.graph.relocalize import Alignment
 
     handed: list[np.ndarray] = []
 
@@ -369,7 +369,7 @@ def test_a_door_detected_twice_in_one_frame_is_one_sighting(corridor) -> None:
     """Two overlapping boxes of one door in one frame (the detector's duplicates, 19 of 252 frames with
     detections on Office_A seed 1) are one sighting: the landmark is not confirmed by a single frame
     (`min_sightings_to_register`), and its factor is not counted twice. A second frame confirms it."""
-    from graph.localizer import Sighting
+    from macroloc.graph.localizer import Sighting
 
     T_cad_body = make_T(np.eye(3), np.array([0.0, 0.0, 1.4]))
     target = next(f for f in corridor.features if f.type == "door")
@@ -395,7 +395,7 @@ def test_the_first_frame_levelled_wrong_is_corrected_by_gravity(corridor) -> Non
     """The odometry frame is levelled by the first frame's specific force, which is degrees off while the
     vehicle accelerates: the whole odometry frame is tilted by 4 deg. The first keyframe fixes the map's yaw
     and origin, not its tilt: gravity's priors level every keyframe, the first ones too."""
-    from graph.rigid import rotation_aligning
+    from macroloc.graph.rigid import rotation_aligning
 
     poses = straight_flight(40)
     R_tilt = rotation_aligning(UP, [np.sin(np.radians(4.0)), 0.0, np.cos(np.radians(4.0))])
@@ -412,7 +412,7 @@ def test_the_anchor_stays_level_against_tilted_links() -> None:
     """Both the map and the model are z up, so T_cad_map turns about z only. A registration 2 deg off level
     and four CAD links each tilted by 3 deg of noise (a door's corners are coarse) leave it within 0.2 deg of
     level; with a free tilt it would follow the links' mean (~1.5 deg)."""
-    from graph.rigid import rotation_aligning
+    from macroloc.graph.rigid import rotation_aligning
 
     rng = np.random.default_rng(7)
     graph = PoseGraph()

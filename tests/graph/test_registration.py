@@ -7,15 +7,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.evaluation import ScenarioParams, make_scenario, score
-from graph.features import BuildingModel, MacroFeature
-from graph.observations import Observation, ObservationSet
-from graph.registration import (
+from macroloc.graph.evaluation import ScenarioParams, make_scenario, score
+from macroloc.graph.features import BuildingModel, MacroFeature
+from macroloc.graph.observations import Observation, ObservationSet
+from macroloc.graph.registration import (
     _coplanar,  # the private eq. (10) kernel, tested directly
     hypothesis_count,
     register,
 )
-from graph.rigid import apply, invert, rotation_angle_deg
+from macroloc.graph.rigid import apply, invert, rotation_angle_deg
 from tests.graph.helpers import random_building, random_T
 
 
@@ -105,7 +105,7 @@ def test_centroid_only_observations_need_gravity_or_a_rectangle(office_model) ->
 
 
 def test_storey_hint_restricts_the_search(office_model) -> None:
-    from graph.errors import UserInputError
+    from macroloc.graph.errors import UserInputError
 
     T = random_T(np.random.default_rng(8), yaw_only=True)
     level1 = [f for f in office_model.features if f.storey == "Level 1"][:12]
@@ -157,8 +157,8 @@ def test_default_beats_the_paper_on_the_same_scenarios(office_model) -> None:
 def test_one_rectangle_gives_a_level_pose_per_alike_feature_and_side(seed: int, noise_m: float) -> None:
     """With gravity one door or window fixes the pose up to which alike feature it is and from which side: two
     level poses per CAD feature of its type and size, one of them the truth (to the corners' noise)."""
-    from graph.model_index import ModelIndex
-    from graph.robust import RobustParams, rectangle_edges, single_rectangle_poses
+    from macroloc.graph.model_index import ModelIndex
+    from macroloc.graph.robust import RobustParams, rectangle_edges, single_rectangle_poses
 
     rng = np.random.default_rng(seed)
     model = BuildingModel(source="t", sha256=f"one-rect-{seed}", features=random_building(rng), storeys=["L1"])
@@ -189,11 +189,11 @@ def test_two_doors_offer_every_alike_pair_to_the_walls(office_model) -> None:
     perception): the building has dozens of door pairs alike to them, and the registrar's candidates (for the walls
     to choose among) must hold every pose that puts both doors on CAD doors, the truth among them; the few
     refined poses alone missed it, and the walls then took a wrong one."""
-    from graph.landmarks import feature_frame_cad
-    from graph.model_index import index_for
-    from graph.registrar import ModelRegistrar
-    from graph.relocalize import ObservedRect
-    from graph.robust import RobustParams, single_rectangle_poses
+    from macroloc.graph.landmarks import feature_frame_cad
+    from macroloc.graph.model_index import index_for
+    from macroloc.graph.registrar import ModelRegistrar
+    from macroloc.graph.relocalize import ObservedRect
+    from macroloc.graph.robust import RobustParams, single_rectangle_poses
 
     doors = {f.id: f for f in office_model.features}
     a, b = doors["2N3oFtM8X6lO2dN1$77xv3"], doors["2N3oFtM8X6lO2dN1$77xzD"]
@@ -228,11 +228,11 @@ def test_one_false_landmark_does_not_take_the_truth_out_of_the_candidates(office
     3.2 s): a wrong pose that puts all three on CAD doors explains more than the truth, which explains two. The
     walls can only choose the truth if it is offered: the candidates hold every pose explaining one landmark
     fewer than the best too (a wrong pose there fitted the walls at 0.90-0.92 with the truth not offered)."""
-    from graph.landmarks import feature_frame_cad
-    from graph.model_index import index_for
-    from graph.registrar import ModelRegistrar
-    from graph.relocalize import ObservedRect
-    from graph.robust import RobustParams, single_rectangle_poses
+    from macroloc.graph.landmarks import feature_frame_cad
+    from macroloc.graph.model_index import index_for
+    from macroloc.graph.registrar import ModelRegistrar
+    from macroloc.graph.relocalize import ObservedRect
+    from macroloc.graph.robust import RobustParams, single_rectangle_poses
 
     doors = {f.id: f for f in office_model.features}
     a, b = doors["2N3oFtM8X6lO2dN1$77xv3"], doors["2N3oFtM8X6lO2dN1$77xzD"]
@@ -278,9 +278,9 @@ def test_one_false_landmark_does_not_take_the_truth_out_of_the_candidates(office
 def test_one_landmark_is_never_an_answer_by_itself(office_model) -> None:
     """The registrar offers one landmark's candidate poses (for the walls to choose among) but never 'localized',
     even where the door is one of a kind."""
-    from graph.landmarks import feature_frame_cad
-    from graph.registrar import ModelRegistrar
-    from graph.relocalize import ObservedRect
+    from macroloc.graph.landmarks import feature_frame_cad
+    from macroloc.graph.registrar import ModelRegistrar
+    from macroloc.graph.relocalize import ObservedRect
 
     registrar = ModelRegistrar(office_model, min_landmarks=4, candidates_from=1)
     assert registrar.candidates_from == 1 and registrar.register_params["min_inliers"] == 2
@@ -301,8 +301,8 @@ def test_the_localizers_registrar_seeds_from_every_landmark(office_model) -> Non
     import json
     from pathlib import Path
 
-    from graph.localizer import LocalizerParams, model_registrar
-    from graph.relocalize import ObservedRect
+    from macroloc.graph.localizer import LocalizerParams, model_registrar
+    from macroloc.graph.relocalize import ObservedRect
 
     doc = json.loads((Path(__file__).parent / "data" / "office_a_perception_landmarks.json").read_text())
     T_true = np.array(doc["T_cad_map_true"])

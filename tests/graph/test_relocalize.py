@@ -6,8 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.landmarks import FLIP_ABOUT_UP, feature_frame_cad
-from graph.relocalize import KnownRect, ObservedRect, align_rectangles
+from macroloc.graph.landmarks import FLIP_ABOUT_UP, feature_frame_cad
+from macroloc.graph.relocalize import KnownRect, ObservedRect, align_rectangles
 from tests.graph.scenes import corridor_model, door, make_T, rot_z
 
 

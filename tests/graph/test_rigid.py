@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.rigid import apply, invert, levelled, rot_z, rotation_aligning, weighted_rigid_fit, yaw_rigid_fit
+from macroloc.graph.rigid import apply, invert, levelled, rot_z, rotation_aligning, weighted_rigid_fit, yaw_rigid_fit
 from tests.graph.helpers import random_T
 
 seeds = st.integers(0, 2**32 - 1)

@@ -15,13 +15,13 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from graph.features import BuildingModel
-from graph.localizer import Estimate, Localizer, LocalizerParams
-from graph.posegraph import PoseGraph
-from graph.registrar import FirstOfRegistrar, ModelRegistrar, Registrar
-from graph.relocalize import Alignment
-from graph.rigid import apply, rotation_angle_deg
-from graph.surfaces import SurfaceIndex, SurfaceParams, WallVoxels, align_to_surfaces, band_points, floor_points
+from macroloc.graph.features import BuildingModel
+from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams
+from macroloc.graph.posegraph import PoseGraph
+from macroloc.graph.registrar import FirstOfRegistrar, ModelRegistrar, Registrar
+from macroloc.graph.relocalize import Alignment
+from macroloc.graph.rigid import apply, rotation_angle_deg
+from macroloc.graph.surfaces import SurfaceIndex, SurfaceParams, WallVoxels, align_to_surfaces, band_points, floor_points
 from tests.graph.scenes import corridor_model, door, make_T, rot_z, sightings_from
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -583,7 +583,7 @@ def test_a_measured_cad_pose_moves_the_keyframe() -> None:
     fixed by a tight prior here) along the directions its information holds."""
     import gtsam
 
-    from graph.posegraph import ANCHOR, pose3
+    from macroloc.graph.posegraph import ANCHOR, pose3
 
     graph = PoseGraph()
     graph.add_first_keyframe(np.eye(4))

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
+from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from tests.graph.scenes import make_T, rot_z, straight_flight
 
 

@@ -7,7 +7,7 @@ import zlib
 
 import numpy as np
 
-from perception.calib import StereoRig
+from macroloc.perception.calib import StereoRig
 
 RIG = StereoRig(fx_px=480.0, fy_px=480.0, cx_px=320.0, cy_px=240.0, baseline_m=0.12, width_px=640, height_px=480)
 

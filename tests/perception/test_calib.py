@@ -3,8 +3,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from graph.errors import UserInputError
-from perception.calib import read_camera_info, read_stereo_rig
+from macroloc.graph.errors import UserInputError
+from macroloc.perception.calib import read_camera_info, read_stereo_rig
 from tests.conftest import shared_data
 
 ROS_YAML = """image_width: 640

@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from perception.detector import DEFAULT_MODEL, Detection, Detector, DetectorSpec, decode, letterbox, nms
-from perception.evaluate import GroundTruth, average_precision, best_f1_threshold, pr_curve
+from macroloc.perception.detector import DEFAULT_MODEL, Detection, Detector, DetectorSpec, decode, letterbox, nms
+from macroloc.perception.evaluate import GroundTruth, average_precision, best_f1_threshold, pr_curve
 from tests.conftest import shared_data
 
 
@@ -71,7 +71,7 @@ def test_detects_on_a_held_out_real_photo_in_its_own_pixels():
 
 
 def test_a_box_at_the_image_border_is_marked_truncated_and_says_so_in_json():
-    from perception.detector import Letterbox, at_border, postprocess
+    from macroloc.perception.detector import Letterbox, at_border, postprocess
 
     spec = DetectorSpec(anchors_px=((20.0, 40.0),), input_wh=(64, 48), stride_px=16)
     raw = np.full((8, 3, 4), -10.0)

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from perception.detector import Detection
-from perception.detector_eval import figures
-from perception.evaluate import GroundTruth, pr_curve
-from perception.trainset import Sample
+from macroloc.perception.detector import Detection
+from macroloc.perception.detector_eval import figures
+from macroloc.perception.evaluate import GroundTruth, pr_curve
+from macroloc.perception.trainset import Sample
 
 
 def _sample(boxes: list[list[float]]) -> Sample:

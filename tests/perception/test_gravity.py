@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from perception.gravity import GravityEstimator
+from macroloc.perception.gravity import GravityEstimator
 
 G_MPS2 = 9.81
 RATE_HZ = 30.0

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from perception.image_header import ImageHeaderError, check_encoded, encoded_size, jpeg_size, png_size
+from macroloc.perception.image_header import ImageHeaderError, check_encoded, encoded_size, jpeg_size, png_size
 from tests.perception.helpers import png_bomb
 
 

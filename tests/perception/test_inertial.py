@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from graph.rigid import rot_z
-from perception.inertial import InertialDeadReckoning
+from macroloc.graph.rigid import rot_z
+from macroloc.perception.inertial import InertialDeadReckoning
 
 FRAME_S, IMU_PER_FRAME = 1.0 / 30.0, 7
 GRAVITY_MPS2 = 9.81

@@ -2,7 +2,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from perception.lines import join_segments, refine_box
+from macroloc.perception.lines import join_segments, refine_box
 from tests.perception.helpers import door_image
 
 

@@ -9,8 +9,8 @@ torch = pytest.importorskip("torch")
 
 
 def test_tiny_model_exports_to_onnx_and_decodes_like_torch(tmp_path: Path):
-    from perception.detector import Detector, DetectorSpec
-    from perception.model import STRIDE_PX, TinyYolo
+    from macroloc.perception.detector import Detector, DetectorSpec
+    from macroloc.perception.model import STRIDE_PX, TinyYolo
 
     torch.manual_seed(0)
     model = TinyYolo(n_anchors=2, n_classes=3).eval()
@@ -28,8 +28,8 @@ def test_tiny_model_exports_to_onnx_and_decodes_like_torch(tmp_path: Path):
 
 
 def test_loss_targets_and_one_gradient_step():
-    from perception.model import STRIDE_PX, TinyYolo
-    from perception.train import build_targets, yolo_loss
+    from macroloc.perception.model import STRIDE_PX, TinyYolo
+    from macroloc.perception.train import build_targets, yolo_loss
 
     anchors = np.array([[16.0, 32.0], [48.0, 24.0]])
     boxes = [np.array([[20.0, 10.0, 36.0, 42.0]]), np.zeros((0, 4))]
@@ -45,7 +45,7 @@ def test_loss_targets_and_one_gradient_step():
 def test_onnx_equals_torch_on_a_batch(tmp_path: Path):
     import onnxruntime as ort
 
-    from perception.model import TinyYolo
+    from macroloc.perception.model import TinyYolo
 
     torch.manual_seed(1)
     model = TinyYolo(n_anchors=3, n_classes=3, width=2).eval()
@@ -61,7 +61,7 @@ def test_onnx_equals_torch_on_a_batch(tmp_path: Path):
 
 
 def test_real_shares_fill_the_batch_from_the_sets_present():
-    from perception.train import real_shares
+    from macroloc.perception.train import real_shares
 
     assert real_shares(16, 0.6, True, True) == (10, 6)
     assert real_shares(8, 0.6, False, True) == (0, 8) and real_shares(8, 0.6, True, False) == (8, 0)

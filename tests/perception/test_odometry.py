@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from perception.calib import StereoRig
-from perception.odometry import OdometryConfig, StereoOdometry
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.odometry import OdometryConfig, StereoOdometry
 
 RIG = StereoRig(fx_px=480.0, fy_px=480.0, cx_px=319.5, cy_px=239.5, baseline_m=0.12, width_px=640, height_px=480)
 DEPTH_M = 3.0

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from perception.calib import StereoRig
-from perception.odometry import StereoOdometry
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.odometry import StereoOdometry
 
 
 @pytest.fixture(scope="module")
 def flight():  # noqa: ANN201 - [(T_cad_cam, left, right)]
-    from sim.materials import dress_scene
-    from sim.render import CameraModel, Lighting, StereoRenderer
-    from sim.textures import make_texture_layers
+    from macroloc.sim.materials import dress_scene
+    from macroloc.sim.render import CameraModel, Lighting, StereoRenderer
+    from macroloc.sim.textures import make_texture_layers
     from tests.sim.room import look_at, room_scene
 
     scene, features = room_scene()

@@ -4,8 +4,8 @@ import sys
 import numpy as np
 import pytest
 
-from perception.detector import Detection
-from perception.pipeline import ObservedFeature, Perception, Rejected, StereoPair
+from macroloc.perception.detector import Detection
+from macroloc.perception.pipeline import ObservedFeature, Perception, Rejected, StereoPair
 from tests.perception.helpers import RIG, door_pair
 
 
@@ -39,13 +39,13 @@ def test_chain_after_the_detector_recovers_a_door_on_a_wall(depth_m):
     ((620.0, 50.0, 630.0, 400.0), (True, False)),
 ])
 def test_a_box_at_the_image_border_is_truncated_on_that_axis(box, expected):
-    from perception.pipeline import ObservedFeature
+    from macroloc.perception.pipeline import ObservedFeature
 
     assert ObservedFeature.truncation(box, 640, 480) == expected
 
 
 def test_corners_projected_past_the_border_truncate_a_box_that_stops_short():
-    from perception.pipeline import ObservedFeature
+    from macroloc.perception.pipeline import ObservedFeature
 
     box = (200.0, 100.0, 300.0, 400.0)
     inside = np.array([[200.0, 100.0], [300.0, 100.0], [300.0, 400.0], [200.0, 400.0]])

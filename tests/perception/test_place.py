@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from graph.mapstore import KeyframeView
-from graph.rigid import rotation_angle_deg
-from perception.calib import StereoRig
-from perception.place import PlaceRecognizer
+from macroloc.graph.mapstore import KeyframeView
+from macroloc.graph.rigid import rotation_angle_deg
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.place import PlaceRecognizer
 from tests.graph.scenes import make_T, rot_z
 
 RIG = StereoRig(480.0, 480.0, 319.5, 239.5, 0.12, 640, 480)
@@ -33,10 +33,10 @@ def camera_at(s: float, side_m: float = 0.0, turn_deg: float = 0.0) -> np.ndarra
 
 @pytest.fixture(scope="module")
 def room():  # noqa: ANN201 - (T_body_cam, stored [(T_map_body, view)], {name: (T_map_body, left image)})
-    from sim.materials import dress_scene
-    from sim.render import CameraModel, Lighting, StereoRenderer
-    from sim.simulator import forward_camera_T_body_cam
-    from sim.textures import make_texture_layers
+    from macroloc.sim.materials import dress_scene
+    from macroloc.sim.render import CameraModel, Lighting, StereoRenderer
+    from macroloc.sim.simulator import forward_camera_T_body_cam
+    from macroloc.sim.textures import make_texture_layers
     from tests.sim.room import room_scene
 
     scene, features = room_scene()
@@ -137,7 +137,7 @@ def test_the_vote_index_finds_the_nearest_descriptors_as_the_brute_force_matcher
                                                                                  seed: int) -> None:
     """The vote's index (faiss, exact) gives OpenCV's brute-force Hamming distances to the two nearest rows; near
     copies of stored rows (a few bits flipped) are found at their own row."""
-    from perception.place import _BinaryIndex
+    from macroloc.perception.place import _BinaryIndex
 
     rng = np.random.default_rng(seed)
     rows = rng.integers(0, 256, (n_rows, 32), dtype=np.uint8)

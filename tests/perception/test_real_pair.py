@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from bench.eval_perception_real import HAND_BOX_PX
-from perception.calib import read_stereo_rig
-from perception.detector import Detection
-from perception.pipeline import Perception, StereoPair
+from macroloc.perception.calib import read_stereo_rig
+from macroloc.perception.detector import Detection
+from macroloc.perception.pipeline import Perception, StereoPair
 from tests.conftest import shared_data
 
 

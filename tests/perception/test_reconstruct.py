@@ -4,8 +4,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from perception.lines import Sides
-from perception.reconstruct import (
+from macroloc.perception.lines import Sides
+from macroloc.perception.reconstruct import (
     Reconstruction,
     check_plausible,
     closest_point_to_ray,
@@ -15,7 +15,7 @@ from perception.reconstruct import (
     reconstruct_sides,
     wall_plane,
 )
-from perception.stereo import back_project
+from macroloc.perception.stereo import back_project
 from tests.perception.helpers import RIG
 
 unit = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(lambda v: np.linalg.norm(v) > 0.2)
@@ -40,7 +40,7 @@ def test_line_fit_recovers_a_line_through_noise_and_outliers(point, direction, s
 
 
 def test_closest_point_to_ray():
-    from perception.reconstruct import Line3D
+    from macroloc.perception.reconstruct import Line3D
 
     line = Line3D(np.array([1.0, 0.0, 5.0]), np.array([0.0, 1.0, 0.0]), np.ones(1, bool))
     ray = np.array([1.0, -1.0, 5.0]) / np.linalg.norm([1.0, -1.0, 5.0])

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from perception.stereo import SgbmMatcher, back_project, depth_from_disparity, ray_cam, sample_depth_m
+from macroloc.perception.stereo import SgbmMatcher, back_project, depth_from_disparity, ray_cam, sample_depth_m
 from tests.perception.helpers import RIG, fronto_parallel_pair
 
 
@@ -43,7 +43,7 @@ def test_no_disparity_puts_the_match_left_of_the_right_image():
     """The padding repeats the right image's first column: a left pixel matched into it (disparity greater than
     its column) has no match in view. 128 disparities on a plane 5 m away (11.5 px) gave 2,787 such pixels down
     the left edge (in Office_A seed 3's frames: walls 5-7 m away measured at 0.5 m); none is kept."""
-    from perception.stereo import SgbmConfig
+    from macroloc.perception.stereo import SgbmConfig
 
     left, right = fronto_parallel_pair(5.0)
     disparity = SgbmMatcher(SgbmConfig(num_disparities=128)).disparity_px(left, right)
@@ -64,7 +64,7 @@ def test_sample_depth_takes_the_median_of_valid_neighbours():
 
 def test_the_matcher_is_never_handed_unequal_empty_or_oversized_pairs() -> None:
     """OpenCV's SGBM crashed the process on a 20000 x 20000 pair (segfault in compute): it is refused first."""
-    from perception.stereo import MAX_PIXELS, SgbmMatcher
+    from macroloc.perception.stereo import MAX_PIXELS, SgbmMatcher
 
     matcher = SgbmMatcher()
     left = np.zeros((48, 64), np.uint8)

@@ -3,8 +3,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from perception.detector import PAD_VALUE
-from perception.trainset import (
+from macroloc.perception.detector import PAD_VALUE
+from macroloc.perception.trainset import (
     ROTATIONS_DEG,
     Sample,
     _affine,
@@ -30,7 +30,7 @@ def test_yolo_labels_map_to_door_window_neither(tmp_path: Path):
     label = tmp_path / "x.txt"
     label.write_text("5 0.5 0.5 0.2 0.4\n0 0.25 0.25 0.1 0.1\n4 0.1 0.1 0.1 0.1\n"
                      "3 0.7 0.7 0.2 0.2\n9 0.5 0.5 0.1 0.1\n")
-    from perception.trainset import FACADE_CLASS_MAP
+    from macroloc.perception.trainset import FACADE_CLASS_MAP
 
     boxes, classes = read_yolo_labels(label, 200, 100, FACADE_CLASS_MAP)
     assert classes.tolist() == [0, 1, 1, 2]
@@ -86,7 +86,7 @@ def test_test_split_rule(n: int):
 
 
 def test_a_trained_model_names_the_flights_its_rendered_frames_came_from():
-    from perception.train import rendered_sources
+    from macroloc.perception.train import rendered_sources
 
     def sample(name: str) -> Sample:
         return Sample(name, np.zeros((4, 4, 3), np.uint8), np.zeros((0, 4)), np.zeros(0, int))
@@ -96,7 +96,7 @@ def test_a_trained_model_names_the_flights_its_rendered_frames_came_from():
 
 
 def test_source_stem_joins_augmented_copies_second_downloads_and_video_frames():
-    from perception.trainset import source_stem
+    from macroloc.perception.trainset import source_stem
 
     names = {"train_Door0007-1-_png.rf.26753ed80f77fd6a21db4f738dbad705.jpg": "Door0007",
              "valid_Door0007_png.rf.051d31e59f7f6723f27763dc767e58ee.jpg": "Door0007",
@@ -108,7 +108,7 @@ def test_source_stem_joins_augmented_copies_second_downloads_and_video_frames():
 
 
 def _parts_by_stem(split: dict[str, list[Path]]) -> dict[str, set[str]]:
-    from perception.trainset import source_stem
+    from macroloc.perception.trainset import source_stem
 
     parts: dict[str, set[str]] = {}
     for name, paths in split.items():
@@ -118,7 +118,7 @@ def _parts_by_stem(split: dict[str, list[Path]]) -> dict[str, set[str]]:
 
 
 def test_split_by_source_keeps_every_copy_of_a_photo_in_one_part():
-    from perception.trainset import split_by_source
+    from macroloc.perception.trainset import split_by_source
 
     folder = Path("robot_door_detection/images")
     paths = [folder / f"{prefix}_Door{n:04d}_png.rf.{h:08x}.jpg"
@@ -131,7 +131,7 @@ def test_split_by_source_keeps_every_copy_of_a_photo_in_one_part():
 
 
 def test_indoor_split_has_no_source_photo_in_two_parts():
-    from perception.trainset import split_indoor
+    from macroloc.perception.trainset import split_indoor
 
     split = split_indoor(shared_data("images/indoor_doors"), seed=0)
     parts = _parts_by_stem(split)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import main
+from macroloc.service.cli import main
 
 
 @pytest.fixture(scope="session")

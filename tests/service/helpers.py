@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from service.config import MacrolocConfig, ZenohConfig, load_config
-from service.recording import pose_from_matrix, vector3
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.config import MacrolocConfig, ZenohConfig, load_config
+from macroloc.service.recording import pose_from_matrix, vector3
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 
 def free_port() -> int:
@@ -99,8 +99,8 @@ def service_config(building: Path, state_dir: Path, port: int, vehicle: str = "t
 @contextmanager
 def running_service(cfg: MacrolocConfig, notifier: object | None = None) -> Iterator[object]:
     """The service in a thread on its own loopback session; yields it once ready, stops and joins on exit."""
-    from service.serve import build_service
-    from service.zenoh_io import open_session
+    from macroloc.service.serve import build_service
+    from macroloc.service.zenoh_io import open_session
 
     stop = threading.Event()
     box: dict[str, object] = {}
@@ -132,6 +132,6 @@ def client(port: int, mode: str = "peer") -> Iterator[zenoh.Session]:
 
 
 def _session_conf(cfg: ZenohConfig) -> zenoh.Config:
-    from service.zenoh_io import session_config
+    from macroloc.service.zenoh_io import session_config
 
     return session_config(cfg)

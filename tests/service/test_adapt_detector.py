@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import main
+from macroloc.service.cli import main
 from tests.conftest import BUILDINGS, shared_data
 
 
@@ -21,7 +21,7 @@ def test_bad_seeds_and_missing_photos_are_one_line(tmp_path: Path, capsys) -> No
 
 def test_adapts_on_a_few_rendered_frames_and_exports_a_loadable_model(tmp_path: Path, capsys) -> None:
     pytest.importorskip("torch")
-    from perception.detector import Detector
+    from macroloc.perception.detector import Detector
 
     facades = shared_data("images/facades")
     rc = main(["adapt-detector", str(BUILDINGS / "fzk_haus.ifc"), "--out", str(tmp_path), "--facades", str(facades),

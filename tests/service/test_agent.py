@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import zenoh
 
-from service.agent import VehicleAgent
-from service.demo import exploration_route
-from service.planning import Planner, line_of_sight
-from service.zenoh_io import session_config
-from sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
+from macroloc.service.agent import VehicleAgent
+from macroloc.service.demo import exploration_route
+from macroloc.service.planning import Planner, line_of_sight
+from macroloc.service.zenoh_io import session_config
+from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
 from tests.service.helpers import loopback
 
 
@@ -78,7 +78,7 @@ def test_the_demo_exploration_route_is_long_and_stays_in_free_space(planner: Pla
 def test_the_vehicles_imu_measures_its_acceleration_and_gravity_is_recovered() -> None:
     """The simulated vehicle's accelerometer reports gravity's reaction plus its acceleration (as a real one
     does); perception.gravity, given the odometry, takes the acceleration back out of it."""
-    from perception.gravity import GravityEstimator
+    from macroloc.perception.gravity import GravityEstimator
 
     drone = KinematicDrone(level_pose(np.zeros(3), 0.0))
     estimator = GravityEstimator()
@@ -107,8 +107,8 @@ class StampCamera:
 
     def measure(self, stamp_ns: int, T_cad_body: np.ndarray) -> list:
         self.stamps_ns.append(stamp_ns)
-        from service.recording import encode_image, pose_from_matrix
-        from service.wire.macroloc.v1 import macroloc_pb2 as pb
+        from macroloc.service.recording import encode_image, pose_from_matrix
+        from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
         image = encode_image(np.full((8, 10, 3), stamp_ns % 251, np.uint8))
         frame = pb.StereoFrame(header=pb.Header(stamp_ns=stamp_ns, frame_id="cam_left"), left=image, right=image)
@@ -122,7 +122,7 @@ class StampCamera:
 def test_a_recorded_flight_holds_what_the_vehicle_sent_and_replays_frame_by_frame(tmp_path) -> None:  # noqa: ANN001
     """`recorder`: every IMU and odometry sample the vehicle publishes, and its camera's frames with their ground
     truth; read back, each frame carries the odometry of its own stamp (the pose the service placed it at)."""
-    from service.recording import FlightWriter, matrix_from_pose, read_flight
+    from macroloc.service.recording import FlightWriter, matrix_from_pose, read_flight
 
     T0 = level_pose(np.array([2.0, 1.0, 1.4]), 0.4)
     odometry = DriftingOdometry(level_pose(np.array([5.0, -3.0, 0.0]), 1.1), T0, seed=3)

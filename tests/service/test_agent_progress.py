@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.agent import ProgressMonitor, ProgressParams, WaypointFollower
+from macroloc.service.agent import ProgressMonitor, ProgressParams, WaypointFollower
 
 
 def _run(monitor: ProgressMonitor, remaining_m: np.ndarray, dt_s: float = 0.1) -> list[str]:

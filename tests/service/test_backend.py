@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.backend import LocalizerBackend
-from service.inputs import OdometryIn
+from macroloc.service.backend import LocalizerBackend
+from macroloc.service.inputs import OdometryIn
 from tests.service.helpers import yaw_T
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import free_port, loopback, wait_for
 
 MACROLOC = str(Path(sys.executable).parent / "macroloc")
@@ -47,7 +47,7 @@ def test_serve_stops_cleanly_on_sigterm_and_saves_the_map(office_path: Path, tmp
                             stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, MACROLOC_SERVICE__PERCEPTION="false"))
     try:
-        from service.zenoh_io import session_config
+        from macroloc.service.zenoh_io import session_config
 
         with zenoh.open(session_config(loopback(connect=[f"tcp/127.0.0.1:{port}"]))) as s:
             wait_for(lambda: any(r.ok for r in s.liveliness().get("macroloc/cli/alive", timeout=1.0)), 90.0,
@@ -72,8 +72,8 @@ def test_serve_stops_cleanly_on_sigterm_and_saves_the_map(office_path: Path, tmp
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_demo_localizes_and_reaches_the_goal(seed: int, tmp_path: Path) -> None:
-    from service.demo import DemoParams, plot_flight, run_demo
-    from service.planning import Planner
+    from macroloc.service.demo import DemoParams, plot_flight, run_demo
+    from macroloc.service.planning import Planner
 
     result = run_demo(params=DemoParams(seed=seed, speedup=3.0))
     assert result.localized and result.reached
@@ -87,7 +87,7 @@ def test_demo_closes_the_loop_through_perception(tmp_path: Path) -> None:
     """Rendered stereo frames -> the service's perception chain (the detector adapted to Office_A and shipped
     beside it) -> localized -> flown to the goal on the service's poses (~3.5 min on 2 cores); its recording
     (--record) replays offline."""
-    from service.demo import DEFAULT_BUILDING, DemoParams, bundled_detector, run_demo
+    from macroloc.service.demo import DEFAULT_BUILDING, DemoParams, bundled_detector, run_demo
 
     recording = tmp_path / "demo.mcap"
     result = run_demo(params=DemoParams(seed=0, observations="perception", record=recording))
@@ -97,7 +97,7 @@ def test_demo_closes_the_loop_through_perception(tmp_path: Path) -> None:
     # the recorded flight runs again offline, perceived frame by frame as the service did, on the vehicle's odometry
     config = tmp_path / "every_frame.toml"
     config.write_text(f'[perception]\ndetect_every = 1\ndetector_model = "{bundled_detector(DEFAULT_BUILDING)}"\n')
-    proc = subprocess.run([sys.executable, "-m", "service.cli", "replay", str(recording), "--building",
+    proc = subprocess.run([sys.executable, "-m", "macroloc.service.cli", "replay", str(recording), "--building",
                            str(DEFAULT_BUILDING), "--observations", "perception", "--config", str(config), "--json"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -121,7 +121,7 @@ def test_killed_mid_flight_restarts_and_relocalizes(office_path: Path, office_mo
     door = [f for f in office_model.features if f.type == "door" and f.storey == "Level 1"][10]
     T = yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])
     flight = FakeFlight(office_model, yaw_T(2.0, np.array([5.0, -3.0, 0.0])))
-    from service.zenoh_io import session_config
+    from macroloc.service.zenoh_io import session_config
 
     def localized(poses: Collector) -> bool:
         last = poses.last()
@@ -159,7 +159,7 @@ def _busy(stop: threading.Event) -> None:
 def test_lockstep_flies_the_same_flight_on_an_idle_and_a_loaded_machine() -> None:
     """The vehicle's clock waits for the service: 8 simulated seconds of seed 1 give the same flight to the digit,
     once as it is and once with a busy thread beside it."""
-    from service.demo import DemoParams, run_demo
+    from macroloc.service.demo import DemoParams, run_demo
 
     params = DemoParams(seed=1, timeout_s=8.0, lockstep=True)
     first = run_demo(params=params)
@@ -181,7 +181,7 @@ def test_lockstep_flies_the_same_flight_on_an_idle_and_a_loaded_machine() -> Non
 def test_lockstep_demo_repeats_to_the_digit(seed: int) -> None:
     from dataclasses import asdict
 
-    from service.demo import DemoParams, run_demo
+    from macroloc.service.demo import DemoParams, run_demo
 
     runs = [asdict(run_demo(params=DemoParams(seed=seed, lockstep=True))) for _ in range(2)]
     for run in runs:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.cli import main
+from macroloc.service.cli import main
 from tests.graph.helpers import random_T
 
 
@@ -107,7 +107,7 @@ def test_eval_compares_both_methods(capsys, fzk_path: Path) -> None:
 
 
 def test_the_installed_command_runs_as_a_process(tmp_path: Path) -> None:
-    p = subprocess.run([sys.executable, "-m", "service.cli", "localize", "--help"], capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-m", "macroloc.service.cli", "localize", "--help"], capture_output=True, text=True)
     assert p.returncode == 0 and "ambiguous" in p.stdout
 
 
@@ -131,7 +131,7 @@ def test_a_damaged_ifc_is_refused_with_one_line(case: str, fzk_path: Path, tmp_p
 
 def test_a_door_with_an_absurd_vertex_is_dropped_and_counted(fzk_path: Path, tmp_path: Path) -> None:
     """A coordinate of 1e200 parses; the kernel would drop the faces it spans and shrink the door silently."""
-    from graph.bim_ifc import read_ifc_features
+    from macroloc.graph.bim_ifc import read_ifc_features
 
     huge = tmp_path / "huge.ifc"
     huge.write_bytes(fzk_path.read_bytes().replace(b"#17343= IFCCARTESIANPOINT((0.835,",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from service.cli import COMMAND_MODULES, main
+from macroloc.service.cli import COMMAND_MODULES, main
 
 COMMANDS = [name.replace("_", "-") for name in COMMAND_MODULES]
 
@@ -39,7 +39,7 @@ def test_no_help_text_holds_what_rich_would_take_for_markup(capsys) -> None:
 
     import typer
 
-    from service.cli import app
+    from macroloc.service.cli import app
 
     assert main(["--help"]) == 0  # registers every command
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from service.config import load_config
+from macroloc.service.config import load_config
 from tests.service.helpers import free_port
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
@@ -57,9 +57,9 @@ def test_example_config_and_environment_file_load(monkeypatch: pytest.MonkeyPatc
 
 
 def test_tls_peer_config_refuses_a_plain_endpoint_beyond_loopback() -> None:
-    from graph.errors import UserInputError
-    from service.config import ZenohConfig
-    from service.zenoh_io import session_config
+    from macroloc.graph.errors import UserInputError
+    from macroloc.service.config import ZenohConfig
+    from macroloc.service.zenoh_io import session_config
 
     tls_file = DEPLOY / "zenoh" / "peer-tls.json5"
     session_config(ZenohConfig(config_file=tls_file, listen=["tcp/127.0.0.1:7447"]))  # loopback stays allowed
@@ -85,8 +85,8 @@ def test_serve_with_a_tls_bypass_exits_2_with_one_line(tmp_path: Path) -> None:
 
 
 def test_exposure_is_said_for_loopback_and_beyond() -> None:
-    from service.config import ZenohConfig
-    from service.zenoh_io import describe_exposure, session_config
+    from macroloc.service.config import ZenohConfig
+    from macroloc.service.zenoh_io import describe_exposure, session_config
 
     assert "this machine only" in describe_exposure(session_config(ZenohConfig()))
     assert "access control" in describe_exposure(session_config(ZenohConfig(listen=["tcp/0.0.0.0:7447"])))

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from service.recording import encode_image, pose_from_matrix
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.recording import encode_image, pose_from_matrix
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 
 def textured_pair(disparity_px: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -21,8 +21,8 @@ def textured_pair(disparity_px: int, seed: int = 0) -> tuple[np.ndarray, np.ndar
 
 def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
     pytest.importorskip("onnxruntime")
-    from perception.pipeline import Perception
-    from service.frames import PerceptionPipeline, forward_T_body_cam
+    from macroloc.perception.pipeline import Perception
+    from macroloc.service.frames import PerceptionPipeline, forward_T_body_cam
 
     pipeline = PerceptionPipeline(Perception.create(None), forward_T_body_cam(), depth_every=3)
     left, right = textured_pair(24)
@@ -43,8 +43,8 @@ def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
 def test_depth_points_reach_a_wall_nearer_than_the_chains_search() -> None:
     """A wall 0.70 m ahead (82 px of disparity): the depth points' SGBM searches 128 disparities and finds it;
     searching the perception chain's 64 (down to 0.9 m) it would be matched at a wrong disparity, behind itself."""
-    from perception.calib import StereoRig
-    from service.frames import StereoDepth
+    from macroloc.perception.calib import StereoRig
+    from macroloc.service.frames import StereoDepth
 
     left, right = textured_pair(82)
     rig = StereoRig(480.0, 480.0, 319.5, 239.5, 0.12, 640, 480)

@@ -11,9 +11,9 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from service.config import MacrolocConfig
-from service.recording import encode_image, vector3
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.config import MacrolocConfig
+from macroloc.service.recording import encode_image, vector3
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.perception.helpers import png_bomb
 from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for, yaw_T
 from tests.service.test_service import Collector, _localized_at, fly
@@ -133,7 +133,7 @@ def perceiving_config(office_path, tmp_path_factory: pytest.TempPathFactory) -> 
     """The service's config with perception on (the frames would reach SGBM, LSD and the detector if let
     through); the model's solids and surfaces built once beforehand, so that the service starts from a warm
     cache (a cold build takes a minute on a busy 2-core machine)."""
-    from service.serve import build_service
+    from macroloc.service.serve import build_service
 
     cfg = service_config(office_path, tmp_path_factory.mktemp("hostile"), free_port())
     cfg.service.perception = True

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from graph.errors import UserInputError
-from service.health import DropCounter
-from service.inputs import InputLimits, InputParser
-from service.recording import decode_image, encode_image, pose_from_matrix, vector3
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.errors import UserInputError
+from macroloc.service.health import DropCounter
+from macroloc.service.inputs import InputLimits, InputParser
+from macroloc.service.recording import decode_image, encode_image, pose_from_matrix, vector3
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.perception.helpers import png_bomb
 
 BOUNDS = (np.array([-10.0, -10.0, -5.0]), np.array([30.0, 20.0, 15.0]))
@@ -158,8 +158,8 @@ def test_a_clock_reset_starts_a_new_time_base_and_a_future_stamp_blocks_nothing(
 def test_replaying_a_recording_that_holds_a_bomb_is_one_line_and_exit_2(office_path, tmp_path, capsys) -> None:
     """The offline path: `macroloc replay` decodes recorded images (here through the visual odometry); a frame
     whose PNG decodes to 20000 x 20000 pixels ends the replay with one line, before it is decoded."""
-    from service.cli import main
-    from service.recording import FlightWriter
+    from macroloc.service.cli import main
+    from macroloc.service.recording import FlightWriter
 
     bomb = pb.Image(width=640, height=480, encoding=pb.Image.PNG, data=png_bomb(20000, 20000))
     flight = tmp_path / "bomb.mcap"
@@ -175,8 +175,8 @@ def test_replaying_a_recording_that_holds_a_bomb_is_one_line_and_exit_2(office_p
 
 
 def test_no_pose_outside_the_model_or_not_finite_goes_out() -> None:
-    from graph.localizer import Estimate
-    from service.backend import plausible
+    from macroloc.graph.localizer import Estimate
+    from macroloc.service.backend import plausible
 
     def est(xyz: tuple[float, float, float], cov: float = 0.01) -> Estimate:
         T = np.eye(4)
@@ -192,9 +192,9 @@ def test_no_pose_outside_the_model_or_not_finite_goes_out() -> None:
 def test_the_pixel_cap_is_a_config_key_that_dump_config_shows(capsys, monkeypatch) -> None:
     import json
 
-    from service.cli import main
-    from service.config import load_config
-    from service.inputs import limits_from_config
+    from macroloc.service.cli import main
+    from macroloc.service.config import load_config
+    from macroloc.service.inputs import limits_from_config
 
     assert main(["dump-config"]) == 0
     assert json.loads(capsys.readouterr().out)["inputs"]["max_image_pixels"] == 4096 * 4096

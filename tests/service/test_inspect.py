@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import main
+from macroloc.service.cli import main
 from tests.conftest import shared_data
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -51,7 +51,7 @@ def test_floor_plan_is_reusable(duplex_model) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from service.plots import draw_floor_plan, short_ids
+    from macroloc.service.plots import draw_floor_plan, short_ids
 
     fig, ax = plt.subplots()
     draw_floor_plan(ax, duplex_model, "Level 1", walls=None)

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from service.ned import (
+from macroloc.service.ned import (
     R_ned_frd_from_R_enu_flu,
     T_enu_flu_from_T_ned_frd,
     T_ned_frd_from_T_enu_flu,

@@ -9,10 +9,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from graph.geo import read_geo_reference
-from graph.localizer import Estimate
-from service.ned import quat_wxyz_from_matrix
-from service.px4 import Px4Messages
+from macroloc.graph.geo import read_geo_reference
+from macroloc.graph.localizer import Estimate
+from macroloc.service.ned import quat_wxyz_from_matrix
+from macroloc.service.px4 import Px4Messages
 
 
 @pytest.fixture(scope="module")

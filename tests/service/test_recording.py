@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.recording import (
+from macroloc.service.recording import (
     TOPIC_GROUND_TRUTH,
     TOPIC_IMU,
     TOPIC_STEREO,
@@ -20,7 +20,7 @@ from service.recording import (
     read_flight,
     read_metadata,
 )
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 
 def _T(yaw: float, t: tuple[float, float, float]) -> np.ndarray:
@@ -97,7 +97,7 @@ def test_read_flight_groups_frames(tmp_path: Path) -> None:
 
 
 def test_missing_or_bad_file_is_a_user_error(tmp_path: Path) -> None:
-    from graph.errors import UserInputError
+    from macroloc.graph.errors import UserInputError
 
     with pytest.raises(UserInputError):
         list(read_flight(tmp_path / "absent.mcap"))

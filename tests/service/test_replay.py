@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.cli import main
+from macroloc.service.cli import main
 
 KEYS = {"frames", "processing_fps", "localized", "time_to_localize_s", "ape_rmse_m", "ape_max_m",
         "wrong_localizations", "wrong_while_localized_s", "status_final"}
@@ -17,7 +17,7 @@ KEYS = {"frames", "processing_fps", "localized", "time_to_localize_s", "ape_rmse
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory, fzk_path: Path) -> Path:
-    from service.truth_flight import write_truth_flight
+    from macroloc.service.truth_flight import write_truth_flight
 
     return write_truth_flight(fzk_path, tmp_path_factory.mktemp("flight") / "fzk.mcap", seed=0, duration_s=14.0)
 
@@ -29,7 +29,7 @@ def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, dict 
 
 
 def test_the_truth_flight_holds_what_the_contract_says(flight: Path) -> None:
-    from service.recording import matrix_from_pose, read_flight, read_metadata
+    from macroloc.service.recording import matrix_from_pose, read_flight, read_metadata
 
     frames = list(read_flight(flight))
     assert len(frames) == 14 * 30
@@ -115,7 +115,7 @@ def test_a_missing_recording_is_exit_2(fzk_path: Path, tmp_path: Path, capsys: p
 
 
 def test_a_correct_entry_that_drifts_away_counts_as_wrong_while_localized() -> None:
-    from service.replay import ReplayTrace, _wrong_localizations, _wrong_while_localized_s
+    from macroloc.service.replay import ReplayTrace, _wrong_localizations, _wrong_while_localized_s
 
     trace = ReplayTrace()
     for k in range(40):  # 10 Hz; localized from 1 s; the estimate drifts 0.1 m per frame from 1 s on
@@ -135,9 +135,9 @@ def test_a_correct_entry_that_drifts_away_counts_as_wrong_while_localized() -> N
 def test_truth_depth_points_come_from_the_true_depth_image() -> None:
     """`--observations truth` measures depth points on a grid of the true depth image (with stereo noise), in
     the body frame: what the surface check of registrations reads (graph.surfaces)."""
-    from service.recording import encode_image, pose_from_matrix
-    from service.replay_sources import TruthSource
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.recording import encode_image, pose_from_matrix
+    from macroloc.service.replay_sources import TruthSource
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     gt = pb.GroundTruth(depth=encode_image(np.full((480, 640), 2.0, np.float32)))
     gt.T_body_cam.CopyFrom(pose_from_matrix(np.eye(4)))
@@ -154,9 +154,9 @@ def test_truth_depth_points_come_from_the_true_depth_image() -> None:
 def test_the_backend_hands_depth_to_the_next_keyframe() -> None:
     """LocalizerBackend.depth: points measured at a stamp reach the localizer with the next keyframe, moved into
     its body frame by the odometry between the two."""
-    from graph.surfaces import SurfaceIndex
-    from service.backend import LocalizerBackend
-    from service.inputs import OdometryIn
+    from macroloc.graph.surfaces import SurfaceIndex
+    from macroloc.service.backend import LocalizerBackend
+    from macroloc.service.inputs import OdometryIn
     from tests.graph.scenes import corridor_model, make_T
 
     model = corridor_model()
@@ -208,12 +208,12 @@ def test_a_map_with_views_relocalizes_at_the_first_frame(rendered_office_flight:
 def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none() -> None:
     """A saved map with views: the restarted backend is placed by them (a keyframe placed at the saved pose) and
     its next saved map holds its own views plus those saved views it has none near, in its own map frame."""
-    from graph.mapstore import KeyframeView
-    from service.backend import LocalizerBackend
-    from service.places import Placed
-    from service.recording import pose_from_matrix
-    from service.state import view_to_wire
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.graph.mapstore import KeyframeView
+    from macroloc.service.backend import LocalizerBackend
+    from macroloc.service.places import Placed
+    from macroloc.service.recording import pose_from_matrix
+    from macroloc.service.state import view_to_wire
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.graph.scenes import corridor_model, make_T, rot_z
 
     model = corridor_model()
@@ -245,8 +245,8 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
 def test_only_a_localized_map_with_views_is_placed_in_carried_ones_included() -> None:
     from dataclasses import replace
 
-    from graph.mapstore import KeyframeView, StoredMap
-    from service.places import KeyframePlaces
+    from macroloc.graph.mapstore import KeyframeView, StoredMap
+    from macroloc.service.places import KeyframePlaces
 
     view = KeyframeView(np.ones((30, 3)), np.zeros((30, 32), np.uint8))
     carried_only = StoredMap("sha", np.eye(4), [(0, np.eye(4))], [], {}, [(np.eye(4), view)])
@@ -259,8 +259,8 @@ def test_only_a_localized_map_with_views_is_placed_in_carried_ones_included() ->
 def test_the_graph_section_reaches_the_localizer(tmp_path: Path) -> None:
     """Every [graph] key the config documents for the localizer is the localizer's, from a config file (the
     service and the replay both build their localizer from it)."""
-    from service.config import load_config
-    from service.replay import settings_from_config
+    from macroloc.service.config import load_config
+    from macroloc.service.replay import settings_from_config
 
     path = tmp_path / "config.toml"
     path.write_text("[graph]\ncad_link_max_turn_deg = 4.5\nsurface_turn_deg = 0.0\nassociate_m = 0.7\n"
@@ -274,11 +274,11 @@ def test_the_vehicles_recorded_odometry_places_each_frame() -> None:
     """A recording with the vehicle's own odometry (`macroloc demo --record`): each frame's pose is the sample of
     its stamp (else the newest before it), as the service takes it; up comes from the IMU against that odometry;
     a first frame with none before it is the user's error, in one line."""
-    from graph.errors import UserInputError
-    from graph.rigid import rot_z
-    from service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
-    from service.replay_sources import VehicleOdometry
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.graph.errors import UserInputError
+    from macroloc.graph.rigid import rot_z
+    from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
+    from macroloc.service.replay_sources import VehicleOdometry
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     image = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
     info = pb.CameraInfo(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5, baseline_m=0.1,
@@ -311,9 +311,9 @@ def test_the_visual_odometry_says_how_long_it_only_extrapolated() -> None:
     """The stereo visual odometry (`--observations perception` without the vehicle's odometry) tracks a textured
     wall; a blank view (a wall nearer than stereo measures looks so) loses it, and each such frame reports its
     interval as dead-reckoned, for the graph to trust that stretch of odometry less; tracked again, none."""
-    from service.recording import FlightFrame, encode_image, pose_from_matrix
-    from service.replay_sources import VisualOdometry
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix
+    from macroloc.service.replay_sources import VisualOdometry
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.perception.helpers import RIG, fronto_parallel_pair
 
     left, right = fronto_parallel_pair(2.0)
@@ -336,9 +336,9 @@ def test_the_visual_odometry_says_how_long_it_only_extrapolated() -> None:
 def test_the_visual_odometry_dead_reckons_the_height_on_the_imu_while_it_has_lost_track() -> None:
     """1.5 s hovering before a textured wall (tracked; the IMU reads gravity alone), then 1 s blank (lost) while the
     IMU reads a climb at 1 m/s^2: the height follows it (0.5 m), where the last velocity would have kept it."""
-    from service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
-    from service.replay_sources import VisualOdometry
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
+    from macroloc.service.replay_sources import VisualOdometry
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.perception.helpers import RIG, fronto_parallel_pair
 
     left, right = fronto_parallel_pair(2.0)

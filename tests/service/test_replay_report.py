@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from service.replay_report import _pose_error
+from macroloc.service.replay_report import _pose_error
 
 
 @settings(max_examples=30, deadline=None)

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.cli import main
-from service.recording import FlightFrame, decode_image, read_flight
-from service.ros_bag import BagStats, read_ros_bag
-from service.ros_bag_write import BagTopics, write_ros_bag
+from macroloc.service.cli import main
+from macroloc.service.recording import FlightFrame, decode_image, read_flight
+from macroloc.service.ros_bag import BagStats, read_ros_bag
+from macroloc.service.ros_bag_write import BagTopics, write_ros_bag
 
 TOPICS = BagTopics(left="/drone/stereo/left/image", right="/drone/stereo/right/image",
                    left_info="/drone/stereo/left/info", right_info="/drone/stereo/right/info", imu="/drone/imu",
@@ -106,8 +106,8 @@ def test_a_distorted_bag_is_rectified_back_to_the_pinhole_images(short_flight: P
 
 
 def test_the_camera_mounting_comes_from_tf_static(short_flight: Path, tmp_path: Path) -> None:
-    from service.recording import matrix_from_pose
-    from service.ros_in import TransformTree
+    from macroloc.service.recording import matrix_from_pose
+    from macroloc.service.ros_in import TransformTree
 
     frames = list(read_ros_bag(write_ros_bag(short_flight, tmp_path / "bag", "sqlite3", TOPICS, max_frames=2),
                                GIVEN))
@@ -133,8 +133,8 @@ def test_the_camera_mounting_comes_from_tf_static(short_flight: Path, tmp_path: 
 
 
 def test_without_camera_info_and_tf_static_the_configured_camera_is_taken(short_flight: Path, tmp_path: Path) -> None:
-    from service.config import CameraConfig
-    from service.recording import matrix_from_pose
+    from macroloc.service.config import CameraConfig
+    from macroloc.service.recording import matrix_from_pose
 
     full = write_ros_bag(short_flight, tmp_path / "full", "sqlite3", TOPICS, max_frames=3)
     bare = _copy_bag(full, tmp_path / "bare", lambda topic, _: topic not in ("/tf_static", TOPICS.left_info,
@@ -228,7 +228,7 @@ def _decode_with_embedded_schemas(path: Path) -> tuple[dict[str, tuple[int, str]
 def test_a_bag_plays_into_a_running_service_over_zenoh(short_flight: Path, tmp_path: Path, fzk_path: Path) -> None:
     """`replay BAG --over-zenoh`: the bag's frames (rectified, raw images) on the service's keys; it answers each
     with a pose, scored against the bag's truth."""
-    from service.replay_zenoh import replay_over_zenoh
+    from macroloc.service.replay_zenoh import replay_over_zenoh
     from tests.service.helpers import free_port, loopback, running_service, service_config
 
     bag = write_ros_bag(short_flight, tmp_path / "bag", "sqlite3", TOPICS, max_frames=10)
@@ -246,7 +246,7 @@ def test_each_image_encoding_reads_as_macrolocs_images(encoding: str) -> None:
     import cv2
     from rosbags.typesys import Stores, get_typestore
 
-    from service.ros_in import any_image_array
+    from macroloc.service.ros_in import any_image_array
 
     types = get_typestore(Stores.LATEST).types
     header = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=1, nanosec=2), frame_id="c")
@@ -277,7 +277,7 @@ def test_bags_of_a_flight_replay_to_the_recordings_figures(rendered_office_fligh
                                                            tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Office_A seed 1 (7 s; the adapted detector localizes it at ~5 s): the `.db3` bag with Image and the `.mcap`
     with CompressedImage give the native recording's frames, time to localize (within a frame) and APE (1 cm)."""
-    from service.demo import bundled_detector
+    from macroloc.service.demo import bundled_detector
 
     detector = bundled_detector(office_path)
     assert detector is not None

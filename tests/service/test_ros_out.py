@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import zenoh
 
-from service.config import Px4Config, RosConfig
-from service.ned import cov_ros_from_gtsam, matrix_from_quat_wxyz
-from service.px4 import ResetCounter
-from service.recording import matrix_from_pose
-from service.ros_in import pose_message as ros_pose
-from service.ros_in import transform_matrix
-from service.ros_types import from_cdr, msg, stamp_ns_of, to_cdr
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.config import Px4Config, RosConfig
+from macroloc.service.ned import cov_ros_from_gtsam, matrix_from_quat_wxyz
+from macroloc.service.px4 import ResetCounter
+from macroloc.service.recording import matrix_from_pose
+from macroloc.service.ros_in import pose_message as ros_pose
+from macroloc.service.ros_in import transform_matrix
+from macroloc.service.ros_types import from_cdr, msg, stamp_ns_of, to_cdr
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for, yaw_T
 from tests.service.test_service import Collector, _query, fly
 
@@ -193,7 +193,7 @@ def test_reset_counter_counts_anchor_jumps_not_refinements() -> None:
 def test_the_demo_can_be_watched_live_through_listen(tmp_path) -> None:
     """`macroloc demo --listen ENDPOINT --ros`: a session connected to that endpoint (as zenoh-bridge-ros2dds would
     be) receives the demo's ROS poses in `map` while it flies; the goal's latitude/longitude come back."""
-    from service.demo import DemoParams, run_demo
+    from macroloc.service.demo import DemoParams, run_demo
 
     port = free_port()
     poses: list[Any] = []
@@ -204,7 +204,7 @@ def test_the_demo_can_be_watched_live_through_listen(tmp_path) -> None:
     from tests.service.helpers import loopback
 
     conf = loopback(connect=[f"tcp/127.0.0.1:{port}"])
-    from service.zenoh_io import session_config
+    from macroloc.service.zenoh_io import session_config
 
     deadline_s = 120.0
     wait_for(lambda: _can_connect(port), deadline_s, "the demo's listening endpoint")
@@ -231,10 +231,10 @@ def test_reset_counter_increments_exactly_at_a_re_localization_in_a_flight(offic
     x = 1e300 let through past the edge checks) and restarts LOST, then the vehicle flies on and is localized
     again. VehicleOdometry's reset_counter is 0 throughout the first localization and 1 from the first pose after
     the re-localization on, while T_cad_map itself barely moved (same odometry frame)."""
-    from service.backend import LocalizerBackend
-    from service.health import DropCounter
-    from service.inputs import InputParser, OdometryIn
-    from service.px4 import Px4Messages
+    from macroloc.service.backend import LocalizerBackend
+    from macroloc.service.health import DropCounter
+    from macroloc.service.inputs import InputParser, OdometryIn
+    from macroloc.service.px4 import Px4Messages
     from tests.service.helpers import FakeFlight
 
     backend = LocalizerBackend.fresh_or_restored(office_model, None)

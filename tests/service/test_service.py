@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from service.recording import matrix_from_pose
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
-from service.zenoh_io import session_config
+from macroloc.service.recording import matrix_from_pose
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.zenoh_io import session_config
 from tests.service.helpers import (
     FakeFlight,
     client,
@@ -187,7 +187,7 @@ def test_a_restart_stopped_before_localizing_keeps_the_saved_map(office_path, of
 
 def test_through_a_router(office_path, office_model, start_pose, tmp_path) -> None:
     """Service and vehicle both connect to a router (a Python session in router mode), never to each other."""
-    from service.zenoh_io import session_config
+    from macroloc.service.zenoh_io import session_config
 
     router_port = free_port()
     router_conf = session_config(loopback(mode="router", listen=[f"tcp/127.0.0.1:{router_port}"]))
@@ -217,8 +217,8 @@ def test_stop_event_drains_and_saves(office_path, office_model, start_pose, tmp_
 
 def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, start_pose, tmp_path) -> None:
     """A wall the model does not have, 1.5 m ahead in a frame's depth image, marks the planner's grid there."""
-    from service.frames import forward_T_body_cam
-    from service.recording import pose_from_matrix
+    from macroloc.service.frames import forward_T_body_cam
+    from macroloc.service.recording import pose_from_matrix
 
     port = free_port()
     with running_service(service_config(office_path, tmp_path, port)) as service, client(port) as s:
@@ -242,8 +242,8 @@ def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, st
 
 
 def test_a_storey_hint_that_is_not_in_the_building_is_refused_at_start(office_path, tmp_path) -> None:
-    from graph.errors import UserInputError
-    from service.serve import build_service
+    from macroloc.graph.errors import UserInputError
+    from macroloc.service.serve import build_service
 
     cfg = service_config(office_path, tmp_path, free_port())
     cfg = cfg.model_copy(update={"graph": cfg.graph.model_copy(update={"storey_hint": "Level 9"})})

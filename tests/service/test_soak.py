@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.recording import encode_image
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.recording import encode_image
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for, yaw_T
 
 SOAK_S = float(os.environ.get("MACROLOC_SOAK_S", "600"))  # the 10 minutes (slow tier)

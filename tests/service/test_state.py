@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.mapstore import KeyframeView
-from service.state import MapStore, ViewLog, view_from_wire, view_to_wire
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.graph.mapstore import KeyframeView
+from macroloc.service.state import MapStore, ViewLog, view_from_wire, view_to_wire
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.graph.scenes import make_T, rot_z
 
 SHA = "sha-of-the-building"
@@ -120,7 +120,7 @@ def test_a_map_of_another_building_is_ignored(tmp_path: Path) -> None:
 
 def test_a_failed_append_leaves_no_half_record_behind(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
     """A write that fails (a full disk) is undone: the next save's records keep the numbers map.pb gives them."""
-    import service.state as state
+    import macroloc.service.state as state
 
     store = MapStore(tmp_path, "d1")
     views = _views(3)

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.systemd import NullNotifier, SystemdNotifier, notifier_from_environment
-from service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.systemd import NullNotifier, SystemdNotifier, notifier_from_environment
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for
 from tests.service.test_service import Collector
 
@@ -88,8 +88,8 @@ def test_stop_mid_stall_exits_within_the_units_stop_timeout(duplex_path, tmp_pat
     keeps the map saved last - instead of being SIGKILLed with nothing saved."""
     import threading
 
-    from service.serve import build_service
-    from service.zenoh_io import open_session
+    from macroloc.service.serve import build_service
+    from macroloc.service.zenoh_io import open_session
 
     port = free_port()
     cfg = service_config(duplex_path, tmp_path, port)

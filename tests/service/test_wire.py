@@ -29,7 +29,7 @@ def test_generated_python_matches_schemas(tmp_path: Path) -> None:
 
 def test_field_numbers_are_stable() -> None:
     """Subscribers in other languages rely on these numbers: add fields, never renumber."""
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     def numbers(msg) -> dict[str, int]:
         return {f.name: f.number for f in msg.DESCRIPTOR.fields}
@@ -44,7 +44,7 @@ def test_field_numbers_are_stable() -> None:
 
 
 def test_round_trip_of_every_message() -> None:
-    from service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     for name, desc in pb.DESCRIPTOR.message_types_by_name.items():
         cls = getattr(pb, name)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from service.workqueue import WorkQueue
+from macroloc.service.workqueue import WorkQueue
 
 
 def test_heavy_items_beyond_the_bound_push_out_the_oldest_frame_only() -> None:
@@ -27,7 +27,7 @@ def test_light_items_are_bounded_too() -> None:
 def test_counting_ring_keeps_the_latest_and_counts_what_it_pushes_out() -> None:
     import threading
 
-    from service.workqueue import CountingRing
+    from macroloc.service.workqueue import CountingRing
 
     pushed_out: list[int] = []
     ring = CountingRing(4, lambda: pushed_out.append(1))

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from graph.features import MacroFeature
-from sim.scene import DOOR, SLAB, WALL, WINDOW, SceneGeometry
+from macroloc.graph.features import MacroFeature
+from macroloc.sim.scene import DOOR, SLAB, WALL, WINDOW, SceneGeometry
 
 ROOM_X_M, ROOM_Y_M, ROOM_Z_M = 8.0, 6.0, 3.0
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.flight import FlightParams, doors_crossed, plan_flight
-from sim.scene import load_scene
-from sim.simulator import choose_storey, storey_levels
+from macroloc.sim.flight import FlightParams, doors_crossed, plan_flight
+from macroloc.sim.scene import load_scene
+from macroloc.sim.simulator import choose_storey, storey_levels
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +28,7 @@ def test_default_storey_has_most_features(duplex_model) -> None:
 
 
 def test_unknown_storey_is_a_user_error(duplex_model) -> None:
-    from graph.errors import UserInputError
+    from macroloc.graph.errors import UserInputError
 
     with pytest.raises(UserInputError, match="storeys"):
         choose_storey(duplex_model, "Level 99")
@@ -99,7 +99,7 @@ def test_office_flight_passes_through_doors(office_path: Path, office_model) -> 
 
 
 def test_named_storey_is_flown_at_its_height(duplex_path: Path, duplex_model) -> None:
-    from sim.simulator import SimulationParams, plan_only
+    from macroloc.sim.simulator import SimulationParams, plan_only
 
     traj, storey = plan_only(duplex_path, SimulationParams(seed=2, storey="Level 1",
                                                            flight=FlightParams(duration_s=5.0)))

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sim.flight import GRAVITY_MPS2, Trajectory
-from sim.imu import ImuNoise, ideal_imu, simulate_imu
+from macroloc.sim.flight import GRAVITY_MPS2, Trajectory
+from macroloc.sim.imu import ImuNoise, ideal_imu, simulate_imu
 
 RATE_HZ = 200.0
 

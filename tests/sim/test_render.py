@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.groundtruth import feature_half_depths, features_in_view
-from sim.materials import DOUBLE_DOOR_STYLE, PHOTO_STYLE, door_style, dress_scene
-from sim.render import KIND_DOOR, CameraModel, Lighting, StereoRenderer
-from sim.textures import make_texture_layers
+from macroloc.sim.groundtruth import feature_half_depths, features_in_view
+from macroloc.sim.materials import DOUBLE_DOOR_STYLE, PHOTO_STYLE, door_style, dress_scene
+from macroloc.sim.render import KIND_DOOR, CameraModel, Lighting, StereoRenderer
+from macroloc.sim.textures import make_texture_layers
 from tests.sim.room import look_at, ray_cast_depth, room_scene
 
 SMALL = CameraModel(width=320, height=240, fx=240.0, fy=240.0, cx=159.5, cy=119.5, baseline_m=0.12)

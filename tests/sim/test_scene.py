@@ -9,10 +9,10 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim.materials import dress_scene
-from sim.render import CameraModel, Lighting, StereoRenderer
-from sim.scene import WALL, SceneGeometry, orient_closed_solids
-from sim.textures import make_texture_layers
+from macroloc.sim.materials import dress_scene
+from macroloc.sim.render import CameraModel, Lighting, StereoRenderer
+from macroloc.sim.scene import WALL, SceneGeometry, orient_closed_solids
+from macroloc.sim.textures import make_texture_layers
 from tests.sim.room import look_at, room_scene
 
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.cli import main
-from service.recording import (
+from macroloc.service.cli import main
+from macroloc.service.recording import (
     TOPIC_GROUND_TRUTH,
     TOPIC_IMU,
     TOPIC_STEREO,
@@ -119,7 +119,7 @@ def test_bad_inputs_exit_2_with_one_line(tmp_path: Path, duplex_path: Path, caps
 def test_the_appearance_seed_keeps_the_path_and_changes_only_the_look(duplex_path: Path) -> None:
     """`--appearance-seed`: the same building flown along another path. Seed 2 with the look of seed 1 flies seed
     2's path under seed 1's lights and textures."""
-    from sim.simulator import SimulationParams, Simulator
+    from macroloc.sim.simulator import SimulationParams, Simulator
 
     sims = {}
     for name, seed, look in (("path 2 look 1", 2, 1), ("path 2", 2, None), ("path 1", 1, None)):

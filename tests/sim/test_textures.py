@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.textures import TEXTURE_SIZE_PX, facade_crops, make_texture_layers
+from macroloc.sim.textures import TEXTURE_SIZE_PX, facade_crops, make_texture_layers
 
 
 def test_procedural_layers_are_seeded_and_textured() -> None:
