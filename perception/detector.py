@@ -27,18 +27,30 @@ REPORTED_TYPES = ("door", "window")
 PAD_VALUE = 114
 MAX_INPUT_SIDE_PX = 4096  # a sidecar asking for a larger network input is refused (DetectorSpec.load)
 MAX_DETECTIONS = 32  # per image, best first: bounds the per-box work downstream
+TRUNCATION_MARGIN_PX = 2.0  # a box this close to the image border may be cut by it
 
 
 @dataclass(frozen=True)
 class Detection:
-    """One detected macro-feature: `type` (door|window), `score` in [0, 1], `box_xyxy` in image pixels."""
+    """One detected macro-feature: `type` (door|window), `score` in [0, 1], `box_xyxy` in image pixels;
+    `truncated` where the box reaches within `TRUNCATION_MARGIN_PX` of the image border (the opening may be cut by
+    it: a door seen from close up)."""
 
     type: str
     score: float
     box_xyxy: tuple[float, float, float, float]
+    truncated: bool = False
 
     def to_json(self) -> dict[str, object]:
-        return {"type": self.type, "score": round(self.score, 4), "box_xyxy": [round(v, 1) for v in self.box_xyxy]}
+        return {"type": self.type, "score": round(self.score, 4), "box_xyxy": [round(v, 1) for v in self.box_xyxy],
+                "truncated": self.truncated}
+
+
+def at_border(box_xyxy: tuple[float, float, float, float], width_px: int, height_px: int,
+              margin_px: float = TRUNCATION_MARGIN_PX) -> bool:
+    """Whether a box (image pixels) reaches within `margin_px` of the border of a `width_px` x `height_px` image."""
+    x0, y0, x1, y1 = box_xyxy
+    return x0 <= margin_px or y0 <= margin_px or x1 >= width_px - margin_px or y1 >= height_px - margin_px
 
 
 @dataclass(frozen=True)
@@ -198,6 +210,7 @@ def postprocess(raw: np.ndarray, box: Letterbox, spec: DetectorSpec, threshold: 
             x0, x1 = float(np.clip(x0, 0, width_px)), float(np.clip(x1, 0, width_px))
             y0, y1 = float(np.clip(y0, 0, height_px)), float(np.clip(y1, 0, height_px))
             if x1 - x0 >= 2 and y1 - y0 >= 2:
-                out.append(Detection(name, float(s[i]), (x0, y0, x1, y1)))
+                out.append(Detection(name, float(s[i]), (x0, y0, x1, y1), at_border((x0, y0, x1, y1), width_px,
+                                                                                    height_px)))
     out.sort(key=lambda d: -d.score)
     return out[:MAX_DETECTIONS]

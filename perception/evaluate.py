@@ -2,11 +2,13 @@
 and the choice of the score threshold from the precision-recall curve (paper §2.2.1).
 
 Boxes are `box_xyxy` in image pixels; a ground truth is matched at most once, greedily by score.
+A subset of the truths (doors of a size, doors cut by the border) is scored COCO-style: truths outside the subset
+and detections matched to them are ignored, an unmatched detection counts as false only if it falls in the subset.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,26 +60,36 @@ def average_precision(recall: np.ndarray, precision: np.ndarray) -> float:
     return float(np.sum((r[idx + 1] - r[idx]) * p[idx + 1]))
 
 
+BoxFilter = Callable[[tuple[float, float, float, float]], bool]
+
+
 def pr_curve(kind: str, detections: Sequence[Sequence[Detection]], truths: Sequence[Sequence[GroundTruth]],
-             iou_min: float = 0.5) -> PRCurve:
-    """PR curve and AP of one class over a set of images (lists aligned by image)."""
+             iou_min: float = 0.5, within: Sequence[BoxFilter] | None = None) -> PRCurve:
+    """PR curve and AP of one class over a set of images (lists aligned by image); `within` (one filter per image,
+    on boxes in that image's pixels) restricts it to a subset of the truths."""
     records: list[tuple[float, bool]] = []
     n_truth = 0
-    for dets, gts in zip(detections, truths, strict=True):
-        gt = np.array([g.box_xyxy for g in gts if g.type == kind], np.float64).reshape(-1, 4)
-        n_truth += len(gt)
+    for k, (dets, gts) in enumerate(zip(detections, truths, strict=True)):
+        keep = within[k] if within is not None else None
+        mine = [g.box_xyxy for g in gts if g.type == kind]
+        gt = np.array(mine, np.float64).reshape(-1, 4)
+        counted = np.array([keep is None or keep(b) for b in mine], bool)
+        n_truth += int(counted.sum())
         ds = sorted((d for d in dets if d.type == kind), key=lambda d: -d.score)
         used = np.zeros(len(gt), bool)
         if ds and len(gt):
             ious = iou_xyxy(np.array([d.box_xyxy for d in ds], np.float64), gt)
         for i, d in enumerate(ds):
-            hit = False
+            j = -1
             if len(gt):
                 cand = np.where(used, -1.0, ious[i])
-                j = int(np.argmax(cand))
-                if cand[j] >= iou_min:
-                    used[j] = hit = True
-            records.append((d.score, hit))
+                j = int(np.argmax(cand)) if cand.max() >= iou_min else -1
+            if j >= 0:
+                used[j] = True
+                if counted[j]:
+                    records.append((d.score, True))
+            elif keep is None or keep(d.box_xyxy):
+                records.append((d.score, False))
     records.sort(key=lambda r: -r[0])
     scores = np.array([r[0] for r in records])
     tp = np.cumsum([r[1] for r in records]).astype(np.float64)

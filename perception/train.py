@@ -1,14 +1,17 @@
 """Train the door/window detector and export it: `python -m macroloc.perception.train` reproduces the shipped weights.
 
-Data: the real facade photos (`../shared/data/images/facades`, fixed split: test = img_n with n % 5 == 0,
-never trained on; validation = a seeded 15 % of the rest, which sets the score threshold from its PR curve),
-optionally plus rendered frames of the simulator (`--sim out/sim_yolo`, YOLO labels 0 door, 1 window, rendered
-by `python -m bench.sim_trainset` on first use from the duplex and FZK-Haus; Office_A is held out), which then
-fill `--sim-fraction` of each batch. The shipped model uses the defaults: real photos only (the variant with
-rendered frames scored lower on the real validation split and no better on rendered Office_A frames).
+Data: real indoor photos (`../shared/data/images/indoor_doors`, split 80/10/10 by source photo, seeded:
+`perception.trainset.split_indoor`) fill `--indoor-fraction` of each batch, the real facade photos
+(`../shared/data/images/facades`, fixed split: test = img_n with n % 5 == 0, never trained on; validation = a seeded
+15 % of the rest) the rest; optionally rendered frames of the simulator (`--sim out/sim_yolo`, YOLO labels 0 door,
+1 window, rendered by `python -m bench.sim_trainset` on first use from the duplex and FZK-Haus; Office_A is held
+out) fill `--sim-fraction`. The validation parts of both real sets set the score threshold from their PR curves.
+Augmentation is what a drone sees: the paper's rotations, zoom-in crops onto a door (filling 55-125 % of the frame's
+height, often cut by the border), aspect changes (the indoor photos were stretched to squares), brightness and
+exposure, random greyscale, mirror.
 Writes `perception/models/detector.onnx`, its JSON sidecar (classes, input size, anchors, threshold,
-figures) and `detector_pr.png`; the detailed figures go to `out/detector/`.
-Needs the `train` extra (torch); runs on the CPU with 2 threads by default.
+figures) and `detector_pr.png`; the detailed figures and the EMA weights (`checkpoint.pt`, for `--export-only`)
+go to `out/detector/`. Needs the `train` extra (torch); runs on the CPU.
 """
 
 from __future__ import annotations
@@ -26,15 +29,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from macroloc.perception.detector import CLASS_NAMES, REPORTED_TYPES, Detection, Detector, DetectorSpec
-from macroloc.perception.evaluate import GroundTruth, PRCurve, best_f1_threshold, plot_pr, pr_curve
+from macroloc.perception import detector_eval
+from macroloc.perception.detector import CLASS_NAMES, Detector, DetectorSpec
+from macroloc.perception.evaluate import best_f1_threshold, plot_pr
 from macroloc.perception.trainset import (
     FACADE_CLASS_MAP,
+    INDOOR_CLASS_MAP,
     Sample,
     augment,
     facade_label_path,
     load_sample,
     split_facades,
+    split_indoor,
 )
 
 log = logging.getLogger(__name__)
@@ -140,6 +146,26 @@ def load_facades(root: Path, seed: int) -> dict[str, list[Sample]]:
             for name, paths in split.items()}
 
 
+def load_indoor(root: Path, seed: int) -> dict[str, list[Sample]]:
+    split = split_indoor(root, seed=seed)
+    return {name: [load_sample(p, facade_label_path(p), INDOOR_CLASS_MAP, 480) for p in paths]
+            for name, paths in split.items()}
+
+
+def augment_for_training(sample: Sample, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The training augmentation (see the module docstring); boxes at least 30 % visible are kept (cut doors)."""
+    return augment(sample, INPUT_WH, rng, scale_range=(0.7, 2.5), rotation_prob=0.5, min_visible=0.3,
+                   zoom_prob=0.35, aspect_range=(0.7, 1.45))
+
+
+def real_shares(n_real: int, indoor_fraction: float, has_indoor: bool, has_facades: bool) -> tuple[int, int]:
+    """(indoor, facade) photos among a batch's `n_real` real ones; where one set is absent the other fills them."""
+    if not has_indoor or not has_facades:
+        return (n_real, 0) if has_indoor else (0, n_real)
+    n_indoor = round(indoor_fraction * n_real)
+    return n_indoor, n_real - n_indoor
+
+
 def load_sim(dirs: list[Path]) -> list[Sample]:
     """Rendered frames exported by the simulator: DIR/images/*.png|jpg with DIR/labels/*.txt (0 door, 1 window)."""
     out = []
@@ -173,17 +199,6 @@ def ensure_sim_frames(dirs: list[Path]) -> list[Path]:
     return dirs
 
 
-def evaluate_onnx(detector: Detector, samples: list[Sample]) -> dict[str, PRCurve]:
-    """PR curves (door, window) of the exported model on in-memory samples (threshold 0.01)."""
-    dets: list[list[Detection]] = []
-    truths: list[list[GroundTruth]] = []
-    for s in samples:
-        dets.append(detector.detect(s.image_bgr, score_threshold=0.01))
-        truths.append([GroundTruth(CLASS_NAMES[int(c)], tuple(float(v) for v in b))  # type: ignore[arg-type]
-                       for b, c in zip(s.boxes_xyxy, s.classes, strict=True) if CLASS_NAMES[int(c)] in REPORTED_TYPES])
-    return {k: pr_curve(k, dets, truths) for k in REPORTED_TYPES}
-
-
 def train(args: argparse.Namespace) -> None:
     import torch
 
@@ -193,27 +208,31 @@ def train(args: argparse.Namespace) -> None:
     cv2.setNumThreads(1)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
-    data = load_facades(args.facades, args.seed)
+    data = {"facades": load_facades(args.facades, args.seed), "indoor": load_indoor(args.indoor, args.seed)}
     sim = load_sim(ensure_sim_frames(args.sim))
-    real = data["train"]
-    log.info("train: %d real, %d rendered; val %d, test %d", len(real), len(sim), len(data["val"]), len(data["test"]))
-    wh = np.concatenate([b[:, 2:] - b[:, :2] for _ in range(2) for s in real + sim
-                         for b in [augment(s, INPUT_WH, rng)[1]] if len(b)])
+    indoor, facades = data["indoor"]["train"], data["facades"]["train"]
+    log.info("train: %d indoor, %d facade, %d rendered; val %d + %d", len(indoor), len(facades), len(sim),
+             len(data["indoor"]["val"]), len(data["facades"]["val"]))
+    wh = np.concatenate([b[:, 2:] - b[:, :2] for _ in range(2) for s in indoor + facades + sim
+                         for b in [augment_for_training(s, rng)[1]] if len(b)])
     anchors = kmeans_anchors(wh, N_ANCHORS, rng)
     log.info("anchors (px): %s", np.round(anchors, 1).tolist())
-    model = TinyYolo(N_ANCHORS, len(CLASS_NAMES))
-    ema = TinyYolo(N_ANCHORS, len(CLASS_NAMES))
+    model = TinyYolo(N_ANCHORS, len(CLASS_NAMES), args.width)
+    ema = TinyYolo(N_ANCHORS, len(CLASS_NAMES), args.width)
     ema.load_state_dict(model.state_dict())
     ema.eval()
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=5e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=args.lr, total_steps=args.steps, pct_start=0.05)
     grid_hw = (INPUT_WH[1] // STRIDE_PX, INPUT_WH[0] // STRIDE_PX)
-    pools = [_Shuffled(real, rng), _Shuffled(sim, rng)] if sim else [_Shuffled(real, rng)]
     n_sim = round(args.sim_fraction * args.batch) if sim else 0
+    n_indoor, n_facades = real_shares(args.batch - n_sim, args.indoor_fraction, bool(indoor), bool(facades))
+    pools = [(_Shuffled(indoor, rng), n_indoor), (_Shuffled(facades, rng), n_facades)]
+    if n_sim:
+        pools.append((_Shuffled(sim, rng), n_sim))
     t0 = time.time()
     for step in range(args.steps):
-        picked = pools[0].take(args.batch - n_sim) + (pools[1].take(n_sim) if n_sim else [])
-        batch = [augment(s, INPUT_WH, rng) for s in picked]
+        picked = [s for pool, n in pools for s in pool.take(n)]
+        batch = [augment_for_training(s, rng) for s in picked]
         x = torch.from_numpy(np.stack([b[0] for b in batch]).astype(np.float32) / 255.0).permute(0, 3, 1, 2)
         targets = build_targets([b[1] for b in batch], [b[2] for b in batch], anchors, grid_hw, STRIDE_PX)
         model.train()
@@ -232,7 +251,33 @@ def train(args: argparse.Namespace) -> None:
                     pe.copy_(pm)
         if step % 100 == 0 or step == args.steps - 1:
             log.info("step %d/%d loss %.3f (%.0f s)", step, args.steps, float(loss.detach()), time.time() - t0)
-    export(ema, anchors, args, data, sim, time.time() - t0)
+        if (step + 1) % 1000 == 0 or step == args.steps - 1:  # EMA weights so far: `--export-only` scores them
+            save_checkpoint(ema, anchors, args, step + 1, time.time() - t0)
+    train_s = time.time() - t0
+    export(ema, anchors, args, data, sim, train_s)
+
+
+def save_checkpoint(ema, anchors: np.ndarray, args: argparse.Namespace, steps: int,  # type: ignore[no-untyped-def]
+                    train_s: float) -> None:
+    import torch
+
+    args.report.mkdir(parents=True, exist_ok=True)
+    torch.save({"ema": ema.state_dict(), "anchors": anchors, "width": args.width, "train_s": train_s,
+                "steps": steps}, args.report / "checkpoint.pt")
+
+
+def export_only(args: argparse.Namespace) -> None:
+    """Export and score the EMA weights a finished run saved (`--export-only CHECKPOINT`)."""
+    import torch
+
+    from macroloc.perception.model import TinyYolo
+
+    ckpt = torch.load(args.export_only, weights_only=False)
+    model = TinyYolo(N_ANCHORS, len(CLASS_NAMES), int(ckpt["width"]))
+    model.load_state_dict(ckpt["ema"])
+    data = {"facades": load_facades(args.facades, args.seed), "indoor": load_indoor(args.indoor, args.seed)}
+    args.width, args.steps = int(ckpt["width"]), int(ckpt["steps"])
+    export(model, np.asarray(ckpt["anchors"]), args, data, [], float(ckpt["train_s"]))
 
 
 def rendered_sources(sim: list[Sample]) -> list[str]:
@@ -240,7 +285,7 @@ def rendered_sources(sim: list[Sample]) -> list[str]:
     return sorted({m.group(1) for s in sim if (m := re.match(r"(.+_s\d+)_\d+$", s.name))})
 
 
-def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str, list[Sample]],  # type: ignore[no-untyped-def]
+def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str, dict[str, list[Sample]]],  # type: ignore[no-untyped-def]
            sim: list[Sample], train_s: float) -> None:
     import torch
 
@@ -254,32 +299,40 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
     torch.onnx.export(model, (dummy,), str(onnx_path), input_names=["image"], output_names=["raw"],
                       opset_version=13, dynamo=False)
     spec = DetectorSpec(CLASS_NAMES, INPUT_WH, STRIDE_PX, tuple((float(w), float(h)) for w, h in anchors), 0.5)
-    detector = Detector(onnx_path, spec)
-    val = evaluate_onnx(detector, data["val"])
-    threshold = best_f1_threshold(list(val.values()))
-    test = evaluate_onnx(detector, data["test"])
-    figures = {
-        split: {k: {"ap50": round(c.ap, 4), "n_truth": c.n_truth,
-                    "precision_at_threshold": round(c.at(threshold)[0], 4),
-                    "recall_at_threshold": round(c.at(threshold)[1], 4)} for k, c in curves.items()}
-        for split, curves in (("val", val), ("test_real", test))
-    }
+    detector = Detector(onnx_path, spec, threads=args.threads)
+    val_samples = data["indoor"]["val"] + data["facades"]["val"]
+    val_dets, val_truths = detector_eval.detect_all(detector, val_samples)
+    val_curves = detector_eval.curves(val_dets, val_truths)
+    threshold = best_f1_threshold(val_curves)
+    parts = {"indoor_test": data["indoor"]["test"], "facade_test": data["facades"]["test"],
+             "indoor_val": data["indoor"]["val"], "facade_val": data["facades"]["val"]}
+    figures = {}
+    for name, samples in parts.items():
+        dets, truths = detector_eval.detect_all(detector, samples)
+        figures[name] = detector_eval.figures(samples, dets, truths, threshold, subsets=name.startswith("indoor"))
+        if name == "indoor_test":
+            plot_pr(detector_eval.curves(dets, truths), threshold, str(args.report / "pr_test_indoor.png"),
+                    f"held-out indoor test photos ({len(samples)} images)")
+    counts = {f"{src}_{part}": len(v) for src, d in data.items() for part, v in d.items()}
     extra: dict[str, object] = {
-        "threshold_rule": "max mean F1 (door, window) on the validation split's PR curves",
-        "trained_on": {"real_facade_photos": len(data["train"]), "rendered_frames": len(sim)},
-        "split": "facades: test = img_n with n % 5 == 0 (never trained on); val = seeded 15 % of the rest",
-        "training": {"steps": args.steps, "batch": args.batch, "lr": args.lr, "seed": args.seed,
-                     "sim_fraction": args.sim_fraction, "rendered_flights": rendered_sources(sim),
-                     "seconds": round(train_s)},
+        "threshold_rule": "max mean F1 (door, window) on the PR curves of the validation parts (indoor + facade)",
+        "trained_on": {"real_indoor_photos": len(data["indoor"]["train"]),
+                       "real_facade_photos": len(data["facades"]["train"]), "rendered_frames": len(sim)},
+        "data_counts_images": counts,
+        "split": "indoor: 80/10/10 of the source photos, seeded (perception.trainset.split_indoor: augmented copies "
+                 "and frames of one video stay in one part); facades: test = img_n with n % 5 == 0 (never trained "
+                 "on); val = seeded 15 % of the rest",
+        "training": {"steps": args.steps, "batch": args.batch, "lr": args.lr, "seed": args.seed, "width": args.width,
+                     "indoor_fraction": args.indoor_fraction, "sim_fraction": args.sim_fraction,
+                     "rendered_flights": rendered_sources(sim), "threads": args.threads, "seconds": round(train_s),
+                     "machine": f"{os.cpu_count()} CPU cores (shared)"},
         "figures": figures,
         "reproduce": "python -m macroloc.perception.train",
     }
     spec = DetectorSpec(CLASS_NAMES, INPUT_WH, STRIDE_PX, spec.anchors_px, threshold, spec.nms_iou, extra)
     onnx_path.with_suffix(".json").write_text(json.dumps(spec.to_json(), indent=1) + "\n")
-    plot_pr(list(val.values()), threshold, str(args.out / "detector_pr.png"),
-            f"validation split (real photos, {len(data['val'])} images)")
-    plot_pr(list(test.values()), threshold, str(args.report / "pr_test_real.png"),
-            f"held-out real test photos ({len(data['test'])} images)")
+    plot_pr(val_curves, threshold, str(args.out / "detector_pr.png"),
+            f"validation parts (real indoor + facade photos, {len(val_samples)} images)")
     (args.report / "metrics.json").write_text(json.dumps({"threshold": threshold, **figures}, indent=1) + "\n")
     log.info("threshold %.2f; figures %s", threshold, json.dumps(figures))
 
@@ -287,23 +340,32 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="python -m macroloc.perception.train", description=__doc__.splitlines()[0])
     ap.add_argument("--facades", type=Path, default=SHARED_DATA / "images" / "facades")
+    ap.add_argument("--indoor", type=Path, default=SHARED_DATA / "images" / "indoor_doors")
+    ap.add_argument("--indoor-fraction", type=float, default=0.6,
+                    help="share of each batch's real photos drawn from the indoor photos (the rest: facades)")
+    ap.add_argument("--width", type=int, default=1, help="channel multiplier of the TinyYolo network")
     ap.add_argument("--sim", type=Path, nargs="*", default=[],
                     help="folders of rendered frames with YOLO labels; out/sim_yolo is made by bench.sim_trainset "
                          "on first use (default: none, the shipped model is trained on real photos only)")
     ap.add_argument("--sim-fraction", type=float, default=0.5, help="share of each batch drawn from rendered frames")
-    ap.add_argument("--steps", type=int, default=3600)
+    ap.add_argument("--steps", type=int, default=4200)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", type=Path, default=ROOT / "perception" / "models")
     ap.add_argument("--report", type=Path, default=ROOT / "out" / "detector")
+    ap.add_argument("--export-only", type=Path, default=None, help="export and score a finished run's checkpoint.pt")
     return ap.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    train(parse_args(argv))
+    args = parse_args(argv)
+    if args.export_only is not None:
+        export_only(args)
+    else:
+        train(args)
 
 
 if __name__ == "__main__":

@@ -7,6 +7,11 @@ Facade photos (`../shared/data/images/facades`, labels `0 window, 1 cantilever, 
 4 win_ad, 5 door`): 5 -> door, 0 and 4 -> window, 1/2/3 -> neither (the paper's third class, §2.2.1).
 The held-out real test split is every `img_n.jpg` with n % 5 == 0 (the simulator's textures avoid it too);
 the rest is split, seeded, into train and validation (the validation part sets the score threshold).
+
+Indoor photos (`../shared/data/images/indoor_doors/{robot_door_detection,indoor_objects}`, labels `0 door,
+1 window`, an empty label file is a negative image): split train/val/test by *source photo* (`source_stem`), seeded,
+80/10/10 of the sources, so that the augmented copies of one photo (Roboflow's `NAME_ext.rf.HASH`) and the frames
+of one video never sit in two parts.
 """
 
 from __future__ import annotations
@@ -25,6 +30,13 @@ log = logging.getLogger(__name__)
 
 FACADE_CLASS_MAP = {5: 0, 0: 1, 4: 1, 1: 2, 2: 2, 3: 2}
 ROTATIONS_DEG = tuple(range(-20, 21, 5))  # paper §2.2.1: ±20° in 5° steps, eq. (1)
+INDOOR_CLASS_MAP = {0: 0, 1: 1}
+INDOOR_FOLDERS = ("robot_door_detection", "indoor_objects")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+_SPLIT_PREFIX = re.compile(r"^(train|valid|test)_")  # the exporter's own split, not the source photo
+_AUGMENTED_COPY = re.compile(r"_[A-Za-z]+\.rf\.[0-9a-fA-F]+$")  # Roboflow: SOURCE_png.rf.HASH (also jpg, JPG, jpeg)
+_SECOND_DOWNLOAD = re.compile(r"-\d+-$")  # Door0007-1-: a second download of Door0007
+_VIDEO_FRAME = re.compile(r"^(frame|v_test1_mp4-)\d+$")  # consecutive frames of one video are near copies
 
 
 @dataclass
@@ -77,6 +89,40 @@ def split_facades(root: Path, seed: int = 0, val_fraction: float = 0.15) -> dict
     return {"train": train, "val": val, "test": test}
 
 
+def source_stem(path: Path) -> str:
+    """The source photo an image file was made from: `train_Door0007-1-_png.rf.HASH.jpg` -> `Door0007`, the frames
+    `frame224.jpg`, `frame225.jpg` of one video -> `frame`; an image that is its own source keeps its stem."""
+    stem = _AUGMENTED_COPY.sub("", _SPLIT_PREFIX.sub("", path.stem))
+    stem = _SECOND_DOWNLOAD.sub("", stem)
+    video = _VIDEO_FRAME.match(stem)
+    return video.group(1) if video else stem
+
+
+def split_by_source(paths: list[Path], seed: int = 0,
+                    fractions: tuple[float, float] = (0.8, 0.1)) -> dict[str, list[Path]]:
+    """Seeded split of image files into {"train", "val", "test"} by source (`source_stem` within its folder):
+    `fractions` (train, val) of the sources, the rest test; every copy of a source lands in the same part."""
+    groups: dict[str, list[Path]] = {}
+    for p in sorted(paths):
+        groups.setdefault(f"{p.parent}/{source_stem(p)}", []).append(p)
+    keys = sorted(groups)
+    order = np.random.default_rng(seed).permutation(len(keys))
+    n_train, n_val = round(fractions[0] * len(keys)), round(fractions[1] * len(keys))
+    parts = {"train": order[:n_train], "val": order[n_train:n_train + n_val], "test": order[n_train + n_val:]}
+    return {name: sorted(p for i in idx for p in groups[keys[i]]) for name, idx in parts.items()}
+
+
+def indoor_images(root: Path) -> list[Path]:
+    """Every image of the indoor folders under `root` (images/indoor_doors) that exist."""
+    return sorted(p for folder in INDOOR_FOLDERS if (root / folder / "images").is_dir()
+                  for p in (root / folder / "images").iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def split_indoor(root: Path, seed: int = 0) -> dict[str, list[Path]]:
+    """Fixed split of the indoor photos by source photo, 80/10/10 (see `split_by_source`)."""
+    return split_by_source(indoor_images(root), seed)
+
+
 def load_sample(image_path: Path, label_path: Path, class_map: dict[int, int], max_side_px: int) -> Sample:
     """Read an image and its labels, downscaled so that its long side is at most `max_side_px`."""
     image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
@@ -95,22 +141,43 @@ def facade_label_path(image_path: Path) -> Path:
     return image_path.parent.parent / "labels" / (image_path.stem + ".txt")
 
 
+def _linear(s: float, rng: np.random.Generator, rotation_prob: float, aspect_range: tuple[float, float]) -> np.ndarray:
+    """2x2 part of the map: scale `s`, an aspect change (x by sqrt(a), y by 1/sqrt(a)), an optional mirror, then
+    the paper's rotation."""
+    theta = np.deg2rad(rng.choice(ROTATIONS_DEG)) if rng.random() < rotation_prob else 0.0
+    a = float(np.sqrt(np.exp(rng.uniform(np.log(aspect_range[0]), np.log(aspect_range[1])))))
+    flip = -1.0 if rng.random() < 0.5 else 1.0
+    rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])  # eq. (1) R_z(theta)
+    return s * rot @ np.diag([flip * a, 1.0 / a])
+
+
 def _affine(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator,
-            scale_range: tuple[float, float], rotation_prob: float) -> np.ndarray:
-    """Forward 2x3 map source pixels -> output pixels: letterbox fit x random scale, rotation, shift, flip."""
+            scale_range: tuple[float, float], rotation_prob: float,
+            aspect_range: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+    """Forward 2x3 map source pixels -> output pixels: letterbox fit x random scale, aspect, rotation, shift, flip."""
     h, w = sample.image_bgr.shape[:2]
     w_out, h_out = out_wh
     fit = min(w_out / w, h_out / h)
     s = fit * float(np.exp(rng.uniform(np.log(scale_range[0]), np.log(scale_range[1]))))
-    theta = np.deg2rad(rng.choice(ROTATIONS_DEG)) if rng.random() < rotation_prob else 0.0
-    c, si = np.cos(theta) * s, np.sin(theta) * s
-    flip = -1.0 if rng.random() < 0.5 else 1.0
-    A = np.array([[c * flip, -si], [si * flip, c]])  # eq. (1) R_z(theta), scaled, after an optional mirror
+    A = _linear(s, rng, rotation_prob, aspect_range)
     # Where the image centre lands: anywhere that keeps some of the image in view.
     span_x, span_y = max(0.0, (w * s - w_out) / 2), max(0.0, (h * s - h_out) / 2)
     t_out = np.array([w_out / 2 + rng.uniform(-span_x - 0.15 * w_out, span_x + 0.15 * w_out),
                       h_out / 2 + rng.uniform(-span_y - 0.15 * h_out, span_y + 0.15 * h_out)])
     t = t_out - A @ np.array([w / 2, h / 2])
+    return np.hstack([A, t[:, None]])
+
+
+def _zoom_affine(box_xyxy: np.ndarray, out_wh: tuple[int, int], rng: np.random.Generator, rotation_prob: float,
+                 aspect_range: tuple[float, float]) -> np.ndarray:
+    """A map that zooms onto one box, as a drone flying up to a door sees it: the box fills 55-125 % of the
+    output's height, its centre anywhere across the width, so it is often cut by the image border."""
+    w_out, h_out = out_wh
+    x0, y0, x1, y1 = box_xyxy
+    s = float(rng.uniform(0.55, 1.25)) * h_out / max(y1 - y0, 1.0)
+    A = _linear(s, rng, rotation_prob, aspect_range)
+    t_out = np.array([rng.uniform(-0.05, 1.05) * w_out, rng.uniform(0.3, 0.7) * h_out])
+    t = t_out - A @ np.array([(x0 + x1) / 2, (y0 + y1) / 2])
     return np.hstack([A, t[:, None]])
 
 
@@ -132,13 +199,20 @@ def _photometric(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def augment(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator,
             scale_range: tuple[float, float] = (0.6, 2.5), rotation_prob: float = 0.6,
-            min_visible: float = 0.45) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            min_visible: float = 0.45, zoom_prob: float = 0.0,
+            aspect_range: tuple[float, float] = (1.0, 1.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One augmented training image (H,W,3 uint8) with its boxes (K,4, output pixels) and classes (K,).
 
     The geometric part is one affine map applied by inverse warping (every output pixel samples the
     source at M^-1 p, so no holes: paper §2.2.1); box corners go through the forward map and are bounded.
+    With probability `zoom_prob` the map zooms onto one box at least 15 % of the image tall (`_zoom_affine`).
     """
-    M = _affine(sample, out_wh, rng, scale_range, rotation_prob)
+    h = sample.image_bgr.shape[0]
+    tall = sample.boxes_xyxy[sample.boxes_xyxy[:, 3] - sample.boxes_xyxy[:, 1] >= 0.15 * h]
+    if len(tall) and rng.random() < zoom_prob:
+        M = _zoom_affine(tall[rng.integers(len(tall))], out_wh, rng, rotation_prob, aspect_range)
+    else:
+        M = _affine(sample, out_wh, rng, scale_range, rotation_prob, aspect_range)
     M_inv = cv2.invertAffineTransform(M)
     image = cv2.warpAffine(sample.image_bgr, M_inv, out_wh, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                            borderMode=cv2.BORDER_CONSTANT, borderValue=(PAD_VALUE,) * 3)

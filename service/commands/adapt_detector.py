@@ -33,9 +33,10 @@ def register(app: typer.Typer) -> None:
         steps: int = typer.Option(2400, "--steps", min=1, help="Training steps (batches of 16)."),
         threads: int = typer.Option(2, "--threads", min=1, help="CPU threads for training."),
         facades: Path | None = typer.Option(None, "--facades", help="Real door/window photos with YOLO labels "
-                                            "(images/, labels/; default: $MACROLOC_SHARED_DATA/images/facades, the "
-                                            "data set the shipped detector was trained on); half of "
-                                            "each batch, and the held-out test split reported."),
+                                            "(images/, labels/; default: $MACROLOC_SHARED_DATA/images/facades); "
+                                            "with the real indoor photos ($MACROLOC_SHARED_DATA/images/indoor_doors, "
+                                            "where present) half of each batch, and the held-out test splits "
+                                            "reported."),
         json_out: bool = typer.Option(False, "--json", help="Print {model, frames, doors, windows, figures}."),
     ) -> None:
         """Adapt the door/window detector to one building: render seeded flights through its model, label every

@@ -19,7 +19,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Detect doors and windows with the shipped CNN (ONNX, no torch needed).
 
-        JSON: {"images": [{"path", "detections": [{"type", "score", "box_xyxy"}]}]}, boxes x0, y0, x1, y1 in pixels.
+        JSON: {"images": [{"path", "detections": [{"type", "score", "box_xyxy", "truncated"}]}]}, boxes x0, y0, x1,
+        y1 in pixels; "truncated" (bool): the box reaches within 2 px of the image border (the opening may be cut).
         """
         import cv2
 

@@ -34,7 +34,9 @@ def register(app: typer.Typer) -> None:
         that side are then the border's, not the opening's); "source": "cnn" | "geometry" | "fused" (a detection a
         geometry proposal agreed with); "size_check": "confirmed" | "rejected" | "unchecked" against the
         --building's doors and windows, with "model_size_m" (width, height, m) of the size it fits and
-        "retyped_from" where that size is of the other kind ("unchecked" throughout without --building).
+        "retyped_from" where that size is of the other kind ("unchecked" throughout without --building). A
+        rejected detection carries the detector's own "truncated" (bool: its box within 2 px of the image border)
+        beside its "reason".
         """
         import cv2
         import numpy as np

@@ -27,7 +27,7 @@ def test_detect_json_and_plot(capsys, tmp_path: Path):
     assert [im["path"] for im in doc["images"]] == [str(image)] * 2
     h, w = cv2.imread(str(image)).shape[:2]
     for d in doc["images"][0]["detections"]:
-        assert set(d) == {"type", "score", "box_xyxy"} and d["type"] in ("door", "window")
+        assert set(d) == {"type", "score", "box_xyxy", "truncated"} and d["type"] in ("door", "window")
         x0, y0, x1, y1 = d["box_xyxy"]
         assert 0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h
     assert (tmp_path / "img_10_detect.jpg").exists()

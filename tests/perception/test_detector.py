@@ -68,3 +68,17 @@ def test_detects_on_a_held_out_real_photo_in_its_own_pixels():
         assert d.type in ("door", "window") and 0.05 <= d.score <= 1
     grey = Detector().detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), score_threshold=0.05)
     assert grey  # grey frames (a stereo rig's right camera) are accepted too
+
+
+def test_a_box_at_the_image_border_is_marked_truncated_and_says_so_in_json():
+    from macroloc.perception.detector import Letterbox, at_border, postprocess
+
+    spec = DetectorSpec(anchors_px=((20.0, 40.0),), input_wh=(64, 48), stride_px=16)
+    raw = np.full((8, 3, 4), -10.0)
+    raw[:, 1, 0] = [0.0, 0.0, 0.0, 0.0, 10.0, 8.0, 0.0, 0.0]  # centre (8, 24): 20 px wide, cut at x = 0
+    raw[:, 1, 2] = [0.0, 0.0, -1.0, -1.0, 10.0, 8.0, 0.0, 0.0]  # centre (40, 24), well inside
+    dets = postprocess(raw, Letterbox(1.0, (0.0, 0.0)), spec, 0.5, 64, 48)
+    by_x = sorted(dets, key=lambda d: d.box_xyxy[0])
+    assert [d.truncated for d in by_x] == [True, False]
+    assert by_x[0].to_json()["truncated"] is True and by_x[1].to_json()["truncated"] is False
+    assert at_border((3.0, 10.0, 60.0, 46.5), 64, 48) and not at_border((3.0, 3.0, 61.0, 45.0), 64, 48)

@@ -40,3 +40,28 @@ def test_loss_targets_and_one_gradient_step():
     loss = yolo_loss(model(torch.rand(2, 3, 96, 128)), t, boxes, anchors, STRIDE_PX)
     loss.backward()
     assert np.isfinite(float(loss)) and model.head.weight.grad is not None
+
+
+def test_onnx_equals_torch_on_a_batch(tmp_path: Path):
+    import onnxruntime as ort
+
+    from macroloc.perception.model import TinyYolo
+
+    torch.manual_seed(1)
+    model = TinyYolo(n_anchors=3, n_classes=3, width=2).eval()
+    x = torch.rand(4, 3, 64, 96)
+    path = tmp_path / "batch.onnx"
+    torch.onnx.export(model, (x[:1],), str(path), input_names=["image"], output_names=["raw"], opset_version=13,
+                      dynamo=False, dynamic_axes={"image": {0: "n"}, "raw": {0: "n"}})
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"image": x.numpy()})[0]
+    with torch.no_grad():
+        expected = model(x).numpy()
+    assert got.shape == (4, 3 * 8, 4, 6)
+    assert np.allclose(got, expected, atol=1e-4)
+
+
+def test_real_shares_fill_the_batch_from_the_sets_present():
+    from macroloc.perception.train import real_shares
+
+    assert real_shares(16, 0.6, True, True) == (10, 6)
+    assert real_shares(8, 0.6, False, True) == (0, 8) and real_shares(8, 0.6, True, False) == (8, 0)

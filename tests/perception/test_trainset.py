@@ -93,3 +93,47 @@ def test_a_trained_model_names_the_flights_its_rendered_frames_came_from():
 
     sim = [sample(n) for n in ("office_a_s11_000000", "office_a_s11_000006", "duplex_s2_000012", "photo_17")]
     assert rendered_sources(sim) == ["duplex_s2", "office_a_s11"]
+
+
+def test_source_stem_joins_augmented_copies_second_downloads_and_video_frames():
+    from macroloc.perception.trainset import source_stem
+
+    names = {"train_Door0007-1-_png.rf.26753ed80f77fd6a21db4f738dbad705.jpg": "Door0007",
+             "valid_Door0007_png.rf.051d31e59f7f6723f27763dc767e58ee.jpg": "Door0007",
+             "test_IMG_0113_JPG.rf.202cf85bc7825df6c8103955d143597a.jpg": "IMG_0113",
+             "train_aradoor_jpeg.rf.220ef0ec4d4b170948f2a50b21db2001.jpg": "aradoor",
+             "train_frame224_jpg.rf.0a1b2c3d.jpg": "frame", "train_v_test1_mp4-17_jpg.rf.ff00.jpg": "v_test1_mp4-",
+             "test_1043.png": "1043"}
+    assert {n: source_stem(Path(n)) for n in names} == names
+
+
+def _parts_by_stem(split: dict[str, list[Path]]) -> dict[str, set[str]]:
+    from macroloc.perception.trainset import source_stem
+
+    parts: dict[str, set[str]] = {}
+    for name, paths in split.items():
+        for p in paths:
+            parts.setdefault(f"{p.parent}/{source_stem(p)}", set()).add(name)
+    return parts
+
+
+def test_split_by_source_keeps_every_copy_of_a_photo_in_one_part():
+    from macroloc.perception.trainset import split_by_source
+
+    folder = Path("robot_door_detection/images")
+    paths = [folder / f"{prefix}_Door{n:04d}_png.rf.{h:08x}.jpg"
+             for n in range(40) for prefix, h in (("train", 3 * n), ("train", 3 * n + 1), ("valid", 3 * n + 2))]
+    split = split_by_source(paths, seed=4)
+    assert split == split_by_source(paths, seed=4)
+    assert sorted(p for part in split.values() for p in part) == sorted(paths)
+    assert all(len(parts) == 1 for parts in _parts_by_stem(split).values())
+    assert [len(split[k]) // 3 for k in ("train", "val", "test")] == [32, 4, 4]  # 80/10/10 of the 40 sources
+
+
+def test_indoor_split_has_no_source_photo_in_two_parts():
+    from macroloc.perception.trainset import split_indoor
+
+    split = split_indoor(shared_data("images/indoor_doors"), seed=0)
+    parts = _parts_by_stem(split)
+    assert all(len(p) == 1 for p in parts.values())
+    assert len(parts) > 1000 and min(len(v) for v in split.values()) > 300
