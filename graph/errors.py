@@ -5,8 +5,7 @@ its traceback, because it is a bug.
 """
 
 
-class UserInputError(ValueError):
-    """Input supplied by the user is missing, malformed or out of range."""
+from macroloc.common.errors import UserInputError  # one class for both libraries and the CLI
 
 
 class BuildingError(UserInputError):

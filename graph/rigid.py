@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from macroloc.common.geometry import rotation_angle_rad  # noqa: F401 - re-exported
+
 Z_UP = np.array([0.0, 0.0, 1.0])
 
 
@@ -25,11 +27,6 @@ def invert(T: np.ndarray) -> np.ndarray:
 def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Transform (..., 3) points by the 4x4 T."""
     return np.asarray(points) @ T[:3, :3].T + T[:3, 3]
-
-
-def rotation_angle_rad(R: np.ndarray) -> float:
-    """The angle of the 3x3 rotation R (radians, in [0, pi])."""
-    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:

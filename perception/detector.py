@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from macroloc.graph.errors import UserInputError
+from macroloc.common.errors import UserInputError
 
 log = logging.getLogger(__name__)
 

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from macroloc.graph.rigid import rotation_angle_rad
+from macroloc.common.geometry import rotation_angle_rad
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher, keypoint_points, to_gray
 

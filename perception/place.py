@@ -25,7 +25,7 @@ import cv2
 import faiss
 import numpy as np
 
-from macroloc.graph.mapstore import KeyframeView
+from macroloc.common.views import KeyframeView
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
 

@@ -1,4 +1,5 @@
-"""graph/ and perception/ are pure libraries: they never import service/, zenoh or the CLI (DESIGN.md)."""
+"""The layering (docs/architecture.md): common/ imports nothing of the project; graph/ and perception/ are pure
+libraries that share only common/; sim/ may use graph/; none of them imports service/, zenoh or the CLI."""
 
 from __future__ import annotations
 
@@ -8,18 +9,23 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-FORBIDDEN = ("service", "zenoh", "typer")
-PROJECT_PACKAGES = ("graph", "perception", "service", "sim")
+PROJECT_PACKAGES = ("common", "graph", "perception", "service", "sim")
+NEVER = {  # package -> what it must never import (project packages by their short name)
+    "common": ("graph", "perception", "service", "sim", "zenoh", "typer"),
+    "graph": ("perception", "service", "sim", "zenoh", "typer"),
+    "perception": ("graph", "service", "sim", "zenoh", "typer"),
+    "sim": ("service", "zenoh", "typer"),
+}
 
 
-@pytest.mark.parametrize("package", ["graph", "perception"])
-def test_libraries_do_not_import_the_service(package: str) -> None:
+@pytest.mark.parametrize("package", sorted(NEVER))
+def test_each_package_imports_only_what_its_layer_may(package: str) -> None:
     offenders = []
     for path in sorted((ROOT / package).rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                 [node.module or ""] if isinstance(node, ast.ImportFrom) else []
-            offenders += [f"{path.relative_to(ROOT)}: {n}" for n in names if _package(n) in FORBIDDEN]
+            offenders += [f"{path.relative_to(ROOT)}: {n}" for n in names if _package(n) in NEVER[package]]
     assert not offenders, offenders
 
 
@@ -29,7 +35,7 @@ def _package(module: str) -> str:
     return parts[1] if parts[0] == "macroloc" and len(parts) > 1 else parts[0]
 
 
-@pytest.mark.parametrize("folder", ["graph", "perception", "service", "sim", "tests", "bench", "scripts"])
+@pytest.mark.parametrize("folder", ["common", "graph", "perception", "service", "sim", "tests", "bench", "scripts"])
 def test_the_project_is_imported_under_its_namespace_only(folder: str) -> None:
     """Installed, the packages are `macroloc.graph`, `macroloc.service`, ...: a bare `import service` would take
     PyPI's `service` (or nothing) instead of ours."""
