@@ -129,8 +129,11 @@ def long_mission(n_keyframes: int, window: int, chunk: int, wall_fits: bool) -> 
         step_cpu, reelim, error_m = np.zeros(n_keyframes), np.zeros(n_keyframes), np.zeros(n_keyframes)
         _, cpu_ms, _, loc = run(n_keyframes, settings, step_cpu, reelim, error_m, wall_fits)
         results[name] = (cpu_ms, step_cpu, reelim, 1e3 * error_m)
+        last = loc.graph.n_keyframes - 1
+        cov_ms = float(np.median(time_ms(lambda: loc.graph.covariance_cad_body(last), repeat=5)))  # noqa: B023
         print(f"{name}: {loc.graph.n_keyframes} keyframes, {len(loc.landmarks)} landmarks, {len(loc.links)} CAD links, "
-              f"status {loc.status}, live keyframes {loc.graph.n_keyframes - loc.graph.live_from}")
+              f"status {loc.status}, live keyframes {last + 1 - loc.graph.live_from}, covariance of the newest "
+              f"T_cad_body (the service's, each keyframe) {cov_ms:.2f} ms wall")
     print(f"{'CPU ms, mean of the 100 keyframes before':44s}" + "".join(f"{n:>10d}" for n in at)
           + f"{'ratio ' + str(at[-1]) + '/100':>16s}  target <= 2")
     for name, (cpu_ms, step_cpu, reelim, error_mm) in results.items():
