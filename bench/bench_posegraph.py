@@ -1,6 +1,7 @@
 """Issue 5's figure: iSAM2 update time per keyframe at 100 and 1000 keyframes (target <= 5 ms).
 
     python -m bench.bench_posegraph [--keyframes 1100]
+    python -m bench.bench_posegraph --long [--keyframes 10000] [--window W] [--chunk K] [--wall-fits]  # issue 37
 
 A drone flies laps of a 40 m x 20 m loop corridor lined with doors and windows (0.3 m per keyframe, every
 door re-observed on each lap: loop closures), localized in the model after a few metres, so the graph holds
@@ -19,11 +20,12 @@ from bench.common import row, time_ms
 from macroloc.graph.features import BuildingModel, MacroFeature
 from macroloc.graph.landmarks import feature_frame_cad
 from macroloc.graph.localizer import Localizer, Sighting
-from macroloc.graph.posegraph import PoseGraph
+from macroloc.graph.posegraph import IsamSettings, PoseGraph
 from macroloc.graph.registrar import StoredMapRegistrar
 from macroloc.graph.relocalize import KnownRect
 
 LOOP_X_M, LOOP_Y_M, STEP_M = 40.0, 20.0, 0.3
+WALL_FIT_INFORMATION = np.diag(np.r_[np.full(3, 0.02**-2), np.full(3, 0.03**-2)])  # [rot; trans] a wall fit's
 
 
 def loop_building(seed: int = 0) -> BuildingModel:
@@ -70,11 +72,18 @@ def sightings(model: BuildingModel, T_cad_body: np.ndarray, rng: np.random.Gener
     return out
 
 
-def run(n_keyframes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, Localizer]:
-    """Wall and CPU ms of each keyframe's iSAM2 update, wall ms of each whole add_keyframe, the localizer."""
+def run(n_keyframes: int, settings: IsamSettings | None = None, step_cpu_ms: np.ndarray | None = None,
+        reeliminated: np.ndarray | None = None, error_m: np.ndarray | None = None,
+        wall_fits: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, Localizer]:
+    """Wall and CPU ms of each keyframe's iSAM2 update, wall ms of each whole add_keyframe, the localizer; the
+    CPU ms of each whole add_keyframe into `step_cpu_ms`, the variables iSAM2 re-eliminated in its last update
+    into `reeliminated` and the newest keyframe's position error in the model (NaN before localized) into
+    `error_m`, where given. `wall_fits`: once localized, every keyframe also gets a T_cad_body measurement and a
+    second update, as the localizer's fit of its depth to the walls gives one (`Localizer._fit_to_surfaces`, not
+    run here: the bench has no depth): a factor between the anchor and every keyframe."""
     model = loop_building()
     known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features]
-    loc = Localizer(model, PoseGraph(), StoredMapRegistrar(known))
+    loc = Localizer(model, PoseGraph(settings), StoredMapRegistrar(known))
     rng = np.random.default_rng(1)
     update_ms, step_ms, cpu_ms = np.zeros(n_keyframes), np.zeros(n_keyframes), np.zeros(n_keyframes)
     T_odom_cad = np.eye(4)
@@ -87,18 +96,66 @@ def run(n_keyframes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, Localizer
         T[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]
         T[:3, 3] = p
         drift[:3, 3] += rng.normal(0, 0.003, 3) * [1, 1, 0]
-        start = time.perf_counter()
-        loc.add_keyframe(i * 300_000_000, T_odom_cad @ drift @ T, sightings(model, T, rng), np.array([0, 0, 1.0]))
+        seen = sightings(model, T, rng)
+        start, start_cpu = time.perf_counter(), time.process_time()
+        loc.add_keyframe(i * 300_000_000, T_odom_cad @ drift @ T, seen, np.array([0, 0, 1.0]))
+        update_ms[i], cpu_ms[i] = loc.graph.last_update_ms, loc.graph.last_update_cpu_ms
+        if wall_fits and loc.graph.has_anchor:
+            T_fit = T.copy()
+            T_fit[:3, 3] += rng.normal(0, 0.03, 3)
+            loc.graph.add_cad_pose(i, T_fit, WALL_FIT_INFORMATION)
+            loc.graph.update()
+            update_ms[i] += loc.graph.last_update_ms  # with the keyframe's own update, as the localizer's fit
+            cpu_ms[i] += loc.graph.last_update_cpu_ms
         step_ms[i] = (time.perf_counter() - start) * 1e3
-        update_ms[i] = loc.graph.last_update_ms
-        cpu_ms[i] = loc.graph.last_update_cpu_ms
+        if step_cpu_ms is not None:
+            step_cpu_ms[i] = (time.process_time() - start_cpu) * 1e3
+        if reeliminated is not None:
+            reeliminated[i] = loc.graph.last_reeliminated
+        if error_m is not None:
+            T_cad_map = loc.graph.T_cad_map()
+            error_m[i] = np.nan if T_cad_map is None else \
+                float(np.linalg.norm((T_cad_map @ loc.graph.T_map_body(i))[:3, 3] - T[:3, 3]))
     return update_ms, cpu_ms, step_ms, loc
+
+
+def long_mission(n_keyframes: int, window: int, chunk: int, wall_fits: bool) -> None:
+    """Issue 37's table: CPU ms per keyframe (iSAM2's update, the whole add_keyframe), mean over the last 100
+    keyframes before 100 / 1,000 / 10,000 (those reached), without a window (all keyframes kept) and with one."""
+    at = [n for n in (100, 1000, 3000, 10000) if n <= n_keyframes]
+    results = {}
+    windowed = IsamSettings(window_keyframes=window, marginalise_every=chunk)
+    for name, settings in (("all kept", IsamSettings(window_keyframes=0)), (f"window {window}/{chunk}", windowed)):
+        step_cpu, reelim, error_m = np.zeros(n_keyframes), np.zeros(n_keyframes), np.zeros(n_keyframes)
+        _, cpu_ms, _, loc = run(n_keyframes, settings, step_cpu, reelim, error_m, wall_fits)
+        results[name] = (cpu_ms, step_cpu, reelim, 1e3 * error_m)
+        last = loc.graph.n_keyframes - 1
+        cov_ms = float(np.median(time_ms(lambda: loc.graph.covariance_cad_body(last), repeat=5)))  # noqa: B023
+        print(f"{name}: {loc.graph.n_keyframes} keyframes, {len(loc.landmarks)} landmarks, {len(loc.links)} CAD links, "
+              f"status {loc.status}, live keyframes {last + 1 - loc.graph.live_from}, covariance of the newest "
+              f"T_cad_body (the service's, each keyframe) {cov_ms:.2f} ms wall")
+    print(f"{'CPU ms, mean of the 100 keyframes before':44s}" + "".join(f"{n:>10d}" for n in at)
+          + f"{'ratio ' + str(at[-1]) + '/100':>16s}  target <= 2")
+    for name, (cpu_ms, step_cpu, reelim, error_mm) in results.items():
+        for what, values in (("iSAM2 update", cpu_ms), ("whole add_keyframe", step_cpu),
+                             ("variables re-eliminated (count)", reelim), ("newest keyframe's error, mm", error_mm)):
+            means = [float(np.nanmean(values[n - 100:n])) for n in at]
+            print(f"{name + ', ' + what:44s}" + "".join(f"{m:10.2f}" for m in means) + f"{means[-1] / means[0]:16.2f}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--keyframes", type=int, default=1100)
+    parser.add_argument("--long", action="store_true", help="issue 37's table: old (all kept) vs windowed")
+    parser.add_argument("--window", type=int, default=IsamSettings().window_keyframes or 100,
+                        help="keyframes kept behind the newest (--long)")
+    parser.add_argument("--chunk", type=int, default=IsamSettings().marginalise_every,
+                        help="keyframes marginalised at a time (--long)")
+    parser.add_argument("--wall-fits", action="store_true", help="a T_cad_body factor on every keyframe (--long)")
     args = parser.parse_args()
+    if args.long:
+        long_mission(args.keyframes, args.window, args.chunk, args.wall_fits)
+        return
     update_ms, cpu_ms, step_ms, loc = run(args.keyframes)
     print(f"loop corridor: {len(loc.model.features)} features, {loc.graph.n_keyframes} keyframes, "
           f"{len(loc.landmarks)} landmarks, {len(loc.links)} CAD links, status {loc.status}")

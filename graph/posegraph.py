@@ -19,6 +19,23 @@ Factors (all built-in, so the real-time path never calls Python):
 
 Every `update()` hands iSAM2 only the factors and values added since the previous one; `batch_graph()`
 returns everything ever added so a batch optimiser can be checked against iSAM2 (the oracle test).
+
+Bounded cost over a mission (`IsamSettings.window_keyframes`, issue 37). iSAM2 holding every keyframe walks all
+of them in each update: its relinearisation check and its back-substitution (the anchor and the doors sit at the
+root of the Bayes tree, and each keyframe hangs below them) grow with the flight, the more so where a wall fit ties
+every keyframe to the anchor (bench/bench_posegraph.py --long [--wall-fits]). With a window of W keyframes iSAM2
+holds the newest W to W + K keyframes (K = `marginalise_every`): every K keyframes the oldest K are marginalised at
+once, as gtsam's IncrementalFixedLagSmoother does (an update re-eliminating every variable, those keyframes first,
+then `marginalizeLeaves`: their factors become a linear prior on the next keyframe, the doors they saw and the
+anchor, whose linearisation points gtsam then fixes), once per K keyframes, not per keyframe. Unlike that
+smoother, the anchor and the newest keyframe are eliminated last, at the root, in every update: the covariance of
+T_cad_body (the service's, each keyframe) stays the root clique's (0.2 ms, 11 ms with the smoother at 700
+keyframes). A marginalised keyframe's last estimate is kept and read by `T_map_body(i)` as before; a factor on one
+raises. Landmarks and the anchor are never marginalised: a door seen again after any time still closes the loop on
+the doors, the anchor and the window, and the stored map (landmarks, links, T_cad_map) is the live estimate.
+The window rule is the localizer's, not the building's: it adds factors to the newest keyframe only and reads
+back the keyframes of its depth and far-sighting windows (`surface_window_keyframes`, 60), so W >= 60 keeps all
+it reads live; the cost then depends on the doors mapped (the building's area), not on the flight's length.
 """
 
 from __future__ import annotations
@@ -38,6 +55,7 @@ X = gtsam.symbol_shorthand.X
 L = gtsam.symbol_shorthand.L
 A = gtsam.symbol_shorthand.A
 ANCHOR = A(0)
+_X_CHR, _INDEX_MASK = ord("x"), (1 << 56) - 1  # a gtsam.Symbol key: its character in the top byte, its index below
 
 # Pose3 sigmas are in GTSAM's tangent order [rot (rad) x3; trans (m) x3].
 # The first keyframe fixes the map frame's yaw and origin; its roll and pitch are the odometry's first guess (one
@@ -71,6 +89,10 @@ def robust(sigmas: np.ndarray, cauchy_k: float = CAD_LINK_CAUCHY_K) -> gtsam.noi
 class IsamSettings:
     relinearize_threshold: float = 0.01
     relinearize_skip: int = 1
+    # Keyframes kept as variables behind the newest (0: all, plain iSAM2; see the module doc): >= the localizer's
+    # `surface_window_keyframes` (60), the oldest keyframe whose estimate it reads back.
+    window_keyframes: int = 100
+    marginalise_every: int = 100  # with a window: keyframes are marginalised this many at a time (see the module doc)
 
 
 class PoseGraph:
@@ -81,7 +103,12 @@ class PoseGraph:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(settings.relinearize_threshold)
         params.relinearizeSkip = settings.relinearize_skip
-        self.isam = gtsam.ISAM2(params)
+        self.window = max(0, int(settings.window_keyframes))
+        self.chunk = max(1, int(settings.marginalise_every))
+        self._isam = gtsam.ISAM2(params)
+        self._marginalised: dict[int, np.ndarray] = {}  # keyframe -> its last estimate T_map_body, once marginalised
+        self.live_from = 0  # the oldest keyframe still a variable (all older ones are in `_marginalised`)
+        self.last_reeliminated = 0  # variables iSAM2 re-eliminated in the last update (all its steps): the work done
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._all_factors = gtsam.NonlinearFactorGraph()
@@ -93,6 +120,12 @@ class PoseGraph:
         self.last_update_cpu_ms = 0.0  # process CPU time of the update: immune to a busy machine's scheduling
 
     # --- adding variables and factors (buffered until update) -----------------------------------------------
+
+    def _live(self, i: int) -> int:
+        """X(i), where keyframe i is still a variable: a factor on a marginalised keyframe cannot be added."""
+        if i < self.live_from:
+            raise ValueError(f"keyframe {i} was marginalised (window {self.window}, oldest kept {self.live_from})")
+        return X(i)
 
     def _add(self, factor: gtsam.NonlinearFactor) -> None:
         self._new_factors.add(factor)
@@ -114,13 +147,13 @@ class PoseGraph:
         """Keyframe i = n with an odometry factor from keyframe i-1 (T_prev_curr 4x4, sigmas [rot; trans])."""
         i = self.n_keyframes
         self._insert(X(i), T_map_body_guess)
-        self._add(gtsam.BetweenFactorPose3(X(i - 1), X(i), pose3(T_prev_curr), diagonal(odometry_sigmas)))
+        self._add(gtsam.BetweenFactorPose3(self._live(i - 1), X(i), pose3(T_prev_curr), diagonal(odometry_sigmas)))
         self.n_keyframes += 1
         return i
 
     def add_gravity(self, i: int, T_map_body_level: np.ndarray) -> None:
         """Roll and pitch of keyframe i from gravity: `T_map_body_level` has the measured attitude."""
-        self._add(gtsam.PriorFactorPose3(X(i), pose3(T_map_body_level), diagonal(GRAVITY_SIGMAS)))
+        self._add(gtsam.PriorFactorPose3(self._live(i), pose3(T_map_body_level), diagonal(GRAVITY_SIGMAS)))
 
     def add_landmark(self, j: int, T_map_rect_guess: np.ndarray) -> None:
         self._insert(L(j), T_map_rect_guess)
@@ -128,7 +161,7 @@ class PoseGraph:
 
     def add_sighting(self, i: int, j: int, T_body_rect: np.ndarray, sigmas: np.ndarray = SIGHTING_SIGMAS) -> None:
         """Landmark j seen from keyframe i as T_body_rect (4x4)."""
-        self._add(gtsam.BetweenFactorPose3(X(i), L(j), pose3(T_body_rect), diagonal(sigmas)))
+        self._add(gtsam.BetweenFactorPose3(self._live(i), L(j), pose3(T_body_rect), diagonal(sigmas)))
 
     def add_anchor(self, T_map_cad_guess: np.ndarray) -> None:
         """The CAD anchor variable A(0) = T_map_cad, initialised from a registration, levelled (see
@@ -143,7 +176,7 @@ class PoseGraph:
         with its 6 x 6 information [rot; trans]: between(T_map_cad, T_map_body) = T_cad_body. Huber-robust."""
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k),
                                                gtsam.noiseModel.Gaussian.Information(np.asarray(information, float)))
-        self._add(gtsam.BetweenFactorPose3(ANCHOR, X(i), pose3(T_cad_body), noise))
+        self._add(gtsam.BetweenFactorPose3(ANCHOR, self._live(i), pose3(T_cad_body), noise))
 
     def add_cad_link(self, j: int, T_cad_rect: np.ndarray, sigmas: np.ndarray = CAD_LINK_SIGMAS) -> None:
         """Landmark j is the CAD feature with frame T_cad_rect (robust: a wrong match loses its weight)."""
@@ -154,14 +187,72 @@ class PoseGraph:
     def update(self, extra_iterations: int = 0) -> float:
         """Pass only the new factors and values to iSAM2; returns the update time in ms."""
         start, start_cpu = time.perf_counter(), time.process_time()
-        self.isam.update(self._new_factors, self._new_values)
+        leaving = self._leaving()
+        result = self._marginalise(leaving) if leaving else self._update_rooted()
+        self.last_reeliminated = result.getVariablesReeliminated()
         for _ in range(extra_iterations):
-            self.isam.update()
+            self.last_reeliminated += self._isam.update().getVariablesReeliminated()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self.last_update_ms = (time.perf_counter() - start) * 1e3
         self.last_update_cpu_ms = (time.process_time() - start_cpu) * 1e3
         return self.last_update_ms
+
+    def _leaving(self) -> range:
+        """The keyframes to marginalise in this update: with a window, those of the chunks (of `chunk` keyframes)
+        that ended more than `window` keyframes before the newest's chunk began."""
+        if not self.window:
+            return range(0)
+        newest = self.n_keyframes - 1
+        stop = self.live_from
+        while stop < newest and self._chunk_start(stop) < self._chunk_start(newest) - self.window:
+            stop += 1
+        return range(self.live_from, stop)
+
+    def _update_rooted(self) -> gtsam.ISAM2Result:
+        """iSAM2's update, with a window: the anchor and the newest keyframe eliminated last, at the root (see
+        `_marginalise`; two groups: CCOLAMD takes group numbers below the variables' count)."""
+        if not self.window or self.n_keyframes < 2 or self._new_factors.size() == 0:
+            return self._isam.update(self._new_factors, self._new_values)
+        groups = gtsam.KeyGroupMap()
+        for key in (ANCHOR, X(self.n_keyframes - 1)) if self.has_anchor else (X(self.n_keyframes - 1),):
+            groups.insert2(key, 1)
+        return self._isam.update(self._new_factors, self._new_values, constrainedKeys=groups)
+
+    def _chunk_start(self, i: int) -> int:
+        return i - i % self.chunk
+
+    def _marginalise(self, leaving: range) -> gtsam.ISAM2Result:
+        """The update that marginalises the keyframes `leaving` (their estimates before it kept): every variable
+        re-eliminated, those keyframes first (then they are the Bayes tree's leaves, which iSAM2 marginalises),
+        the anchor and the newest keyframe last (at the root: the covariance of T_cad_body, the service's at each
+        keyframe, is then the root clique's, not a walk down the tree: gtsam's IncrementalFixedLagSmoother, which
+        orders them anywhere, made it 11 ms instead of 0.3 at 700 keyframes). Once per chunk, not per keyframe."""
+        for i in leaving:
+            self._marginalised[i] = self._value(X(i))
+        old = {X(i) for i in leaving}
+        last = {ANCHOR, X(self.n_keyframes - 1)}
+        groups, everything = gtsam.KeyGroupMap(), gtsam.KeyList()
+        for key in [*self._isam.getLinearizationPoint().keys(), *self._new_values.keys()]:
+            groups.insert2(key, 0 if key in old else 2 if key in last else 1)
+            everything.push_back(key)
+        result = self._isam.update(self._new_factors, self._new_values, constrainedKeys=groups,
+                                   extraReelimKeys=everything)
+        leaves = gtsam.KeyList()
+        for key in sorted(old):
+            leaves.push_back(key)
+        self._isam.marginalizeLeaves(leaves)
+        self.live_from = leaving.stop
+        return result
+
+    @property
+    def isam(self) -> gtsam.ISAM2:
+        """The iSAM2 holding the live variables."""
+        return self._isam
+
+    def n_variables(self) -> int:
+        """The variables iSAM2 holds (keyframes in the window, landmarks, anchor): what its updates walk. O(n)."""
+        return int(self._isam.getLinearizationPoint().size())
 
     def batch_graph(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
         """Every factor ever added, with the initial guesses: for a batch optimisation of the same problem."""
@@ -179,14 +270,20 @@ class PoseGraph:
         return np.linalg.inv(self._value(ANCHOR)) if self.has_anchor else None
 
     def _value(self, key: int) -> np.ndarray:
-        """The current estimate of one variable (iSAM2's, or the initial guess of one not yet solved)."""
+        """The current estimate of one variable (iSAM2's, the initial guess of one not yet solved, or a
+        marginalised keyframe's last estimate)."""
         if self._new_values.exists(key):
             return self._new_values.atPose3(key).matrix()
-        return self.isam.calculateEstimatePose3(key).matrix()
+        if key >> 56 == _X_CHR and key & _INDEX_MASK < self.live_from:
+            return self._marginalised[key & _INDEX_MASK]
+        return self._isam.calculateEstimatePose3(key).matrix()
 
     def estimate(self) -> gtsam.Values:
-        """All variables' current estimates (for tests and reports; costs O(n))."""
-        return self.isam.calculateEstimate()
+        """All variables' current estimates, marginalised keyframes' their last (for tests and reports; O(n))."""
+        values = self._isam.calculateEstimate()
+        for i, T in self._marginalised.items():
+            values.insert(X(i), pose3(T))
+        return values
 
     def covariance_cad_body(self, i: int) -> np.ndarray:
         """6x6 covariance of T_cad_body of keyframe i in its body tangent space, [rot; trans] (marginals).
@@ -194,12 +291,13 @@ class PoseGraph:
         T_cad_body = between(T_map_cad, T_map_body); the joint marginal of A(0) and X(i) is propagated through
         the Jacobians of `between`. Before registration: the covariance of T_map_body.
         """
+        isam = self.isam
         if not self.has_anchor:
-            return np.asarray(self.isam.marginalCovariance(X(i)))
-        keys = gtsam.KeyVector([ANCHOR, X(i)])
-        joint = self.isam.jointMarginalCovariance(keys).fullMatrix()
+            return np.asarray(isam.marginalCovariance(self._live(i)))
+        keys = gtsam.KeyVector([ANCHOR, self._live(i)])
+        joint = isam.jointMarginalCovariance(keys).fullMatrix()
         H1, H2 = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
-        anchor, pose = self.isam.calculateEstimatePose3(ANCHOR), self.isam.calculateEstimatePose3(X(i))
+        anchor, pose = isam.calculateEstimatePose3(ANCHOR), isam.calculateEstimatePose3(X(i))
         anchor.between(pose, H1, H2)
         J = np.hstack([H1, H2])
         return J @ joint @ J.T

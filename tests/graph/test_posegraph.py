@@ -450,3 +450,89 @@ def test_odometry_that_lost_track_gives_way_to_the_doors(corridor, dead_reckoned
     assert loc.status == "localized"
     errors = [position_error(loc, poses, i) for i in (*range(30), *range(35, 60))]  # a few keyframes to settle
     assert (max(errors) < 0.1) == recovered, max(errors)
+
+
+# --- a window of keyframes (issue 37: bounded cost over a mission) ---------------------------------------------
+
+
+def test_a_windowed_graph_equals_batch_on_its_live_keyframes_and_keeps_the_old_ones_readable(corridor) -> None:
+    """The 50-keyframe oracle flight with a window of 20 keyframes marginalised 10 at a time (far shorter than
+    the default, to marginalise within 50 keyframes). Batch equality becomes approximate: a marginalised chunk
+    leaves a linear prior fixed at its estimates when it left (keyframes 30 and 40 of a flight whose 1 % drift
+    the doors correct until its end) and a marginalised keyframe keeps that estimate. Measured: live keyframes
+    7.8 mm / 0.95 mrad from the batch, the anchor 6.2 mm, the marginalised ones 8.4 mm / 0.45 mrad (0.9 mm,
+    0.1 mrad without a window); hence 1 cm / 2 mrad. The newest pose's error against the truth is unchanged:
+    43.1 mm (43.5 mm without a window). With the default window (150 keyframes, 45 m) a keyframe leaves long
+    after the doors around it settled."""
+    poses = straight_flight(50)
+    windowed = PoseGraph(IsamSettings(relinearize_threshold=1e-5, window_keyframes=20, marginalise_every=10))
+    loc = fly(corridor, poses, drifting_odometry(poses, 0.003, 1.01), seed=1, sigma_m=0.02, graph=windowed)
+    loc.graph.update(extra_iterations=3)
+    assert loc.graph.live_from == 20  # keyframes 0-19 marginalised (the newest, 49, is in the chunk of 40)
+    factors, initial = loc.graph.batch_graph()
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-10)
+    batch = gtsam.LevenbergMarquardtOptimizer(factors, initial, params).optimize()
+    incremental = loc.graph.estimate()
+    for i in range(loc.graph.n_keyframes):
+        a, b = incremental.atPose3(X(i)), batch.atPose3(X(i))
+        assert np.allclose(a.matrix(), loc.graph.T_map_body(i))
+        assert np.linalg.norm(a.translation() - b.translation()) < 1e-2, i
+        assert np.linalg.norm(gtsam.Rot3.Logmap(a.rotation().between(b.rotation()))) < 2e-3, i
+    assert np.allclose(incremental.atPose3(ANCHOR).matrix(), batch.atPose3(ANCHOR).matrix(), atol=1e-2)
+    assert position_error(loc, poses, 49) < 0.05
+    with pytest.raises(ValueError, match="marginalised"):
+        loc.graph.add_gravity(3, np.eye(4))
+    cov = loc.graph.covariance_cad_body(loc.graph.n_keyframes - 1)
+    assert np.all(np.linalg.eigvalsh((cov + cov.T) / 2) > 0)
+
+
+def _ring_mission(graph: PoseGraph, n_keyframes: int, n_doors: int = 24) -> tuple[list[int], list[int]]:
+    """Laps of a ring of `n_doors` doors (0.3 m a keyframe), each keyframe seeing the two nearest, the doors
+    linked to the model (CAD anchor): the variables iSAM2 re-eliminated and held after each keyframe's update."""
+    radius = n_doors * 3.0 / (2 * np.pi)
+    doors = [make_T(rot_z(a), np.array([(radius + 1.5) * np.cos(a), (radius + 1.5) * np.sin(a), 1.0]))
+             for a in np.linspace(0.0, 2 * np.pi, n_doors, endpoint=False)]
+    graph.add_anchor(np.eye(4))
+    reeliminated, held = [], []
+    T_prev = None
+    for i in range(n_keyframes):
+        a = i * 0.3 / radius
+        T = make_T(rot_z(a + np.pi / 2), np.array([radius * np.cos(a), radius * np.sin(a), 1.0]))
+        if T_prev is None:
+            graph.add_first_keyframe(T)
+        else:
+            graph.add_keyframe(np.linalg.inv(T_prev) @ T, np.full(6, 0.01), T)
+        graph.add_gravity(i, T)
+        for j in np.argsort([np.linalg.norm(D[:3, 3] - T[:3, 3]) for D in doors])[:2]:
+            j = int(j)
+            if j not in graph.landmarks:
+                graph.add_landmark(j, doors[j])
+                graph.add_cad_link(j, doors[j])
+            graph.add_sighting(i, j, np.linalg.inv(T) @ doors[j])
+        graph.update()
+        reeliminated.append(graph.last_reeliminated)
+        held.append(graph.n_variables())
+        T_prev = T
+    return reeliminated, held
+
+
+def test_the_work_per_keyframe_is_bounded_over_a_long_mission() -> None:
+    """1,500 keyframes (6 laps of 24 doors): with a window of 40 keyframes marginalised 20 at a time, iSAM2 holds
+    at most 40 + 20 + 1 keyframes, the 24 doors and the anchor (measured: 85 variables at most), whatever the
+    mission's length, and re-eliminates per keyframe on the last 500 keyframes as many variables as on keyframes
+    200-700 (18.1 and 20.3 on average; at most 86, all it holds, when a chunk leaves): counts, not timings.
+    Without a window it holds every keyframe (1,525 variables at the end): what each update's relinearisation
+    check and back-substitution walk grows with the flight (it re-eliminates 10.4 and 11.1 a keyframe there)."""
+    window, chunk, n = 40, 20, 1500
+    bound = window + chunk + 1 + 24 + 1
+    graph = PoseGraph(IsamSettings(window_keyframes=window, marginalise_every=chunk))
+    reeliminated, held = _ring_mission(graph, n)
+    assert held[-1] == n - graph.live_from + 24 + 1  # the keyframes it holds are those not marginalised
+    assert max(held) <= bound
+    early, late = float(np.mean(reeliminated[200:700])), float(np.mean(reeliminated[-500:]))
+    assert late <= 2 * early, (early, late)
+    assert max(reeliminated[200:]) <= bound
+    assert held[-1] < bound < held[-1] + (n - bound)
+    _, unbounded = _ring_mission(PoseGraph(IsamSettings(window_keyframes=0)), n)
+    assert unbounded[-1] == n + 24 + 1
