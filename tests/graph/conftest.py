@@ -6,6 +6,7 @@ import pytest
 
 from macroloc.graph.surfaces import SurfaceIndex, SurfaceParams, WallVoxels
 from tests.graph.rooms import room_mesh
+from tests.graph.scenes import corridor_model
 
 
 @pytest.fixture(scope="session")
@@ -18,3 +19,9 @@ def room_with_walls() -> SurfaceIndex:
     index = SurfaceIndex.from_mesh(*room_mesh(), SurfaceParams(spacing_m=0.05))
     index.walls = WallVoxels.from_mesh(*room_mesh())
     return index
+
+
+@pytest.fixture(scope="session")
+def corridor():  # noqa: ANN201
+    """A straight corridor of doors (tests/graph/scenes.py), shared by the pose-graph and localizer tests."""
+    return corridor_model()
