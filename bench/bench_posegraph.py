@@ -19,9 +19,9 @@ from bench.common import row, time_ms
 from macroloc.graph.features import BuildingModel, MacroFeature
 from macroloc.graph.landmarks import feature_frame_cad
 from macroloc.graph.localizer import Localizer, Sighting
-from macroloc.graph.posegraph import PoseGraph
 from macroloc.graph.registrar import StoredMapRegistrar
 from macroloc.graph.relocalize import KnownRect
+from macroloc.service.session import make_localizer
 
 LOOP_X_M, LOOP_Y_M, STEP_M = 40.0, 20.0, 0.3
 
@@ -74,7 +74,7 @@ def run(n_keyframes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, Localizer
     """Wall and CPU ms of each keyframe's iSAM2 update, wall ms of each whole add_keyframe, the localizer."""
     model = loop_building()
     known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features]
-    loc = Localizer(model, PoseGraph(), StoredMapRegistrar(known))
+    loc = make_localizer(model, registrar=StoredMapRegistrar(known))  # the session's factory, this registrar
     rng = np.random.default_rng(1)
     update_ms, step_ms, cpu_ms = np.zeros(n_keyframes), np.zeros(n_keyframes), np.zeros(n_keyframes)
     T_odom_cad = np.eye(4)

@@ -25,8 +25,10 @@ BUILDINGS = {"Office_A": ROOT / "data/buildings/office_a.ifc",
 
 def main() -> None:
     from macroloc.graph.bim import load_building
+    from macroloc.service.config import load_config
     from macroloc.service.replay import replay
     from macroloc.service.replay_sources import TruthSource
+    from macroloc.service.session import settings_from_config
     from macroloc.service.truth_flight import write_truth_flight
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -36,6 +38,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("/tmp/macroloc-flights"))
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
+    graph = load_config(None).graph  # the session the service runs (service.session), from the default config
     print(f"{'building':<11} {'seed':>4} {'localize s':>10} {'APE rmse':>9} {'APE max':>8} {'wrong':>5} "
           f"{'links':>5} {'bad links':>9} {'final':>10} {'relocalize (proc s / flight s)':>32}")
     for name, path in BUILDINGS.items():
@@ -47,11 +50,12 @@ def main() -> None:
             flight = args.out / f"{path.stem}-{args.start}-{int(args.duration)}s-{seed}.mcap"
             if not flight.exists():
                 write_truth_flight(path, flight, seed=seed, duration_s=args.duration, start=args.start)
-            r = replay(flight, model, TruthSource(seed=seed))
+            r = replay(flight, model, TruthSource(seed=seed), settings=settings_from_config(graph))
             j = r.to_json()
             reloc = "-"
             if r.localized:
-                again = replay(flight, model, TruthSource(seed=seed + 100), stored=r.localizer.stored_map())
+                again = replay(flight, model, TruthSource(seed=seed + 100), stored=r.localizer.stored_map(),
+                               settings=settings_from_config(graph))
                 reloc = f"{again.processing_to_localize_s:.3f} / {again.time_to_localize_s:.2f}" if again.localized \
                     else "not localized"
             print(f"{name:<11} {seed:>4} {j['time_to_localize_s']!s:>10} {j['ape_rmse_m']!s:>9} "
