@@ -21,6 +21,7 @@ import logging
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,9 +37,12 @@ from macroloc.perception.gravity import GravityEstimator
 from macroloc.service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn
 from macroloc.service.places import Placed
 from macroloc.service.recording import matrix_from_pose, pose_from_matrix, vector3
-from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, make_session
+from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, session_from_config
 from macroloc.service.state import view_from_wire
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+if TYPE_CHECKING:
+    from macroloc.service.config import GraphConfig, MacrolocConfig
 
 log = logging.getLogger(__name__)
 
@@ -126,25 +130,29 @@ class LocalizerBackend:
 
     @classmethod
     def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None,
-                          settings: SessionSettings | None = None,
+                          cfg: MacrolocConfig | GraphConfig | None = None,
                           surfaces: SurfaceIndex | None = None) -> LocalizerBackend:
-        """`settings`: the session's (service.session.settings_from_config; covariance on by default);
-        `surfaces`: the model's walls, to check registrations against the frames' depth (graph.surfaces)."""
-        settings = settings or SessionSettings(covariance=True)
+        """The backend on a session from the config (service.session.session_from_config; the defaults without
+        one), with covariance; `surfaces`: the model's walls, to check registrations against the frames' depth
+        (graph.surfaces)."""
+        from macroloc.service.config import GraphConfig
+
+        cfg = cfg or GraphConfig()
         if snapshot is None:
-            return cls(model, make_session(model, settings, surfaces=surfaces))
-        localizer = settings.localizer
-        fallback = model_registrar(model, localizer.registration, settings.storey_hint, surfaces is not None,
-                                   settings.method)
+            return cls(model, session_from_config(cfg, model, surfaces=surfaces, covariance=True))
         features = {f.id: f for f in model.features}
         linked = [KnownRect(lm.id, features[lm.id].type, feature_frame_cad(features[lm.id]))
                   for lm in snapshot.landmarks_map if lm.id in features and features[lm.id].orientation == "vertical"]
         saved_T = matrix_from_pose(snapshot.T_cad_map) if snapshot.status == pb.PoseEstimate.LOCALIZED else None
         log.info("restoring a saved map: %d linked landmarks, %d keyframe views, T_cad_map %s", len(linked),
                  len(snapshot.views), "saved" if saved_T is not None else "absent")
-        registrar = RestoredRegistrar(model, saved_T, linked, fallback, params=localizer,
-                                      with_surfaces=surfaces is not None)
-        backend = cls(model, make_session(model, settings, surfaces=surfaces, registrar=registrar))
+
+        def restored(s: SessionSettings) -> Registrar:
+            fallback = model_registrar(model, s.localizer.registration, s.storey_hint, surfaces is not None, s.method)
+            return RestoredRegistrar(model, saved_T, linked, fallback, params=s.localizer,
+                                     with_surfaces=surfaces is not None)
+
+        backend = cls(model, session_from_config(cfg, model, surfaces=surfaces, registrar=restored, covariance=True))
         backend.restored_localized = saved_T is not None
         if saved_T is not None and snapshot.views:  # views with their poses, as a map carries an earlier one's
             backend.restored = StoredMap(model.sha256, saved_T, carried=[view_from_wire(v) for v in snapshot.views])

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
@@ -120,11 +120,13 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
            sink: FrameSink = null_sink, params: LocalizerParams | None = None,
            isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None,
            places: KeyframePlaces | None = None, recorder: FrameRecorder | None = None,
-           settings: SessionSettings | None = None) -> ReplayResult:
+           settings: SessionSettings | None = None,
+           make: Callable[[np.ndarray], LocalizationSession] | None = None) -> ReplayResult:
     """Run `flight` (a macroloc MCAP recording, or its frames from any reader: service.ros_bag.open_flight) through
-    a new localization session (service.session) in `model`; see module doc. `settings`: the session's (from the
-    config: service.session.settings_from_config), else the defaults with `params`, `policy`, `isam` and
-    `storey_hint` where given. `places`: place recognition on the frames (service.places: views kept for the saved
+    a new localization session (service.session) in `model`; see module doc. `make`: the session for the flight's
+    camera (T_body_cam, 4x4), as the CLI and the benchmarks build it (`service.session.session_from_config`);
+    else one from `settings`, else the defaults with `params`, `policy`, `isam`, `storey_hint`, `stored` and
+    `surfaces` where given. `places`: place recognition on the frames (service.places: views kept for the saved
     map, frames placed in the stored map's views). `recorder`: keeps every frame (e.g. for Foxglove:
     service.foxglove_out.ReplayRecorder)."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
@@ -133,6 +135,8 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
 
     source = source or TruthSource()
     settings = settings or _settings(params, policy, isam, storey_hint)
+    make = make or (lambda T_body_cam: make_session(model, settings, stored=stored, surfaces=surfaces,
+                                                    T_body_cam=T_body_cam))
     places = places or KeyframePlaces(None, keep_views=False)
     recorder = recorder or NullRecorder()
     trace = ReplayTrace()
@@ -144,7 +148,7 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
         start = time.perf_counter()
         inputs: FrameInput = source(frame)
         if session is None:
-            session = make_session(model, settings, stored=stored, surfaces=surfaces, T_body_cam=inputs.T_body_cam)
+            session = make(inputs.T_body_cam)
         t0 = frame.stamp_ns if t0 is None else t0
         placed = places.at_frame(frame.stereo, inputs.stamp_ns, inputs.T_odom_body, inputs.T_body_cam,
                                  inputs.up_body, session.status)

@@ -82,7 +82,6 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     from macroloc.service.assets import prepare_building
     from macroloc.service.backend import LocalizerBackend
     from macroloc.service.inputs import limits_from_config
-    from macroloc.service.session import settings_from_config
 
     if cfg.service.building is None:
         raise UserInputError("no building model: set service.building in the config or pass --building")
@@ -93,9 +92,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     log.info("geo-reference of %s: %s", building.name, geo.to_json() if geo else "none")
     store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
     snapshot = store.load(model.sha256)
-    settings = settings_from_config(cfg.graph, storey_hint=model.checked_storey(cfg.graph.storey_hint),
-                                    method=cfg.localize.method, covariance=True)  # the replay's, with covariance
-    backend = LocalizerBackend.fresh_or_restored(model, snapshot, settings, prepared.surfaces)
+    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg, prepared.surfaces)  # the replay's session
     planner = prepared.planner
     log.info("%s: ready", building.name)
     s = cfg.service

@@ -7,7 +7,8 @@ the keyframe rule (`graph.keyframes.KeyframeRule`), the depth hand-over to the n
 seconds summed until a keyframe takes them, the hand-off of a frame placed in a stored map (or whose view is
 kept: always a keyframe), and a fresh graph where an update fails. The drivers only assemble frames: the replay
 from a recording (service.replay), the service from its wire events (service.backend: odometry by stamp, IMU
-gravity, sightings waiting for their odometry).
+gravity, sightings waiting for their odometry). Both run place recognition on every stereo frame
+(service.places.KeyframePlaces.at_frame decides when it works) and hand its result in with the frame.
 
 Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cad. Metres, nanoseconds.
 """
@@ -227,10 +228,14 @@ def make_session(model: BuildingModel, settings: SessionSettings | None = None, 
 
 def session_from_config(cfg: MacrolocConfig | GraphConfig, model: BuildingModel, *,
                         stored: StoredMap | None = None, surfaces: SurfaceIndex | None = None,
-                        T_body_cam: np.ndarray | None = None, registrar: Registrar | None = None,
+                        T_body_cam: np.ndarray | None = None,
+                        registrar: Callable[[SessionSettings], Registrar] | None = None,
                         storey_hint: str | None = None, method: str | None = None,
                         covariance: bool = False) -> LocalizationSession:
-    """THE factory: a session from the config (or its [graph] section) in `model`. `storey_hint`: instead of
+    """THE factory: a session from the config (or its [graph] section) in `model`, what `serve`, `replay`, `demo`
+    and the benchmarks run. `stored`: a stored map to re-localize in first; `surfaces`: the model's walls, for the
+    surface check; `T_body_cam`: the left camera in the body frame; `registrar`: makes the registrar from the
+    settings instead of the model's (service.backend's after a restart); `storey_hint`: instead of
     graph.storey_hint (checked against the model: UserInputError where it has no such storey); `method`: the
     registration's search (default: the config's localize.method where the whole config is given)."""
     from macroloc.service.config import MacrolocConfig
@@ -240,4 +245,4 @@ def session_from_config(cfg: MacrolocConfig | GraphConfig, model: BuildingModel,
     storey = model.checked_storey(storey_hint or graph.storey_hint)
     settings = settings_from_config(graph, storey_hint=storey, method=method, covariance=covariance)
     return make_session(model, settings, stored=stored, surfaces=surfaces, T_body_cam=T_body_cam,
-                        registrar=registrar)
+                        registrar=None if registrar is None else registrar(settings))

@@ -74,7 +74,7 @@ def register(app: typer.Typer) -> None:
             TruthSource,
         )
         from macroloc.service.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
-        from macroloc.service.session import settings_from_config
+        from macroloc.service.session import session_from_config
 
         if not flight.exists():
             raise UserInputError(f"recording not found: {flight}")
@@ -120,7 +120,6 @@ def register(app: typer.Typer) -> None:
                                      TruthFeaturesWithVisualOdometry(seed=seed) if observations == "truth-vo"
                                      else PerceptionSource(cfg.perception.detect_every, detector))
         storey = model.checked_storey(storey if storey is not None else cfg.graph.storey_hint)
-        settings = settings_from_config(cfg.graph, storey_hint=storey)  # the service's, less the covariance
         surfaces = None
         if cfg.graph.surface_check:
             from macroloc.service.planning_grid import surfaces_for
@@ -137,8 +136,10 @@ def register(app: typer.Typer) -> None:
                 from macroloc.service.plots import load_wall_mesh
 
                 recorder = ReplayRecorder(stack.enter_context(FoxgloveWriter(out)), model, load_wall_mesh(building))
-            result = run_replay(frames, model, source, stored=stored, surfaces=surfaces, places=places,
-                                recorder=recorder, settings=settings)
+            result = run_replay(frames, model, source, places=places, recorder=recorder,
+                                make=lambda T_body_cam: session_from_config(cfg, model, stored=stored,
+                                                                            surfaces=surfaces, T_body_cam=T_body_cam,
+                                                                            storey_hint=storey))
         if save_map is not None:
             new_map = result.localizer.stored_map()
             if stored is not None and new_map.T_cad_map is not None:  # the stored map's places this flight missed
