@@ -20,9 +20,10 @@ from bench.common import row, time_ms
 from macroloc.graph.features import BuildingModel, MacroFeature
 from macroloc.graph.landmarks import feature_frame_cad
 from macroloc.graph.localizer import Localizer, Sighting
-from macroloc.graph.posegraph import IsamSettings, PoseGraph
+from macroloc.graph.posegraph import IsamSettings
 from macroloc.graph.registrar import StoredMapRegistrar
 from macroloc.graph.relocalize import KnownRect
+from macroloc.service.session import make_localizer
 
 LOOP_X_M, LOOP_Y_M, STEP_M = 40.0, 20.0, 0.3
 WALL_FIT_INFORMATION = np.diag(np.r_[np.full(3, 0.02**-2), np.full(3, 0.03**-2)])  # [rot; trans] a wall fit's
@@ -83,7 +84,7 @@ def run(n_keyframes: int, settings: IsamSettings | None = None, step_cpu_ms: np.
     run here: the bench has no depth): a factor between the anchor and every keyframe."""
     model = loop_building()
     known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features]
-    loc = Localizer(model, PoseGraph(settings), StoredMapRegistrar(known))
+    loc = make_localizer(model, isam=settings, registrar=StoredMapRegistrar(known))  # the session's factory
     rng = np.random.default_rng(1)
     update_ms, step_ms, cpu_ms = np.zeros(n_keyframes), np.zeros(n_keyframes), np.zeros(n_keyframes)
     T_odom_cad = np.eye(4)

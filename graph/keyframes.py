@@ -25,3 +25,30 @@ class KeyframePolicy:
         angle = rotation_angle_rad(d[:3, :3])
         return bool(np.linalg.norm(d[:3, 3]) > self.min_translation_m or angle > self.min_rotation_rad
                     or dt_s >= self.max_interval_s)
+
+
+@dataclass(frozen=True)
+class KeyframeRule:
+    """Which frames become keyframes, for every driver of the localizer (service.session).
+
+    `policy`: motion, turn or time since the last keyframe, for every frame (the default, measured in
+    docs/measurements.md, "One keyframe rule for replay and service"). Two options the service used to add:
+    `while_exploring`: every frame with sightings is a keyframe while the localizer is not localized;
+    `odometry_only_m`: a frame without sightings is a keyframe only after this much motion (m) since the last one
+    (None: the policy decides for it too)."""
+
+    policy: KeyframePolicy = KeyframePolicy()
+    while_exploring: bool = False
+    odometry_only_m: float | None = None
+
+    def is_keyframe(self, T_last: np.ndarray | None, T_now: np.ndarray, dt_s: float, has_sightings: bool,
+                    localized: bool) -> bool:
+        """T_last, T_now: 4x4 body poses in the odometry frame (T_last None: no keyframe yet); dt_s: seconds since
+        the last keyframe (inf where unknown, e.g. after a clock reset)."""
+        if T_last is None:
+            return True
+        if has_sightings and self.while_exploring and not localized:
+            return True
+        if not has_sightings and self.odometry_only_m is not None:
+            return bool(np.linalg.norm((np.linalg.inv(T_last) @ T_now)[:3, 3]) > self.odometry_only_m)
+        return self.policy.is_keyframe(T_last, T_now, dt_s)

@@ -1,10 +1,10 @@
 """The service's localization backend: wire events in, `graph.localizer.Estimate` out, map snapshots.
 
-`LocalizerBackend` feeds the pose-graph localizer (`graph.localizer.Localizer`): odometry poses are buffered by
-stamp; a set of sightings (ObservedFeatures in the body, left-camera or odometry frame, or sightings made by
-the perception pipeline from a stereo frame) becomes a keyframe at the odometry pose of its stamp; any other
-odometry sample only moves the last estimate (`track`). The IMU's specific force, less the odometry's own
-acceleration, gives "up" in the body frame (perception.gravity).
+`LocalizerBackend` feeds the localization session (service.session, the one `replay` runs too, with its keyframe
+rule): odometry poses are buffered by stamp; a set of sightings (ObservedFeatures in the body, left-camera or
+odometry frame, or sightings made by the perception pipeline from a stereo frame) becomes a frame at the odometry
+pose of its stamp; every odometry sample is a frame without sightings. The IMU's specific force, less the
+odometry's own acceleration, gives "up" in the body frame (perception.gravity).
 
 Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cam_left, cad. Metres.
 
@@ -19,18 +19,17 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.geo import GeoReference
-from macroloc.graph.keyframes import KeyframePolicy
 from macroloc.graph.landmarks import feature_frame_cad
 from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
 from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
-from macroloc.graph.posegraph import IsamSettings, PoseGraph
 from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
 from macroloc.graph.surfaces import SurfaceIndex
@@ -38,8 +37,12 @@ from macroloc.perception.gravity import GravityEstimator
 from macroloc.service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn
 from macroloc.service.places import Placed
 from macroloc.service.recording import matrix_from_pose, pose_from_matrix, vector3
+from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, session_from_config
 from macroloc.service.state import view_from_wire
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+if TYPE_CHECKING:
+    from macroloc.service.config import GraphConfig, MacrolocConfig
 
 log = logging.getLogger(__name__)
 
@@ -96,64 +99,60 @@ class RestoredRegistrar:
         return matches
 
 
-@dataclass
-class BackendParams:
-    odometry_keyframe_m: float = 1.0  # an odometry-only keyframe after this much motion without sightings
-    keyframe_min_translation_m: float = 0.25  # sightings make a keyframe after this much motion,
-    keyframe_min_rotation_rad: float = 0.15  # or this much turn,
-    keyframe_max_interval_s: float = 2.0  # or this long; else they are skipped (a hovering vehicle adds nothing)
-    localizer: LocalizerParams | None = None
-    storey_hint: str | None = None  # register against this storey's doors and windows only (graph.storey_hint)
-    covariance: bool = True  # each keyframe's marginal covariance (iSAM2), carried by the poses until the next
-    isam: IsamSettings = field(default_factory=IsamSettings)  # the pose graph's iSAM2 (graph.relinearize_threshold)
+@dataclass(frozen=True)
+class _Pending:
+    """Sightings that arrived before the odometry of their stamp: made body-frame once that pose is known."""
+
+    stamp_ns: int
+    to_body: Callable[[np.ndarray], list[Sighting]]  # T_odom_body -> the sightings, body frame
 
 
 class LocalizerBackend:
-    """Turns input events into localizer calls; one thread only (the service's worker)."""
+    """Turns the service's input events into frames of its `LocalizationSession` (service.session, the one the
+    replay runs too): odometry by stamp, IMU gravity, sightings waiting for the odometry of their stamp. One
+    thread only (the service's worker)."""
 
-    def __init__(self, model: BuildingModel, registrar: Registrar, params: BackendParams | None = None,
-                 T_body_cam: np.ndarray | None = None, surfaces: SurfaceIndex | None = None) -> None:
+    def __init__(self, model: BuildingModel, session: LocalizationSession,
+                 T_body_cam: np.ndarray | None = None) -> None:
+        """`T_body_cam`: the left camera in the body frame, for sightings sent in the cam_left frame."""
         self.model = model
-        self.params = params or BackendParams()
-        self.localizer = Localizer(model, PoseGraph(self.params.isam), registrar, self.params.localizer, T_body_cam,
-                                   surfaces)
+        self.session = session
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
         self._odometry: OrderedDict[int, np.ndarray] = OrderedDict()  # stamp_ns -> T_odom_body
-        self._pending: list[ObservationsIn] = []  # sightings that arrived before the odometry of their stamp
+        self._pending: list[_Pending] = []  # sightings that arrived before the odometry of their stamp
         self.unmatched = 0  # sightings dropped: no odometry near their stamp
         self._up_body: np.ndarray | None = None
         self._gravity = GravityEstimator()
         self._accel_body: list[np.ndarray] = []  # specific forces since the last odometry sample
-        self._last_keyframe_ns: int | None = None
-        self._T_last_keyframe: np.ndarray | None = None
-        self._keyframe_covariance: np.ndarray | None = None  # 6x6 [rot; trans], body tangent (graph.posegraph)
-        p = self.params
-        self._keyframe_policy = KeyframePolicy(p.keyframe_min_translation_m, p.keyframe_min_rotation_rad,
-                                               p.keyframe_max_interval_s)
-        self.last: Estimate | None = None
         self.restored: StoredMap | None = None  # a saved map's keyframe views and T_cad_map, for place recognition
         self.restored_localized = False  # restarted from a saved map that was localized (see `supersedes_saved`)
         self.carried: list[CarriedLandmark] = []  # a saved map's landmarks, CAD frame, kept in the next saved map
-        self.graph_restarts = 0  # times the pose graph failed (indeterminate, non-finite) and started afresh
 
     @classmethod
-    def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None, method: str = "robust",
-                          params: BackendParams | None = None,
+    def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None,
+                          cfg: MacrolocConfig | GraphConfig | None = None,
                           surfaces: SurfaceIndex | None = None) -> LocalizerBackend:
-        """`surfaces`: the model's walls, to check registrations against the frames' depth (graph.surfaces)."""
-        params = params or BackendParams()
-        localizer = params.localizer or LocalizerParams()
-        fallback = model_registrar(model, localizer.registration, params.storey_hint, surfaces is not None, method)
+        """The backend on a session from the config (service.session.session_from_config; the defaults without
+        one), with covariance; `surfaces`: the model's walls, to check registrations against the frames' depth
+        (graph.surfaces)."""
+        from macroloc.service.config import GraphConfig
+
+        cfg = cfg or GraphConfig()
         if snapshot is None:
-            return cls(model, fallback, params, surfaces=surfaces)
+            return cls(model, session_from_config(cfg, model, surfaces=surfaces, covariance=True))
         features = {f.id: f for f in model.features}
         linked = [KnownRect(lm.id, features[lm.id].type, feature_frame_cad(features[lm.id]))
                   for lm in snapshot.landmarks_map if lm.id in features and features[lm.id].orientation == "vertical"]
         saved_T = matrix_from_pose(snapshot.T_cad_map) if snapshot.status == pb.PoseEstimate.LOCALIZED else None
         log.info("restoring a saved map: %d linked landmarks, %d keyframe views, T_cad_map %s", len(linked),
                  len(snapshot.views), "saved" if saved_T is not None else "absent")
-        backend = cls(model, RestoredRegistrar(model, saved_T, linked, fallback, params=localizer,
-                                               with_surfaces=surfaces is not None), params, surfaces=surfaces)
+
+        def restored(s: SessionSettings) -> Registrar:
+            fallback = model_registrar(model, s.localizer.registration, s.storey_hint, surfaces is not None, s.method)
+            return RestoredRegistrar(model, saved_T, linked, fallback, params=s.localizer,
+                                     with_surfaces=surfaces is not None)
+
+        backend = cls(model, session_from_config(cfg, model, surfaces=surfaces, registrar=restored, covariance=True))
         backend.restored_localized = saved_T is not None
         if saved_T is not None and snapshot.views:  # views with their poses, as a map carries an earlier one's
             backend.restored = StoredMap(model.sha256, saved_T, carried=[view_from_wire(v) for v in snapshot.views])
@@ -174,6 +173,7 @@ class LocalizerBackend:
             del self._accel_body[:-256]
 
     def odometry(self, ev: OdometryIn) -> Estimate:
+        """An odometry sample: the sightings that waited for it, then its own frame (no sightings)."""
         if self._accel_body:
             up = self._gravity.update(ev.stamp_ns, ev.T_map_body, np.array(self._accel_body))
             self._up_body = up if up is not None else self._up_body
@@ -183,13 +183,15 @@ class LocalizerBackend:
             self._odometry.popitem(last=False)
         if self._pending:  # sightings waiting for this odometry (keys arrive through separate channels)
             pending, self._pending = self._pending, []
-            for obs in pending:
-                if self.observations(obs) is None and obs.stamp_ns < ev.stamp_ns - ODOMETRY_MATCH_NS:
-                    self._pending.remove(obs)
+            for p in pending:
+                T_odom_body = self.odometry_at(p.stamp_ns)
+                if T_odom_body is not None:
+                    self.session.frame(FrameIn(p.stamp_ns, T_odom_body, p.to_body(T_odom_body), self._up_body))
+                elif p.stamp_ns < ev.stamp_ns - ODOMETRY_MATCH_NS:
                     self.unmatched += 1
-        due = self._T_last_keyframe is None or float(np.linalg.norm(
-            (np.linalg.inv(self._T_last_keyframe) @ ev.T_map_body)[:3, 3])) > self.params.odometry_keyframe_m
-        return self._keyframe(ev.stamp_ns, ev.T_map_body, []) if due else self._track(ev.stamp_ns, ev.T_map_body)
+                else:
+                    self._pending.append(p)
+        return self.session.frame(FrameIn(ev.stamp_ns, ev.T_map_body, [], self._up_body))
 
     def new_time_base(self) -> None:
         """The vehicle's clock was reset: forget what is kept by stamp (the odometry buffer, sightings waiting
@@ -198,51 +200,54 @@ class LocalizerBackend:
         self._pending.clear()
         self._accel_body = []
         self._gravity = GravityEstimator()  # it differentiates the odometry over stamps; up_body is kept
-        self._last_keyframe_ns = None
+        self.session.new_time_base()
 
     def depth(self, stamp_ns: int, points_body: np.ndarray) -> None:
         """Depth points (N, 3, body frame) measured at stamp_ns: given to the next keyframe, for the surface check
         of registrations (graph.surfaces). Without odometry at that stamp they are dropped."""
         T_odom_body = self.odometry_at(stamp_ns)
-        if T_odom_body is not None and len(points_body):
-            self.localizer.add_depth(T_odom_body, points_body)
+        if T_odom_body is not None:
+            self.session.add_depth(T_odom_body, points_body)
 
     def observations(self, ev: ObservationsIn) -> Estimate | None:
-        """A keyframe with these sightings at the odometry pose of their stamp; None (kept pending until the
-        odometry of that stamp arrives, else counted in `unmatched`) without such a pose."""
-        T_odom_body = self.odometry_at(ev.stamp_ns)
+        """Sightings from the wire (body, left-camera or odometry frame): a frame at the odometry pose of their
+        stamp; None (kept pending until the odometry of that stamp arrives, else counted in `unmatched`) without
+        such a pose."""
+        def to_body(T_odom_body: np.ndarray) -> list[Sighting]:
+            return [self._to_body(o, ev.frame_id, T_odom_body) for o in ev.features if o.corners is not None]
+
+        return self._sightings_frame(ev.stamp_ns, to_body)
+
+    def stereo(self, stamp_ns: int, sightings: list[Sighting], points_body: np.ndarray | None = None,
+               placed: Placed | None = None) -> Estimate | None:
+        """A stereo frame the service perceived: sightings (body frame), depth points (N, 3, body frame), its
+        place-recognition result (service.places): a frame at the odometry pose of its stamp. Without that pose,
+        its sightings wait for it (its depth and place are dropped) and the answer is the pose tracked at the
+        last estimate's (None before any)."""
+        T_odom_body = self.odometry_at(stamp_ns)
         if T_odom_body is None:
-            self._pending.append(ev)
+            if sightings:
+                self._sightings_frame(stamp_ns, lambda _: sightings)
+            return None if self.last is None else self.session.pose_at(stamp_ns, self.last.T_map_body)
+        return self.session.frame(FrameIn(stamp_ns, T_odom_body, sightings, self._up_body, points_body,
+                                          placed=placed))
+
+    def _sightings_frame(self, stamp_ns: int, to_body: Callable[[np.ndarray], list[Sighting]]) -> Estimate | None:
+        T_odom_body = self.odometry_at(stamp_ns)
+        if T_odom_body is None:
+            self._pending.append(_Pending(stamp_ns, to_body))
             if len(self._pending) > 64:
                 self._pending.pop(0)
                 self.unmatched += 1
             return None
-        return self.sightings(ev.stamp_ns, T_odom_body, [self._to_body(o, ev.frame_id, T_odom_body)
-                                                         for o in ev.features if o.corners is not None])
-
-    def sightings(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting],
-                  placed: Placed | None = None) -> Estimate:
-        """A keyframe with the sightings when the vehicle moved or time passed enough (or it is still exploring),
-        else only the tracked pose: the graph grows with the flight, not with the time spent hovering. A frame
-        placed in the saved map, or whose view is kept (`placed`, service.places), is always a keyframe."""
-        if placed is not None and (placed.T_cad_body is not None or placed.view is not None):
-            return self._keyframe(stamp_ns, T_odom_body, sightings, placed)
-        if not sightings or not self._keyframe_due(stamp_ns, T_odom_body):
-            return self._track(stamp_ns, T_odom_body, sightings)
-        return self._keyframe(stamp_ns, T_odom_body, sightings)
-
-    def _keyframe_due(self, stamp_ns: int, T_odom_body: np.ndarray) -> bool:
-        if self._last_keyframe_ns is None or self._T_last_keyframe is None or self.localizer.status != "localized":
-            return True
-        return self._keyframe_policy.is_keyframe(self._T_last_keyframe, T_odom_body,
-                                                 (stamp_ns - self._last_keyframe_ns) * 1e-9)
+        return self.session.frame(FrameIn(stamp_ns, T_odom_body, to_body(T_odom_body), self._up_body))
 
     def latest(self) -> Estimate | None:
         """The pose at the newest odometry sample (after a late keyframe changed the map), or None."""
         if not self._odometry:
             return None
         stamp_ns = next(reversed(self._odometry))
-        return self._track(stamp_ns, self._odometry[stamp_ns])
+        return self.session.pose_at(stamp_ns, self._odometry[stamp_ns])
 
     def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
         """The buffered odometry pose nearest in time to stamp_ns (within 60 ms), else None."""
@@ -254,61 +259,27 @@ class LocalizerBackend:
         k = int(np.argmin(np.abs(stamps - stamp_ns)))
         return self._odometry[int(stamps[k])] if abs(int(stamps[k]) - stamp_ns) <= ODOMETRY_MATCH_NS else None
 
-    # --- steps --------------------------------------------------------------------------------------------------
-
     def _to_body(self, obs: Observation, frame_id: str, T_odom_body: np.ndarray) -> Sighting:
         assert obs.corners is not None
         T_body_x = {"body": np.eye(4), "cam_left": self.T_body_cam, "map": np.linalg.inv(T_odom_body)}[frame_id]
         corners_body = obs.corners @ T_body_x[:3, :3].T + T_body_x[:3, 3]
         return Sighting(obs.type, corners_body, obs.id or None)
 
-    def _keyframe(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting],
-                  placed: Placed | None = None) -> Estimate:
-        self._last_keyframe_ns = stamp_ns
-        self._T_last_keyframe = T_odom_body
-        try:
-            est = self.localizer.add_keyframe(
-                stamp_ns, T_odom_body, sightings, self._up_body, with_covariance=self.params.covariance,
-                T_cad_body_placed=None if placed is None else placed.T_cad_body,
-                view=None if placed is None else placed.view)
-        except RuntimeError as exc:  # GTSAM's IndeterminantLinearSystemException and its kin
-            return self._restart_graph(stamp_ns, f"the update failed ({str(exc).splitlines()[0][:120]})")
-        if not _finite(est):
-            return self._restart_graph(stamp_ns, "the estimate is not finite")
-        est = self._remember(est)
-        self._keyframe_covariance = est.covariance
-        return est
-
-    def _restart_graph(self, stamp_ns: int, why: str) -> Estimate:
-        """The pose graph cannot go on: start a fresh one (this flight's landmarks are lost; the saved map and its
-        place recognition stay), answer LOST for this stamp, and localize again from what comes next."""
-        self.graph_restarts += 1
-        log.error("pose graph restarted (%d so far): %s", self.graph_restarts, why)
-        old = self.localizer
-        self.localizer = Localizer(self.model, PoseGraph(self.params.isam), old.registrar, old.params, self.T_body_cam,
-                                   old.surfaces)
-        self._last_keyframe_ns, self._T_last_keyframe, self._keyframe_covariance = None, None, None
-        self.last = Estimate(stamp_ns, "lost", np.eye(4))
-        return self.last
-
-    def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting] | None = None) -> Estimate:
-        """The pose between keyframes; sightings given here enter the graph with the next keyframe."""
-        if self.localizer.graph.n_keyframes == 0:
-            return self._keyframe(stamp_ns, T_odom_body, sightings or [])
-        est = self.localizer.track(stamp_ns, T_odom_body, sightings)
-        if not _finite(est):
-            return self._restart_graph(stamp_ns, "the tracked pose is not finite")
-        if est.covariance is None:  # the last keyframe's: the odometry since adds little over a keyframe interval
-            est.covariance = self._keyframe_covariance
-        return self._remember(est)
-
-    def _remember(self, est: Estimate) -> Estimate:
-        """Keep the newest estimate (a late keyframe for an older stamp does not replace a newer pose)."""
-        if self.last is None or est.stamp_ns >= self.last.stamp_ns:
-            self.last = est
-        return est
-
     # --- outputs ------------------------------------------------------------------------------------------------
+
+    @property
+    def localizer(self) -> Localizer:
+        return self.session.localizer
+
+    @property
+    def last(self) -> Estimate | None:
+        """The newest estimate (a late keyframe for an older stamp does not replace a newer pose)."""
+        return self.session.last
+
+    @property
+    def graph_restarts(self) -> int:
+        """Times the pose graph failed (indeterminate, non-finite) and started afresh."""
+        return self.session.restarts
 
     @property
     def status(self) -> str:
@@ -359,10 +330,6 @@ class LocalizerBackend:
         if self.restored is not None and T_cad_map is not None:  # what a later restart can be placed by
             return own + carried_views(own, T_cad_map, self.restored)
         return own
-
-
-def _finite(est: Estimate) -> bool:
-    return all(m is None or bool(np.isfinite(m).all()) for m in (est.T_map_body, est.T_cad_body, est.T_cad_map))
 
 
 @dataclass(frozen=True)

@@ -142,7 +142,13 @@ class GraphConfig(_Section):
     keyframe_translation_m: float = Field(0.25, description="a new keyframe after this much motion, m")
     keyframe_rotation_rad: float = Field(0.15, description="... or this much rotation, rad")
     keyframe_interval_s: float = Field(0.34, description="... or this much time, s (the service and replay "
-                                       "alike; every frame with sightings is a keyframe while not localized)")
+                                       "alike: service/session.py)")
+    keyframe_while_exploring: bool = Field(
+        False, description="also every frame with sightings while not localized (slower to localize on 30 fps "
+                           "flights: docs/measurements.md)")
+    keyframe_without_sightings_m: float = Field(
+        0.0, description="a frame without sightings is a keyframe only after this much motion, m (0: the "
+                         "translation, rotation and interval above decide for it too)")
     associate_m: float = Field(
         _LANDMARKS.associate_m,
         description="a sighting this close to a same-type landmark re-observes it, m")

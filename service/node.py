@@ -32,7 +32,6 @@ from macroloc.service.inputs import (
     ImuIn,
     InputLimits,
     InputParser,
-    Observation,
     ObservationsIn,
     OdometryIn,
     StereoIn,
@@ -294,19 +293,7 @@ class LocalizationService:
 
             points_body = depth_points_body(ev.frame, stride_px=20, max_range_m=8.0)  # the vehicle's depth
         with self._lock:
-            if points_body is not None:
-                self.backend.depth(ev.stamp_ns, points_body)
-            est = None
-            if placed is not None and T_odom_body is not None:  # a keyframe at this frame's odometry pose
-                est = self.backend.sightings(ev.stamp_ns, T_odom_body, sightings, placed)
-            elif sightings:
-                est = self.backend.observations(ObservationsIn(ev.stamp_ns, "body", [
-                    Observation(s.type, s.corners_body, s.corners_body.mean(axis=0)) for s in sightings]))
-            if est is None and self.backend.last is not None:
-                T_odom_body = self.backend.odometry_at(ev.stamp_ns)
-                if T_odom_body is None:
-                    T_odom_body = self.backend.last.T_map_body
-                est = self.backend.sightings(ev.stamp_ns, T_odom_body, [])
+            est = self.backend.stereo(ev.stamp_ns, sightings, points_body, placed)
         if est is None:
             est = Estimate(ev.stamp_ns, self.backend.status, np.eye(4))
         self._publish_pose(est)

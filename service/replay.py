@@ -1,7 +1,8 @@
 """Offline replay of a recorded flight through the localizer, as fast as it runs, scored against truth.
 
 `replay()` reads the MCAP recording, turns each frame into inputs (an `ObservationSource`: ground truth with
-realistic errors, or the perception chain), selects keyframes, runs the `Localizer`, and scores the poses in
+realistic errors, or the perception chain), runs them through the `LocalizationSession` the service runs too
+(service.session: the keyframe rule, the `Localizer`), and scores the poses in
 the CAD frame against ground truth without alignment (evo's APE/RPE, translation part). The frames go through
 `FrameSink`s (a null one by default): the seam where `--over-zenoh` publishes instead of running in-process.
 """
@@ -10,29 +11,25 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import numpy as np
 
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.keyframes import KeyframePolicy
-from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, model_registrar, stored_registrar
+from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams
 from macroloc.graph.mapstore import StoredMap
-from macroloc.graph.params import StatusParams
-from macroloc.graph.posegraph import IsamSettings, PoseGraph
-from macroloc.graph.registrar import FirstOfRegistrar, Registrar
+from macroloc.graph.posegraph import IsamSettings
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
-from macroloc.service.places import KeyframePlaces, Placed
+from macroloc.service.places import KeyframePlaces
 from macroloc.service.recording import FlightFrame
 from macroloc.service.replay_sources import FrameInput, ObservationSource, TruthSource
-
-if TYPE_CHECKING:
-    from macroloc.service.config import GraphConfig
+from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, make_session
 
 log = logging.getLogger(__name__)
 
@@ -118,94 +115,67 @@ def _round(v: float | None, nd: int = 4) -> float | None:
     return None if v is None or not np.isfinite(v) else round(float(v), nd)
 
 
-def settings_from_config(graph: GraphConfig) -> tuple[LocalizerParams, KeyframePolicy, IsamSettings]:
-    """The factory's half that reads the config: typed constructor arguments for the components."""
-    d = LocalizerParams()
-    params = LocalizerParams(
-        landmarks=replace(d.landmarks, associate_m=graph.associate_m, far_range_m=graph.far_range_m),
-        registration=replace(d.registration, registration_tolerance_m=graph.registration_tolerance_m,
-                             registration_min_landmarks=graph.registration_min_landmarks,
-                             verified_min_landmarks=graph.verified_min_landmarks,
-                             surface_retry_s=graph.surface_retry_s),
-        anchor=replace(d.anchor, cad_link_m=graph.cad_link_m, cad_link_max_turn_deg=graph.cad_link_max_turn_deg),
-        far=replace(d.far, far_resection=graph.far_resection),
-        judge=replace(d.judge, surface_turn_deg=graph.surface_turn_deg, surface_margin=graph.surface_margin),
-        status=StatusParams(degraded_after_s=graph.degraded_after_s, lost_after_s=graph.lost_after_s))
-    policy = KeyframePolicy(graph.keyframe_translation_m, graph.keyframe_rotation_rad, graph.keyframe_interval_s)
-    return params, policy, IsamSettings(relinearize_threshold=graph.relinearize_threshold)
-
-
-def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey_hint: str | None = None,
-                   T_body_cam: np.ndarray | None = None, params: LocalizerParams | None = None,
-                   isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None) -> Localizer:
-    """The factory: registration against a stored map when one is given, else against the whole model; with
-    the model's surfaces, registrations are checked against the depth points (graph.surfaces)."""
-    p = params or LocalizerParams()
-    registrar: Registrar = model_registrar(model, p.registration, storey_hint, surfaces is not None)
-    if stored is not None:
-        registrar = FirstOfRegistrar([stored_registrar(model, stored.known_rects(model), p.registration,
-                                                       surfaces is not None),
-                                      registrar])
-    return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam, surfaces=surfaces)
-
-
 def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: ObservationSource | None = None,
            stored: StoredMap | None = None, storey_hint: str | None = None, policy: KeyframePolicy | None = None,
            sink: FrameSink = null_sink, params: LocalizerParams | None = None,
            isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None,
-           places: KeyframePlaces | None = None, recorder: FrameRecorder | None = None) -> ReplayResult:
+           places: KeyframePlaces | None = None, recorder: FrameRecorder | None = None,
+           settings: SessionSettings | None = None,
+           make: Callable[[np.ndarray], LocalizationSession] | None = None) -> ReplayResult:
     """Run `flight` (a macroloc MCAP recording, or its frames from any reader: service.ros_bag.open_flight) through
-    a new localizer in `model`; see module doc. `places`: place recognition at keyframes (service.places: views
-    kept for the saved map, keyframes placed in the stored map's views). `recorder`: keeps every frame (e.g. for
-    Foxglove: service.foxglove_out.ReplayRecorder)."""
+    a new localization session (service.session) in `model`; see module doc. `make`: the session for the flight's
+    camera (T_body_cam, 4x4), as the CLI and the benchmarks build it (`service.session.session_from_config`);
+    else one from `settings`, else the defaults with `params`, `policy`, `isam`, `storey_hint`, `stored` and
+    `surfaces` where given. `places`: place recognition on the frames (service.places: views kept for the saved
+    map, frames placed in the stored map's views). `recorder`: keeps every frame (e.g. for Foxglove:
+    service.foxglove_out.ReplayRecorder)."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
     from macroloc.service.recording import matrix_from_pose, read_flight
 
     source = source or TruthSource()
-    policy = policy or KeyframePolicy()
+    settings = settings or _settings(params, policy, isam, storey_hint)
+    make = make or (lambda T_body_cam: make_session(model, settings, stored=stored, surfaces=surfaces,
+                                                    T_body_cam=T_body_cam))
+    places = places or KeyframePlaces(None, keep_views=False)
     recorder = recorder or NullRecorder()
     trace = ReplayTrace()
-    localizer: Localizer | None = None
-    T_kf: np.ndarray | None = None
-    t_kf = t0 = None
+    session: LocalizationSession | None = None
+    t0 = None
     busy_s = 0.0
     busy_at_localized: float | None = None
-    dead_reckoned_s = 0.0  # since the last keyframe
     for frame in (read_flight(flight) if isinstance(flight, Path) else flight):
         start = time.perf_counter()
         inputs: FrameInput = source(frame)
-        if localizer is None:
-            localizer = make_localizer(model, stored, storey_hint, inputs.T_body_cam, params, isam, surfaces)
+        if session is None:
+            session = make(inputs.T_body_cam)
         t0 = frame.stamp_ns if t0 is None else t0
-        t_s = (frame.stamp_ns - t0) * 1e-9
-        is_kf = policy.is_keyframe(T_kf, inputs.T_odom_body, t_s - (t_kf if t_kf is not None else -1e9))
-        if inputs.points_body is not None:
-            localizer.add_depth(inputs.T_odom_body, inputs.points_body)  # given with the next keyframe
-        dead_reckoned_s += inputs.dead_reckoned_s
-        if is_kf:
-            placed = places.at_frame(frame.stereo, inputs.stamp_ns, inputs.T_odom_body, inputs.T_body_cam,
-                                     inputs.up_body, localizer.status) if places is not None else Placed(None, None)
-            est = localizer.add_keyframe(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body,
-                                         T_cad_body_placed=placed.T_cad_body, view=placed.view,
-                                         dead_reckoned_s=dead_reckoned_s)
-            T_kf, t_kf, dead_reckoned_s = inputs.T_odom_body, t_s, 0.0
-        else:
-            est = localizer.track(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings)
+        placed = places.at_frame(frame.stereo, inputs.stamp_ns, inputs.T_odom_body, inputs.T_body_cam,
+                                 inputs.up_body, session.status)
+        est = session.frame(FrameIn(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body,
+                                    inputs.points_body, inputs.dead_reckoned_s, placed))
         busy_s += time.perf_counter() - start
         if busy_at_localized is None and est.status == "localized":
             busy_at_localized = busy_s
         sink(est)
         recorder.frame(frame, inputs, est)
         trace.stamp_ns.append(frame.stamp_ns)
-        _record(trace, t_s, est, matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None,
-                is_kf, len(inputs.sightings))
-    if localizer is None:
+        _record(trace, (frame.stamp_ns - t0) * 1e-9, est,
+                matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None, session.keyframe,
+                len(inputs.sightings))
+    if session is None:
         from macroloc.graph.errors import UserInputError
 
         raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
-    recorder.finish(localizer)
-    return _score(trace, localizer, busy_s, busy_at_localized)
+    recorder.finish(session.localizer)
+    return _score(trace, session.localizer, busy_s, busy_at_localized)
+
+
+def _settings(params: LocalizerParams | None, policy: KeyframePolicy | None, isam: IsamSettings | None,
+              storey_hint: str | None) -> SessionSettings:
+    d = SessionSettings()
+    return SessionSettings(params or d.localizer, replace(d.rule, policy=policy) if policy else d.rule,
+                           isam or d.isam, storey_hint)
 
 
 def _record(trace: ReplayTrace, t_s: float, est: Estimate, T_true: np.ndarray | None, is_kf: bool,

@@ -145,19 +145,10 @@ def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, fl
 
 
 def replay_command(flight: Path | Iterable[FlightFrame], source: ObservationSource | None, connect: list[str],
-                   vehicle: str, speed: float, json_out: bool) -> None:
-    """The CLI's `--over-zenoh` branch: a client-less peer connecting to the service's endpoint(s)."""
-    import json
-    import sys
-
+                   vehicle: str, speed: float) -> dict:
+    """The CLI's `--over-zenoh` branch: a client-less peer connecting to the service's endpoint(s); the result's
+    JSON document (the CLI prints it)."""
     if speed < 0:
         raise UserInputError("--speed must be >= 0")
     cfg = ZenohConfig(mode="peer", connect=connect or ["tcp/127.0.0.1:7447"], listen=[])
-    result = replay_over_zenoh(flight, cfg, vehicle, source, speed)
-    doc = result.to_json()
-    if json_out:
-        from macroloc.service.commands._io import print_json
-
-        print_json(doc)
-    else:
-        sys.stdout.write(json.dumps(doc, indent=2) + "\n")
+    return replay_over_zenoh(flight, cfg, vehicle, source, speed).to_json()

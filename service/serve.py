@@ -80,9 +80,8 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
     from macroloc.graph.geo import read_geo_reference
     from macroloc.service.assets import prepare_building
-    from macroloc.service.backend import BackendParams, LocalizerBackend
+    from macroloc.service.backend import LocalizerBackend
     from macroloc.service.inputs import limits_from_config
-    from macroloc.service.replay import settings_from_config
 
     if cfg.service.building is None:
         raise UserInputError("no building model: set service.building in the config or pass --building")
@@ -93,14 +92,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     log.info("geo-reference of %s: %s", building.name, geo.to_json() if geo else "none")
     store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
     snapshot = store.load(model.sha256)
-    localizer_params, policy, isam = settings_from_config(cfg.graph)  # the config's [graph] section, as replay
-    backend_params = BackendParams(keyframe_min_translation_m=policy.min_translation_m,
-                                   keyframe_min_rotation_rad=policy.min_rotation_rad,
-                                   keyframe_max_interval_s=policy.max_interval_s, isam=isam,
-                                   localizer=localizer_params,
-                                   storey_hint=model.checked_storey(cfg.graph.storey_hint))
-    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg.localize.method, backend_params,
-                                                 prepared.surfaces)
+    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg, prepared.surfaces)  # the replay's session
     planner = prepared.planner
     log.info("%s: ready", building.name)
     s = cfg.service

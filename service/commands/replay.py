@@ -67,7 +67,6 @@ def register(app: typer.Typer) -> None:
         from macroloc.service.commands._io import existing_file, print_json
         from macroloc.service.config import load_config
         from macroloc.service.replay import replay as run_replay
-        from macroloc.service.replay import settings_from_config
         from macroloc.service.replay_sources import (
             ObservationSource,
             PerceptionSource,
@@ -75,6 +74,7 @@ def register(app: typer.Typer) -> None:
             TruthSource,
         )
         from macroloc.service.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
+        from macroloc.service.session import session_from_config
 
         if not flight.exists():
             raise UserInputError(f"recording not found: {flight}")
@@ -93,13 +93,20 @@ def register(app: typer.Typer) -> None:
         frames = track(open_flight(flight, RosTopics.parse(topic or []), cfg.camera, bag_stats),
                        f"replay {flight.name}", total=None if is_bag else stereo_frame_count(flight))
         if over_zenoh:  # the service perceives the frames itself unless truth observations are sent along
+            import json
+            import sys
+
             from macroloc.service.replay_zenoh import replay_command
 
             if out is not None:
                 raise UserInputError("--out records an in-process replay; with --over-zenoh, record the service")
 
-            replay_command(frames, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
-                           vehicle, speed, json_out)
+            doc = replay_command(frames, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
+                                 vehicle, speed)
+            if json_out:
+                print_json(doc)
+            else:
+                sys.stdout.write(json.dumps(doc, indent=2) + "\n")
             return
         detector = cfg.perception.detector_model
         if observations == "perception" and detector is not None:
@@ -112,7 +119,6 @@ def register(app: typer.Typer) -> None:
         source: ObservationSource = (TruthSource(seed=seed) if observations == "truth" else
                                      TruthFeaturesWithVisualOdometry(seed=seed) if observations == "truth-vo"
                                      else PerceptionSource(cfg.perception.detect_every, detector))
-        params, policy, isam = settings_from_config(cfg.graph)
         storey = model.checked_storey(storey if storey is not None else cfg.graph.storey_hint)
         surfaces = None
         if cfg.graph.surface_check:
@@ -130,8 +136,10 @@ def register(app: typer.Typer) -> None:
                 from macroloc.service.plots import load_wall_mesh
 
                 recorder = ReplayRecorder(stack.enter_context(FoxgloveWriter(out)), model, load_wall_mesh(building))
-            result = run_replay(frames, model, source, stored=stored, storey_hint=storey, policy=policy,
-                                params=params, isam=isam, surfaces=surfaces, places=places, recorder=recorder)
+            result = run_replay(frames, model, source, places=places, recorder=recorder,
+                                make=lambda T_body_cam: session_from_config(cfg, model, stored=stored,
+                                                                            surfaces=surfaces, T_body_cam=T_body_cam,
+                                                                            storey_hint=storey))
         if save_map is not None:
             new_map = result.localizer.stored_map()
             if stored is not None and new_map.T_cad_map is not None:  # the stored map's places this flight missed

@@ -132,7 +132,7 @@ def test_killed_mid_flight_restarts_and_relocalizes(office_path: Path, office_mo
         with zenoh.open(session_config(loopback(connect=[f"tcp/127.0.0.1:{port}"]))) as s:
             wait_for(lambda: any(r.ok for r in s.liveliness().get("macroloc/t1/alive", timeout=1.0)), 90.0, "up")
             poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
-            T = fly(s, flight, T, 30)
+            T = fly(s, flight, T, 40)
             wait_for(lambda: localized(poses), 30.0, "localized before the kill")
             saved = tmp_path / "t1" / "map.pb"
             wait_for(lambda: saved.exists() and pb.MapSnapshot.FromString(saved.read_bytes()).status
@@ -144,7 +144,7 @@ def test_killed_mid_flight_restarts_and_relocalizes(office_path: Path, office_mo
         with zenoh.open(session_config(loopback(connect=[f"tcp/127.0.0.1:{port}"]))) as s:
             wait_for(lambda: any(r.ok for r in s.liveliness().get("macroloc/t1/alive", timeout=1.0)), 90.0, "up")
             poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
-            fly(s, flight, T, 4, first_stamp_ns=10**10, observe_every=1)
+            fly(s, flight, T, 12, first_stamp_ns=10**10, observe_every=1)  # 0.4 s: past a keyframe interval
             wait_for(lambda: localized(poses), 30.0, "re-localized after the restart")
     finally:
         proc.kill()

@@ -153,7 +153,7 @@ def test_hostile_input_is_counted_and_the_service_keeps_localizing(perceiving_co
         status_sub = s.declare_subscriber(f"macroloc/{VEHICLE}/status", lambda _: status_at.append(time.monotonic()))
         answer_s: list[float] = []
         flight = FakeFlight(office_model, yaw_T(0.7, np.array([3.0, -2.0, 0.1])))
-        T = fly(s, flight, start_pose, 30)
+        T = fly(s, flight, start_pose, 40)
         wait_for(lambda: _localized_at(poses, T), what="a localized pose near the truth")
         counts: Callable[[], dict[str, int]] = service.drops.counts  # type: ignore[attr-defined]
         for name, key, kind, payloads in hostile():
@@ -174,9 +174,9 @@ def test_hostile_input_is_counted_and_the_service_keeps_localizing(perceiving_co
 
         # the vehicle's clock restarts from zero: after a few stamps the service takes the new time base
         n = len(poses.items)
-        T = fly(s, flight, T, 20, first_stamp_ns=0)
+        T = fly(s, flight, T, 40, first_stamp_ns=0)
         wait_for(lambda: any(p.header.stamp_ns < 10**9 for p in poses.items[n:]), what="poses on the new clock")
-        rows.append(("vehicle clock reset to 0", 20, counts().get("odometry/clock_reset", 0),
+        rows.append(("vehicle clock reset to 0", 40, counts().get("odometry/clock_reset", 0),
                      pb.PoseEstimate.Status.Name(poses.last().status)))
         assert counts().get("odometry/clock_reset") == 1
         wait_for(lambda: _localized_at(poses, T), what="localized again on the new clock")

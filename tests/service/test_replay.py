@@ -212,6 +212,7 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
     from macroloc.service.backend import LocalizerBackend
     from macroloc.service.places import Placed
     from macroloc.service.recording import pose_from_matrix
+    from macroloc.service.session import FrameIn
     from macroloc.service.state import view_to_wire
     from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.graph.scenes import corridor_model, make_T, rot_z
@@ -231,7 +232,7 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
     assert backend.restored is not None and len(backend.restored.placed_views()) == 2
     assert not backend.supersedes_saved()  # not localized yet: the saved map is kept
     T_odom_body = make_T(rot_z(-0.7), np.array([3.0, 4.0, 1.4]))  # the new run's odometry frame is another one
-    est = backend.sightings(10, T_odom_body, [], Placed(T_cad_map_old @ here, view()))
+    est = backend.session.frame(FrameIn(10, T_odom_body, placed=Placed(T_cad_map_old @ here, view())))
     assert est.status == "localized" and est.T_cad_body is not None
     assert np.allclose(est.T_cad_body, T_cad_map_old @ here, atol=1e-6)
     assert backend.supersedes_saved()
@@ -260,12 +261,12 @@ def test_the_graph_section_reaches_the_localizer(tmp_path: Path) -> None:
     """Every [graph] key the config documents for the localizer is the localizer's, from a config file (the
     service and the replay both build their localizer from it)."""
     from macroloc.service.config import load_config
-    from macroloc.service.replay import settings_from_config
+    from macroloc.service.session import settings_from_config
 
     path = tmp_path / "config.toml"
     path.write_text("[graph]\ncad_link_max_turn_deg = 4.5\nsurface_turn_deg = 0.0\nassociate_m = 0.7\n"
                     "surface_retry_s = 2.5\nfar_range_m = 12.0\nfar_resection = false\n")
-    params, _, _ = settings_from_config(load_config(path).graph)
+    params = settings_from_config(load_config(path).graph).localizer
     assert (params.anchor.cad_link_max_turn_deg, params.judge.surface_turn_deg, params.landmarks.associate_m) == \
         (4.5, 0.0, 0.7)
     assert (params.registration.surface_retry_s, params.landmarks.far_range_m, params.far.far_resection) == \

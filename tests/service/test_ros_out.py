@@ -71,7 +71,7 @@ def test_ros_and_px4_messages_match_the_protobuf_ones(office_path, office_model,
         setpoint = CdrCollector(s, "px4_1/fmu/in/trajectory_setpoint", "px4_msgs/msg/TrajectorySetpoint")
         offboard = CdrCollector(s, "px4_1/fmu/in/offboard_control_mode", "px4_msgs/msg/OffboardControlMode")
         flight = FakeFlight(office_model, yaw_T(0.7, np.array([3.0, -2.0, 0.1])))
-        T = fly(s, flight, start_pose, 30)
+        T = fly(s, flight, start_pose, 40)
         wait_for(lambda: len(pose.snapshot()) >= 3, what="ROS poses")
         # the goal through ROS: a PoseStamped in `map` (= CAD) where a protobuf plan query says it is reachable
         reachable = _query(s, "macroloc/t1/plan", pb.Waypoints, pb.Goal(space_name="MENS RR").SerializeToString())

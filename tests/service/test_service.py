@@ -80,7 +80,7 @@ def test_localizes_answers_queries_and_holds_a_token(office_path, office_model, 
         status = Collector(s, "macroloc/t1/status", pb.ServiceStatus)
         features = Collector(s, "macroloc/t1/features", pb.ObservedFeatures)
         flight = FakeFlight(office_model, yaw_T(0.7, np.array([3.0, -2.0, 0.1])))
-        T = fly(s, flight, start_pose, 30)
+        T = fly(s, flight, start_pose, 40)
         wait_for(lambda: _localized_at(poses, T), what="a localized pose near the truth")
         snap = _query(s, "macroloc/t1/map", pb.MapSnapshot)
         assert snap.status == pb.PoseEstimate.LOCALIZED and len(snap.landmarks_map) >= 4
@@ -158,7 +158,7 @@ def test_restart_from_the_saved_map_relocalizes_at_once(office_path, office_mode
     port = free_port()
     with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
         poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
-        T = fly(s, flight, start_pose, 30)
+        T = fly(s, flight, start_pose, 40)
         wait_for(lambda: _localized_at(poses, T), what="localized before the restart")
     assert (tmp_path / "t1" / "map.pb").exists()
     # the restarted service sees a few doors: too few to register against the whole building
@@ -166,7 +166,7 @@ def test_restart_from_the_saved_map_relocalizes_at_once(office_path, office_mode
     flight.range_m = 2.5
     with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
         poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
-        T = fly(s, flight, T, 3, first_stamp_ns=5 * 10**9, observe_every=1)
+        T = fly(s, flight, T, 12, first_stamp_ns=5 * 10**9, observe_every=1)  # 0.4 s: past a keyframe interval
         assert len(flight.observations(0, T).features) < 4  # the whole-model registration needs 4
         wait_for(lambda: _localized_at(poses, T), what="re-localized from the saved map")
 
@@ -176,7 +176,7 @@ def test_a_restart_stopped_before_localizing_keeps_the_saved_map(office_path, of
     port = free_port()
     with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
         poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
-        T = fly(s, FakeFlight(office_model, np.eye(4)), start_pose, 30)
+        T = fly(s, FakeFlight(office_model, np.eye(4)), start_pose, 40)
         wait_for(lambda: _localized_at(poses, T), what="localized before the restart")
     saved = (tmp_path / "t1" / "map.pb").read_bytes()
     assert pb.MapSnapshot.FromString(saved).status == pb.PoseEstimate.LOCALIZED
@@ -198,7 +198,7 @@ def test_through_a_router(office_path, office_model, start_pose, tmp_path) -> No
             poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
             flight = FakeFlight(office_model, np.eye(4))
             wait_for(lambda: list(s.liveliness().get("macroloc/t1/alive", timeout=2.0)), what="token via router")
-            T = fly(s, flight, start_pose, 20)
+            T = fly(s, flight, start_pose, 40)
             wait_for(lambda: _localized_at(poses, T), what="poses through the router")
 
 
@@ -207,11 +207,11 @@ def test_stop_event_drains_and_saves(office_path, office_model, start_pose, tmp_
     port = free_port()
     cfg = service_config(office_path, tmp_path, port)
     with running_service(cfg) as service, client(port) as s:
-        fly(s, FakeFlight(office_model, np.eye(4)), start_pose, 30)
-        wait_for(lambda: service.rates["odometry"].total == 30, what="all odometry taken in")  # type: ignore
+        fly(s, FakeFlight(office_model, np.eye(4)), start_pose, 40)
+        wait_for(lambda: service.rates["odometry"].total == 40, what="all odometry taken in")  # type: ignore
     snap = pb.MapSnapshot.FromString((tmp_path / "t1" / "map.pb").read_bytes())
     assert snap.status == pb.PoseEstimate.LOCALIZED
-    assert snap.header.stamp_ns == 30 * 33_000_000  # the last odometry was handled before saving
+    assert snap.header.stamp_ns == 40 * 33_000_000  # the last odometry was handled before saving
     assert threading.active_count() < 50
 
 
@@ -223,7 +223,7 @@ def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, st
     port = free_port()
     with running_service(service_config(office_path, tmp_path, port)) as service, client(port) as s:
         poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
-        T = fly(s, FakeFlight(office_model, np.eye(4)), start_pose, 20)
+        T = fly(s, FakeFlight(office_model, np.eye(4)), start_pose, 40)
         wait_for(lambda: _localized_at(poses, T), what="localized")
         image = pb.Image(width=64, height=48, encoding=pb.Image.RAW_MONO8, data=bytes(64 * 48))  # as CameraInfo says
         depth = np.full((48, 64), 1.5, "<f4")
@@ -232,7 +232,7 @@ def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, st
                                               data=depth.tobytes()),
                                info=pb.CameraInfo(width=64, height=48, fx=48, fy=48, cx=31.5, cy=23.5,
                                                   baseline_m=0.12, T_body_cam=pose_from_matrix(forward_T_body_cam())))
-        frame.header.stamp_ns = 21 * 33_000_000
+        frame.header.stamp_ns = 41 * 33_000_000
         s.put("macroloc/t1/stereo", frame.SerializeToString())
         ahead_cad = T[:3, 3] + T[:3, 0] * 1.6  # body x is forward; the wall is 1.5 m ahead of the camera
         grid, layer = service.planner.grid(T[2, 3])  # type: ignore[attr-defined]
@@ -261,7 +261,7 @@ def test_maps_accumulate_across_restarts(office_path, office_model, start_pose, 
     port = free_port()
     with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
         poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
-        T = fly(s, flight, start_pose, 30)
+        T = fly(s, flight, start_pose, 40)
         wait_for(lambda: _localized_at(poses, T), what="localized in the first flight")
     first = pb.MapSnapshot.FromString((tmp_path / "t1" / "map.pb").read_bytes())
     first_ids = {lm.id for lm in first.landmarks_map if lm.id}
@@ -275,7 +275,7 @@ def test_maps_accumulate_across_restarts(office_path, office_model, start_pose, 
     port = free_port()
     with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
         poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
-        T = fly(s, FakeFlight(office_model, yaw_T(-0.5, np.array([1.0, 4.0, 0.0]))), start2, 30,
+        T = fly(s, FakeFlight(office_model, yaw_T(-0.5, np.array([1.0, 4.0, 0.0]))), start2, 40,
                 first_stamp_ns=10**10)
         wait_for(lambda: _localized_at(poses, T), what="localized in the second flight")
     second = pb.MapSnapshot.FromString((tmp_path / "t1" / "map.pb").read_bytes())

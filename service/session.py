@@ -1,0 +1,248 @@
+"""One localization session: the per-frame loop around `graph.localizer.Localizer` that `serve`, `replay`, `demo`
+and the benchmarks all run, and the one factory that builds it from the config.
+
+`LocalizationSession.frame(FrameIn)` takes one frame (odometry pose, sightings, depth points, gravity's up,
+seconds dead-reckoned, a place-recognition result) and returns the `Estimate`. It owns what makes the figures:
+the keyframe rule (`graph.keyframes.KeyframeRule`), the depth hand-over to the next keyframe, the dead-reckoned
+seconds summed until a keyframe takes them, the hand-off of a frame placed in a stored map (or whose view is
+kept: always a keyframe), and a fresh graph where an update fails. The drivers only assemble frames: the replay
+from a recording (service.replay), the service from its wire events (service.backend: odometry by stamp, IMU
+gravity, sightings waiting for their odometry). Both run place recognition on every stereo frame
+(service.places.KeyframePlaces.at_frame decides when it works) and hand its result in with the frame.
+
+Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cad. Metres, nanoseconds.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from macroloc.graph.features import BuildingModel
+from macroloc.graph.keyframes import KeyframePolicy, KeyframeRule
+from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
+from macroloc.graph.mapstore import StoredMap
+from macroloc.graph.params import StatusParams
+from macroloc.graph.posegraph import IsamSettings, PoseGraph
+from macroloc.graph.registrar import FirstOfRegistrar, Registrar
+from macroloc.graph.surfaces import SurfaceIndex
+from macroloc.service.places import Placed
+
+if TYPE_CHECKING:
+    from macroloc.service.config import GraphConfig, MacrolocConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FrameIn:
+    """One frame's inputs. T_odom_body: 4x4 odometry pose at `stamp_ns`; sightings: corners in the body frame;
+    points_body: (N, 3) depth points, body frame, measured at this frame; up_body: gravity's up, body frame;
+    dead_reckoned_s: seconds since the previous frame the odometry only extrapolated; placed: the frame's pose in
+    a stored map and/or its view to keep (service.places)."""
+
+    stamp_ns: int
+    T_odom_body: np.ndarray
+    sightings: list[Sighting] = field(default_factory=list)
+    up_body: np.ndarray | None = None
+    points_body: np.ndarray | None = None
+    dead_reckoned_s: float = 0.0
+    placed: Placed | None = None
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """Typed arguments of a session's components, read from the config by `settings_from_config`."""
+
+    localizer: LocalizerParams = field(default_factory=LocalizerParams)
+    rule: KeyframeRule = field(default_factory=KeyframeRule)
+    isam: IsamSettings = field(default_factory=IsamSettings)
+    storey_hint: str | None = None  # register against this storey's doors and windows only
+    method: str = "robust"  # the registration's search (graph.registration)
+    covariance: bool = False  # each keyframe's marginal covariance (iSAM2), carried by the poses until the next
+
+
+class LocalizationSession:
+    """See module doc. One thread only."""
+
+    def __init__(self, localizer: Localizer, rule: KeyframeRule | None = None, covariance: bool = False,
+                 fresh: Callable[[Localizer], Localizer] | None = None) -> None:
+        """`fresh`: a new localizer like the failed one given (its registrar kept), where the graph fails."""
+        self.localizer = localizer
+        self.fresh = fresh or _fresh
+        self.rule = rule or KeyframeRule()
+        self.covariance = covariance
+        self.last: Estimate | None = None  # the newest estimate (a late keyframe does not replace a newer pose)
+        self.keyframe = False  # whether the last frame became a keyframe
+        self.restarts = 0  # times the pose graph failed (indeterminate, non-finite) and started afresh
+        self._T_kf: np.ndarray | None = None  # the last keyframe's odometry pose
+        self._stamp_kf_ns: int | None = None
+        self._dead_reckoned_s = 0.0  # since the last keyframe
+        self._kf_covariance: np.ndarray | None = None  # 6x6 [rot; trans], body tangent (graph.posegraph)
+
+    @property
+    def status(self) -> str:
+        return self.localizer.status
+
+    def frame(self, f: FrameIn) -> Estimate:
+        """The frame's estimate: a keyframe where the rule says so (or the frame was placed, or keeps a view),
+        else the last keyframe's estimate moved by the odometry (its sightings and depth wait for the next)."""
+        if f.points_body is not None and len(f.points_body):
+            self.localizer.add_depth(f.T_odom_body, f.points_body)  # given with the next keyframe
+        self._dead_reckoned_s += f.dead_reckoned_s
+        if self.keyframe_due(f.stamp_ns, f.T_odom_body, bool(f.sightings), f.placed):
+            return self._keyframe(f)
+        return self._track(f.stamp_ns, f.T_odom_body, f.sightings)
+
+    def keyframe_due(self, stamp_ns: int, T_odom_body: np.ndarray, has_sightings: bool,
+                     placed: Placed | None = None) -> bool:
+        """Whether a frame at T_odom_body (4x4, odometry frame) and stamp_ns is a keyframe (see `frame`)."""
+        if placed is not None and (placed.T_cad_body is not None or placed.view is not None):
+            return True
+        dt_s = np.inf if self._stamp_kf_ns is None else (stamp_ns - self._stamp_kf_ns) * 1e-9
+        return self.rule.is_keyframe(self._T_kf, T_odom_body, dt_s, has_sightings, self.status == "localized")
+
+    def pose_at(self, stamp_ns: int, T_odom_body: np.ndarray) -> Estimate:
+        """The pose at an odometry pose, never a keyframe (but the first)."""
+        if self.localizer.graph.n_keyframes == 0:
+            return self._keyframe(FrameIn(stamp_ns, T_odom_body))
+        return self._track(stamp_ns, T_odom_body, [])
+
+    def add_depth(self, T_odom_body: np.ndarray, points_body: np.ndarray) -> None:
+        """Depth points (N, 3, body frame) measured at T_odom_body, for the next keyframe (graph.surfaces)."""
+        if len(points_body):
+            self.localizer.add_depth(T_odom_body, points_body)
+
+    def new_time_base(self) -> None:
+        """The clock was reset: the keyframe timer starts again (the graph and its poses stay)."""
+        self._stamp_kf_ns = None
+
+    def _keyframe(self, f: FrameIn) -> Estimate:
+        self.keyframe = True
+        self._T_kf, self._stamp_kf_ns = f.T_odom_body, f.stamp_ns
+        dead_reckoned_s, self._dead_reckoned_s = self._dead_reckoned_s, 0.0
+        placed = f.placed or Placed(None, None)
+        try:
+            est = self.localizer.add_keyframe(f.stamp_ns, f.T_odom_body, f.sightings, f.up_body,
+                                              with_covariance=self.covariance, T_cad_body_placed=placed.T_cad_body,
+                                              view=placed.view, dead_reckoned_s=dead_reckoned_s)
+        except RuntimeError as exc:  # GTSAM's IndeterminantLinearSystemException and its kin
+            return self._restart(f.stamp_ns, f"the update failed ({str(exc).splitlines()[0][:120]})")
+        if not _finite(est):
+            return self._restart(f.stamp_ns, "the estimate is not finite")
+        self._kf_covariance = est.covariance
+        return self._remember(est)
+
+    def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
+        self.keyframe = False
+        est = self.localizer.track(stamp_ns, T_odom_body, sightings)
+        if not _finite(est):
+            return self._restart(stamp_ns, "the tracked pose is not finite")
+        if est.covariance is None:  # the last keyframe's: the odometry since adds little over a keyframe interval
+            est.covariance = self._kf_covariance
+        return self._remember(est)
+
+    def _restart(self, stamp_ns: int, why: str) -> Estimate:
+        """The pose graph cannot go on: a fresh one (this flight's landmarks are lost; a stored map's place
+        recognition stays), LOST for this stamp, localized again from what comes next."""
+        self.restarts += 1
+        log.error("pose graph restarted (%d so far): %s", self.restarts, why)
+        self.localizer = self.fresh(self.localizer)
+        self._T_kf, self._stamp_kf_ns, self._kf_covariance, self._dead_reckoned_s = None, None, None, 0.0
+        self.last = Estimate(stamp_ns, "lost", np.eye(4))
+        return self.last
+
+    def _remember(self, est: Estimate) -> Estimate:
+        if self.last is None or est.stamp_ns >= self.last.stamp_ns:
+            self.last = est
+        return est
+
+
+def _fresh(old: Localizer) -> Localizer:
+    return Localizer(old.model, PoseGraph(), old.registrar, old.params, surfaces=old.surfaces)
+
+
+def _finite(est: Estimate) -> bool:
+    return all(m is None or bool(np.isfinite(m).all()) for m in (est.T_map_body, est.T_cad_body, est.T_cad_map))
+
+
+# --- the factory ------------------------------------------------------------------------------------------------
+
+
+def settings_from_config(graph: GraphConfig, *, storey_hint: str | None = None, method: str = "robust",
+                         covariance: bool = False) -> SessionSettings:
+    """The factory's half that reads the config's [graph] section: typed arguments for the components.
+    `storey_hint`: a checked one (BuildingModel.checked_storey), else the section's own."""
+    d = LocalizerParams()
+    params = LocalizerParams(
+        landmarks=replace(d.landmarks, associate_m=graph.associate_m, far_range_m=graph.far_range_m),
+        registration=replace(d.registration, registration_tolerance_m=graph.registration_tolerance_m,
+                             registration_min_landmarks=graph.registration_min_landmarks,
+                             verified_min_landmarks=graph.verified_min_landmarks,
+                             surface_retry_s=graph.surface_retry_s),
+        anchor=replace(d.anchor, cad_link_m=graph.cad_link_m, cad_link_max_turn_deg=graph.cad_link_max_turn_deg),
+        far=replace(d.far, far_resection=graph.far_resection),
+        judge=replace(d.judge, surface_turn_deg=graph.surface_turn_deg, surface_margin=graph.surface_margin),
+        status=StatusParams(degraded_after_s=graph.degraded_after_s, lost_after_s=graph.lost_after_s))
+    policy = KeyframePolicy(graph.keyframe_translation_m, graph.keyframe_rotation_rad, graph.keyframe_interval_s)
+    rule = KeyframeRule(policy, graph.keyframe_while_exploring, graph.keyframe_without_sightings_m or None)
+    return SessionSettings(params, rule,
+                           IsamSettings(relinearize_threshold=graph.relinearize_threshold),
+                           storey_hint if storey_hint is not None else graph.storey_hint, method, covariance)
+
+
+def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey_hint: str | None = None,
+                   T_body_cam: np.ndarray | None = None, params: LocalizerParams | None = None,
+                   isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None,
+                   registrar: Registrar | None = None, method: str = "robust") -> Localizer:
+    """Registration against a stored map when one is given, else against the whole model (or `registrar`);
+    with the model's surfaces, registrations are checked against the depth points (graph.surfaces)."""
+    p = params or LocalizerParams()
+    if registrar is None:
+        registrar = model_registrar(model, p.registration, storey_hint, surfaces is not None, method)
+    if stored is not None:
+        registrar = FirstOfRegistrar([stored_registrar(model, stored.known_rects(model), p.registration,
+                                                       surfaces is not None),
+                                      registrar])
+    return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam, surfaces=surfaces)
+
+
+def make_session(model: BuildingModel, settings: SessionSettings | None = None, *, stored: StoredMap | None = None,
+                 surfaces: SurfaceIndex | None = None, T_body_cam: np.ndarray | None = None,
+                 registrar: Registrar | None = None) -> LocalizationSession:
+    """A session from typed settings (`session_from_config` reads them from the config). `registrar`: instead
+    of the whole model's (e.g. service.backend's after a restart from a saved map)."""
+    s = settings or SessionSettings()
+    localizer = make_localizer(model, stored, s.storey_hint, T_body_cam, s.localizer, s.isam, surfaces, registrar,
+                               s.method)
+
+    def fresh(old: Localizer) -> Localizer:
+        return Localizer(model, PoseGraph(s.isam), old.registrar, s.localizer, T_body_cam, surfaces)
+
+    return LocalizationSession(localizer, s.rule, s.covariance, fresh)
+
+
+def session_from_config(cfg: MacrolocConfig | GraphConfig, model: BuildingModel, *,
+                        stored: StoredMap | None = None, surfaces: SurfaceIndex | None = None,
+                        T_body_cam: np.ndarray | None = None,
+                        registrar: Callable[[SessionSettings], Registrar] | None = None,
+                        storey_hint: str | None = None, method: str | None = None,
+                        covariance: bool = False) -> LocalizationSession:
+    """THE factory: a session from the config (or its [graph] section) in `model`, what `serve`, `replay`, `demo`
+    and the benchmarks run. `stored`: a stored map to re-localize in first; `surfaces`: the model's walls, for the
+    surface check; `T_body_cam`: the left camera in the body frame; `registrar`: makes the registrar from the
+    settings instead of the model's (service.backend's after a restart); `storey_hint`: instead of
+    graph.storey_hint (checked against the model: UserInputError where it has no such storey); `method`: the
+    registration's search (default: the config's localize.method where the whole config is given)."""
+    from macroloc.service.config import MacrolocConfig
+
+    graph = cfg.graph if isinstance(cfg, MacrolocConfig) else cfg
+    method = method or (cfg.localize.method if isinstance(cfg, MacrolocConfig) else "robust")
+    storey = model.checked_storey(storey_hint or graph.storey_hint)
+    settings = settings_from_config(graph, storey_hint=storey, method=method, covariance=covariance)
+    return make_session(model, settings, stored=stored, surfaces=surfaces, T_body_cam=T_body_cam,
+                        registrar=None if registrar is None else registrar(settings))

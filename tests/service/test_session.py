@@ -1,0 +1,47 @@
+"""service.session: the one loop around the localizer that the replay and the service both run."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from macroloc.graph.localizer import Localizer
+from macroloc.service.backend import LocalizerBackend
+from macroloc.service.inputs import OdometryIn
+from macroloc.service.session import FrameIn, make_session
+from tests.graph.scenes import corridor_model, make_T
+
+
+def _T(x_m: float) -> np.ndarray:
+    return make_T(np.eye(3), np.array([x_m, 0.0, 1.4]))
+
+
+def test_the_service_and_the_replay_make_the_same_keyframes() -> None:
+    """The service's odometry events and the replay's frames go through one keyframe rule: the same frames
+    become keyframes (here every 0.28 m: 0.04 m a frame, more than keyframe_translation_m = 0.25 m)."""
+    model = corridor_model()
+    backend = LocalizerBackend.fresh_or_restored(model, None)
+    bare = make_session(model)
+    service, replay = [], []
+    for k in range(40):
+        stamp_ns = k * 33_000_000
+        backend.odometry(OdometryIn(stamp_ns, _T(0.04 * k)))
+        service.append(backend.session.keyframe)
+        bare.frame(FrameIn(stamp_ns, _T(0.04 * k)))
+        replay.append(bare.keyframe)
+    assert service == replay
+    assert [k for k, is_kf in enumerate(replay) if is_kf] == list(range(0, 40, 7))
+
+
+def test_dead_reckoned_seconds_add_up_until_the_next_keyframe(monkeypatch) -> None:  # noqa: ANN001
+    session = make_session(corridor_model())
+    given: list[float] = []
+    add_keyframe = Localizer.add_keyframe
+
+    def spy(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        given.append(kwargs["dead_reckoned_s"])
+        return add_keyframe(self, *args, **kwargs)
+
+    monkeypatch.setattr(Localizer, "add_keyframe", spy)
+    for k in range(14):  # 0.1 s apart, not moving: a keyframe every 0.34 s (4 frames)
+        session.frame(FrameIn(k * 100_000_000, _T(0.0), dead_reckoned_s=0.1 if k >= 2 else 0.0))
+    assert np.allclose(given, [0.0, 0.3, 0.4, 0.4])  # frames 0, 4, 8, 12
