@@ -27,8 +27,9 @@ class _Section(BaseModel):
 
 
 class LocalizeConfig(_Section):
-    """Registration of observed macro-features to the CAD model (graph/registration). Only `method` is read, by
-    `macroloc serve`; `macroloc localize` takes `--method` and runs with the defaults of the other keys."""
+    """One-shot registration of observed macro-features to the CAD model (graph/registration): `macroloc localize
+    --config FILE` reads the robust method's keys; `macroloc serve` reads `method` (its pose graph registers with
+    the [graph] section's keys)."""
 
     method: Literal["robust", "paper"] = Field("robust", description="'paper' = the paper's algorithm exactly")
     inlier_threshold_m: float = Field(0.30, description="centroid residual under which a match is an inlier, m")

@@ -18,6 +18,9 @@ def register(app: typer.Typer) -> None:
                                           "has an example."),
         method: str = typer.Option("robust", "--method", help="robust (default) or paper (the paper's algorithm "
                                    "exactly: top-1 Hamming match, 4-point RANSAC)."),
+        config: Path = typer.Option(None, "--config", "-c", help="Config file: its localize section's keys "
+                                    "(inlier_threshold_m, ambiguity_loglik_margin, min_inliers, seed) tune the "
+                                    "robust method; docs/configuration.md."),
         json_out: bool = typer.Option(False, "--json", help="Print the result as JSON on stdout."),
     ) -> None:
         """Find T_cad_map, the pose of this flight's map frame in the building model, from observed doors and windows.
@@ -33,7 +36,12 @@ def register(app: typer.Typer) -> None:
 
         obs = parse_observations(read_json(observations, "observations file"))
         model = load_building(building)
-        result = run_registration(model, obs, method=method)
+        overrides = {}
+        if config is not None:
+            from macroloc.service.config import load_config
+
+            overrides = load_config(config).localize.robust_params() if method == "robust" else {}
+        result = run_registration(model, obs, method=method, **overrides)
         if json_out:
             print_json(result.to_json())
             return

@@ -55,6 +55,19 @@ def test_localize_end_to_end_on_a_real_ifc(tmp_path: Path, capsys, office_path: 
             assert np.allclose(np.array(doc["T_cad_map"]) @ T, np.eye(4), atol=1e-4)
 
 
+
+def test_localize_takes_the_config_files_localize_section(tmp_path: Path, capsys, office_path: Path,
+                                                          office_model) -> None:
+    """`[localize] min_inliers` above the observations' count turns the same answer into not_localized."""
+    obs = tmp_path / "OBS.json"
+    obs.write_text(json.dumps(obs_doc(office_model, random_T(np.random.default_rng(1), yaw_only=True), "Level 2",
+                                      n=5)))
+    config = tmp_path / "macroloc.toml"
+    config.write_text("[localize]\nmin_inliers = 6\n")
+    base = ["localize", str(office_path), "--observations", str(obs), "--json"]
+    assert json.loads(run(base, capsys)[1])["status"] == "localized"
+    assert json.loads(run([*base, "--config", str(config)], capsys)[1])["status"] == "not_localized"
+
 BAD_INPUTS = {
     "missing file": None,
     "not JSON": "{not json",
