@@ -20,6 +20,23 @@ def _seeds(text: str) -> tuple[int, ...]:
     return seeds
 
 
+FINE_TUNE_STEPS = 400
+FINE_TUNE_LR = 5e-4
+SCRATCH_STEPS = 2400
+
+
+def _init_weights(text: str) -> Path | None:
+    from macroloc.graph.errors import UserInputError
+    from macroloc.perception.train import SHIPPED_WEIGHTS
+
+    if text == "none":
+        return None
+    path = SHIPPED_WEIGHTS if text == "shipped" else Path(text)
+    if not path.is_file():
+        raise UserInputError(f"no detector weights at {path}: give --init CHECKPOINT or --init none")
+    return path
+
+
 def register(app: typer.Typer) -> None:
     @app.command("adapt-detector")
     def adapt_detector(
@@ -30,7 +47,11 @@ def register(app: typer.Typer) -> None:
                                   "(keep them apart from the seeds you evaluate on)."),
         duration: float = typer.Option(40.0, "--duration", min=1.0, help="Length of each rendered flight, s."),
         every: int = typer.Option(6, "--every", min=1, help="Keep every N-th frame of a flight (30 Hz)."),
-        steps: int = typer.Option(2400, "--steps", min=1, help="Training steps (batches of 16)."),
+        steps: int | None = typer.Option(None, "--steps", min=1, help="Training steps (batches of 16; default: "
+                                         f"{FINE_TUNE_STEPS} fine-tuning from --init, {SCRATCH_STEPS} from scratch)."),
+        init: str = typer.Option("shipped", "--init", help="Weights to fine-tune from: 'shipped' (the real-trained "
+                                 "detector's perception/models/detector.pt), a checkpoint.pt of a training run, or "
+                                 "'none' to train from scratch."),
         threads: int = typer.Option(2, "--threads", min=1, help="CPU threads for training."),
         facades: Path | None = typer.Option(None, "--facades", help="Real door/window photos with YOLO labels "
                                             "(images/, labels/; default: $MACROLOC_SHARED_DATA/images/facades); "
@@ -56,6 +77,7 @@ def register(app: typer.Typer) -> None:
 
         existing_file(building, "building model")
         seed_list = _seeds(seeds)
+        init_path = _init_weights(init)
         if importlib.util.find_spec("torch") is None:
             raise UserInputError("adapt-detector trains with torch, which is not installed: "
                                  "pip install -e '.[train]' (or make train)")
@@ -75,8 +97,10 @@ def register(app: typer.Typer) -> None:
         if counts["door"] + counts["window"] == 0:
             raise UserInputError(f"no door or window came into view in {counts['images']} rendered frames of "
                                  f"{building.name}: try other --seeds or a longer --duration")
-        train_main(["--facades", str(photos), "--sim", str(frames), "--steps", str(steps), "--threads", str(threads),
-                    "--out", str(out), "--report", str(out / "report")])
+        start = ["--init", str(init_path), "--lr", str(FINE_TUNE_LR)] if init_path is not None else []
+        n_steps = steps or (FINE_TUNE_STEPS if init_path is not None else SCRATCH_STEPS)
+        train_main(["--facades", str(photos), "--sim", str(frames), "--steps", str(n_steps), "--threads", str(threads),
+                    "--out", str(out), "--report", str(out / "report"), *start])
         model = out / "detector.onnx"
         figures = json.loads(model.with_suffix(".json").read_text()).get("figures", {})
         if json_out:
