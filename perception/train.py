@@ -1,4 +1,11 @@
-"""Train the door/window detector and export it: `python -m macroloc.perception.train` reproduces the shipped weights.
+"""Train the door/window detector and export it; `make train` reproduces the shipped weights in two runs.
+
+The shipped weights: a run from scratch with the defaults (`--out out/detector/base --report out/detector/base`,
+4,200 steps, 60 % indoor photos), then a fine-tune of its weights with a larger facade share
+(`--init out/detector/base/checkpoint.pt --indoor-fraction 0.35 --lr 5e-4 --steps 2000`); the sidecar's `training`
+(with `init`) and `reproduce` say so. `--init` takes a run's `checkpoint.pt` or the `detector.pt` written beside
+every exported ONNX (the same weights before the batch norms are folded) and keeps their anchors;
+`macroloc adapt-detector` fine-tunes the shipped `perception/models/detector.pt` on renders of one building.
 
 Data: real indoor photos (`../shared/data/images/indoor_doors`, split 80/10/10 by source photo, seeded:
 `perception.trainset.split_indoor`) fill `--indoor-fraction` of each batch, the real facade photos
