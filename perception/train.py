@@ -1,4 +1,11 @@
-"""Train the door/window detector and export it: `python -m macroloc.perception.train` reproduces the shipped weights.
+"""Train the door/window detector and export it; `make train` reproduces the shipped weights in two runs.
+
+The shipped weights: a run from scratch with the defaults (`--out out/detector/base --report out/detector/base`,
+4,200 steps, 60 % indoor photos), then a fine-tune of its weights with a larger facade share
+(`--init out/detector/base/checkpoint.pt --indoor-fraction 0.35 --lr 5e-4 --steps 2000`); the sidecar's `training`
+(with `init`) and `reproduce` say so. `--init` takes a run's `checkpoint.pt` or the `detector.pt` written beside
+every exported ONNX (the same weights before the batch norms are folded) and keeps their anchors;
+`macroloc adapt-detector` fine-tunes the shipped `perception/models/detector.pt` on renders of one building.
 
 Data: real indoor photos (`../shared/data/images/indoor_doors`, split 80/10/10 by source photo, seeded:
 `perception.trainset.split_indoor`) fill `--indoor-fraction` of each batch, the real facade photos
@@ -51,6 +58,7 @@ INPUT_WH = (320, 240)
 N_ANCHORS = 5
 SIM_CLASS_MAP = {0: 0, 1: 1}
 DEFAULT_SIM_DIR = ROOT / "out" / "sim_yolo"
+SHIPPED_WEIGHTS = ROOT / "perception" / "models" / "detector.pt"
 
 
 def kmeans_anchors(wh: np.ndarray, k: int, rng: np.random.Generator, iters: int = 60) -> np.ndarray:
@@ -199,6 +207,23 @@ def ensure_sim_frames(dirs: list[Path]) -> list[Path]:
     return dirs
 
 
+def load_init(path: Path):  # type: ignore[no-untyped-def]
+    """The weights `--init` starts from: a `checkpoint.pt` of a run ({"ema", "anchors", "width", ...}) or the
+    shipped `detector.pt` (same keys). Returns (TinyYolo in eval mode, anchors (k, 2) px, the file's settings)."""
+    import torch
+
+    from macroloc.perception.model import TinyYolo
+
+    ckpt = torch.load(path, weights_only=False, map_location="cpu")
+    if "ema" not in ckpt or "anchors" not in ckpt:
+        raise ValueError(f"{path}: not a detector checkpoint (needs 'ema' weights and 'anchors')")
+    model = TinyYolo(N_ANCHORS, len(CLASS_NAMES), int(ckpt.get("width", 1)))
+    model.load_state_dict(ckpt["ema"])
+    model.eval()
+    return model, np.asarray(ckpt["anchors"], dtype=np.float64), {k: v for k, v in ckpt.items()
+                                                                   if k not in ("ema", "anchors")}
+
+
 def train(args: argparse.Namespace) -> None:
     import torch
 
@@ -213,16 +238,23 @@ def train(args: argparse.Namespace) -> None:
     indoor, facades = data["indoor"]["train"], data["facades"]["train"]
     log.info("train: %d indoor, %d facade, %d rendered; val %d + %d", len(indoor), len(facades), len(sim),
              len(data["indoor"]["val"]), len(data["facades"]["val"]))
-    wh = np.concatenate([b[:, 2:] - b[:, :2] for _ in range(2) for s in indoor + facades + sim
-                         for b in [augment_for_training(s, rng)[1]] if len(b)])
-    anchors = kmeans_anchors(wh, N_ANCHORS, rng)
-    log.info("anchors (px): %s", np.round(anchors, 1).tolist())
-    model = TinyYolo(N_ANCHORS, len(CLASS_NAMES), args.width)
+    if args.init is not None:  # fine-tune: the init's weights, anchors (the head is tied to them) and width
+        model, anchors, init_info = load_init(args.init)
+        args.width, args.init_info = int(init_info.get("width", 1)), init_info
+        log.info("init from %s (%s steps); anchors (px): %s", args.init, init_info.get("steps"),
+                 np.round(anchors, 1).tolist())
+    else:
+        wh = np.concatenate([b[:, 2:] - b[:, :2] for _ in range(2) for s in indoor + facades + sim
+                             for b in [augment_for_training(s, rng)[1]] if len(b)])
+        anchors = kmeans_anchors(wh, N_ANCHORS, rng)
+        log.info("anchors (px): %s", np.round(anchors, 1).tolist())
+        model = TinyYolo(N_ANCHORS, len(CLASS_NAMES), args.width)
     ema = TinyYolo(N_ANCHORS, len(CLASS_NAMES), args.width)
     ema.load_state_dict(model.state_dict())
     ema.eval()
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=5e-4)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=args.lr, total_steps=args.steps, pct_start=0.05)
+    sched = (torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=args.lr, total_steps=args.steps, pct_start=0.05)
+             if args.steps > 0 else None)  # --steps 0: export the init as it is
     grid_hw = (INPUT_WH[1] // STRIDE_PX, INPUT_WH[0] // STRIDE_PX)
     n_sim = round(args.sim_fraction * args.batch) if sim else 0
     n_indoor, n_facades = real_shares(args.batch - n_sim, args.indoor_fraction, bool(indoor), bool(facades))
@@ -241,7 +273,8 @@ def train(args: argparse.Namespace) -> None:
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
         opt.step()
-        sched.step()
+        if sched is not None:
+            sched.step()
         decay = 0.998 * (1 - np.exp(-(step + 1) / 200))
         with torch.no_grad():
             for pe, pm in zip(ema.state_dict().values(), model.state_dict().values(), strict=True):
@@ -263,7 +296,19 @@ def save_checkpoint(ema, anchors: np.ndarray, args: argparse.Namespace, steps: i
 
     args.report.mkdir(parents=True, exist_ok=True)
     torch.save({"ema": ema.state_dict(), "anchors": anchors, "width": args.width, "train_s": train_s,
-                "steps": steps}, args.report / "checkpoint.pt")
+                "steps": steps, "settings": training_settings(args)}, args.report / "checkpoint.pt")
+
+
+def training_settings(args: argparse.Namespace) -> dict[str, object]:
+    """The settings of this run, and of the run it started from (`--init`), for the sidecar and checkpoint."""
+    out: dict[str, object] = {"steps": args.steps, "batch": args.batch, "lr": args.lr, "seed": args.seed,
+                              "width": args.width, "indoor_fraction": args.indoor_fraction,
+                              "sim_fraction": args.sim_fraction}
+    init = getattr(args, "init", None)
+    if init is not None:
+        info = getattr(args, "init_info", {})
+        out["init"] = {"path": str(init), "steps": info.get("steps"), "settings": info.get("settings")}
+    return out
 
 
 def export_only(args: argparse.Namespace) -> None:
@@ -277,7 +322,34 @@ def export_only(args: argparse.Namespace) -> None:
     model.load_state_dict(ckpt["ema"])
     data = {"facades": load_facades(args.facades, args.seed), "indoor": load_indoor(args.indoor, args.seed)}
     args.width, args.steps = int(ckpt["width"]), int(ckpt["steps"])
+    settings = ckpt.get("settings") or {}
+    for k in ("batch", "lr", "seed", "indoor_fraction", "sim_fraction"):
+        if k in settings:
+            setattr(args, k, settings[k])
+    if isinstance(settings.get("init"), dict):
+        args.init, args.init_info = settings["init"]["path"], {"steps": settings["init"].get("steps"),
+                                                               "settings": settings["init"].get("settings")}
     export(model, np.asarray(ckpt["anchors"]), args, data, [], float(ckpt["train_s"]))
+
+
+def reproduce_command(args: argparse.Namespace) -> str:
+    """The command line(s) that make these weights: with `--init`, the run that made the init first (`make train`)."""
+    cmd = "python -m macroloc.perception.train"
+    init = getattr(args, "init", None)
+    if init is None:
+        return cmd
+    sims = "".join(f" --sim {d}" for d in getattr(args, "sim", []))
+    tail = (f" --indoor-fraction {args.indoor_fraction} --lr {args.lr} --steps {args.steps} --batch {args.batch} "
+            f"--seed {args.seed}{sims}" + (f" --sim-fraction {args.sim_fraction}" if sims else ""))
+    base = (getattr(args, "init_info", None) or {}).get("settings") or {}
+    if not base or "init" in base or sims or Path(init).resolve() == SHIPPED_WEIGHTS.resolve():
+        shown = "perception/models/detector.pt" if Path(init).resolve() == SHIPPED_WEIGHTS.resolve() else init
+        return f"{cmd} --init {shown}{tail}"
+    mine = f"{cmd} --init out/detector/base/checkpoint.pt{tail}"
+    first = (f"{cmd} --steps {base.get('steps')} --batch {base.get('batch')} --lr {base.get('lr')} "
+             f"--seed {base.get('seed')} --width {base.get('width')} --indoor-fraction {base.get('indoor_fraction')} "
+             "--out out/detector/base --report out/detector/base")
+    return f"{first} && {mine}"
 
 
 def rendered_sources(sim: list[Sample]) -> list[str]:
@@ -298,6 +370,9 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
     dummy = torch.zeros(1, 3, INPUT_WH[1], INPUT_WH[0])
     torch.onnx.export(model, (dummy,), str(onnx_path), input_names=["image"], output_names=["raw"],
                       opset_version=13, dynamo=False)
+    # The weights themselves beside the ONNX (which folds the batch norms): `--init` fine-tunes from them.
+    torch.save({"ema": model.state_dict(), "anchors": np.asarray(anchors), "width": args.width, "steps": args.steps,
+                "settings": training_settings(args)}, onnx_path.with_suffix(".pt"))
     spec = DetectorSpec(CLASS_NAMES, INPUT_WH, STRIDE_PX, tuple((float(w), float(h)) for w, h in anchors), 0.5)
     detector = Detector(onnx_path, spec, threads=args.threads)
     val_samples = data["indoor"]["val"] + data["facades"]["val"]
@@ -322,12 +397,10 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
         "split": "indoor: 80/10/10 of the source photos, seeded (perception.trainset.split_indoor: augmented copies "
                  "and frames of one video stay in one part); facades: test = img_n with n % 5 == 0 (never trained "
                  "on); val = seeded 15 % of the rest",
-        "training": {"steps": args.steps, "batch": args.batch, "lr": args.lr, "seed": args.seed, "width": args.width,
-                     "indoor_fraction": args.indoor_fraction, "sim_fraction": args.sim_fraction,
-                     "rendered_flights": rendered_sources(sim), "threads": args.threads, "seconds": round(train_s),
-                     "machine": f"{os.cpu_count()} CPU cores (shared)"},
+        "training": {**training_settings(args), "rendered_flights": rendered_sources(sim), "threads": args.threads,
+                     "seconds": round(train_s), "machine": f"{os.cpu_count()} CPU cores (shared)"},
         "figures": figures,
-        "reproduce": "python -m macroloc.perception.train",
+        "reproduce": reproduce_command(args),
     }
     spec = DetectorSpec(CLASS_NAMES, INPUT_WH, STRIDE_PX, spec.anchors_px, threshold, spec.nms_iou, extra)
     onnx_path.with_suffix(".json").write_text(json.dumps(spec.to_json(), indent=1) + "\n")
@@ -348,7 +421,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                     help="folders of rendered frames with YOLO labels; out/sim_yolo is made by bench.sim_trainset "
                          "on first use (default: none, the shipped model is trained on real photos only)")
     ap.add_argument("--sim-fraction", type=float, default=0.5, help="share of each batch drawn from rendered frames")
-    ap.add_argument("--steps", type=int, default=4200)
+    ap.add_argument("--steps", type=int, default=4200, help="training steps (0 with --init: export the init)")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--seed", type=int, default=0)
@@ -356,6 +429,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--out", type=Path, default=ROOT / "perception" / "models")
     ap.add_argument("--report", type=Path, default=ROOT / "out" / "detector")
     ap.add_argument("--export-only", type=Path, default=None, help="export and score a finished run's checkpoint.pt")
+    ap.add_argument("--init", type=Path, default=None,
+                    help="start from these weights (a run's checkpoint.pt or a shipped detector.pt) and keep their "
+                         "anchors: fine-tuning (default: none, from scratch)")
     return ap.parse_args(argv)
 
 

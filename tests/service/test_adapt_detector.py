@@ -31,6 +31,7 @@ def test_adapts_on_a_few_rendered_frames_and_exports_a_loadable_model(tmp_path: 
     assert doc["frames"] >= 8 and doc["doors"] + doc["windows"] > 0
     sidecar = json.loads((tmp_path / "detector.json").read_text())
     assert sidecar["trained_on"]["rendered_frames"] == doc["frames"]
+    assert sidecar["training"]["init"]["path"].endswith("detector.pt")  # fine-tuned from the shipped weights
     assert len(list((tmp_path / "frames" / "labels").glob("*.txt"))) == doc["frames"]
     import numpy as np
 
