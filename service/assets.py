@@ -27,6 +27,7 @@ from macroloc.graph.bim import BuildingModel, cache_dir
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.service.config import GraphConfig, PlanningConfig
 from macroloc.service.planning import Planner
+from macroloc.service.planning_grid import BuildingSolids
 
 log = logging.getLogger(__name__)
 
@@ -51,10 +52,9 @@ class PreparedBuilding:
 def prepare_building(building: Path, graph: GraphConfig, planning: PlanningConfig) -> PreparedBuilding:
     """Build (or read from the cache) every asset of `building` that the service needs, part by part.
 
-    IFC models only have obstacles, surfaces and wall
-    voxels; for a mesh model the planner works on the mesh and registrations go unchecked (logged).
+    Surfaces and wall voxels come from IFC models only: for a mesh model registrations go unchecked (logged).
     """
-    from macroloc.graph.bim import is_ifc, load_building
+    from macroloc.graph.bim import load_building
     from macroloc.graph.model_index import index_for
     from macroloc.service.planning_grid import load_solids, surfaces_for
 
@@ -71,19 +71,18 @@ def prepare_building(building: Path, graph: GraphConfig, planning: PlanningConfi
     log.info("%s: preparing its other assets (each cached once built; `macroloc prepare` builds them ahead)",
              building.name)
     timed("descriptor tables", lambda: index_for(model))
-    if is_ifc(building):
-        timed("obstacles", lambda: load_solids(building))
+    solids: BuildingSolids = timed("obstacles", lambda: load_solids(building))  # type: ignore[assignment]
     surfaces = timed("surfaces", lambda: surfaces_for(building, line_of_sight=graph.line_of_sight)) \
         if graph.surface_check else None
     p = planning
-    planner: Planner = timed("planner", lambda: Planner.for_building(building, p.cell_m, p.vehicle_radius_m,
-                                                                   p.flight_height_m))  # type: ignore[assignment]
+    planner: Planner = timed("planner", lambda: Planner(model, solids, p.cell_m, p.vehicle_radius_m,
+                                                        p.flight_height_m))  # type: ignore[assignment]
 
     def grids() -> None:
         for elevation in sorted(model.storey_elevations_m.values()):
             planner.grid(elevation + p.flight_height_m)
 
     timed("planning grids", grids)
-    log.info("%s: assets in %s (%s)", building.name, cache_dir(), ", ".join(f"{x.name} {x.seconds:.1f} s"
-                                                                          for x in parts))
-    return PreparedBuilding(model, surfaces if isinstance(surfaces, SurfaceIndex) else None, planner, parts)
+    prepared = PreparedBuilding(model, surfaces if isinstance(surfaces, SurfaceIndex) else None, planner, parts)
+    log.info("%s: assets in %s (%s)", building.name, cache_dir(), prepared.summary())
+    return prepared
