@@ -17,16 +17,21 @@ from tests.graph.scenes import (
 )
 
 
+def _incremental_and_batch(graph: PoseGraph) -> tuple[gtsam.Values, gtsam.Values]:
+    """iSAM2's estimate after three more steps (it takes one Gauss-Newton step per update), and a converged
+    batch optimisation of every factor ever added from the same initial guesses."""
+    graph.update(extra_iterations=3)
+    factors, initial = graph.batch_graph()
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-10)
+    return graph.estimate(), gtsam.LevenbergMarquardtOptimizer(factors, initial, params).optimize()
+
+
 def test_incremental_isam2_equals_batch_optimisation(corridor) -> None:
     poses = straight_flight(50)
     exact = PoseGraph(IsamSettings(relinearize_threshold=1e-5))  # relinearize every change: no approximation
     loc = fly(corridor, poses, drifting_odometry(poses, 0.003, 1.01), seed=1, sigma_m=0.02, graph=exact)
-    loc.graph.update(extra_iterations=3)  # iSAM2 takes one Gauss-Newton step per update
-    factors, initial = loc.graph.batch_graph()
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-10)
-    batch = gtsam.LevenbergMarquardtOptimizer(factors, initial, params).optimize()
-    incremental = loc.graph.estimate()
+    incremental, batch = _incremental_and_batch(loc.graph)
     for i in range(loc.graph.n_keyframes):
         a, b = incremental.atPose3(X(i)), batch.atPose3(X(i))
         assert np.linalg.norm(a.translation() - b.translation()) < 2e-3
@@ -77,13 +82,8 @@ def test_a_windowed_graph_equals_batch_on_its_live_keyframes_and_keeps_the_old_o
     poses = straight_flight(50)
     windowed = PoseGraph(IsamSettings(relinearize_threshold=1e-5, window_keyframes=20, marginalise_every=10))
     loc = fly(corridor, poses, drifting_odometry(poses, 0.003, 1.01), seed=1, sigma_m=0.02, graph=windowed)
-    loc.graph.update(extra_iterations=3)
+    incremental, batch = _incremental_and_batch(loc.graph)
     assert loc.graph.live_from == 20  # keyframes 0-19 marginalised (the newest, 49, is in the chunk of 40)
-    factors, initial = loc.graph.batch_graph()
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-10)
-    batch = gtsam.LevenbergMarquardtOptimizer(factors, initial, params).optimize()
-    incremental = loc.graph.estimate()
     for i in range(loc.graph.n_keyframes):
         a, b = incremental.atPose3(X(i)), batch.atPose3(X(i))
         assert np.allclose(a.matrix(), loc.graph.T_map_body(i))
