@@ -19,6 +19,7 @@ from macroloc.service.ros_in import (
     StereoRectifier,
     TransformTree,
     any_image_array,
+    default_T_body_cam,
     imu_message,
     odometry_message,
     pose_message,
@@ -209,13 +210,6 @@ def _split(samples: list, s: int) -> tuple[list, list]:
     """(samples stamped at or before s, the rest); both sorted by stamp."""
     k = bisect.bisect_right(samples, s, key=lambda m: m.header.stamp_ns)
     return samples[:k], samples[k:]
-
-
-def default_T_body_cam(baseline_m: float) -> np.ndarray:
-    """The configured mounting where a bag has no /tf_static: the simulator's forward stereo pair."""
-    from macroloc.sim.simulator import forward_camera_T_body_cam
-
-    return forward_camera_T_body_cam(baseline_m)
 
 
 def _configured_calibration(c: CameraConfig, width: int, height: int) -> tuple[CameraCalibration, CameraCalibration]:

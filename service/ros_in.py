@@ -94,6 +94,13 @@ def transform_matrix(transform: Any) -> np.ndarray:
     return T
 
 
+def default_T_body_cam(baseline_m: float) -> np.ndarray:
+    """The configured mounting where a bag has no /tf_static: the simulator's forward stereo pair."""
+    from macroloc.sim.simulator import forward_camera_T_body_cam
+
+    return forward_camera_T_body_cam(baseline_m)
+
+
 @dataclass
 class TransformTree:
     """Static transforms (tf2_msgs/TFMessage of /tf_static): T_parent_child by child frame id."""

@@ -26,8 +26,14 @@ from macroloc.perception.image_header import ImageHeaderError, check_encoded
 from macroloc.service.health import DropCounter
 from macroloc.service.inputs import ImuIn, InputParser, StereoIn
 from macroloc.service.recording import encode_image
-from macroloc.service.ros_bag_frames import default_T_body_cam
-from macroloc.service.ros_in import CameraCalibration, StereoRectifier, any_image_array, imu_message, stamp_ns
+from macroloc.service.ros_in import (
+    CameraCalibration,
+    StereoRectifier,
+    any_image_array,
+    default_T_body_cam,
+    imu_message,
+    stamp_ns,
+)
 from macroloc.service.ros_types import from_cdr
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
@@ -59,7 +65,7 @@ class RosSensorInputs:
     def __init__(self, topics: RosSensorTopics, parser: InputParser, drops: DropCounter, camera_id: str,
                  T_body_cam: np.ndarray | None, max_pixels: int, clock_ns: Any) -> None:
         """`T_body_cam`: the left camera's mounting (4x4); None: the simulator's forward pair at the camera info's
-        baseline (`service.ros_bag_frames.default_T_body_cam`), as for a bag without /tf_static."""
+        baseline (`service.ros_in.default_T_body_cam`), as for a bag without /tf_static."""
         self.topics, self.parser, self.drops = topics, parser, drops
         self.camera_id, self.T_body_cam, self.max_pixels = camera_id, T_body_cam, max_pixels
         self.clock_ns = clock_ns  # time.monotonic_ns, for the frame-in -> pose-out latency
