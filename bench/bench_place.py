@@ -28,11 +28,11 @@ def main() -> None:
     from macroloc.perception.calib import StereoRig
     from macroloc.perception.place import PlaceRecognizer
     from macroloc.service.cli import main as cli
+    from macroloc.service.offline.replay import replay
+    from macroloc.service.offline.replay_sources import TruthSource
     from macroloc.service.places import KeyframePlaces
     from macroloc.service.planning_grid import surfaces_for
     from macroloc.service.recording import decode_image, matrix_from_pose, read_flight
-    from macroloc.service.replay import replay
-    from macroloc.service.replay_sources import TruthSource
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flight", type=Path)

@@ -33,8 +33,8 @@ def _session(graph, model, stored=None):  # noqa: ANN001, ANN202
 def main() -> None:
     from macroloc.graph.bim import load_building
     from macroloc.service.config import load_config
-    from macroloc.service.replay import replay
-    from macroloc.service.replay_sources import TruthSource
+    from macroloc.service.offline.replay import replay
+    from macroloc.service.offline.replay_sources import TruthSource
     from macroloc.service.truth_flight import write_truth_flight
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

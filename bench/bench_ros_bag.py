@@ -3,8 +3,8 @@
     python -m bench.bench_ros_bag [--flight FLIGHT.mcap | --seed 4 --duration 6] [--building office_a.ifc]
                                   [--detector data/buildings/office_a_detector/detector.onnx] [--out /tmp/rosbag-bench]
 
-The flight (rendered with `macroloc simulate` unless given) is written as bags with service.ros_bag_write: `.db3`
-with sensor_msgs/Image, one `.mcap` with CompressedImage (non-default topic names in both), and a `.db3` whose
+The flight (rendered with `macroloc simulate` unless given) is written as bags with service.offline.ros_bag_write:
+`.db3` with sensor_msgs/Image, one `.mcap` with CompressedImage (non-default topic names in both), and a `.db3` whose
 images are distorted with known coefficients (CameraInfo D) for the reader to rectify. Printed: the bag reading
 throughput beside the native reader's (frames/s, images decoded), the rectified images' median absolute difference
 from the originals (grey levels), and each replay's frames, time to localize and APE (`--observations perception`).
@@ -53,9 +53,9 @@ def _replay(path: Path, building: Path, config: Path | None, topics: dict[str, s
 
 
 def main() -> None:
+    from macroloc.service.offline.ros_bag import read_ros_bag
+    from macroloc.service.offline.ros_bag_write import BagTopics, write_ros_bag
     from macroloc.service.recording import decode_image, read_flight
-    from macroloc.service.ros_bag import read_ros_bag
-    from macroloc.service.ros_bag_write import BagTopics, write_ros_bag
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flight", type=Path)

@@ -14,7 +14,7 @@ acceleration (the difference of the velocities fitted at the span's ends) is gra
 this accelerometer see it, tilt and bias included. The velocity at the loss is a line fitted to the last
 `end_s` of tracked positions.
 
-The replay's visual odometry (service.replay_sources.VisualOdometry) takes only the height from it and keeps the
+The replay's visual odometry (service.offline.replay_sources.VisualOdometry) takes only the height from it and keeps the
 coasted horizontal position. Measured on its output over 15 rendered 60 s flights (Office_A and Jasmin-Sun), with
 dropouts cut every 2 s into stretches it tracked (a study on recorded flights, not shipped; the tests check the
 principle on a synthetic flight), error at the end of the dropout, RMS over 293 / 323 of them: 3.8 s, height

@@ -6,7 +6,7 @@ seconds dead-reckoned, a place-recognition result) and returns the `Estimate`. I
 the keyframe rule (`graph.keyframes.KeyframeRule`), the depth hand-over to the next keyframe, the dead-reckoned
 seconds summed until a keyframe takes them, the hand-off of a frame placed in a stored map (or whose view is
 kept: always a keyframe), and a fresh graph where an update fails. The drivers only assemble frames: the replay
-from a recording (service.replay), the service from its wire events (service.backend: odometry by stamp, IMU
+from a recording (service.offline.replay), the service from its wire events (service.backend: odometry by stamp, IMU
 gravity, sightings waiting for their odometry). Both run place recognition on every stereo frame
 (service.places.KeyframePlaces.at_frame decides when it works) and hand its result in with the frame.
 

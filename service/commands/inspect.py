@@ -37,7 +37,7 @@ def inspect_building(building: Path, plot: Path | None, walls: bool = True) -> d
             raise UserInputError(f"--plot must name a .png file, got {plot}")
         if not plot.parent.exists():
             raise UserInputError(f"folder for --plot does not exist: {plot.parent}")
-        from macroloc.service.plots import load_wall_mesh, plot_floor_plans, plot_kde_bins
+        from macroloc.service.offline.plots import load_wall_mesh, plot_floor_plans, plot_kde_bins
 
         wall_mesh = load_wall_mesh(building) if walls else None
         plots.append(str(plot_floor_plans(model, plot, wall_mesh=wall_mesh)))

@@ -1,6 +1,6 @@
 """`macroloc replay FLIGHT --building BUILDING --json [--report DIR] [--observations truth|perception]
 [--map STORED] [--save-map OUT] [--topic NAME=/ros/topic ...]`: the whole chain offline, as fast as it runs, scored
-against ground truth. FLIGHT is a macroloc recording (MCAP) or a ROS 2 bag (service.ros_bag)."""
+against ground truth. FLIGHT is a macroloc recording (MCAP) or a ROS 2 bag (service.offline.ros_bag)."""
 
 from __future__ import annotations
 
@@ -66,14 +66,14 @@ def register(app: typer.Typer) -> None:
         from macroloc.graph.mapstore import StoredMap, carried_views
         from macroloc.service.commands._io import existing_file, print_json
         from macroloc.service.config import load_config
-        from macroloc.service.replay import replay as run_replay
-        from macroloc.service.replay_sources import (
+        from macroloc.service.offline.replay import replay as run_replay
+        from macroloc.service.offline.replay_sources import (
             ObservationSource,
             PerceptionSource,
             TruthFeaturesWithVisualOdometry,
             TruthSource,
         )
-        from macroloc.service.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
+        from macroloc.service.offline.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
         from macroloc.service.session import session_from_config
 
         if not flight.exists():
@@ -96,7 +96,7 @@ def register(app: typer.Typer) -> None:
             import json
             import sys
 
-            from macroloc.service.replay_zenoh import replay_command
+            from macroloc.service.offline.replay_zenoh import replay_command
 
             if out is not None:
                 raise UserInputError("--out records an in-process replay; with --over-zenoh, record the service")
@@ -132,8 +132,8 @@ def register(app: typer.Typer) -> None:
         recorder = None
         with contextlib.ExitStack() as stack:
             if out is not None:
-                from macroloc.service.foxglove_out import FoxgloveWriter, ReplayRecorder
-                from macroloc.service.plots import load_wall_mesh
+                from macroloc.service.offline.foxglove_out import FoxgloveWriter, ReplayRecorder
+                from macroloc.service.offline.plots import load_wall_mesh
 
                 recorder = ReplayRecorder(stack.enter_context(FoxgloveWriter(out)), model, load_wall_mesh(building))
             result = run_replay(frames, model, source, places=places, recorder=recorder,
@@ -146,8 +146,8 @@ def register(app: typer.Typer) -> None:
                 new_map.carried = carried_views(new_map.placed_views(), new_map.T_cad_map, stored)
             new_map.save(save_map)
         if report is not None:
-            from macroloc.service.plots import load_wall_mesh
-            from macroloc.service.replay_report import write_report
+            from macroloc.service.offline.plots import load_wall_mesh
+            from macroloc.service.offline.replay_report import write_report
 
             write_report(result, model, report, load_wall_mesh(building), stored, config=cfg.model_dump(mode="json"))
         doc = result.to_json()

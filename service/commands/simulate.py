@@ -130,8 +130,8 @@ def simulate_to_mcap(building: Path, out: Path, cfg: MacrolocConfig, seed: int =
     imu_ns = np.round(imu.stamps_s * 1e9).astype(np.int64)
     try:
         with FlightWriter(out, meta) as writer:
-            from macroloc.service.foxglove_out import SimulationChannels
-            from macroloc.service.plots import load_wall_mesh
+            from macroloc.service.offline.foxglove_out import SimulationChannels
+            from macroloc.service.offline.plots import load_wall_mesh
 
             foxglove = SimulationChannels(writer.write, sim.model, load_wall_mesh(building))
             for i, t in enumerate(track(times, f"simulate {building.name}", total=len(times))):

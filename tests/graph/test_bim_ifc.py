@@ -121,7 +121,7 @@ def test_an_ifczip_reads_as_its_ifc_and_is_cached(fzk_path: Path, tmp_path: Path
     import zipfile
 
     from macroloc.graph.bim import cache_dir, is_ifc
-    from macroloc.service.plots import load_wall_mesh
+    from macroloc.service.offline.plots import load_wall_mesh
 
     zipped = tmp_path / "fzk_haus.ifcZIP"
     with zipfile.ZipFile(zipped, "w", zipfile.ZIP_DEFLATED) as zf:

@@ -51,7 +51,7 @@ def test_floor_plan_is_reusable(duplex_model) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from macroloc.service.plots import draw_floor_plan, short_ids
+    from macroloc.service.offline.plots import draw_floor_plan, short_ids
 
     fig, ax = plt.subplots()
     draw_floor_plan(ax, duplex_model, "Level 1", walls=None)

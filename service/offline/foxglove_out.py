@@ -243,7 +243,7 @@ class SimulationChannels:
     def frame(self, stereo: pb.StereoFrame, T_cad_body: np.ndarray, T_body_cam: np.ndarray) -> None:
         c, s = self.channels, stereo.header.stamp_ns
         if self._first:
-            from macroloc.service.plots import wall_segments_xy
+            from macroloc.service.offline.plots import wall_segments_xy
 
             z = float(T_cad_body[2, 3])
             walls = wall_segments_xy(self.wall_mesh, z) if self.wall_mesh is not None else None
@@ -255,7 +255,7 @@ class SimulationChannels:
 
 
 class ReplayRecorder:
-    """Writes a replay's frames to a FoxgloveWriter as they run (service.replay's `recorder`)."""
+    """Writes a replay's frames to a FoxgloveWriter as they run (service.offline.replay's `recorder`)."""
 
     def __init__(self, writer: FoxgloveChannels, model: BuildingModel, wall_mesh: Any = None) -> None:
         self.writer, self.model, self.wall_mesh = writer, model, wall_mesh
@@ -265,7 +265,7 @@ class ReplayRecorder:
         self.last_stamp_ns = 0
 
     def frame(self, frame: FlightFrame, inputs: Any, estimate: Any) -> None:
-        """One frame: image, detections, transforms, poses, status (`inputs`: service.replay_sources.FrameInput,
+        """One frame: image, detections, transforms, poses, status (`inputs`: service.offline.replay_sources.FrameInput,
         `estimate`: graph.localizer.Estimate)."""
         w, s = self.writer, frame.stamp_ns
         T_body_cam = inputs.T_body_cam
@@ -288,7 +288,7 @@ class ReplayRecorder:
         self.last_stamp_ns = s
 
     def _model(self, stamp_ns: int, matched: set[str], T_cad_body: np.ndarray | None) -> None:
-        from macroloc.service.plots import wall_segments_xy
+        from macroloc.service.offline.plots import wall_segments_xy
 
         if self._wall_z is None:  # the flight's height at its start, else the doors' and windows' middle height
             self._wall_z = float(T_cad_body[2, 3]) if T_cad_body is not None else \

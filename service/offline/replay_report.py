@@ -14,7 +14,7 @@ import numpy as np
 
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.mapstore import StoredMap
-from macroloc.service.replay import ReplayResult
+from macroloc.service.offline.replay import ReplayResult
 
 STATUS_LEVEL = {"exploring": 0, "ambiguous": 1, "localized": 2, "degraded": 3, "lost": 4}
 
@@ -22,9 +22,9 @@ STATUS_LEVEL = {"exploring": 0, "ambiguous": 1, "localized": 2, "degraded": 3, "
 def write_report(result: ReplayResult, model: BuildingModel, out_dir: Path, wall_mesh: Any = None,
                  stored: StoredMap | None = None, config: dict | None = None) -> list[Path]:
     """Write topdown.png, frames.png, result.json, the TUM trajectories (`write_tum`) and `config` (the resolved
-    configuration, as config.json) into `out_dir`; returns their paths. `wall_mesh`: the model's walls
-    (service.plots.load_wall_mesh), drawn as a floor plan cut at the flight's height; `stored`: the map the flight
-    re-localized into, whose keyframe views are drawn with the keyframes placed in them."""
+    configuration, as config.json) into `out_dir`; returns their paths. `wall_mesh`: the model's
+    walls (service.offline.plots.load_wall_mesh), drawn as a floor plan cut at the flight's height; `stored`: the
+    map the flight re-localized into, whose keyframe views are drawn with the keyframes placed in them."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -72,7 +72,7 @@ def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: 
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
 
-    from macroloc.service.plots import WALL_COLOUR, wall_segments_xy
+    from macroloc.service.offline.plots import WALL_COLOUR, wall_segments_xy
 
     tr = result.trace
     true_xyz = np.array([T[:3, 3] for T in tr.T_true])

@@ -26,9 +26,9 @@ from macroloc.graph.posegraph import IsamSettings
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
+from macroloc.service.offline.replay_sources import FrameInput, ObservationSource, TruthSource
 from macroloc.service.places import KeyframePlaces
 from macroloc.service.recording import FlightFrame
-from macroloc.service.replay_sources import FrameInput, ObservationSource, TruthSource
 from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, make_session
 
 log = logging.getLogger(__name__)
@@ -46,7 +46,8 @@ def null_sink(estimate: Estimate) -> None:
 
 
 class FrameRecorder(Protocol):
-    """Keeps each frame with its inputs and estimate (service.foxglove_out.ReplayRecorder), and the end state."""
+    """Keeps each frame with its inputs and estimate (service.offline.foxglove_out.ReplayRecorder), and the end
+    state."""
 
     def frame(self, frame: FlightFrame, inputs: FrameInput, estimate: Estimate) -> None: ...
 
@@ -122,13 +123,13 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
            places: KeyframePlaces | None = None, recorder: FrameRecorder | None = None,
            settings: SessionSettings | None = None,
            make: Callable[[np.ndarray], LocalizationSession] | None = None) -> ReplayResult:
-    """Run `flight` (a macroloc MCAP recording, or its frames from any reader: service.ros_bag.open_flight) through
-    a new localization session (service.session) in `model`; see module doc. `make`: the session for the flight's
-    camera (T_body_cam, 4x4), as the CLI and the benchmarks build it (`service.session.session_from_config`);
-    else one from `settings`, else the defaults with `params`, `policy`, `isam`, `storey_hint`, `stored` and
-    `surfaces` where given. `places`: place recognition on the frames (service.places: views kept for the saved
-    map, frames placed in the stored map's views). `recorder`: keeps every frame (e.g. for Foxglove:
-    service.foxglove_out.ReplayRecorder)."""
+    """Run `flight` (a macroloc MCAP recording, or its frames from any reader: service.offline.ros_bag.open_flight)
+    through a new localization session (service.session) in `model`; see module doc. `make`: the session for the
+    flight's camera (T_body_cam, 4x4), as the CLI and the benchmarks build it (`service.session.session_from_config`);
+    else one from `settings`, else the defaults with `params`, `policy`, `isam`, `storey_hint`, `stored` and `surfaces`
+    where given. `places`: place recognition on the frames (service.places: views kept for the saved map, frames placed
+    in the stored map's views). `recorder`: keeps every frame (e.g. for Foxglove:
+    service.offline.foxglove_out.ReplayRecorder)."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
     from macroloc.service.recording import matrix_from_pose, read_flight

@@ -115,7 +115,7 @@ def test_a_missing_recording_is_exit_2(fzk_path: Path, tmp_path: Path, capsys: p
 
 
 def test_a_correct_entry_that_drifts_away_counts_as_wrong_while_localized() -> None:
-    from macroloc.service.replay import ReplayTrace, _wrong_localizations, _wrong_while_localized_s
+    from macroloc.service.offline.replay import ReplayTrace, _wrong_localizations, _wrong_while_localized_s
 
     trace = ReplayTrace()
     for k in range(40):  # 10 Hz; localized from 1 s; the estimate drifts 0.1 m per frame from 1 s on
@@ -135,8 +135,8 @@ def test_a_correct_entry_that_drifts_away_counts_as_wrong_while_localized() -> N
 def test_truth_depth_points_come_from_the_true_depth_image() -> None:
     """`--observations truth` measures depth points on a grid of the true depth image (with stereo noise), in
     the body frame: what the surface check of registrations reads (graph.surfaces)."""
+    from macroloc.service.offline.replay_sources import TruthSource
     from macroloc.service.recording import encode_image, pose_from_matrix
-    from macroloc.service.replay_sources import TruthSource
     from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     gt = pb.GroundTruth(depth=encode_image(np.full((480, 640), 2.0, np.float32)))
@@ -279,8 +279,8 @@ def test_the_vehicles_recorded_odometry_places_each_frame() -> None:
     a first frame with none before it is the user's error, in one line."""
     from macroloc.graph.errors import UserInputError
     from macroloc.graph.rigid import rot_z
+    from macroloc.service.offline.replay_sources import VehicleOdometry
     from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
-    from macroloc.service.replay_sources import VehicleOdometry
     from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     image = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
@@ -314,8 +314,8 @@ def test_the_visual_odometry_says_how_long_it_only_extrapolated() -> None:
     """The stereo visual odometry (`--observations perception` without the vehicle's odometry) tracks a textured
     wall; a blank view (a wall nearer than stereo measures looks so) loses it, and each such frame reports its
     interval as dead-reckoned, for the graph to trust that stretch of odometry less; tracked again, none."""
+    from macroloc.service.offline.replay_sources import VisualOdometry
     from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix
-    from macroloc.service.replay_sources import VisualOdometry
     from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.perception.helpers import RIG, fronto_parallel_pair
 
@@ -339,8 +339,8 @@ def test_the_visual_odometry_says_how_long_it_only_extrapolated() -> None:
 def test_the_visual_odometry_dead_reckons_the_height_on_the_imu_while_it_has_lost_track() -> None:
     """1.5 s hovering before a textured wall (tracked; the IMU reads gravity alone), then 1 s blank (lost) while the
     IMU reads a climb at 1 m/s^2: the height follows it (0.5 m), where the last velocity would have kept it."""
+    from macroloc.service.offline.replay_sources import VisualOdometry
     from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
-    from macroloc.service.replay_sources import VisualOdometry
     from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.perception.helpers import RIG, fronto_parallel_pair
 

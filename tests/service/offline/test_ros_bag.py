@@ -1,5 +1,5 @@
-"""ROS 2 bags as replay sources (service/ros_bag.py, service/ros_in.py): a simulated flight written as a bag with
-rosbags (`.db3` and `.mcap` storage, non-default topic names, Image and CompressedImage) reads back as the native
+"""ROS 2 bags as replay sources (service/offline/ros_bag.py, service/ros_in.py): a simulated flight written as a bag
+with rosbags (`.db3` and `.mcap` storage, non-default topic names, Image and CompressedImage) reads back as the native
 recording's frames; a distorted bag is rectified back to the pinhole images; missing topics are one clean line."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from macroloc.service.cli import main
+from macroloc.service.offline.ros_bag import BagStats, read_ros_bag
+from macroloc.service.offline.ros_bag_write import BagTopics, write_ros_bag
 from macroloc.service.recording import FlightFrame, decode_image, read_flight
-from macroloc.service.ros_bag import BagStats, read_ros_bag
-from macroloc.service.ros_bag_write import BagTopics, write_ros_bag
 
 TOPICS = BagTopics(left="/drone/stereo/left/image", right="/drone/stereo/right/image",
                    left_info="/drone/stereo/left/info", right_info="/drone/stereo/right/info", imu="/drone/imu",
@@ -228,7 +228,7 @@ def _decode_with_embedded_schemas(path: Path) -> tuple[dict[str, tuple[int, str]
 def test_a_bag_plays_into_a_running_service_over_zenoh(short_flight: Path, tmp_path: Path, fzk_path: Path) -> None:
     """`replay BAG --over-zenoh`: the bag's frames (rectified, raw images) on the service's keys; it answers each
     with a pose, scored against the bag's truth."""
-    from macroloc.service.replay_zenoh import replay_over_zenoh
+    from macroloc.service.offline.replay_zenoh import replay_over_zenoh
     from tests.service.helpers import free_port, loopback, running_service, service_config
 
     bag = write_ros_bag(short_flight, tmp_path / "bag", "sqlite3", TOPICS, max_frames=10)

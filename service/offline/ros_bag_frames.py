@@ -1,6 +1,6 @@
-"""A ROS 2 bag's messages, in bag order, assembled into macroloc's FlightFrames (service.ros_bag reads the bag):
+"""A ROS 2 bag's messages, in bag order, assembled into macroloc's FlightFrames (service.offline.ros_bag reads the bag):
 left and right images paired by header stamp, each pair with its IMU and odometry samples and its truth, rectified
-(service.ros_in.StereoRectifier) and given the left camera's mounting; see service.ros_bag's module doc."""
+(service.ros_in.StereoRectifier) and given the left camera's mounting; see service.offline.ros_bag's module doc."""
 
 from __future__ import annotations
 

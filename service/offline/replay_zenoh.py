@@ -21,8 +21,8 @@ import zenoh
 
 from macroloc.graph.errors import UserInputError
 from macroloc.service.config import ZenohConfig
+from macroloc.service.offline.replay_sources import ObservationSource
 from macroloc.service.recording import FlightFrame, matrix_from_pose, pose_from_matrix, read_flight, vector3
-from macroloc.service.replay_sources import ObservationSource
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.service.zenoh_io import Keys, declare_publisher, session_config
 
@@ -84,8 +84,8 @@ def _observations(stamp_ns: int, sightings: list) -> pb.ObservedFeatures:  # noq
 
 def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConfig, vehicle: str,
                       source: ObservationSource | None, speed: float = 1.0, wait_s: float = 30.0) -> ZenohReplayResult:
-    """Publish the recording (a macroloc MCAP, or its frames from any reader: service.ros_bag.open_flight) to the
-    service of `vehicle` and score what it sends back (see module doc)."""
+    """Publish the recording (a macroloc MCAP, or its frames from any reader:
+    service.offline.ros_bag.open_flight) to the service of `vehicle` and score what it sends back (see module doc)."""
     keys = Keys(vehicle)
     result = ZenohReplayResult()
     sent_at: dict[int, float] = {}

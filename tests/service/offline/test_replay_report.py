@@ -1,4 +1,4 @@
-"""The replay report's per-frame error decomposition (service/replay_report.py)."""
+"""The replay report's per-frame error decomposition (service/offline/replay_report.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from macroloc.service.replay_report import _pose_error
+from macroloc.service.offline.replay_report import _pose_error
 
 
 @settings(max_examples=30, deadline=None)

@@ -40,8 +40,8 @@ def write_fake_flight(path: Path, model, start: np.ndarray, frames: int = 45) ->
 
 
 def test_replay_over_zenoh_localizes_and_scores(office_path, office_model, tmp_path) -> None:
-    from macroloc.service.replay_sources import TruthSource
-    from macroloc.service.replay_zenoh import replay_over_zenoh
+    from macroloc.service.offline.replay_sources import TruthSource
+    from macroloc.service.offline.replay_zenoh import replay_over_zenoh
 
     door = [f for f in office_model.features if f.type == "door" and f.storey == "Level 1"][10]
     start = yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])
@@ -61,8 +61,8 @@ def test_a_restarted_service_is_placed_by_its_saved_maps_views(rendered_office_f
                                                                tmp_path) -> None:
     """The service keeps keyframe views in its saved map; restarted, it places the first frames in them and is
     localized before any door is in range. The same saved map stripped of its views waits for the doors."""
-    from macroloc.service.replay_sources import TruthSource
-    from macroloc.service.replay_zenoh import replay_over_zenoh
+    from macroloc.service.offline.replay_sources import TruthSource
+    from macroloc.service.offline.replay_zenoh import replay_over_zenoh
 
     def fly(seed: int):  # noqa: ANN202 - ZenohReplayResult
         port = free_port()

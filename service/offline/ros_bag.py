@@ -23,8 +23,8 @@ from pathlib import Path
 
 from macroloc.graph.errors import UserInputError
 from macroloc.service.config import CameraConfig
+from macroloc.service.offline.ros_bag_frames import TF_STATIC, BagStats, FrameAssembler, RosTopics
 from macroloc.service.recording import FlightFrame
-from macroloc.service.ros_bag_frames import TF_STATIC, BagStats, FrameAssembler, RosTopics
 
 log = logging.getLogger(__name__)
 
