@@ -3,7 +3,7 @@ localizations, per building and seed; re-localization into a stored map.
 
     python -m bench.bench_replay [--seeds 0,1,2] [--duration 60] [--start open|random] [--out /tmp/macroloc-flights]
 
-Flights are ground-truth-only recordings (service.truth_flight: a take-off turn on the spot, then a random
+Flights are ground-truth-only recordings (sim.truth_flight: a take-off turn on the spot, then a random
 walk through the storey's free space); a rendered simulator flight can be replayed the same way with
 `macroloc replay FLIGHT --building B --json`.
 """
@@ -35,7 +35,7 @@ def main() -> None:
     from macroloc.service.config import load_config
     from macroloc.service.offline.replay import replay
     from macroloc.service.offline.replay_sources import TruthSource
-    from macroloc.service.truth_flight import write_truth_flight
+    from macroloc.sim.truth_flight import write_truth_flight
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0,1,2")

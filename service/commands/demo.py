@@ -54,8 +54,8 @@ def register(app: typer.Typer) -> None:
 
         from macroloc.graph.errors import UserInputError
         from macroloc.service.commands._io import existing_file, print_json
-        from macroloc.service.demo import DEFAULT_BUILDING, DemoParams, plot_flight, result_json, run_demo
         from macroloc.service.planning import Planner
+        from macroloc.sim.demo import DEFAULT_BUILDING, DemoParams, plot_flight, result_json, run_demo
 
         path = existing_file(building, "building model") if building else DEFAULT_BUILDING
         if speedup <= 0:

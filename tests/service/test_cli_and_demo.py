@@ -72,8 +72,8 @@ def test_serve_stops_cleanly_on_sigterm_and_saves_the_map(office_path: Path, tmp
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_demo_localizes_and_reaches_the_goal(seed: int, tmp_path: Path) -> None:
-    from macroloc.service.demo import DemoParams, plot_flight, run_demo
     from macroloc.service.planning import Planner
+    from macroloc.sim.demo import DemoParams, plot_flight, run_demo
 
     result = run_demo(params=DemoParams(seed=seed, speedup=3.0))
     assert result.localized and result.reached
@@ -87,7 +87,7 @@ def test_demo_closes_the_loop_through_perception(tmp_path: Path) -> None:
     """Rendered stereo frames -> the service's perception chain (the detector adapted to Office_A and shipped
     beside it) -> localized -> flown to the goal on the service's poses (~3.5 min on 2 cores); its recording
     (--record) replays offline."""
-    from macroloc.service.demo import DEFAULT_BUILDING, DemoParams, bundled_detector, run_demo
+    from macroloc.sim.demo import DEFAULT_BUILDING, DemoParams, bundled_detector, run_demo
 
     recording = tmp_path / "demo.mcap"
     result = run_demo(params=DemoParams(seed=0, observations="perception", record=recording))
@@ -159,7 +159,7 @@ def _busy(stop: threading.Event) -> None:
 def test_lockstep_flies_the_same_flight_on_an_idle_and_a_loaded_machine() -> None:
     """The vehicle's clock waits for the service: 8 simulated seconds of seed 1 give the same flight to the digit,
     once as it is and once with a busy thread beside it."""
-    from macroloc.service.demo import DemoParams, run_demo
+    from macroloc.sim.demo import DemoParams, run_demo
 
     params = DemoParams(seed=1, timeout_s=8.0, lockstep=True)
     first = run_demo(params=params)
@@ -181,7 +181,7 @@ def test_lockstep_flies_the_same_flight_on_an_idle_and_a_loaded_machine() -> Non
 def test_lockstep_demo_repeats_to_the_digit(seed: int) -> None:
     from dataclasses import asdict
 
-    from macroloc.service.demo import DemoParams, run_demo
+    from macroloc.sim.demo import DemoParams, run_demo
 
     runs = [asdict(run_demo(params=DemoParams(seed=seed, lockstep=True))) for _ in range(2)]
     for run in runs:

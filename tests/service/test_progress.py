@@ -13,7 +13,7 @@ from macroloc.service.cli import main
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory, fzk_path: Path) -> Path:
-    from macroloc.service.truth_flight import write_truth_flight
+    from macroloc.sim.truth_flight import write_truth_flight
 
     return write_truth_flight(fzk_path, tmp_path_factory.mktemp("flight") / "fzk.mcap", seed=0, duration_s=2.0)
 

@@ -193,7 +193,7 @@ def test_reset_counter_counts_anchor_jumps_not_refinements() -> None:
 def test_the_demo_can_be_watched_live_through_listen(tmp_path) -> None:
     """`macroloc demo --listen ENDPOINT --ros`: a session connected to that endpoint (as zenoh-bridge-ros2dds would
     be) receives the demo's ROS poses in `map` while it flies; the goal's latitude/longitude come back."""
-    from macroloc.service.demo import DemoParams, run_demo
+    from macroloc.sim.demo import DemoParams, run_demo
 
     port = free_port()
     poses: list[Any] = []

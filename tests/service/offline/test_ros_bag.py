@@ -277,7 +277,7 @@ def test_bags_of_a_flight_replay_to_the_recordings_figures(rendered_office_fligh
                                                            tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Office_A seed 1 (7 s; the adapted detector localizes it at ~5 s): the `.db3` bag with Image and the `.mcap`
     with CompressedImage give the native recording's frames, time to localize (within a frame) and APE (1 cm)."""
-    from macroloc.service.demo import bundled_detector
+    from macroloc.sim.demo import bundled_detector
 
     detector = bundled_detector(office_path)
     assert detector is not None

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import zenoh
 
-from macroloc.service.agent import VehicleAgent
-from macroloc.service.demo import exploration_route
 from macroloc.service.planning import Planner, line_of_sight
 from macroloc.service.zenoh_io import session_config
+from macroloc.sim.agent import VehicleAgent
+from macroloc.sim.demo import exploration_route
 from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
 from tests.service.helpers import loopback
 

@@ -20,6 +20,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,9 +29,11 @@ from macroloc.graph.errors import UserInputError
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.rigid import apply
 from macroloc.service.config import MacrolocConfig, load_config
-from macroloc.service.planning import GoalSpec, Planner, PlanningError
-from macroloc.service.planning_grid import Space
 from macroloc.service.recording import FlightWriter
+
+if TYPE_CHECKING:  # the service's planner, imported where used: sim/ imports only service's wire and config at its top
+    from macroloc.service.planning import Planner
+    from macroloc.service.planning_grid import Space
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +86,8 @@ class DemoResult:
 def choose_route(planner: Planner, seed: int, params: DemoParams) -> tuple[str, Space, np.ndarray]:
     """A seeded take-off point in front of a door of the lowest storey, from where a turn on the spot shows
     several doors and windows, and a goal room 10-25 m away that the planner connects to it."""
-    from macroloc.service.agent import TruthSensor
+    from macroloc.service.planning import GoalSpec, PlanningError
+    from macroloc.sim.agent import TruthSensor
     from macroloc.sim.vehicle import level_pose
 
     rng = np.random.default_rng(seed)
@@ -118,6 +122,8 @@ def choose_route(planner: Planner, seed: int, params: DemoParams) -> tuple[str, 
 def exploration_route(planner: Planner, start_xyz: np.ndarray, seed: int, length_m: float = 40.0) -> np.ndarray:
     """(N, 3) CAD points of a seeded collision-free route from the take-off point through the storey's free
     space: legs of 6-15 m to random free cells, planned by the service's own A* planner."""
+    from macroloc.service.planning import GoalSpec, PlanningError
+
     rng = np.random.default_rng([seed, 0xE4])
     grid, free = planner.free_cells(start_xyz[2])
     cells = np.argwhere(free)
@@ -158,11 +164,11 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     """One closed-loop flight; the service and the agent each on their own Zenoh session (loopback)."""
     import zenoh
 
-    from macroloc.service.agent import RenderedStereoCamera, Sensor, TruthSensor, VehicleAgent
     from macroloc.service.serve import build_service
     from macroloc.service.state import NullMapStore
     from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from macroloc.service.zenoh_io import session_config
+    from macroloc.sim.agent import RenderedStereoCamera, Sensor, TruthSensor, VehicleAgent
     from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
 
     params = params or DemoParams()

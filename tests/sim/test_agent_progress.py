@@ -1,10 +1,10 @@
-"""service.agent.ProgressMonitor: a vehicle circling or oscillating is told apart from one on its way."""
+"""sim.agent.ProgressMonitor: a vehicle circling or oscillating is told apart from one on its way."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from macroloc.service.agent import ProgressMonitor, ProgressParams, WaypointFollower
+from macroloc.sim.agent import ProgressMonitor, ProgressParams, WaypointFollower
 
 
 def _run(monitor: ProgressMonitor, remaining_m: np.ndarray, dt_s: float = 0.1) -> list[str]:

@@ -15,13 +15,12 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import zenoh
 
 from macroloc.graph.features import BuildingModel
-from macroloc.service.planning_grid import OccupancyGrid
 from macroloc.service.recording import (
     TOPIC_GROUND_TRUTH,
     TOPIC_STEREO,
@@ -33,6 +32,9 @@ from macroloc.service.recording import (
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.service.zenoh_io import Keys, declare_publisher
 from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, yaw_of
+
+if TYPE_CHECKING:
+    from macroloc.service.planning_grid import OccupancyGrid
 
 log = logging.getLogger(__name__)
 
