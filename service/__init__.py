@@ -1,1 +1,2 @@
-"""The composition root: config, CLI, Zenoh I/O, the localization state machine, planning, recordings."""
+"""The composition root: config, CLI, Zenoh I/O, the localization session, planning, recordings; offline replay,
+reports and bags in service.offline (docs/architecture.md: the rooms)."""
