@@ -16,7 +16,11 @@ from tests.conftest import BUILDINGS
 
 
 def test_prepare_builds_every_part_and_a_second_run_builds_nothing(tmp_path: Path, monkeypatch, capsys) -> None:
+    import macroloc.graph.model_index as model_index
+
     monkeypatch.setenv("MACROLOC_CACHE", str(tmp_path / "cache"))
+    # the descriptor tables an earlier test of this process built are held in memory, and would not be written
+    monkeypatch.setattr(model_index, "_CACHE", {})
     fzk = BUILDINGS / "fzk_haus.ifc"
     assert main(["prepare", str(fzk), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
@@ -26,7 +30,6 @@ def test_prepare_builds_every_part_and_a_second_run_builds_nothing(tmp_path: Pat
     assert cached == ["features", "opaque", "seen", "solids", "surfaces", "tables"]
 
     import macroloc.graph.bim_ifc as bim_ifc
-    import macroloc.graph.model_index as model_index
     import macroloc.graph.surfaces as surfaces
     import macroloc.service.planning_grid as planning_grid
 

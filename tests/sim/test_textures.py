@@ -39,8 +39,10 @@ def test_photo_crops_never_use_the_held_out_split(tmp_path: Path) -> None:
     assert (crops[..., 2] > 200).all() and (crops[..., 0] < 50).all()  # RGB: blue photos only, never red
 
 
-def test_sim_does_not_import_service() -> None:
+def test_the_simulator_core_does_not_import_service() -> None:
     root = Path(__file__).resolve().parents[2] / "sim"
     for path in root.glob("*.py"):
+        if path.stem in ("agent", "demo", "truth_flight"):
+            continue  # sim's vehicle side speaks the service's wire: tests/graph/test_layering.py holds its rule
         text = path.read_text()
         assert "from service" not in text and "import service" not in text and "zenoh" not in text, path.name
