@@ -33,6 +33,9 @@ eval-shared: setup  ## the independent harness in ../shared/eval on every shared
 	  echo "$$b $$v: $$($(VENV)/python ../shared/eval/score_localize.py $$b --n 200 --seed 1 --variant $$v \
 	    --cmd "$(CURDIR)/$(VENV)/macroloc" $(EVAL_ARGS) | tail -1)"; done; done
 
+eval-matrix: setup    ## issue 38's table: every shared IFC x 3 variants x default/hard/3-5 observations x 2 seeds, n=200, in one process
+	$(VENV)/python -m bench.eval_shared --matrix --seeds $(or $(SEEDS),8101,8202) --n 200 --out out/eval_shared
+
 train: setup         ## reproduce the shipped detector weights (needs torch: the train extra; ~85 min on 2 cores)
 	MACROLOC_EXTRAS=dev,train bash scripts/setup.sh
 	$(VENV)/python -m macroloc.perception.train --out out/detector/base --report out/detector/base

@@ -75,20 +75,30 @@ class FarSightings:
         return np.array(kinds), np.vstack(cameras), np.vstack(centroids)
 
     def pairs(self) -> list[tuple[np.ndarray, tuple[str, str], np.ndarray]]:
-        """Per keyframe of the window, oldest first, the widest pair of its far sightings in horizontal bearing
-        where that is `far_pair_min_deg` or more: (camera (3,), their types, their centroids (2, 3)), map frame."""
-        pairs = []
+        """Per keyframe of the window, oldest first, the widest pair in horizontal bearing from its camera of one
+        of its own far sightings and any far sighting of the window (its own, or another keyframe's taken into
+        the map frame at that keyframe's estimate: two doors need not be in view at once), where that is
+        `far_pair_min_deg` or more: (camera (3,), their types, their centroids (2, 3)), map frame."""
+        seen = []
         for i, kinds, centroids_body in self._window:
-            if len(kinds) < 2:
-                continue
             T_map_body = self._T_map_body(i)
-            camera = apply(T_map_body, self._viewer_body[None])[0]
-            centroids = apply(T_map_body, centroids_body)
-            bearing = np.arctan2(centroids[:, 1] - camera[1], centroids[:, 0] - camera[0])
-            apart = np.abs((bearing[:, None] - bearing[None] + np.pi) % (2 * np.pi) - np.pi)
-            a, b = np.unravel_index(int(np.argmax(apart)), apart.shape)
-            if apart[a, b] >= np.radians(self.params.far_pair_min_deg):
-                pairs.append((camera, (kinds[a], kinds[b]), centroids[[a, b]]))
+            seen.append((i, apply(T_map_body, self._viewer_body[None])[0], kinds, apply(T_map_body, centroids_body)))
+        all_kinds = [k for _, _, kinds, _ in seen for k in kinds]
+        if len(all_kinds) < 2:
+            return []
+        all_centroids = np.vstack([c for _, _, _, c in seen])
+        owner = np.concatenate([np.full(len(kinds), i) for i, _, kinds, _ in seen])
+        pairs = []
+        for i, camera, _, _ in seen:
+            own = np.flatnonzero(owner == i)
+            if not len(own):
+                continue
+            bearing = np.arctan2(all_centroids[:, 1] - camera[1], all_centroids[:, 0] - camera[0])
+            apart = np.abs((bearing[own][:, None] - bearing[None] + np.pi) % (2 * np.pi) - np.pi)
+            a_own, b = (int(v) for v in np.unravel_index(int(np.argmax(apart)), apart.shape))
+            if apart[a_own, b] >= np.radians(self.params.far_pair_min_deg):
+                a = int(own[a_own])
+                pairs.append((camera, (all_kinds[a], all_kinds[b]), all_centroids[np.array([a, b])]))
         return pairs
 
     def fractions(self, T_cad_map: np.ndarray, far: FarMap) -> np.ndarray:
@@ -149,8 +159,9 @@ class FarSightings:
 
     def resected(self, far: FarMap | None) -> Alignment:
         """Candidate poses from the far sightings alone, before any landmark (`far_resection`): from each of the
-        newest `far_pairs` keyframes that saw two far doors or windows `far_pair_min_deg` apart in bearing, the
-        widest such pair matched to every pair of same-type features of the model (`graph.far`); those explaining
+        newest `far_pairs` keyframes that saw a far door or window `far_pair_min_deg` apart in bearing from another
+        (seen by it or by another keyframe of the window, `pairs`), the widest such pair matched to every pair of
+        same-type features of the model (`graph.far`); those explaining
         `far_min_explained` of the far sightings (`fractions`, `far_resection_sightings` of them, evenly drawn),
         one of each place (1 m, 5 deg), most explaining first. None is the registrar's answer: the walls choose
         (graph.judge), with the full margin (no landmark vouches for any of them). `far`: `in_map`. A flight that

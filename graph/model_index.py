@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from macroloc.graph.descriptor import DescriptorTables, build_tables, describe
 from macroloc.graph.features import FEATURE_TYPES, BuildingModel, MacroFeature
+from macroloc.graph.self_maps import SELF_MAPS_VERSION, SelfMaps, building_self_maps
 
 TYPE_SEPARATION_M = 1.0e4  # the type axis of the lifted k-d tree: farther than any real distance
 
@@ -41,6 +43,7 @@ class ModelIndex:
     edge_v: np.ndarray  # (N, 3) unit: corner3 - corner0 direction
     len_u: np.ndarray  # (N,) metres
     len_v: np.ndarray  # (N,)
+    normals: np.ndarray  # (N, 3) unit wall normal, CAD (its sign is a convention)
     tree_all: cKDTree  # all features, x y z
     tree_typed: cKDTree  # all features in (x, y, z, type code x 1e4 m): a same-type nearest neighbour in one query
     type_indices: dict[str, np.ndarray]
@@ -48,6 +51,7 @@ class ModelIndex:
     codes: np.ndarray  # (N,) uint64 paper descriptors
     _by_storey: dict[str, ModelIndex] = field(default_factory=dict, repr=False)
     _pairs: dict[float, FeaturePairs] = field(default_factory=dict, repr=False)
+    _self_maps: SelfMaps | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, features: list[MacroFeature], tables: DescriptorTables | None = None) -> ModelIndex:
@@ -64,7 +68,9 @@ class ModelIndex:
                    type_codes=np.array([FEATURE_TYPES.index(t) for t in types], dtype=np.int8),
                    storeys=np.array([str(f.storey) for f in features]),
                    edge_u=eu / np.maximum(lu, 1e-9)[:, None], edge_v=ev / np.maximum(lv, 1e-9)[:, None],
-                   len_u=lu, len_v=lv, tree_all=cKDTree(centroids),
+                   len_u=lu, len_v=lv,
+                   normals=np.array([f.normal_cad for f in features], dtype=float).reshape(-1, 3),
+                   tree_all=cKDTree(centroids),
                    tree_typed=cKDTree(np.concatenate([centroids, lifted], axis=1)),
                    type_indices=type_indices, tables=tables, codes=describe(centroids, list(types), tables))
 
@@ -81,6 +87,12 @@ class ModelIndex:
             v = self.centroids[j] - self.centroids[i]
             self._pairs[max_m] = FeaturePairs(i, j, v, np.linalg.norm(v[:, :2], axis=1), v[:, 2])
         return self._pairs[max_m]
+
+    def self_maps(self) -> SelfMaps:
+        """The building's near-self-maps (`graph.self_maps`), computed once per index."""
+        if self._self_maps is None:
+            self._self_maps = building_self_maps(self.centroids, self.normals, self.type_codes)
+        return self._self_maps
 
     def for_storey(self, storey: str | None) -> ModelIndex:
         """The index restricted to one storey (memoised); the whole building for None."""
@@ -119,5 +131,20 @@ def index_for(model: BuildingModel) -> ModelIndex:
         np.savez(tmp, dist_samples_m=index.tables.dist_samples_m, angle_samples_rad=index.tables.angle_samples_rad,
                  dist_edges_m=index.tables.dist_edges_m, angle_edges_rad=index.tables.angle_edges_rad)
         tmp.replace(path)
+    _load_self_maps(index, cache_dir() / f"selfmaps-v{SELF_MAPS_VERSION}-{key}.npz")
     _CACHE[model.sha256] = index
     return index
+
+
+def _load_self_maps(index: ModelIndex, path: Path) -> None:
+    """The building's self-maps from the disk cache at `path`, computed and written there when absent."""
+    try:
+        with np.load(path) as z:
+            index._self_maps = SelfMaps(z["yaw_rad"], z["shift_m"], z["votes"], z["lands"])
+            return
+    except (OSError, KeyError, ValueError):
+        pass
+    maps = index.self_maps()
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, yaw_rad=maps.yaw_rad, shift_m=maps.shift_m, votes=maps.votes, lands=maps.lands)
+    tmp.replace(path)

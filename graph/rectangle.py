@@ -71,3 +71,25 @@ def flip_normal(rect: Rectangle) -> Rectangle:
     """The same rectangle seen from the other side: normal negated, corner order kept as (-u,..) for u = z x n."""
     return Rectangle(rect.centroid, rect.corners[[1, 0, 3, 2]], -rect.normal, rect.width_m, rect.height_m,
                      rect.depth_m, rect.orientation)
+
+
+def unordered_edges(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Edge frames of R rectangles (R, 4, 3) whose corners come in any order: (a (R, 3), b (R, 3) unit and
+    orthogonal, their lengths la, lb (R,), closure (R, 3)).
+
+    Corner 0's diagonal partner is the corner k whose pairing closes best: |p0 + pk - pi - pj| is the sum of four
+    corners' noise for the true diagonal and twice a side's length for a wrong one (the farthest corner is not
+    safe: with noise, a 0.9 x 1.4 m window's long side and its diagonal, 1.4 and 1.66 m, can swap). The sides
+    are the averages of opposite edges; the unit pair is the nearest orthonormal one (polar decomposition)."""
+    p = np.asarray(corners, dtype=float).reshape(-1, 4, 3)
+    rows = np.arange(len(p))
+    pairings = np.array([[1, 2, 3], [2, 1, 3], [3, 1, 2]])  # (diagonal partner, the two beside it)
+    closures = np.stack([p[:, 0] + p[:, k] - p[:, i] - p[:, j] for k, i, j in pairings], axis=1)  # (R, 3, 3)
+    opp, i, j = pairings[np.argmin(np.linalg.norm(closures, axis=2), axis=1)].T
+    p0, pi, pj, po = p[:, 0], p[rows, i], p[rows, j], p[rows, opp]
+    e1, e2 = ((pi - p0) + (po - pj)) / 2.0, ((pj - p0) + (po - pi)) / 2.0
+    l1, l2 = np.linalg.norm(e1, axis=1), np.linalg.norm(e2, axis=1)
+    M = np.stack([e1 / np.maximum(l1, 1e-9)[:, None], e2 / np.maximum(l2, 1e-9)[:, None]], axis=2)
+    U, _, Vt = np.linalg.svd(M, full_matrices=False)
+    Q = U @ Vt
+    return Q[:, :, 0], Q[:, :, 1], l1, l2, p0 + po - pi - pj

@@ -5,10 +5,11 @@ descriptor changes whenever the observed neighbourhood differs from the model's 
 among the 5 nearest neighbours re-codes every feature around it). Here a single observed door or window
 rectangle already fixes a pose up to its symmetry (2 poses with gravity, 4–8 without), so every observed
 rectangle is tried against every CAD feature of the same type and compatible size; each hypothesis is
-verified by all observations (centroid within a tolerance of a CAD feature of the same type), the best are
-refined with all corners (yaw + translation when gravity is known, full SE(3) otherwise), and the best
-pose is only reported `localized` when no *different* pose explains the observations about as well (an MLESAC
-log-likelihood within `ambiguity_loglik_margin`; every hypothesis is searched for such a rival).
+verified by all observations (`graph.verify`: centroid, wall normal, width and height under an estimated noise
+model, false detections as an outlier process), the best are refined with all corners (yaw + translation when
+gravity is known, full SE(3) otherwise), and the best pose is only reported `localized` when no *different*
+pose comes within the rival margin (`rival_margin`); the rivals always scored include each seed observation's
+best pose and the best pose's images under the building's near-self-maps (`graph.self_maps`).
 
 Frames: observations in `map`, features in `cad`; gravity-aligned `map'` = R_g map with gravity -> -z.
 """
@@ -19,10 +20,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from macroloc.graph.features import FEATURE_TYPES
 from macroloc.graph.model_index import TYPE_SEPARATION_M, ModelIndex
 from macroloc.graph.observations import Observation, ObservationSet
+from macroloc.graph.rectangle import unordered_edges
 from macroloc.graph.registration_types import RegistrationResult, corner_correspondences, majority_storey
 from macroloc.graph.rigid import (
     apply,
@@ -33,8 +36,19 @@ from macroloc.graph.rigid import (
     weighted_rigid_fit,
     yaw_rigid_fit,
 )
+from macroloc.graph.verify import (
+    Noise,
+    ObservedShapes,
+    Verdict,
+    VerifyParams,
+    chance_term,
+    full_term,
+    observed_shapes,
+    verify,
+)
 
 GRAVITY_CAD = np.array([0.0, 0.0, -1.0])
+FITTED_CLOSURE_M = 1e-3  # a rectangle that closes this well was fitted, not measured: no sensor is this exact
 
 
 @dataclass(frozen=True)
@@ -51,7 +65,9 @@ class RobustParams:
     refine_iterations: int = 2
     gravity_tolerance_deg: float = 15.0
     ambiguity_tau_m: float = 0.30  # an observation farther than this from any CAD feature explains nothing
-    ambiguity_loglik_margin: float = 5.0  # a distinct pose this close in log-likelihood -> ambiguous (e^5 ~ 150x)
+    rival_self_maps: int = 8  # the best pose's self-map images (graph.self_maps) refined and scored as rivals
+    landing_alpha: float = 0.1  # the rival margin covers the chance landings of false detections but this often
+    seed_rivals: int = 3  # per seed observation, its best distinct coarse hypotheses verified for its best pose
     noise_floor_m: float = 0.05  # lower bound of the 3-D residual RMS used as the noise scale
     distinct_m: float = 0.5  # poses that move the matched observations by more than this are different ...
     distinct_deg: float = 5.0  # ... and so are poses whose rotations differ by more than this
@@ -64,7 +80,8 @@ class RobustParams:
     min_inlier_fraction: float = 0.35  # a pose explaining fewer of the observations is not trusted
     cross_type_weight: float = 0.5  # an observation on a feature of the other type (door/window confusion) counts half
     min_inliers: int = 3
-    min_inliers_without_gravity: int = 4  # 6 DoF from few noisy rectangles: ask for more support
+    min_inliers_without_gravity: int = 4  # 6 DoF: three centroids fit some pose anywhere; ask for more support ...
+    # ... unless every inlier is a rectangle, verified by its wall normal and sides (graph.verify): then min_inliers
     # Below this many inliers the answer is only candidates for other evidence (the walls) to choose among: then
     # they are every distinct hypothesis that explains as many observations as the best, or one fewer (down to
     # two), not the refined few (a building with many alike door pairs offers dozens, and the truth must be among
@@ -72,6 +89,7 @@ class RobustParams:
     # perception, at 3.2 s the truth explained two of three, wrong poses all three, and the walls, offered no true
     # pose, found one that fitted them at 0.90-0.92). 0: the refined few.
     complete_below: int = 0
+    verify: VerifyParams = VerifyParams()
     seed: int = 0
 
 
@@ -85,18 +103,10 @@ class _Rect:
 
 
 def rectangle_edges(corners: np.ndarray) -> _Rect:
-    """Edge frame of 4 rectangle corners given in any order (the diagonal of corner 0 is its farthest corner)."""
+    """Edge frame of 4 rectangle corners given in any order (`graph.rectangle.unordered_edges`)."""
     p = np.asarray(corners, dtype=float)
-    opp = 1 + int(np.argmax(np.linalg.norm(p[1:] - p[0], axis=1)))
-    i, j = [k for k in (1, 2, 3) if k != opp]
-    e1 = ((p[i] - p[0]) + (p[opp] - p[j])) / 2.0
-    e2 = ((p[j] - p[0]) + (p[opp] - p[i])) / 2.0
-    la, lb = float(np.linalg.norm(e1)), float(np.linalg.norm(e2))
-    # nearest orthonormal pair to (e1/la, e2/lb): polar decomposition of the 3x2 matrix
-    M = np.stack([e1 / max(la, 1e-9), e2 / max(lb, 1e-9)], axis=1)
-    U, _, Vt = np.linalg.svd(M, full_matrices=False)
-    Q = U @ Vt
-    return _Rect(p.mean(axis=0), Q[:, 0], Q[:, 1], la, lb)
+    a, b, la, lb, _ = unordered_edges(p[None])
+    return _Rect(p.mean(axis=0), a[0], b[0], float(la[0]), float(lb[0]))
 
 
 def _seed_hypotheses(rect: _Rect, cand: np.ndarray, index: ModelIndex, params: RobustParams,
@@ -269,6 +279,7 @@ class _Prepared:
     types: np.ndarray  # (N,) int8 codes into FEATURE_TYPES
     T_mp_m: np.ndarray  # map -> map'
     gravity_known: bool
+    shapes: ObservedShapes
 
 
 def _prepare(obs_set: ObservationSet) -> _Prepared:
@@ -276,8 +287,9 @@ def _prepare(obs_set: ObservationSet) -> _Prepared:
     R_g = rotation_aligning(obs_set.gravity_map, GRAVITY_CAD) if obs_set.gravity_map is not None else np.eye(3)
     obs = [Observation(o.type, R_g @ o.centroid_map, None if o.corners_map is None else o.corners_map @ R_g.T)
            for o in obs_set.observations]
-    return _Prepared(obs, np.array([o.centroid_map for o in obs]).reshape(-1, 3),
-                     _type_codes(np.array([o.type for o in obs])), make_T(R_g, np.zeros(3)), gravity_known)
+    types = _type_codes(np.array([o.type for o in obs]))
+    return _Prepared(obs, np.array([o.centroid_map for o in obs]).reshape(-1, 3), types, make_T(R_g, np.zeros(3)),
+                     gravity_known, observed_shapes(obs, types))
 
 
 @dataclass
@@ -286,11 +298,12 @@ class _Hypotheses:
     t: np.ndarray  # (H, 3)
     moved: np.ndarray  # (H, N, 3) observed centroids under each hypothesis, CAD
     coarse: np.ndarray  # (H,) coarse support
+    seed: np.ndarray  # (H,) the observation whose hypothesis it is
 
     def extend(self, other: _Hypotheses) -> _Hypotheses:
         return _Hypotheses(*(np.concatenate([a, b]) for a, b in
-                             zip((self.R, self.t, self.moved, self.coarse),
-                                 (other.R, other.t, other.moved, other.coarse), strict=True)))
+                             zip((self.R, self.t, self.moved, self.coarse, self.seed),
+                                 (other.R, other.t, other.moved, other.coarse, other.seed), strict=True)))
 
 
 def _coarse(seed: int, prep: _Prepared, index: ModelIndex, params: RobustParams) -> _Hypotheses:
@@ -320,7 +333,8 @@ def _coarse(seed: int, prep: _Prepared, index: ModelIndex, params: RobustParams)
     d_same, _ = _nearest_same_type(moved, types_near, index, upper_m=tau_p)
     d_any, _ = index.tree_all.query(moved, distance_upper_bound=tau_p)
     support = np.maximum(_support(d_same, tau_p), params.cross_type_weight * _support(d_any, tau_p)).sum(axis=-1)
-    return _Hypotheses(R, t, np.einsum("hij,nj->hni", R, prep.centroids) + t[:, None, :], support)
+    return _Hypotheses(R, t, np.einsum("hij,nj->hni", R, prep.centroids) + t[:, None, :], support,
+                       np.full(len(R), seed, dtype=int))
 
 
 def _pair_hypotheses(seed: int, prep: _Prepared, index: ModelIndex,
@@ -381,12 +395,6 @@ def _polish(R: np.ndarray, t: np.ndarray, centroids: np.ndarray, gravity_known: 
     return np.where(ok[:, None, None], R_new, R), np.where(ok[:, None], t_new, t)
 
 
-def _distinct(a: _Pose, b: _Pose, anchor: np.ndarray, params: RobustParams) -> bool:
-    """Two poses are different when they move the anchor points apart or differ in rotation."""
-    moved_apart = np.linalg.norm(apply(a.T, anchor) - apply(b.T, anchor), axis=1).mean() > params.distinct_m
-    return bool(moved_apart or rotation_angle_deg(a.T[:3, :3] @ b.T[:3, :3].T) > params.distinct_deg)
-
-
 def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustParams) -> RegistrationResult:
     """Hypothesise from observed rectangles, verify, refine, and answer only when no rival pose is as good."""
     prep = _prepare(obs_set)
@@ -398,7 +406,7 @@ def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustPa
         return RegistrationResult("not_localized", None, [], 0, None, diagnostics={
             "reason": "no observed door/window rectangle (centroid-only observations need gravity)"})
     seeds = np.random.default_rng(params.seed).permutation(rect_ids)[: params.max_seeds]
-    hyps = _Hypotheses(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, n, 3)), np.zeros(0))
+    hyps = _Hypotheses(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, n, 3)), np.zeros(0), np.zeros(0, int))
     poses: list[_Pose] = []
     used = 0
     for start in range(0, len(seeds), params.min_seeds):
@@ -410,16 +418,52 @@ def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustPa
         top = _distinct_top(np.argsort(-hyps.coarse, kind="stable")[: params.scan_top], hyps.moved, params)
         poses = sorted((_refine(make_T(hyps.R[h], hyps.t[h]), prep.obs, prep.centroids, prep.types, index, params,
                                 prep.gravity_known) for h in top), key=lambda p: -p.score)
-        if poses[0].inliers.sum() >= params.early_stop_fraction * n:
+        noise = _prior_noise(poses[0], prep, index, params)
+        if max(_verify(p.T, prep, index, noise, params).n_inliers for p in poses[:3]) >= params.early_stop_fraction * n:
             break  # well supported; its symmetric rivals come from the same seeds
     return _decide(poses, hyps, prep, index, params, {"hypotheses": int(len(hyps.R)), "seeds": used})
 
 
 def _rms(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams) -> float:
-    """RMS distance, metres, of the observations a pose explains (same type, within ambiguity_tau_m)."""
+    """RMS distance, metres, of the observations a pose explains (same type, within ambiguity_tau_m), corrected
+    for the degrees of freedom the pose was fitted with (4 with gravity, 6 without; 3 residuals an observation):
+    from a few observations the fitted pose absorbs much of the noise, and the noise model must not shrink."""
     d, _ = _nearest_same_type(apply(T, prep.centroids), prep.types, index, upper_m=params.ambiguity_tau_m)
     d = d[np.isfinite(d)]
-    return float(np.sqrt(np.mean(d * d))) if len(d) else np.inf
+    dof = 4 if prep.gravity_known else 6
+    if 3 * len(d) <= dof:
+        return np.inf
+    return float(np.sqrt(np.sum(d * d) / (len(d) - dof / 3.0)))
+
+
+def _prior_noise(first: _Pose, prep: _Prepared, index: ModelIndex, params: RobustParams) -> Noise:
+    """The noise model before a pose is chosen: from the rectangles' closure where three or more were observed (it
+    needs no pose, so a wrong first pose cannot loosen it), else from the RMS residual of the `first` pose
+    (`_rms`); never below noise_floor_m. A closure below `FITTED_CLOSURE_M` is a fitted rectangle's (the pose
+    graph's landmarks are one: its graph pose and the median of its sightings' sides), which shows no noise: then
+    the residual too."""
+    if prep.shapes.has_rect.sum() >= 3 and prep.shapes.corner_sigma_m > FITTED_CLOSURE_M:
+        s = prep.shapes.corner_sigma_m * np.sqrt(3.0) / 2.0
+    else:
+        rms = _rms(first.T, prep, index, params)
+        s = rms if np.isfinite(rms) else params.ambiguity_tau_m / 3.0
+    return Noise.from_rms(max(s, params.noise_floor_m), params.verify, prep.shapes.corner_sigma_m)
+
+
+def _verify(T: np.ndarray, prep: _Prepared, index: ModelIndex, noise: Noise, params: RobustParams) -> Verdict:
+    """`graph.verify.verify` of the pose T (map' -> CAD) on the prepared observations."""
+    return verify(T, prep.shapes, index, noise, params.ambiguity_tau_m, params.cross_type_weight, params.verify)
+
+
+def _matched_rms(T: np.ndarray, verdict: Verdict, prep: _Prepared, index: ModelIndex) -> float:
+    """RMS centroid distance, metres, of a pose's inliers to their matched features, corrected for the pose's
+    degrees of freedom as `_rms`; 0 where too few."""
+    d = np.linalg.norm(apply(T, prep.centroids[verdict.inlier]) - index.centroids[verdict.match[verdict.inlier]],
+                       axis=1)
+    dof = 4 if prep.gravity_known else 6
+    if 3 * len(d) <= dof:
+        return 0.0
+    return float(np.sqrt(np.sum(d * d) / (len(d) - dof / 3.0)))
 
 
 def _rival_candidates(best: _Pose, hyps: _Hypotheses, prep: _Prepared, index: ModelIndex,
@@ -440,48 +484,179 @@ def _rival_candidates(best: _Pose, hyps: _Hypotheses, prep: _Prepared, index: Mo
 
 def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: ModelIndex, params: RobustParams,
             diag: dict) -> RegistrationResult:
-    """The best pose, unless a different pose is about as likely (MLESAC log-likelihood within a margin)."""
+    """The best pose by verification (`graph.verify`), unless a different pose comes within the rival margin
+    (`rival_margin`): then 'ambiguous' with the rivals listed. The rivals always scored: the refined candidates,
+    the best pose of each seed observation's own hypotheses, and every self-map image of the best pose that maps
+    at least half of its matches (`graph.self_maps`)."""
     n = len(prep.obs)
     if not poses:
         return RegistrationResult("not_localized", None, [], 0, None, diagnostics=diag)
     first = poses[0]
-    extra = [_refine(make_T(hyps.R[h], hyps.t[h]), prep.obs, prep.centroids, prep.types, index, params,
-                     prep.gravity_known) for h in _rival_candidates(first, hyps, prep, index, params)]
-    candidates = poses + extra
-    s2 = max(_rms(first.T, prep, index, params) ** 2, params.noise_floor_m**2)  # 3-D residual variance
-    ll = [_loglik(p.T, prep, index, params, s2) for p in candidates]
-    best = candidates[int(np.argmax(ll))]
-    n_best = int(best.inliers.sum())
-    diag.update(best_support=round(best.score, 3), best_inliers=n_best, best_loglik=round(max(ll), 2),
-                noise_rms_m=round(float(np.sqrt(s2)), 4))
-    min_inliers = params.min_inliers if prep.gravity_known else params.min_inliers_without_gravity
+    noise = _prior_noise(first, prep, index, params)
+    judge = lambda T: _verify(T, prep, index, noise, params)  # noqa: E731
+    candidates = poses + [_refine(make_T(hyps.R[h], hyps.t[h]), prep.obs, prep.centroids, prep.types, index, params,
+                                  prep.gravity_known) for h in _rival_candidates(first, hyps, prep, index, params)]
+    candidates += _seed_bests(first, hyps, prep, index, params, judge)
+    verdicts = [judge(p.T) for p in candidates]
+    k_best = int(np.argmax([v.loglik for v in verdicts]))
+    best, v_best = candidates[k_best], verdicts[k_best]
+    for p in _self_map_images(best.T, v_best, prep, index, params):
+        candidates.append(p)
+        verdicts.append(judge(p.T))
+    k_best = int(np.argmax([v.loglik for v in verdicts]))
+    # the noise model again, from the best pose's own matches (the first guess took any near feature), and every
+    # candidate judged by it
+    prior = noise
+    noise = Noise.from_rms(max(_matched_rms(candidates[k_best].T, verdicts[k_best], prep, index), params.noise_floor_m),
+                           params.verify, prep.shapes.corner_sigma_m)
+    if abs(noise.centroid_rms_m - prior.centroid_rms_m) > 0.05 * prior.centroid_rms_m:  # else the same verdicts
+        verdicts = [judge(p.T) for p in candidates]
+    k_best = int(np.argmax([v.loglik for v in verdicts]))
+    best, v_best = candidates[k_best], verdicts[k_best]
+    n_best = v_best.n_inliers
+    margin = rival_margin(v_best, prep, index, noise, params)
+    diag.update(best_support=round(best.score, 3), best_inliers=n_best, best_loglik=round(v_best.loglik, 2),
+                noise_rms_m=round(noise.centroid_rms_m, 4), rival_margin=round(margin(n_best), 2),
+                rivals_scored=len(candidates))
+    all_rects = bool(v_best.inlier.any() and prep.shapes.has_rect[v_best.inlier].all())
+    min_inliers = params.min_inliers if prep.gravity_known or all_rects else params.min_inliers_without_gravity
     if n_best < max(min_inliers, params.min_inlier_fraction * n):
         return RegistrationResult("not_localized", None, [], n_best, None, diagnostics=diag)
-    anchor = prep.centroids[best.inliers]
-    rivals = [(lp, p) for lp, p in zip(ll, candidates, strict=True) if _distinct(best, p, anchor, params)]
-    ll_rival, rival = max(rivals, key=lambda r: r[0]) if rivals else (-np.inf, None)
-    diag.update(rival_loglik=round(float(ll_rival), 2) if rival is not None else None,
-                rival_inliers=int(rival.inliers.sum()) if rival is not None else 0)
-    pairs = [(int(i), int(best.match[i])) for i in np.flatnonzero(best.inliers)]
+    anchor = prep.centroids[v_best.inlier]
+    scored = sorted(zip(verdicts, candidates, strict=True), key=lambda vp: -vp[0].loglik)
+    rivals = [(v, p) for v, p in scored if p is not best and _distinct_T(best.T, p.T, anchor, params)]
+    close: list[tuple[Verdict, _Pose]] = []
+    for v, p in rivals:  # the rivals within the margin, each pose once
+        if v.loglik >= v_best.loglik - margin(v.n_inliers) \
+                and all(_distinct_T(q.T, p.T, anchor, params) for _, q in close):
+            close.append((v, p))
+    diag.update(rival_loglik=round(rivals[0][0].loglik, 2) if rivals else None,
+                rival_inliers=rivals[0][0].n_inliers if rivals else 0)
+    pairs = [(int(i), int(v_best.match[i])) for i in np.flatnonzero(v_best.inlier)]
     T_cad_map = best.T @ prep.T_mp_m
-    distinct: list[_Pose] = []
-    for p in [best] + sorted(candidates, key=lambda c: -int(c.inliers.sum())):
-        if p.inliers.sum() >= min_inliers and all(_distinct(q, p, anchor, params) for q in distinct):
-            distinct.append(p)
-    candidate_poses = [(q.T @ prep.T_mp_m, int(q.inliers.sum())) for q in distinct]
+    distinct: list[np.ndarray] = []
+    candidate_poses: list[tuple[np.ndarray, int]] = []
+    for v, p in [(v_best, best)] + sorted(zip(verdicts, candidates, strict=True), key=lambda vp: -vp[0].n_inliers):
+        if v.n_inliers >= min_inliers and all(_distinct_T(q, p.T, anchor, params) for q in distinct):
+            distinct.append(p.T)
+            candidate_poses.append((p.T @ prep.T_mp_m, v.n_inliers))
     if n_best < params.complete_below:
-        kept = [(q.T[:3, :3], apply(q.T, prep.centroids)) for q in distinct]
+        kept = [(T[:3, :3], apply(T, prep.centroids)) for T in distinct]
         candidate_poses += [(make_T(hyps.R[h], hyps.t[h]) @ prep.T_mp_m, n_best)
                             for h in _alike_hypotheses(hyps, max(2, n_best - 1), kept, prep, index, params)]
     storey = majority_storey(index, [j for _, j in pairs])
     matches = [(i, index.features[j].id) for i, j in pairs]
-    if rival is not None and ll_rival >= max(ll) - params.ambiguity_loglik_margin:
-        diag["rival_storey"] = majority_storey(index, [int(rival.match[i]) for i in np.flatnonzero(rival.inliers)])
+    if close:
+        v_r = close[0][0]
+        diag["rival_storey"] = majority_storey(index, [int(j) for j in v_r.match[v_r.inlier]])
         # No matches: they would name one of the competing poses' features as if it were known.
         return RegistrationResult("ambiguous", T_cad_map, [], n_best, storey,
-                                  alternatives=[rival.T @ prep.T_mp_m], diagnostics=diag, candidates=candidate_poses)
+                                  alternatives=[p.T @ prep.T_mp_m for _, p in close], diagnostics=diag,
+                                  candidates=candidate_poses)
     return RegistrationResult("localized", T_cad_map, matches, n_best, storey, diagnostics=diag,
                               candidates=candidate_poses)
+
+
+@dataclass(frozen=True)
+class RivalMargin:
+    """`rival_margin`'s rule for one best pose: the worth of the chance landings, and the spread per rival."""
+
+    landings: float  # k times the best pose's mean term
+    dof: int  # d
+    best_inliers: int  # n_best
+
+    def __call__(self, rival_inliers: int) -> float:
+        return self.landings + 2.0 * float(np.sqrt(self.dof / 2.0 * (self.best_inliers + rival_inliers)))
+
+
+def rival_margin(best: Verdict, prep: _Prepared, index: ModelIndex, noise: Noise, params: RobustParams
+                 ) -> RivalMargin:
+    """The log-likelihood a different pose explaining n_rival observations must stay below the best's for the
+    answer to be 'localized': `rival_margin(...)(n_rival)`.
+
+    Rule: the worth of k of the best pose's explained observations (their mean term), plus twice the spread that
+    noise alone gives the difference of the two poses' log-likelihoods (each explained observation's term varies
+    as half a chi-square with d dof, variance d / 2, independently: sd sqrt(d / 2 (n_best + n_rival)), d = 6 for
+    a rectangle: 3 position, 1 normal, 2 sides; 3 for a centroid), k the number of false
+    detections landing on a feature of their type by chance that is exceeded with probability `landing_alpha` at
+    most (a Poisson count of mean mu): a pose that beats its rival only by such landings is not known (a storey
+    pair turned 180 degrees, one door more in one of them, a false detection on it). A wrong answer needs, besides,
+    a rival that explains the true observations as well (a self-map): alpha bounds only the landings.
+    mu = eps n p: of the n observations eps n are false detections (the verification's prior), and detectors fire
+    on walls, as the features sit on walls, so one lands within the position gate (radius r, from the noise
+    model) of a feature of its type with probability p = 2 r / L, L the spacing of same-type features around the
+    observations (the median distance of each to its nearest same-type neighbour, in plan). The margin grows
+    with the noise (through r) and with the number of observations (through mu and the spread)."""
+    n = len(prep.obs)
+    dof = 6 if best.inlier.any() and prep.shapes.has_rect[best.inlier].mean() >= 0.5 else 3
+    if best.n_inliers < 2:
+        return RivalMargin(full_term(bool(prep.shapes.has_rect.mean() >= 0.5) if n else False, params.verify),
+                           dof, 0)
+    unit = best.loglik / best.n_inliers
+    matched = index.centroids[best.match[best.inlier]]  # the footprint, CAD: the matched features and around
+    lo, hi = matched.min(axis=0) - [1.0, 1.0, 1.5], matched.max(axis=0) + [1.0, 1.0, 1.5]
+    around = np.flatnonzero(np.all((index.centroids >= lo) & (index.centroids <= hi), axis=1))
+    spacing = []
+    for code in np.unique(index.type_codes[around]):
+        mine = index.centroids[around[index.type_codes[around] == code], :2]
+        if len(mine) >= 2:
+            spacing.append(cKDTree(mine).query(mine, k=2)[0][:, 1])
+    gate_m = noise.position_gate_m(params.verify)
+    spacing_m = max(float(np.median(np.concatenate(spacing))), 2.0 * gate_m) if spacing else np.inf
+    mu = params.verify.false_detection_rate * n * 2.0 * gate_m / spacing_m  # no alike feature around: 0
+    landing = min(unit, chance_term(dof == 6, params.verify))  # what a chance landing adds, at most the mean
+    return RivalMargin(_poisson_quantile(mu, params.landing_alpha) * landing, dof, best.n_inliers)
+
+
+def _poisson_quantile(mu: float, alpha: float) -> int:
+    """The smallest k with P(N > k) <= alpha for N ~ Poisson(mu)."""
+    k, p, cdf = 0, np.exp(-mu), np.exp(-mu)
+    while 1.0 - cdf > alpha:
+        k += 1
+        p *= mu / k
+        cdf += p
+    return k
+
+
+def _distinct_T(A: np.ndarray, B: np.ndarray, anchor: np.ndarray, params: RobustParams) -> bool:
+    """Two poses (4x4) are different when they move the anchor points apart or differ in rotation."""
+    moved_apart = np.linalg.norm(apply(A, anchor) - apply(B, anchor), axis=1).mean() > params.distinct_m
+    return bool(moved_apart or rotation_angle_deg(A[:3, :3] @ B[:3, :3].T) > params.distinct_deg)
+
+
+def _seed_bests(first: _Pose, hyps: _Hypotheses, prep: _Prepared, index: ModelIndex, params: RobustParams,
+                judge) -> list[_Pose]:
+    """Per seed observation: among its best distinct coarse hypotheses (`seed_rivals`, different from `first`), the
+    one the verification prefers, refined (a pose that centroid coincidences outrank is still scored)."""
+    out = []
+    anchor = prep.centroids
+    for seed in np.unique(hyps.seed):
+        own = np.flatnonzero(hyps.seed == seed)
+        order = own[np.argsort(-hyps.coarse[own], kind="stable")][: params.scan_top]
+        kept = [(first.T[:3, :3], apply(first.T, anchor))]
+        top = _distinct_top(order, hyps.moved, params, rotations=hyps.R, kept=kept, limit=params.seed_rivals)
+        if not top:
+            continue
+        h = max(top, key=lambda k: judge(make_T(hyps.R[k], hyps.t[k])).loglik)
+        out.append(_refine(make_T(hyps.R[h], hyps.t[h]), prep.obs, prep.centroids, prep.types, index, params,
+                           prep.gravity_known))
+    return out
+
+
+def _self_map_images(T: np.ndarray, verdict: Verdict, prep: _Prepared, index: ModelIndex,
+                     params: RobustParams) -> list[_Pose]:
+    """S @ T, refined, for the building's self-maps S that put at least half of the pose's matched features onto
+    alike ones (the most such first, `rival_self_maps` of them)."""
+    maps = index.self_maps()
+    matched = verdict.match[verdict.inlier]
+    if not len(maps.votes) or len(matched) < 2:
+        return []
+    count = maps.lands[:, matched].sum(axis=1)
+    order = np.argsort(-count, kind="stable")
+    order = order[count[order] >= max(2, len(matched) / 2.0)][: params.rival_self_maps]
+    S_all = maps.transforms()
+    return [_refine(S_all[m] @ T, prep.obs, prep.centroids, prep.types, index, params, prep.gravity_known)
+            for m in order]
 
 
 def _alike_hypotheses(hyps: _Hypotheses, n_explained: int, kept: list[tuple[np.ndarray, np.ndarray]],
@@ -494,16 +669,3 @@ def _alike_hypotheses(hyps: _Hypotheses, n_explained: int, kept: list[tuple[np.n
     order = np.argsort(-hyps.coarse, kind="stable")
     order = order[np.isfinite(d[order]).sum(axis=1) >= n_explained]
     return _distinct_top(order, hyps.moved, params, rotations=hyps.R, kept=kept, limit=len(order))
-
-
-def _loglik(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams, s2: float) -> float:
-    """MLESAC-style log-likelihood ratio of a pose against 'every observation is an outlier': each observation
-    within ambiguity_tau_m of a CAD feature adds (tau^2 - d^2) / (2 s^2) (zero at the tolerance, so an outlier and
-    a barely-explained observation weigh the same); one explained only by a feature of the other type adds
-    cross_type_weight times that."""
-    tau = params.ambiguity_tau_m
-    moved = apply(T, prep.centroids)
-    d_same, _ = _nearest_same_type(moved, prep.types, index, upper_m=tau)
-    d_any, _ = index.tree_all.query(moved, distance_upper_bound=tau)
-    term = lambda d: np.where(d < tau, (tau * tau - np.minimum(d, tau) ** 2) / (2.0 * s2), 0.0)  # noqa: E731
-    return float(np.maximum(term(d_same), params.cross_type_weight * term(d_any)).sum())

@@ -33,15 +33,16 @@ class LocalizeConfig(_Section):
 
     method: Literal["robust", "paper"] = Field("robust", description="'paper' = the paper's algorithm exactly")
     inlier_threshold_m: float = Field(0.30, description="centroid residual under which a match is an inlier, m")
-    ambiguity_loglik_margin: float = Field(
-        5.0, description="a different pose within this log-likelihood of the best makes the answer 'ambiguous'")
+    landing_alpha: float = Field(
+        0.1, description="a different pose within the rival margin of the best makes the answer 'ambiguous'; the "
+                         "margin covers the false detections' chance landings on features but this often")
     min_inliers: int = Field(3, description="fewer explained observations than this (4 without gravity): "
                                             "not_localized")
     seed: int = Field(0, description="random seed of the hypothesis order (deterministic answers)")
 
     def robust_params(self) -> dict:
         """Keyword arguments for graph.registration.register(method='robust')."""
-        return dict(inlier_threshold_m=self.inlier_threshold_m, ambiguity_loglik_margin=self.ambiguity_loglik_margin,
+        return dict(inlier_threshold_m=self.inlier_threshold_m, landing_alpha=self.landing_alpha,
                     min_inliers=self.min_inliers, seed=self.seed)
 
 

@@ -95,3 +95,29 @@ def test_too_few_bearings_leave_the_pose_as_it_is() -> None:
     out, sigmas = refined_by_bearings(T, CAMERA_CAD[None], FEATURES[1][None], np.array(["door"]),
                                       {"door": FEATURES}, np.radians(0.5), sigma_m, np.radians(3.0))
     assert sigmas is None and np.array_equal(out, T)
+
+
+@settings(max_examples=30, deadline=None)
+@given(yaw=st.floats(-np.pi, np.pi), tx=st.floats(-20, 20), ty=st.floats(-20, 20),
+       range_error=st.floats(-1.0, 1.0))
+def test_two_far_doors_27_degrees_apart_resect_the_true_pose(yaw: float, tx: float, ty: float,
+                                                             range_error: float) -> None:
+    """Two doors 7.5 m and 13.1 m away and 27 deg apart in bearing (issue 38's flight), their ranges off by up
+    to one sigma: the true pose is among the candidates."""
+    bearing = np.radians([0.0, 27.0])
+    ranges = np.array([7.5, 13.1])
+    pair = CAMERA_CAD + np.column_stack([ranges * np.cos(bearing), ranges * np.sin(bearing), [-0.3, -0.3]])
+    features = np.vstack([FEATURES, pair])
+    T_cad_map = make_T(rot_z(yaw), np.array([tx, ty, 0.5]))
+    T_map_cad = np.linalg.inv(T_cad_map)
+    seen = [CAMERA_CAD + (f - CAMERA_CAD) * (1 + range_error * sigma_m(r) / r) for f, r in zip(pair, ranges,
+                                                                                                  strict=True)]
+    camera_map = apply(T_map_cad, CAMERA_CAD[None])[0]
+    candidates = resection_candidates(camera_map, apply(T_map_cad, np.array(seen)), features, features, sigma_m,
+                                      same_features=True)
+    assert len(candidates)
+    placed = np.einsum("hij,j->hi", candidates[:, :3, :3], camera_map) + candidates[:, :3, 3]
+    off_m = np.linalg.norm(placed - CAMERA_CAD, axis=1)
+    k = int(np.argmin(off_m))
+    assert off_m[k] <= 1.2 * abs(range_error) * float(sigma_m(13.1)) + 0.02
+    assert rotation_angle_deg(candidates[k][:3, :3] @ T_cad_map[:3, :3].T) < 3.0

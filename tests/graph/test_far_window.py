@@ -62,7 +62,11 @@ def test_a_pair_counts_only_where_its_bearings_are_far_enough_apart() -> None:
     T_cad_map, T_map_bodies = flight(0.0, 0.0, 0.0)
     far = window(T_cad_map, T_map_bodies, [[1, 3], [1], [0, 4]])
     pairs = far.pairs()
-    assert [kinds for _, kinds, _ in pairs] == [("door", "door")] * 2  # keyframes 0 and 2; 1 saw one door
+    # keyframe 1 saw one door: it pairs with a door another keyframe saw (two need not be in view at once)
+    assert [kinds for _, kinds, _ in pairs] == [("door", "door")] * 3
+    door_1_map = apply(np.linalg.inv(T_cad_map), DOORS_CAD[1][None])[0]
+    assert np.any(np.linalg.norm(pairs[1][2] - door_1_map, axis=1) < 1e-9)
+    assert not np.allclose(pairs[1][2][0], pairs[1][2][1])
     apart = window(T_cad_map, T_map_bodies, [[1, 3], [], []], FarParams(far_pair_min_deg=60.0)).pairs()
     assert apart == []  # doors 1 and 3 are 53 deg apart from (4, 3)
 
@@ -88,6 +92,20 @@ def test_two_far_doors_seen_from_one_keyframe_resect_the_pose(yaw: float, tx: fl
     far = window(T_cad_map, T_map_bodies, [[1, 3], [1, 3], [1, 3]])
     result = far.resected(far.in_map())
     assert result.status == "ambiguous" and result.T_cad_map is None  # the walls choose, not the resection
+    off = [(np.linalg.norm(T[:3, 3] - T_cad_map[:3, 3]), rotation_angle_deg(T[:3, :3] @ T_cad_map[:3, :3].T))
+           for T, _ in result.candidates]
+    assert min(m + d for m, d in off) < 0.05
+
+
+@settings(max_examples=15, deadline=None)
+@given(yaw=st.floats(-np.pi, np.pi), tx=st.floats(-20, 20), ty=st.floats(-20, 20))
+def test_two_far_doors_seen_from_different_keyframes_resect_the_pose(yaw: float, tx: float, ty: float) -> None:
+    """Door 1 seen by keyframes 0 and 1, door 3 by keyframe 2 only (never both in one view): the true pose is
+    among the resection's places."""
+    T_cad_map, T_map_bodies = flight(yaw, tx, ty)
+    far = window(T_cad_map, T_map_bodies, [[1], [1], [3]])
+    result = far.resected(far.in_map())
+    assert result.status == "ambiguous" and result.candidates
     off = [(np.linalg.norm(T[:3, 3] - T_cad_map[:3, 3]), rotation_angle_deg(T[:3, :3] @ T_cad_map[:3, :3].T))
            for T, _ in result.candidates]
     assert min(m + d for m, d in off) < 0.05

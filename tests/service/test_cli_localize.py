@@ -49,7 +49,8 @@ def test_localize_end_to_end_on_a_real_ifc(tmp_path: Path, capsys, office_path: 
                            capsys)
         doc = json.loads(out)
         assert rc == 0 and err == ""
-        assert set(doc) >= {"status", "T_cad_map", "matches", "inliers", "storey", "elapsed_ms"}
+        assert set(doc) >= {"status", "T_cad_map", "matches", "inliers", "storey", "elapsed_ms", "total_ms"}
+        assert 0.0 < doc["elapsed_ms"] <= doc["total_ms"]  # the registration alone, inside the whole command
         if method == "robust":
             assert doc["status"] == "localized" and doc["storey"] == "Level 2"
             assert np.allclose(np.array(doc["T_cad_map"]) @ T, np.eye(4), atol=1e-4)
@@ -67,6 +68,16 @@ def test_localize_takes_the_config_files_localize_section(tmp_path: Path, capsys
     base = ["localize", str(office_path), "--observations", str(obs), "--json"]
     assert json.loads(run(base, capsys)[1])["status"] == "localized"
     assert json.loads(run([*base, "--config", str(config)], capsys)[1])["status"] == "not_localized"
+def test_the_configured_registration_parameters_are_the_registrations(office_model) -> None:
+    """`LocalizeConfig.robust_params()` names only parameters the robust registration takes."""
+    from macroloc.graph.observations import parse_observations
+    from macroloc.graph.registration import register
+    from macroloc.service.config import LocalizeConfig
+
+    T = random_T(np.random.default_rng(2), yaw_only=True)
+    obs = parse_observations(obs_doc(office_model, np.linalg.inv(T), "Level 2"))
+    assert register(office_model, obs, **LocalizeConfig().robust_params()).status in ("localized", "ambiguous")
+
 
 BAD_INPUTS = {
     "missing file": None,
