@@ -574,8 +574,8 @@ def rival_margin(best: Verdict, prep: _Prepared, index: ModelIndex, noise: Noise
     """The log-likelihood a different pose explaining n_rival observations must stay below the best's for the
     answer to be 'localized': `rival_margin(...)(n_rival)`.
 
-    Rule: the worth of k of the best pose's explained observations (their mean term), plus twice the spread that
-    noise alone gives the difference of the two poses' log-likelihoods (each explained observation's term varies
+    Rule: the worth of k chance landings (`graph.verify.chance_term`, at most the best pose's mean term), plus
+    twice the spread that noise alone gives the difference of the two poses' log-likelihoods (each explained observation's term varies
     as half a chi-square with d dof, variance d / 2, independently: sd sqrt(d / 2 (n_best + n_rival)), d = 6 for
     a rectangle: 3 position, 1 normal, 2 sides; 3 for a centroid), k the number of false
     detections landing on a feature of their type by chance that is exceeded with probability `landing_alpha` at
