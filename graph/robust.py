@@ -575,9 +575,10 @@ def rival_margin(best: Verdict, prep: _Prepared, index: ModelIndex, noise: Noise
     answer to be 'localized': `rival_margin(...)(n_rival)`.
 
     Rule: the worth of k chance landings (`graph.verify.chance_term`, at most the best pose's mean term), plus
-    twice the spread that noise alone gives the difference of the two poses' log-likelihoods (each explained observation's term varies
-    as half a chi-square with d dof, variance d / 2, independently: sd sqrt(d / 2 (n_best + n_rival)), d = 6 for
-    a rectangle: 3 position, 1 normal, 2 sides; 3 for a centroid), k the number of false
+    twice the spread that noise alone gives the difference of the two poses' log-likelihoods (each explained
+    observation's term varies as half a chi-square with d dof, variance d / 2, independently: sd
+    sqrt(d / 2 (n_best + n_rival)), d = 6 for a rectangle: 3 position, 1 normal, 2 sides; 3 for a centroid), k the
+    number of false
     detections landing on a feature of their type by chance that is exceeded with probability `landing_alpha` at
     most (a Poisson count of mean mu): a pose that beats its rival only by such landings is not known (a storey
     pair turned 180 degrees, one door more in one of them, a false detection on it). A wrong answer needs, besides,
