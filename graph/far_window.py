@@ -75,10 +75,11 @@ class FarSightings:
         return np.array(kinds), np.vstack(cameras), np.vstack(centroids)
 
     def pairs(self) -> list[tuple[np.ndarray, tuple[str, str], np.ndarray]]:
-        """Per keyframe of the window, oldest first, the widest pair in horizontal bearing from its camera of one
-        of its own far sightings and any far sighting of the window (its own, or another keyframe's taken into
-        the map frame at that keyframe's estimate: two doors need not be in view at once), where that is
-        `far_pair_min_deg` or more: (camera (3,), their types, their centroids (2, 3)), map frame."""
+        """Per keyframe of the window, oldest first, the widest pair in horizontal bearing from its camera of its
+        own far sightings where that is `far_pair_min_deg` or more: (camera (3,), their types, their centroids
+        (2, 3)), map frame. Where no keyframe has such a pair, one of its own sightings with any other of the
+        window (another keyframe's, taken into the map frame at that keyframe's estimate: two doors need not be in
+        view at once); a pair seen from one camera pose goes first, as it carries no odometry drift."""
         seen = []
         for i, kinds, centroids_body in self._window:
             T_map_body = self._T_map_body(i)
@@ -88,18 +89,23 @@ class FarSightings:
             return []
         all_centroids = np.vstack([c for _, _, _, c in seen])
         owner = np.concatenate([np.full(len(kinds), i) for i, _, kinds, _ in seen])
-        pairs = []
-        for i, camera, _, _ in seen:
-            own = np.flatnonzero(owner == i)
-            if not len(own):
-                continue
-            bearing = np.arctan2(all_centroids[:, 1] - camera[1], all_centroids[:, 0] - camera[0])
-            apart = np.abs((bearing[own][:, None] - bearing[None] + np.pi) % (2 * np.pi) - np.pi)
-            a_own, b = (int(v) for v in np.unravel_index(int(np.argmax(apart)), apart.shape))
-            if apart[a_own, b] >= np.radians(self.params.far_pair_min_deg):
-                a = int(own[a_own])
-                pairs.append((camera, (all_kinds[a], all_kinds[b]), all_centroids[np.array([a, b])]))
-        return pairs
+        min_rad = np.radians(self.params.far_pair_min_deg)
+        for across in (False, True):
+            pairs = []
+            for i, camera, _, _ in seen:
+                own = np.flatnonzero(owner == i)
+                other = np.arange(len(owner)) if across else own
+                if not len(own) or len(other) < 2:
+                    continue
+                bearing = np.arctan2(all_centroids[:, 1] - camera[1], all_centroids[:, 0] - camera[0])
+                apart = np.abs((bearing[own][:, None] - bearing[other][None] + np.pi) % (2 * np.pi) - np.pi)
+                a_own, b_other = (int(v) for v in np.unravel_index(int(np.argmax(apart)), apart.shape))
+                if apart[a_own, b_other] >= min_rad:
+                    a, b = int(own[a_own]), int(other[b_other])
+                    pairs.append((camera, (all_kinds[a], all_kinds[b]), all_centroids[np.array([a, b])]))
+            if pairs:
+                return pairs
+        return []
 
     def fractions(self, T_cad_map: np.ndarray, far: FarMap) -> np.ndarray:
         """The fraction of the far sightings `far` (`in_map`) that each of H poses T_cad_map (H, 4, 4) explains as

@@ -62,13 +62,22 @@ def test_a_pair_counts_only_where_its_bearings_are_far_enough_apart() -> None:
     T_cad_map, T_map_bodies = flight(0.0, 0.0, 0.0)
     far = window(T_cad_map, T_map_bodies, [[1, 3], [1], [0, 4]])
     pairs = far.pairs()
-    # keyframe 1 saw one door: it pairs with a door another keyframe saw (two need not be in view at once)
-    assert [kinds for _, kinds, _ in pairs] == [("door", "door")] * 3
-    door_1_map = apply(np.linalg.inv(T_cad_map), DOORS_CAD[1][None])[0]
-    assert np.any(np.linalg.norm(pairs[1][2] - door_1_map, axis=1) < 1e-9)
-    assert not np.allclose(pairs[1][2][0], pairs[1][2][1])
+    assert [kinds for _, kinds, _ in pairs] == [("door", "door")] * 2  # keyframes 0 and 2; 1 saw one door
     apart = window(T_cad_map, T_map_bodies, [[1, 3], [], []], FarParams(far_pair_min_deg=60.0)).pairs()
     assert apart == []  # doors 1 and 3 are 53 deg apart from (4, 3)
+
+
+def test_where_no_keyframe_saw_a_pair_one_pairs_across_keyframes() -> None:
+    """Each keyframe saw one far door: keyframe 1's door pairs with another keyframe's (two need not be in view
+    at once); where a keyframe saw a pair itself, only such pairs are taken (no odometry drift between them)."""
+    T_cad_map, T_map_bodies = flight(0.0, 0.0, 0.0)
+    pairs = window(T_cad_map, T_map_bodies, [[1], [3], [0]]).pairs()
+    assert len(pairs) == 3
+    door_3_map = apply(np.linalg.inv(T_cad_map), DOORS_CAD[3][None])[0]
+    assert np.any(np.linalg.norm(pairs[1][2] - door_3_map, axis=1) < 1e-9)
+    assert not np.allclose(pairs[1][2][0], pairs[1][2][1])
+    own = window(T_cad_map, T_map_bodies, [[1, 3], [3], [0]]).pairs()
+    assert len(own) == 1  # keyframe 0 saw doors 1 and 3 itself, 53 deg apart
 
 
 @settings(max_examples=25, deadline=None)
