@@ -91,10 +91,12 @@ def load_building(path: str | Path, mesh_rules: dict | None = None, use_cache: b
                           storey_elevations_m=dict(report.get("storey_elevations_m", {})), report=report)
     if not features:
         raise BuildingError(f"{path.name}: no door or window with geometry found")
+    doc = model_to_json(model)
     tmp = cached.with_suffix(f".tmp{os.getpid()}")
-    tmp.write_text(json.dumps(model_to_json(model)))
+    tmp.write_text(json.dumps(doc))
     os.replace(tmp, cached)
-    return model
+    # the model as its cache holds it (coordinates to 10 um): the same numbers whether or not the cache existed
+    return model_from_json(doc)
 
 
 def merge_duplicates(features: list[MacroFeature]) -> tuple[list[MacroFeature], int]:
