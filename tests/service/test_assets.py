@@ -27,7 +27,7 @@ def test_prepare_builds_every_part_and_a_second_run_builds_nothing(tmp_path: Pat
     assert [p["name"] for p in doc["parts"]] == ["features", "descriptor tables", "obstacles", "surfaces", "planner",
                                                "planning grids"]
     cached = sorted(p.name.split("-")[0] for p in (tmp_path / "cache").iterdir())
-    assert cached == ["features", "opaque", "seen", "solids", "surfaces", "tables"]
+    assert cached == ["features", "opaque", "seen", "selfmaps", "solids", "surfaces", "tables"]
 
     import macroloc.graph.bim_ifc as bim_ifc
     import macroloc.graph.surfaces as surfaces
@@ -41,6 +41,7 @@ def test_prepare_builds_every_part_and_a_second_run_builds_nothing(tmp_path: Pat
     monkeypatch.setattr(surfaces.SurfaceIndex, "from_mesh", must_not_run)
     model_index._CACHE.clear()
     monkeypatch.setattr(model_index, "build_tables", must_not_run)
+    monkeypatch.setattr(model_index, "building_self_maps", must_not_run)
     assert main(["prepare", str(fzk)]) == 0
 
 
