@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from macroloc.graph.descriptor import DescriptorTables, build_tables, describe
 from macroloc.graph.features import FEATURE_TYPES, BuildingModel, MacroFeature
+from macroloc.graph.layout import Layout, build_layout
 from macroloc.graph.self_maps import SELF_MAPS_VERSION, SelfMaps, building_self_maps
 
 TYPE_SEPARATION_M = 1.0e4  # the type axis of the lifted k-d tree: farther than any real distance
@@ -52,6 +53,8 @@ class ModelIndex:
     _by_storey: dict[str, ModelIndex] = field(default_factory=dict, repr=False)
     _pairs: dict[float, FeaturePairs] = field(default_factory=dict, repr=False)
     _self_maps: SelfMaps | None = field(default=None, repr=False)
+    _layout: Layout | None = field(default=None, repr=False)
+    _pair_rows: dict[float, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     @classmethod
     def build(cls, features: list[MacroFeature], tables: DescriptorTables | None = None) -> ModelIndex:
@@ -87,6 +90,26 @@ class ModelIndex:
             v = self.centroids[j] - self.centroids[i]
             self._pairs[max_m] = FeaturePairs(i, j, v, np.linalg.norm(v[:, :2], axis=1), v[:, 2])
         return self._pairs[max_m]
+
+    def pairs_of(self, max_m: float, rows: np.ndarray) -> np.ndarray:
+        """Indices into `pairs_within(max_m)` of the pairs whose first feature is one of `rows` (by a CSR look-up:
+        the cost grows with the answer, not with the building)."""
+        pairs = self.pairs_within(max_m)
+        if max_m not in self._pair_rows:
+            order = np.argsort(pairs.i, kind="stable")
+            starts = np.searchsorted(pairs.i[order], np.arange(len(self.features) + 1))
+            self._pair_rows[max_m] = (order, starts)
+        order, starts = self._pair_rows[max_m]
+        rows = np.asarray(rows, dtype=np.int64)
+        if not len(rows):
+            return np.zeros(0, dtype=np.int64)
+        return np.concatenate([order[starts[r]:starts[r + 1]] for r in rows])
+
+    def layout(self) -> Layout:
+        """The features' layout descriptors (`graph.layout`), computed once per index."""
+        if self._layout is None:
+            self._layout = build_layout(self.centroids, self.normals, self.type_codes, tree=self.tree_all)
+        return self._layout
 
     def self_maps(self) -> SelfMaps:
         """The building's near-self-maps (`graph.self_maps`), computed once per index."""
@@ -132,6 +155,7 @@ def index_for(model: BuildingModel) -> ModelIndex:
                  dist_edges_m=index.tables.dist_edges_m, angle_edges_rad=index.tables.angle_edges_rad)
         tmp.replace(path)
     _load_self_maps(index, cache_dir() / f"selfmaps-v{SELF_MAPS_VERSION}-{key}.npz")
+    index.layout()  # pre-processing too: the registration ranks its candidates by it
     _CACHE[model.sha256] = index
     return index
 

@@ -89,6 +89,17 @@ class RobustParams:
     # perception, at 3.2 s the truth explained two of three, wrong poses all three, and the walls, offered no true
     # pose, found one that fitted them at 0.90-0.92). 0: the refined few.
     complete_below: int = 0
+    # Issue 37: candidates ranked by the layout descriptor (graph.layout), and rivals found by it.
+    prune_top: int = 64  # per seed rectangle (gravity known), the CAD candidates kept, best layout score first (0:
+    # every one); 64 keeps the true one for 99.9 % of the seeds on Office_A (bench.bench_scale)
+    image_anchors: int = 3  # matched features of the best pose whose alike features propose its images
+    image_anchor_gap_m: float = 3.0  # anchors: the matched features with most matched ones around, this far apart
+    image_alike_fraction: float = 0.7  # alike: its layout explains this fraction of the anchor's relations
+    image_landing_m: float = 0.45  # an image maps a matched feature onto one of its type this close ...
+    image_min_fraction: float = 0.5  # ... and does so for this fraction of them (at least 2) ...
+    image_check: int = 8  # ... of this many, spread over the footprint
+    image_slack: float = 2.0  # images explaining fewer observations than the best less the rival margin (in
+    # observations) and this many more cannot come within the margin: they are not judged
     verify: VerifyParams = VerifyParams()
     seed: int = 0
 
@@ -313,11 +324,12 @@ def _coarse(seed: int, prep: _Prepared, index: ModelIndex, params: RobustParams)
     rotation only to a few degrees)."""
     o = prep.obs[seed]
     R, t = np.zeros((0, 3, 3)), np.zeros((0, 3))
+    cand = seed_candidates(seed, prep, index, params)
     if o.corners_map is not None:
-        R, t = _seed_hypotheses(rectangle_edges(o.corners_map), index.type_indices[o.type], index, params,
-                                prep.gravity_known)
+        R, t = _seed_hypotheses(rectangle_edges(o.corners_map), cand, index, params, prep.gravity_known)
     if prep.gravity_known and len(prep.obs) > 1:
-        R2, t2 = _pair_hypotheses(seed, prep, index, params)
+        R2, t2 = _pair_hypotheses(seed, prep, index, params,
+                                  None if len(cand) == len(index.type_indices[o.type]) else cand)
         R, t = np.concatenate([R, R2]), np.concatenate([t, t2])
     # Verify on the observations nearest the seed only (the k-d queries dominate the cost; the final
     # refinement and the decision use every observation).
@@ -337,11 +349,41 @@ def _coarse(seed: int, prep: _Prepared, index: ModelIndex, params: RobustParams)
                        np.full(len(R), seed, dtype=int))
 
 
-def _pair_hypotheses(seed: int, prep: _Prepared, index: ModelIndex,
-                     params: RobustParams) -> tuple[np.ndarray, np.ndarray]:
+def seed_candidates(seed: int, prep: _Prepared, index: ModelIndex, params: RobustParams) -> np.ndarray:
+    """The CAD features (indices) a seed observation is tried against: every one of its type, or, with
+    `prune_top`, gravity and a rectangle observed, the `prune_top` of compatible size whose layout
+    (`graph.layout`: the neighbours around, by height difference, horizontal distance, same wall or not, and
+    type) explains most of the observed neighbours, the closest in size first among equals (the cost then no
+    longer grows with the building)."""
+    o = prep.obs[seed]
+    cand = index.type_indices[o.type]
+    if not params.prune_top or len(cand) <= params.prune_top or o.corners_map is None or not prep.gravity_known:
+        return cand
+    rect = rectangle_edges(o.corners_map)
+    tol = params.size_tolerance_m
+    lu, lv = index.len_u[cand], index.len_v[cand]
+    miss = np.minimum(np.abs(lu - rect.la) + np.abs(lv - rect.lb), np.abs(lv - rect.la) + np.abs(lu - rect.lb))
+    fits = (((np.abs(lu - rect.la) < tol) & (np.abs(lv - rect.lb) < tol))
+            | ((np.abs(lv - rect.la) < tol) & (np.abs(lu - rect.lb) < tol)))
+    cand, miss = cand[fits], miss[fits]
+    if len(cand) <= params.prune_top:
+        return cand
+    lay = index.layout()
+    off = np.delete(prep.centroids, seed, axis=0) - prep.centroids[seed]
+    near = np.linalg.norm(off, axis=1) <= lay.params.radius_m
+    normal = np.cross(rect.a, rect.b)
+    hist = lay.histogram(off[near], normal / max(np.linalg.norm(normal), 1e-9),
+                         np.delete(prep.types, seed)[near])
+    order = np.lexsort((miss, -lay.scores(hist, cand)))
+    return cand[order[: params.prune_top]]
+
+
+def _pair_hypotheses(seed: int, prep: _Prepared, index: ModelIndex, params: RobustParams,
+                     among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """With gravity: yaw + translation from the seed and its farthest observation matched to every CAD pair of the
     same types, horizontal distance and height difference (a baseline of metres fixes the yaw far better than a
-    small, noisy rectangle does)."""
+    small, noisy rectangle does); `among`: only the pairs whose first feature is one of these (the seed's
+    candidates, `seed_candidates`)."""
     c = prep.centroids
     partner = int(np.argmax(np.linalg.norm(c[:, :2] - c[seed, :2], axis=1)))
     v_obs = c[partner] - c[seed]
@@ -349,10 +391,12 @@ def _pair_hypotheses(seed: int, prep: _Prepared, index: ModelIndex,
     if d_obs < params.pair_min_baseline_m:
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
     pairs = index.pairs_within(params.pair_max_baseline_m)
+    rows = slice(None) if among is None else index.pairs_of(params.pair_max_baseline_m, among)
+    pi, pj, pv, pd, pz = pairs.i[rows], pairs.j[rows], pairs.v[rows], pairs.d_xy[rows], pairs.dz[rows]
     tol = params.pair_tolerance_m
-    ok = ((index.type_codes[pairs.i] == prep.types[seed]) & (index.type_codes[pairs.j] == prep.types[partner])
-          & (np.abs(pairs.d_xy - d_obs) < tol) & (np.abs(pairs.dz - v_obs[2]) < tol))
-    i, j, v = pairs.i[ok], pairs.j[ok], pairs.v[ok]
+    ok = ((index.type_codes[pi] == prep.types[seed]) & (index.type_codes[pj] == prep.types[partner])
+          & (np.abs(pd - d_obs) < tol) & (np.abs(pz - v_obs[2]) < tol))
+    i, j, v = pi[ok], pj[ok], pv[ok]
     yaw = np.arctan2(v[:, 1], v[:, 0]) - np.arctan2(v_obs[1], v_obs[0])
     cs, sn = np.cos(yaw), np.sin(yaw)
     R = np.zeros((len(yaw), 3, 3))
@@ -421,7 +465,13 @@ def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustPa
         noise = _prior_noise(poses[0], prep, index, params)
         if max(_verify(p.T, prep, index, noise, params).n_inliers for p in poses[:3]) >= params.early_stop_fraction * n:
             break  # well supported; its symmetric rivals come from the same seeds
-    return _decide(poses, hyps, prep, index, params, {"hypotheses": int(len(hyps.R)), "seeds": used})
+    images: list[_Pose] = []
+    if poses:
+        noise = _prior_noise(poses[0], prep, index, params)
+        ref = max(poses[: params.refine_top], key=lambda p: _verify(p.T, prep, index, noise, params).loglik)
+        images = _layout_images(ref, prep, index, params)
+    return _decide(poses + images, hyps, prep, index, params,
+                   {"hypotheses": int(len(hyps.R)), "seeds": used, "images": len(images)})
 
 
 def _rms(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams) -> float:
@@ -658,6 +708,120 @@ def _self_map_images(T: np.ndarray, verdict: Verdict, prep: _Prepared, index: Mo
     S_all = maps.transforms()
     return [_refine(S_all[m] @ T, prep.obs, prep.centroids, prep.types, index, params, prep.gravity_known)
             for m in order]
+
+
+def _rot_z(yaw: np.ndarray) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.zeros((len(yaw), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
+def _layout_images(best: _Pose, prep: _Prepared, index: ModelIndex, params: RobustParams) -> list[_Pose]:
+    """Every image S @ best.T of the best pose under a yaw + shift S of the CAD frame that puts at least
+    `image_min_fraction` of its matched features within `image_landing_m` of features of their type: complete,
+    not a sample (a building of repeated units has one per unit, and the truth may be any of them).
+
+    Found by an index, not a search over the building: a few matched features (anchors: those with the most
+    matched features around, `image_anchor_gap_m` apart; a missing one in an image is made up by the others)
+    each propose the S that put them onto their alike features (same type
+    and size, and a `graph.layout` histogram that explains at least `image_alike_fraction` of the anchor's
+    relations to the other matched features; the yaw from the wall normals, either sign), and every proposal is
+    checked on all matched features at once (one k-d query).
+    Each image is then polished to the observations (`_polish`, vectorised) and returned for `_decide` to
+    judge beside the others."""
+    matched = np.unique(best.match[best.inliers])
+    matched = matched[matched >= 0]
+    if len(matched) < 2:
+        return []
+    lay = index.layout()
+    c_f = index.centroids[matched]
+    heading = np.arctan2(index.normals[:, 1], index.normals[:, 0])
+    wall = np.abs(index.normals[:, 2]) < 0.5
+    gap = np.linalg.norm(c_f[:, None] - c_f[None], axis=2)
+    richness = (gap <= lay.params.radius_m).sum(axis=1)  # the matched features around: the stricter the test
+    chosen: list[int] = []
+    for k in np.argsort(-richness, kind="stable"):
+        if len(chosen) == params.image_anchors:
+            break
+        if all(gap[k, c] >= params.image_anchor_gap_m for c in chosen):
+            chosen.append(int(k))
+    tol = params.size_tolerance_m
+    yaws, shifts = [], []
+    for a in matched[chosen]:
+        if not wall[a]:
+            continue
+        cand = index.type_indices[index.types[a]]
+        cand = cand[wall[cand] & (((np.abs(index.len_u[cand] - index.len_u[a]) < tol)
+                                   & (np.abs(index.len_v[cand] - index.len_v[a]) < tol))
+                                  | ((np.abs(index.len_u[cand] - index.len_v[a]) < tol)
+                                     & (np.abs(index.len_v[cand] - index.len_u[a]) < tol)))]
+        off = np.delete(c_f, np.flatnonzero(matched == a), axis=0) - index.centroids[a]
+        near = np.linalg.norm(off, axis=1) <= lay.params.radius_m
+        hist = lay.histogram(off[near], index.normals[a], np.delete(index.type_codes[matched],
+                                                                     np.flatnonzero(matched == a))[near])
+        cand = cand[lay.explained(hist, cand) >= max(2.0, params.image_alike_fraction * near.sum())]
+        for flip in (0.0, np.pi):
+            yaw = heading[cand] - heading[a] + flip
+            R = _rot_z(yaw)
+            yaws.append(yaw)
+            shifts.append(index.centroids[cand] - R @ index.centroids[a])
+    if not yaws:
+        return []
+    yaw, shift = np.concatenate(yaws), np.concatenate(shifts)
+    # several anchors propose the same image: once each; then a first check on the anchors alone (an image that
+    # can rival the best lands nearly all matched features: two of the anchors at least)
+    key = np.column_stack([np.round(np.degrees((yaw + np.pi) % (2.0 * np.pi)) / 2.0), np.round(shift / 0.25)])
+    _, first = np.unique(key, axis=0, return_index=True)
+    yaw, shift = yaw[first], shift[first]
+    if len(chosen) >= 2:
+        c_a = c_f[chosen]
+        moved = np.einsum("kij,nj->kni", _rot_z(yaw), c_a) + shift[:, None, :]
+        d, _ = _nearest_same_type(moved, index.type_codes[matched[chosen]], index, upper_m=params.image_landing_m)
+        ok = np.isfinite(d).sum(axis=1) >= 2
+        yaw, shift = yaw[ok], shift[ok]
+    # then on `image_check` matched features spread over the footprint (the anchors first, then farthest-point)
+    check = list(chosen)
+    while len(check) < min(params.image_check, len(matched)):
+        check.append(int(np.argmax(np.min(gap[:, check], axis=1))))
+    c_c = c_f[check]
+    R = _rot_z(yaw)
+    moved = np.einsum("kij,nj->kni", R, c_c) + shift[:, None, :]
+    d, _ = _nearest_same_type(moved, index.type_codes[matched[check]], index, upper_m=params.image_landing_m)
+    lands = np.isfinite(d).sum(axis=1)
+    apart = np.linalg.norm(moved - c_c[None], axis=2).mean(axis=1)
+    turned = np.abs((yaw + np.pi) % (2.0 * np.pi) - np.pi)
+    keep = ((lands >= max(2.0, params.image_min_fraction * len(check)))
+            & ((apart > params.distinct_m) | (np.degrees(turned) > params.distinct_deg)))
+    if not keep.any():
+        return []
+    yaw, shift = yaw[keep], shift[keep]
+    key = np.column_stack([np.round(np.degrees((yaw + np.pi) % (2.0 * np.pi)) / 2.0), np.round(shift / 0.5)])
+    _, first = np.unique(key, axis=0, return_index=True)
+    first = np.sort(first)
+    S = np.broadcast_to(np.eye(4), (len(first), 4, 4)).copy()
+    S[:, :3, :3] = _rot_z(yaw[first])
+    S[:, :3, 3] = shift[first]
+    T = S @ best.T
+    Rk, tk = T[:, :3, :3], T[:, :3, 3]
+    tau = params.inlier_threshold_m * 1.5
+    for _ in range(params.refine_iterations):
+        moved = np.einsum("kij,nj->kni", Rk, prep.centroids) + tk[:, None, :]
+        d, j = _nearest_same_type(moved, prep.types, index, upper_m=tau)
+        Rk, tk = _polish(Rk, tk, prep.centroids, prep.gravity_known, index, j, _support(d, tau))
+    Rk, tk = np.concatenate([Rk, best.T[None, :3, :3]]), np.concatenate([tk, best.T[None, :3, 3]])
+    moved = np.einsum("kij,nj->kni", Rk, prep.centroids) + tk[:, None, :]
+    d, j = _nearest_same_type(moved, prep.types, index, upper_m=params.inlier_threshold_m)
+    s = _support(np.minimum(d, params.inlier_threshold_m), params.inlier_threshold_m)
+    # the rival margin of the best pose, in observations: an image explaining (within the verification's
+    # position gate) fewer than the best of them and the pose less that (and image_slack) cannot come within it
+    noise = _prior_noise(best, prep, index, params)
+    explained = (d <= noise.position_gate_m(params.verify)).sum(axis=1)
+    v = _verify(best.T, prep, index, noise, params)
+    unit = v.loglik / v.n_inliers if v.n_inliers and v.loglik > 0 else np.inf
+    slack = rival_margin(v, prep, index, noise, params)(v.n_inliers) / unit + params.image_slack
+    keep = np.flatnonzero(explained[:-1] >= explained.max() - slack)  # an image may beat the best: the truth
+    return [_Pose(make_T(Rk[k], tk[k]), s[k] > 0, j[k], float(s[k].sum())) for k in keep]
 
 
 def _alike_hypotheses(hyps: _Hypotheses, n_explained: int, kept: list[tuple[np.ndarray, np.ndarray]],
