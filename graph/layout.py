@@ -32,8 +32,8 @@ from scipy.spatial import cKDTree
 @dataclass(frozen=True)
 class LayoutParams:
     radius_m: float = 12.0  # neighbours counted within this 3-D distance
-    dz_bins: int = 6  # quantile bins of the height difference (signed)
-    distance_bins: int = 12  # quantile bins of the horizontal distance
+    dz_bins: int = 12  # quantile bins of the height difference (signed)
+    distance_bins: int = 48  # quantile bins of the horizontal distance
     across_bins: int = 3  # |offset . normal|: bin 0 below same_wall_m, then quantile bins
     same_wall_m: float = 0.4
     tolerance_m: float = 0.25  # a CAD neighbour counts in every bin within this of its values (each quantity)
@@ -46,10 +46,9 @@ class LayoutParams:
 
 @dataclass(frozen=True)
 class Layout:
-    """Per CAD feature: `hist` (N, B) its neighbours' bin counts, `dilated` (N, B) with the tolerance (module
-    doc); the bin edges to code observations with."""
+    """Per CAD feature: `dilated` (N, B) uint8, its neighbours' bin counts with the tolerance (module doc; at most
+    255); the bin edges to code observations with."""
 
-    hist: np.ndarray
     dilated: np.ndarray
     weight: np.ndarray  # (B,) -log of the fraction of features whose dilated histogram has the bin: rare counts more
     dz_edges: np.ndarray
@@ -126,16 +125,16 @@ def build_layout(centroids: np.ndarray, normals: np.ndarray, type_codes: np.ndar
     tol = p.tolerance_m
     w_edges = _edges(far, p.across_bins - 1, p.radius_m, tol)
     w_edges = np.concatenate([[p.same_wall_m], w_edges[w_edges >= p.same_wall_m + tol]])
-    layout = Layout(np.zeros((n, p.n_bins), dtype=np.int16), np.zeros((n, p.n_bins), dtype=np.int16),
-                    np.zeros(p.n_bins), _edges(dz, p.dz_bins, p.radius_m, tol),
+    layout = Layout(np.zeros((n, p.n_bins), dtype=np.uint8), np.zeros(p.n_bins), _edges(dz, p.dz_bins, p.radius_m, tol),
                     _edges(d, p.distance_bins, p.radius_m, tol), w_edges, p)
     if len(i):
-        np.add.at(layout.hist, (i, layout.code(off, normals[i], type_codes[j])), 1)
         steps = np.array([[a, b, c] for a in (-tol, 0.0, tol) for b in (-tol, 0.0, tol) for c in (-tol, 0.0, tol)])
         codes = np.stack([layout.code(off, normals[i], type_codes[j], slack=s) for s in steps], axis=1)
         codes.sort(axis=1)
         first = np.ones(codes.shape, dtype=bool)
         first[:, 1:] = codes[:, 1:] != codes[:, :-1]  # each bin once per neighbour
-        np.add.at(layout.dilated, (np.broadcast_to(i[:, None], codes.shape)[first], codes[first]), 1)
+        rows = np.broadcast_to(i[:, None], codes.shape)[first]
+        keys, counts = np.unique(rows * p.n_bins + codes[first], return_counts=True)
+        layout.dilated.reshape(-1)[keys] = np.minimum(counts, 255)
     layout.weight[:] = -np.log(((layout.dilated > 0).sum(axis=0) + 1.0) / (n + 1.0))
     return layout
