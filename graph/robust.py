@@ -671,7 +671,9 @@ def _poisson_quantile(mu: float, alpha: float) -> int:
 
 def _distinct_T(A: np.ndarray, B: np.ndarray, anchor: np.ndarray, params: RobustParams) -> bool:
     """Two poses (4x4) are different when they move the anchor points apart or differ in rotation."""
-    moved_apart = np.linalg.norm(apply(A, anchor) - apply(B, anchor), axis=1).mean() > params.distinct_m
+    D = A - B  # apply(A, p) - apply(B, p) = p (R_A - R_B)^T + (t_A - t_B): one product, no temporaries
+    diff = anchor @ D[:3, :3].T + D[:3, 3]
+    moved_apart = float(np.sqrt(np.einsum("ij,ij->i", diff, diff)).sum()) > params.distinct_m * len(anchor)
     return bool(moved_apart or rotation_angle_deg(A[:3, :3] @ B[:3, :3].T) > params.distinct_deg)
 
 
