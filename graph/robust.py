@@ -354,11 +354,13 @@ def seed_candidates(seed: int, prep: _Prepared, index: ModelIndex, params: Robus
     `prune_top`, gravity and a rectangle observed, the `prune_top` of compatible size whose layout
     (`graph.layout`: the neighbours around, by height difference, horizontal distance, same wall or not, and
     type) explains most of the observed neighbours, the closest in size first among equals (the cost then no
-    longer grows with the building)."""
+    longer grows with the building). Not where fewer observations than `complete_below` ask for every pose."""
     o = prep.obs[seed]
     cand = index.type_indices[o.type]
     if not params.prune_top or len(cand) <= params.prune_top or o.corners_map is None or not prep.gravity_known:
         return cand
+    if len(prep.obs) < params.complete_below:  # every pose was asked for (the walls choose among them): a layout
+        return cand  # of so few observations would rank the candidates by little more than chance
     rect = rectangle_edges(o.corners_map)
     tol = params.size_tolerance_m
     lu, lv = index.len_u[cand], index.len_v[cand]
