@@ -31,6 +31,7 @@ from macroloc.graph.rigid import (
     apply,
     levelled,
     make_T,
+    rot_z,
     rotation_aligning,
     rotation_angle_deg,
     weighted_rigid_fit,
@@ -242,6 +243,11 @@ def _refine(T: np.ndarray, obs: list[Observation], c_obs: np.ndarray, types: np.
     keep = np.zeros(len(obs), dtype=bool)
     keep[[i for i, _ in pairs]] = True
     return _Pose(T, keep, j, float(np.where(keep, s, 0.0).sum()))
+
+
+def _refine_prepared(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams) -> _Pose:
+    """`_refine` of the pose T on the prepared observations."""
+    return _refine(T, prep.obs, prep.centroids, prep.types, index, params, prep.gravity_known)
 
 
 def _one_to_one(pairs: list[tuple[int, int]], d: np.ndarray) -> list[tuple[int, int]]:
@@ -462,8 +468,8 @@ def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustPa
         if len(hyps.R) == 0:
             continue
         top = _distinct_top(np.argsort(-hyps.coarse, kind="stable")[: params.scan_top], hyps.moved, params)
-        poses = sorted((_refine(make_T(hyps.R[h], hyps.t[h]), prep.obs, prep.centroids, prep.types, index, params,
-                                prep.gravity_known) for h in top), key=lambda p: -p.score)
+        poses = sorted((_refine_prepared(make_T(hyps.R[h], hyps.t[h]), prep, index, params) for h in top),
+                       key=lambda p: -p.score)
         noise = _prior_noise(poses[0], prep, index, params)
         if max(_verify(p.T, prep, index, noise, params).n_inliers for p in poses[:3]) >= params.early_stop_fraction * n:
             break  # well supported; its symmetric rivals come from the same seeds
@@ -476,16 +482,21 @@ def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustPa
                    {"hypotheses": int(len(hyps.R)), "seeds": used, "images": len(images)})
 
 
-def _rms(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams) -> float:
-    """RMS distance, metres, of the observations a pose explains (same type, within ambiguity_tau_m), corrected
-    for the degrees of freedom the pose was fitted with (4 with gravity, 6 without; 3 residuals an observation):
-    from a few observations the fitted pose absorbs much of the noise, and the noise model must not shrink."""
-    d, _ = _nearest_same_type(apply(T, prep.centroids), prep.types, index, upper_m=params.ambiguity_tau_m)
-    d = d[np.isfinite(d)]
-    dof = 4 if prep.gravity_known else 6
+def _fitted_rms(d: np.ndarray, gravity_known: bool) -> float | None:
+    """RMS of the 3-D residuals d (m) corrected for the degrees of freedom the pose was fitted with (4 with gravity,
+    6 without; 3 residuals an observation): from a few observations the fitted pose absorbs much of the noise,
+    and the noise model must not shrink. None where they are too few to tell."""
+    dof = 4 if gravity_known else 6
     if 3 * len(d) <= dof:
-        return np.inf
+        return None
     return float(np.sqrt(np.sum(d * d) / (len(d) - dof / 3.0)))
+
+
+def _rms(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams) -> float:
+    """`_fitted_rms` of the observations a pose explains (same type, within ambiguity_tau_m); inf where too few."""
+    d, _ = _nearest_same_type(apply(T, prep.centroids), prep.types, index, upper_m=params.ambiguity_tau_m)
+    rms = _fitted_rms(d[np.isfinite(d)], prep.gravity_known)
+    return np.inf if rms is None else rms
 
 
 def _prior_noise(first: _Pose, prep: _Prepared, index: ModelIndex, params: RobustParams) -> Noise:
@@ -508,14 +519,10 @@ def _verify(T: np.ndarray, prep: _Prepared, index: ModelIndex, noise: Noise, par
 
 
 def _matched_rms(T: np.ndarray, verdict: Verdict, prep: _Prepared, index: ModelIndex) -> float:
-    """RMS centroid distance, metres, of a pose's inliers to their matched features, corrected for the pose's
-    degrees of freedom as `_rms`; 0 where too few."""
+    """`_fitted_rms` of a pose's inliers' distances to their matched features; 0 where too few."""
     d = np.linalg.norm(apply(T, prep.centroids[verdict.inlier]) - index.centroids[verdict.match[verdict.inlier]],
                        axis=1)
-    dof = 4 if prep.gravity_known else 6
-    if 3 * len(d) <= dof:
-        return 0.0
-    return float(np.sqrt(np.sum(d * d) / (len(d) - dof / 3.0)))
+    return _fitted_rms(d, prep.gravity_known) or 0.0
 
 
 def _rival_candidates(best: _Pose, hyps: _Hypotheses, prep: _Prepared, index: ModelIndex,
@@ -546,8 +553,8 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
     first = poses[0]
     noise = _prior_noise(first, prep, index, params)
     judge = lambda T: _verify(T, prep, index, noise, params)  # noqa: E731
-    candidates = poses + [_refine(make_T(hyps.R[h], hyps.t[h]), prep.obs, prep.centroids, prep.types, index, params,
-                                  prep.gravity_known) for h in _rival_candidates(first, hyps, prep, index, params)]
+    candidates = poses + [_refine_prepared(make_T(hyps.R[h], hyps.t[h]), prep, index, params)
+                          for h in _rival_candidates(first, hyps, prep, index, params)]
     candidates += _seed_bests(first, hyps, prep, index, params, judge)
     verdicts = [judge(p.T) for p in candidates]
     k_best = int(np.argmax([v.loglik for v in verdicts]))
@@ -693,8 +700,7 @@ def _seed_bests(first: _Pose, hyps: _Hypotheses, prep: _Prepared, index: ModelIn
         if not top:
             continue
         h = max(top, key=lambda k: judge(make_T(hyps.R[k], hyps.t[k])).loglik)
-        out.append(_refine(make_T(hyps.R[h], hyps.t[h]), prep.obs, prep.centroids, prep.types, index, params,
-                           prep.gravity_known))
+        out.append(_refine_prepared(make_T(hyps.R[h], hyps.t[h]), prep, index, params))
     return out
 
 
@@ -710,15 +716,8 @@ def _self_map_images(T: np.ndarray, verdict: Verdict, prep: _Prepared, index: Mo
     order = np.argsort(-count, kind="stable")
     order = order[count[order] >= max(2, len(matched) / 2.0)][: params.rival_self_maps]
     S_all = maps.transforms()
-    return [_refine(S_all[m] @ T, prep.obs, prep.centroids, prep.types, index, params, prep.gravity_known)
+    return [_refine_prepared(S_all[m] @ T, prep, index, params)
             for m in order]
-
-
-def _rot_z(yaw: np.ndarray) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    R = np.zeros((len(yaw), 3, 3))
-    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
-    return R
 
 
 def _layout_images(best: _Pose, prep: _Prepared, index: ModelIndex, params: RobustParams) -> list[_Pose]:
@@ -767,7 +766,7 @@ def _layout_images(best: _Pose, prep: _Prepared, index: ModelIndex, params: Robu
         cand = cand[lay.explained(hist, cand) >= max(2.0, params.image_alike_fraction * near.sum())]
         for flip in (0.0, np.pi):
             yaw = heading[cand] - heading[a] + flip
-            R = _rot_z(yaw)
+            R = rot_z(yaw)
             yaws.append(yaw)
             shifts.append(index.centroids[cand] - R @ index.centroids[a])
     if not yaws:
@@ -780,7 +779,7 @@ def _layout_images(best: _Pose, prep: _Prepared, index: ModelIndex, params: Robu
     yaw, shift = yaw[first], shift[first]
     if len(chosen) >= 2:
         c_a = c_f[chosen]
-        moved = np.einsum("kij,nj->kni", _rot_z(yaw), c_a) + shift[:, None, :]
+        moved = np.einsum("kij,nj->kni", rot_z(yaw), c_a) + shift[:, None, :]
         d, _ = _nearest_same_type(moved, index.type_codes[matched[chosen]], index, upper_m=params.image_landing_m)
         ok = np.isfinite(d).sum(axis=1) >= 2
         yaw, shift = yaw[ok], shift[ok]
@@ -789,7 +788,7 @@ def _layout_images(best: _Pose, prep: _Prepared, index: ModelIndex, params: Robu
     while len(check) < min(params.image_check, len(matched)):
         check.append(int(np.argmax(np.min(gap[:, check], axis=1))))
     c_c = c_f[check]
-    R = _rot_z(yaw)
+    R = rot_z(yaw)
     moved = np.einsum("kij,nj->kni", R, c_c) + shift[:, None, :]
     d, _ = _nearest_same_type(moved, index.type_codes[matched[check]], index, upper_m=params.image_landing_m)
     lands = np.isfinite(d).sum(axis=1)
@@ -804,7 +803,7 @@ def _layout_images(best: _Pose, prep: _Prepared, index: ModelIndex, params: Robu
     _, first = np.unique(key, axis=0, return_index=True)
     first = np.sort(first)
     S = np.broadcast_to(np.eye(4), (len(first), 4, 4)).copy()
-    S[:, :3, :3] = _rot_z(yaw[first])
+    S[:, :3, :3] = rot_z(yaw[first])
     S[:, :3, 3] = shift[first]
     T = S @ best.T
     Rk, tk = T[:, :3, :3], T[:, :3, 3]

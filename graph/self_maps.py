@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from macroloc.graph.rigid import rot_z
+
 SELF_MAPS_VERSION = 2  # bump when the computation changes: the disk cache is keyed by it
 
 
@@ -45,10 +47,9 @@ class SelfMaps:
 
     def transforms(self) -> np.ndarray:
         """(M, 4, 4) T_cad_cad."""
-        c, s = np.cos(self.yaw_rad), np.sin(self.yaw_rad)
-        T = np.zeros((len(c), 4, 4))
-        T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
-        T[:, 2, 2] = T[:, 3, 3] = 1.0
+        T = np.zeros((len(self.yaw_rad), 4, 4))
+        T[:, :3, :3] = rot_z(self.yaw_rad)
+        T[:, 3, 3] = 1.0
         T[:, :3, 3] = self.shift_m
         return T
 
