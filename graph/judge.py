@@ -35,13 +35,13 @@ class SurfaceJudge:
     """Weighs candidate poses against the model's surfaces (see module doc)."""
 
     def __init__(self, surfaces: SurfaceIndex, params: JudgeParams, centroids_cad: CentroidsByType,
-                 registration_tolerance_m: float, surface_fit_sigma_m: float) -> None:
-        """`centroids_cad(type)`: the model's feature centroids (N, 3); `registration_tolerance_m`: how near a CAD
+                 inlier_threshold_m: float, surface_fit_sigma_m: float) -> None:
+        """`centroids_cad(type)`: the model's feature centroids (N, 3); `inlier_threshold_m`: how near a CAD
         feature a turned candidate must keep a landmark (the registrar's tolerance, `RegistrationParams`);
         `surface_fit_sigma_m`: a point's distance to its wall, model against reality, in the fits (`refined`)."""
         self.surfaces = surfaces
         self.params = params
-        self.registration_tolerance_m = registration_tolerance_m
+        self.inlier_threshold_m = inlier_threshold_m
         self.surface_fit_sigma_m = surface_fit_sigma_m
         self._centroids_cad = centroids_cad
         self.checks: list[tuple[int, list[float]]] = []  # (stamp_ns, score of each candidate pose)
@@ -188,7 +188,7 @@ class SurfaceJudge:
         """The candidate poses, each one from `fewest` to `most` landmarks turned about the vertical through a
         landmark (the one its pose puts nearest a same-type CAD feature) to the heading, within `surface_turn_deg`,
         whose unfitted support by `surface_turn_points` of the points `pts_map` is highest (ties: the least turn)
-        among the headings that leave as many landmarks within `registration_tolerance_m` of a same-type CAD
+        among the headings that leave as many landmarks within `inlier_threshold_m` of a same-type CAD
         feature, searched in steps of twice `surface_turn_step_deg`, then one step either side.
 
         A pose from one door has the heading of that door's normal, which perception's corners get wrong by tens
@@ -222,7 +222,7 @@ class SurfaceJudge:
         def by_a_feature(turns: np.ndarray) -> np.ndarray:  # (K, H) turns -> (K, H) landmarks by a CAD feature
             x = turned(turns, centres)
             return sum((np.min(np.linalg.norm(x[:, :, i, None, :] - self._centroids_cad(kind), axis=-1), axis=-1,
-                               initial=np.inf) <= self.registration_tolerance_m).astype(int)
+                               initial=np.inf) <= self.inlier_threshold_m).astype(int)
                        for i, kind in enumerate(kinds))
 
         def supports(turns: np.ndarray) -> np.ndarray:  # (K, H) turns -> (K, H) supports, -1 where doors are lost

@@ -13,9 +13,9 @@ from macroloc.graph.rigid import rotation_angle_rad
 class KeyframePolicy:
     """A new keyframe after this much motion (metres, radians) or time (seconds) since the last one."""
 
-    min_translation_m: float = 0.25
-    min_rotation_rad: float = 0.15
-    max_interval_s: float = 0.34
+    translation_m: float = 0.25
+    rotation_rad: float = 0.15
+    interval_s: float = 0.34
 
     def is_keyframe(self, T_last: np.ndarray | None, T_now: np.ndarray, dt_s: float) -> bool:
         """T_last, T_now: 4x4 poses of the body in one frame (map/odometry); dt_s: time since the last keyframe."""
@@ -23,8 +23,8 @@ class KeyframePolicy:
             return True
         d = np.linalg.inv(T_last) @ T_now
         angle = rotation_angle_rad(d[:3, :3])
-        return bool(np.linalg.norm(d[:3, 3]) > self.min_translation_m or angle > self.min_rotation_rad
-                    or dt_s >= self.max_interval_s)
+        return bool(np.linalg.norm(d[:3, 3]) > self.translation_m or angle > self.rotation_rad
+                    or dt_s >= self.interval_s)
 
 
 @dataclass(frozen=True)
@@ -34,12 +34,12 @@ class KeyframeRule:
     `policy`: motion, turn or time since the last keyframe, for every frame (the default, measured in
     docs/measurements.md, "One keyframe rule for replay and service"). Two options the service used to add:
     `while_exploring`: every frame with sightings is a keyframe while the localizer is not localized;
-    `odometry_only_m`: a frame without sightings is a keyframe only after this much motion (m) since the last one
-    (None: the policy decides for it too)."""
+    `without_sightings_m`: a frame without sightings is a keyframe only after this much motion (m) since the last
+    one (0: the policy decides for it too)."""
 
     policy: KeyframePolicy = KeyframePolicy()
     while_exploring: bool = False
-    odometry_only_m: float | None = None
+    without_sightings_m: float = 0.0
 
     def is_keyframe(self, T_last: np.ndarray | None, T_now: np.ndarray, dt_s: float, has_sightings: bool,
                     localized: bool) -> bool:
@@ -49,6 +49,6 @@ class KeyframeRule:
             return True
         if has_sightings and self.while_exploring and not localized:
             return True
-        if not has_sightings and self.odometry_only_m is not None:
-            return bool(np.linalg.norm((np.linalg.inv(T_last) @ T_now)[:3, 3]) > self.odometry_only_m)
+        if not has_sightings and self.without_sightings_m:
+            return bool(np.linalg.norm((np.linalg.inv(T_last) @ T_now)[:3, 3]) > self.without_sightings_m)
         return self.policy.is_keyframe(T_last, T_now, dt_s)

@@ -86,7 +86,7 @@ class Localizer:
         self.far = FarSightings(p.far, p.depth.surface_window_keyframes, p.landmarks.position_sigma_m,
                                 self.viewer_body, centroids_cad, graph.T_map_body)
         self.judge: Judge = NullJudge() if surfaces is None else SurfaceJudge(
-            surfaces, p.judge, centroids_cad, p.registration.registration_tolerance_m, p.fit.surface_fit_sigma_m)
+            surfaces, p.judge, centroids_cad, p.registration.inlier_threshold_m, p.fit.surface_fit_sigma_m)
         self.fitter = NullFitter() if surfaces is None else SurfaceFitter(p.fit, graph, self.depth, surfaces)
         self.map = LandmarkMap(p.landmarks, graph, self.viewer_body)
         self.cad_links = CadLinks(p.anchor, graph, self.features)
@@ -291,7 +291,7 @@ def model_registrar(model: BuildingModel, params: RegistrationParams, storey_hin
     early_stop = params.registration_early_stop if with_surfaces and method == "robust" else None
     return ModelRegistrar(model, method=method, storey_hint=storey_hint,
                           min_landmarks=params.registration_min_landmarks,
-                          registration_tolerance_m=params.registration_tolerance_m,
+                          inlier_threshold_m=params.inlier_threshold_m,
                           candidates_from=params.verified_min_landmarks if with_surfaces else None,
                           early_stop_fraction=early_stop)
 

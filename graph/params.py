@@ -4,7 +4,8 @@ component receives its own (the judge `JudgeParams`, the far sightings `FarParam
 They live in this one leaf module (numpy only) so that the service's config (service/config.py) can take its
 defaults from them without importing the components (graph.judge pulls in scipy); the components re-export
 theirs (`from macroloc.graph.judge import JudgeParams`). A field's name is its config key's where the config
-sets it (`[graph] surface_margin` is `JudgeParams.surface_margin`). Metres, seconds, degrees where named so.
+sets it, in the [graph] section's table named as the `LocalizerParams` field (`[graph.judge] surface_margin` is
+`JudgeParams.surface_margin`). Metres, seconds, degrees where named so.
 """
 
 from __future__ import annotations
@@ -50,8 +51,9 @@ class RegistrationParams:
     """When and how the map's landmarks are registered to the model (the registrar, graph.registrar)."""
 
     min_sightings_to_register: int = 2  # a landmark seen once (a passing false detection?) waits
-    registration_tolerance_m: float = 0.6  # an aligned landmark this close to a same-type CAD feature supports a
-    #                                        pose: the registrar's inlier and ambiguity tolerance, the judge's turns'
+    inlier_threshold_m: float = 0.6  # an aligned landmark this close to a same-type CAD feature supports a pose:
+    #                                  the registrar's inlier and ambiguity tolerance (RobustParams.inlier_threshold_m
+    #                                  and ambiguity_tau_m), the judge's turns' too
     registration_min_landmarks: int = 4  # the model registrar answers 'localized' from this many landmarks ...
     verified_min_landmarks: int = 1  # ... and offers candidate poses from this many, for the surface check
     registration_early_stop: float = 1.0  # with the surface check, it stops seeding hypotheses once a pose explains
@@ -137,6 +139,18 @@ class StatusParams:
 
     degraded_after_s: float = 10.0  # localized but no CAD-linked sighting for this long
     lost_after_s: float = 30.0
+
+
+@dataclass(frozen=True)
+class IsamSettings:
+    """The pose graph's iSAM2 (graph.posegraph, which re-exports it)."""
+
+    relinearize_threshold: float = 0.01
+    relinearize_skip: int = 1
+    # Keyframes kept as variables behind the newest (0: all, plain iSAM2; see graph.posegraph's doc): >= the
+    # localizer's `surface_window_keyframes` (60), the oldest keyframe whose estimate it reads back.
+    window_keyframes: int = 100
+    marginalise_every: int = 100  # with a window: keyframes are marginalised this many at a time (graph.posegraph)
 
 
 @dataclass(frozen=True)

@@ -42,11 +42,11 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
+from macroloc.graph.params import IsamSettings
 from macroloc.graph.rigid import levelled
 
 log = logging.getLogger(__name__)
@@ -83,16 +83,6 @@ def diagonal(sigmas: np.ndarray) -> gtsam.noiseModel.Diagonal:
 def robust(sigmas: np.ndarray, cauchy_k: float = CAD_LINK_CAUCHY_K) -> gtsam.noiseModel.Robust:
     """Cauchy loss over a diagonal model: a wrong CAD match far from the estimate weighs ~ (k / r)^2."""
     return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k), diagonal(sigmas))
-
-
-@dataclass(frozen=True)
-class IsamSettings:
-    relinearize_threshold: float = 0.01
-    relinearize_skip: int = 1
-    # Keyframes kept as variables behind the newest (0: all, plain iSAM2; see the module doc): >= the localizer's
-    # `surface_window_keyframes` (60), the oldest keyframe whose estimate it reads back.
-    window_keyframes: int = 100
-    marginalise_every: int = 100  # with a window: keyframes are marginalised this many at a time (see the module doc)
 
 
 class PoseGraph:

@@ -43,11 +43,11 @@ class ModelRegistrar:
     """Registration against the whole building model (see module doc)."""
 
     def __init__(self, model: BuildingModel, method: str = "robust", storey_hint: str | None = None,
-                 min_landmarks: int = 3, registration_tolerance_m: float | None = None,
+                 min_landmarks: int = 3, inlier_threshold_m: float | None = None,
                  candidates_from: int | None = None, early_stop_fraction: float | None = None) -> None:
         """`min_landmarks`: registration is tried from this many landmarks on (the robust method then also
         accepts a pose with as many inliers: with gravity, two rectangles fix a pose, and its ambiguity test
-        answers 'ambiguous' where the building repeats them); `registration_tolerance_m`: how far (m) an aligned
+        answers 'ambiguous' where the building repeats them); `inlier_threshold_m`: how far (m) an aligned
         landmark may lie from its CAD feature and still support a pose (the method's inlier tolerance, and the
         robust method's ambiguity tolerance; None: the method's defaults); `candidates_from`: with fewer landmarks
         than `min_landmarks` but at least this many (robust method), the candidate poses come back as
@@ -59,23 +59,23 @@ class ModelRegistrar:
         self.min_landmarks = min_landmarks
         self.candidates_from = min(min_landmarks, candidates_from or min_landmarks) if method == "robust" \
             else min_landmarks
-        self.params = self._method_params(registration_tolerance_m, early_stop_fraction)
+        self.params = self._method_params(inlier_threshold_m, early_stop_fraction)
         self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
                        if f.orientation == "vertical" and (storey_hint is None or f.storey == storey_hint)]
         index_for(model)  # the per-building preprocessing (cached): done here, before the first frame
 
-    def _method_params(self, tolerance_m: float | None, early_stop_fraction: float | None
+    def _method_params(self, inlier_threshold_m: float | None, early_stop_fraction: float | None
                        ) -> RobustParams | PaperParams:
         """The registration method's parameters: its defaults but for the tolerance and, robust, the seeding."""
         if self.method != "robust":
-            return PaperParams() if tolerance_m is None else PaperParams(inlier_threshold_m=tolerance_m)
+            return PaperParams() if inlier_threshold_m is None else PaperParams(inlier_threshold_m=inlier_threshold_m)
         params = RobustParams(min_inliers=max(2, self.candidates_from))  # from one landmark: `_one_landmark`
         if self.candidates_from < self.min_landmarks:  # below min_landmarks the walls choose: offer them every pose
             params = replace(params, complete_below=self.min_landmarks)
         if early_stop_fraction is not None:
             params = replace(params, early_stop_fraction=early_stop_fraction)
-        if tolerance_m is not None:
-            params = replace(params, inlier_threshold_m=tolerance_m, ambiguity_tau_m=tolerance_m)
+        if inlier_threshold_m is not None:
+            params = replace(params, inlier_threshold_m=inlier_threshold_m, ambiguity_tau_m=inlier_threshold_m)
         return params
 
     def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:

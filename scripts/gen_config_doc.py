@@ -34,19 +34,28 @@ macroloc has one typed configuration (`service/config.py`). Every value is resol
 overriding the one before:
 
 1. the defaults below;
-2. a file given with `--config FILE` (TOML, or JSON for any other suffix), in sections:
+2. a file given with `--config FILE` (TOML, or JSON for any other suffix), in sections, the `[graph]` section
+   with a table per component of the localizer (`graph/params.py`, each key its parameter's name):
    ```toml
    [graph]
    storey_hint = "Level 1"
+
+   [graph.judge]
+   surface_margin = 0.2
    ```
-3. environment variables `MACROLOC_<SECTION>__<KEY>` (two underscores), e.g.
-   `MACROLOC_ZENOH__MODE=client` or `MACROLOC_GRAPH__STOREY_HINT="Level 1"`;
+3. environment variables `MACROLOC_<SECTION>__<KEY>` (two underscores; `MACROLOC_<SECTION>__<TABLE>__<KEY>` in a
+   table), e.g. `MACROLOC_ZENOH__MODE=client`, `MACROLOC_GRAPH__STOREY_HINT="Level 1"` or
+   `MACROLOC_GRAPH__JUDGE__SURFACE_MARGIN=0.2`;
 4. command-line flags (e.g. `macroloc serve --vehicle drone2 --ros`).
 
 An unknown section or key is refused at start (exit 2, one line naming it, e.g.
 `config: graph.storey_hintt: Extra inputs are not permitted`). `macroloc dump-config --config FILE [--toml]`
 prints the resolved configuration; start a config file from it. `macroloc replay --report DIR` writes
 the configuration it ran with to `DIR/config.json`.
+
+The `[graph]` keys of the layout before its tables (e.g. `[graph] associate_m`, now `[graph.landmarks]
+associate_m`; `registration_tolerance_m`, now `[graph.registration] inlier_threshold_m`) are still read: each
+moves to its table with one warning line naming the new key.
 
 Units are in the key's name (`_m` metres, `_s` seconds, `_deg` degrees, `_hz` hertz) or its description.
 
@@ -96,14 +105,37 @@ def cell(text: str) -> str:
     return re.sub(r"\s+", " ", text.replace("|", "\\|")).strip()
 
 
+def _table(field: FieldInfo) -> type[BaseModel] | None:
+    """The model of a key that is a table of its own (`[graph.judge]`), else None."""
+    model = field.annotation
+    return model if isinstance(model, type) and issubclass(model, BaseModel) else None
+
+
 def section_models() -> list[tuple[str, type[BaseModel]]]:
-    return [(name, type(f.get_default(call_default_factory=True))) for name, f in MacrolocConfig.model_fields.items()]
+    """Every section and table, in order: `graph`, then `graph.keyframes`, ... (a table after its section)."""
+    out: list[tuple[str, type[BaseModel]]] = []
+
+    def visit(name: str, model: type[BaseModel]) -> None:
+        out.append((name, model))
+        for key, field in model.model_fields.items():
+            table = _table(field)
+            if table is not None:
+                visit(f"{name}.{key}", table)
+
+    for name, f in MacrolocConfig.model_fields.items():
+        visit(name, type(f.get_default(call_default_factory=True)))
+    return out
+
+
+def anchor(name: str) -> str:
+    """GitHub's anchor of a `## graph.judge` heading."""
+    return name.replace(".", "")
 
 
 def render() -> str:
     parts = [HEADER]
     sections = section_models()
-    parts.append("Sections: " + ", ".join(f"[`[{name}]`](#{name})" for name, _ in sections) + ".\n")
+    parts.append("Sections: " + ", ".join(f"[`[{name}]`](#{anchor(name)})" for name, _ in sections) + ".\n")
     for name, model in sections:
         parts.append(f"\n## {name}\n\n{cell(model.__doc__ or '')}\n\n")
         parts.append("| key | type | default | description |\n|---|---|---|---|\n")
@@ -112,6 +144,10 @@ def render() -> str:
             description = cell(field.description or "")
             if bounds:
                 description += f" (checked: {bounds})"
+            if _table(field) is not None:
+                table = f"{name}.{key}"
+                parts.append(f"| `{key}` | table | [`[{table}]`](#{anchor(table)}) | {description} |\n")
+                continue
             parts.append(f"| `{key}` | {type_name(field.annotation)} | {default_text(field)} | {description} |\n")
     return "".join(parts)
 

@@ -8,16 +8,35 @@ arguments. `macroloc dump-config` prints the resolved configuration.
 from __future__ import annotations
 
 import json
+import logging
 import tomllib
+from dataclasses import fields, replace
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from macroloc.graph.errors import UserInputError
-from macroloc.graph.params import AnchorParams, FarParams, JudgeParams, LandmarkParams, RegistrationParams, StatusParams
+from macroloc.graph.keyframes import KeyframeRule
+from macroloc.graph.params import (
+    AnchorParams,
+    FarParams,
+    IsamSettings,
+    JudgeParams,
+    LandmarkParams,
+    RegistrationParams,
+    StatusParams,
+)
 from macroloc.perception.image_header import DEFAULT_MAX_PIXELS
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+    from macroloc.graph.robust import RobustParams
+
+log = logging.getLogger(__name__)
+P = TypeVar("P", bound="DataclassInstance")  # a parameter dataclass
 
 
 class _Section(BaseModel):
@@ -26,13 +45,21 @@ class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+def _replaced(defaults: P, section: BaseModel) -> P:
+    """`defaults` (a parameter dataclass) with the section's keys that are its fields (of the same names)."""
+    names = {f.name for f in fields(defaults)}
+    return replace(defaults, **{k: getattr(section, k) for k in type(section).model_fields if k in names})
+
+
 class LocalizeConfig(_Section):
     """One-shot registration of observed macro-features to the CAD model (graph/registration): `macroloc localize
-    --config FILE` reads the robust method's keys; `macroloc serve` reads `method` (its pose graph registers with
-    the [graph] section's keys)."""
+    --config FILE` reads the robust method's keys (graph.robust.RobustParams' fields of the same names); `macroloc
+    serve` reads `method` (its pose graph registers with the [graph.registration] keys)."""
 
     method: Literal["robust", "paper"] = Field("robust", description="'paper' = the paper's algorithm exactly")
-    inlier_threshold_m: float = Field(0.30, description="centroid residual under which a match is an inlier, m")
+    inlier_threshold_m: float = Field(
+        0.30, description="an observation this close to a same-type CAD feature (centroids) supports the pose, m "
+        "(as [graph.registration] inlier_threshold_m is the pose graph's, for perception's coarser landmarks)")
     landing_alpha: float = Field(
         0.1, description="a different pose within the rival margin of the best makes the answer 'ambiguous'; the "
                          "margin covers the false detections' chance landings on features but this often")
@@ -40,10 +67,12 @@ class LocalizeConfig(_Section):
                                             "not_localized")
     seed: int = Field(0, description="random seed of the hypothesis order (deterministic answers)")
 
-    def robust_params(self) -> dict:
-        """Keyword arguments for graph.registration.register(method='robust')."""
-        return dict(inlier_threshold_m=self.inlier_threshold_m, landing_alpha=self.landing_alpha,
-                    min_inliers=self.min_inliers, seed=self.seed)
+    def robust_params(self) -> RobustParams:
+        """The robust method's parameters (graph.registration.register(method='robust', params=...)): its
+        defaults but for this section's keys of the same names."""
+        from macroloc.graph.robust import RobustParams  # scipy: only where a registration runs
+
+        return _replaced(RobustParams(), self)
 
 
 class CameraConfig(_Section):
@@ -133,89 +162,200 @@ class PerceptionConfig(_Section):
     detect_every: int = Field(3, ge=1, description="replay: run the chain on every n-th stereo frame")
 
 
-# the localizer's defaults, written once (graph.params): the [graph] keys below take theirs from these
+# the localizer's defaults, written once (graph.params, graph.keyframes): the [graph] tables take theirs from these
 _LANDMARKS, _ANCHOR, _STATUS = LandmarkParams(), AnchorParams(), StatusParams()
 _REGISTRATION, _JUDGE, _FAR = RegistrationParams(), JudgeParams(), FarParams()
+_RULE, _ISAM = KeyframeRule(), IsamSettings()
 
 
-class GraphConfig(_Section):
-    """The pose graph and the localizer (graph/posegraph, graph/localizer): keyframes, association, status."""
+class _Params(_Section):
+    """A table of the [graph] section: each key is the field of the same name of one of the localizer's parameter
+    dataclasses (graph.params), its default that field's."""
 
-    keyframe_translation_m: float = Field(0.25, description="a new keyframe after this much motion, m")
-    keyframe_rotation_rad: float = Field(0.15, description="... or this much rotation, rad")
-    keyframe_interval_s: float = Field(0.34, description="... or this much time, s (the service and replay "
-                                       "alike: service/session.py)")
-    keyframe_while_exploring: bool = Field(
-        False, description="also every frame with sightings while not localized (slower to localize on 30 fps "
-                           "flights: docs/measurements.md)")
-    keyframe_without_sightings_m: float = Field(
-        0.0, description="a frame without sightings is a keyframe only after this much motion, m (0: the "
-                         "translation, rotation and interval above decide for it too)")
+    def to_params(self, defaults: P) -> P:
+        """`defaults` (a parameter dataclass) with this table's keys that are its fields."""
+        return _replaced(defaults, self)
+
+
+class KeyframesConfig(_Params):
+    """Which frames become keyframes (graph.keyframes.KeyframeRule and its KeyframePolicy), the service and
+    replay alike (service/session.py)."""
+
+    translation_m: float = Field(_RULE.policy.translation_m, description="a new keyframe after this much motion, m")
+    rotation_rad: float = Field(_RULE.policy.rotation_rad, description="... or this much rotation, rad")
+    interval_s: float = Field(_RULE.policy.interval_s, description="... or this much time, s")
+    while_exploring: bool = Field(
+        _RULE.while_exploring, description="also every frame with sightings while not localized (slower to "
+                                           "localize on 30 fps flights: docs/measurements.md)")
+    without_sightings_m: float = Field(
+        _RULE.without_sightings_m, description="a frame without sightings is a keyframe only after this much "
+        "motion, m (0: the translation, rotation and interval above decide for it too)")
+
+    def to_rule(self) -> KeyframeRule:
+        return self.to_params(replace(_RULE, policy=self.to_params(_RULE.policy)))
+
+
+class LandmarksConfig(_Params):
+    """Sightings into landmarks (graph.params.LandmarkParams)."""
+
     associate_m: float = Field(
-        _LANDMARKS.associate_m,
-        description="a sighting this close to a same-type landmark re-observes it, m")
-    cad_link_m: float = Field(
-        _ANCHOR.cad_link_m,
-        description="once localized, a landmark this close to a CAD feature is linked, m")
-    cad_link_max_turn_deg: float = Field(
-        _ANCHOR.cad_link_max_turn_deg, ge=0,
-        description="... by its orientation too where that lies within this of the CAD feature's, deg "
-        "(else by its position only: a door's plane from its corners can be far off on a door seen obliquely, and "
-        "would turn the flight to fit it)")
-    degraded_after_s: float = Field(
-        _STATUS.degraded_after_s,
-        description="localized, but no sighting of a CAD-linked landmark for this long: degraded")
-    lost_after_s: float = Field(_STATUS.lost_after_s, description="... for this long: lost")
-    relinearize_threshold: float = Field(0.01, description="iSAM2 relinearization threshold")
-    registration_tolerance_m: float = Field(
-        _REGISTRATION.registration_tolerance_m, gt=0,
-        description="registering the map to the model: an aligned landmark this close to a same-type "
-        "CAD feature supports the pose, m (perception's landmarks lie 0.1-0.5 m off their feature: a tighter "
-        "tolerance leaves the right pose too few inliers to beat its rivals)")
-    storey_hint: str | None = Field(
-        None, description="the storey the vehicle flies on, when the operator knows it (it took off there): "
-        "registration then considers only that storey's doors and windows. Storeys built alike are otherwise "
-        "told apart only by what differs between them, and the status stays ambiguous until that is seen")
-    registration_min_landmarks: int = Field(
-        _REGISTRATION.registration_min_landmarks, ge=2,
-        description="registration is tried once this many landmarks have been seen twice, and a pose "
-        "must explain as many. With gravity two doors fix a pose, but at the tolerance above a building of a "
-        "hundred alike doors offers chance fits of three landmarks (a wrong localization was seen with 3)")
-    surface_check: bool = Field(
-        True, description="check registrations against the walls: with depth points (stereo), a pose from as "
-        "few as verified_min_landmarks landmarks is taken when it puts most of the points on the model's "
-        "surfaces, in sight of the camera, and no other candidate pose does (IFC models)")
-    line_of_sight: bool = Field(
-        True, description="in that check, count against a pose the points it would have the camera see through "
-        "a wall or column of the model; turn off for a model whose glass partitions are modelled as walls")
-    surface_turn_deg: float = Field(
-        _JUDGE.surface_turn_deg, ge=0,
-        description="in that check, a candidate pose from one to three doors is first turned about "
-        "one of them, within this, to the heading that fits the walls best while keeping its doors by theirs in the "
-        "model, deg (from one door its heading is the door's plane: perception's is ~20 deg off on a door seen "
-        "obliquely; from two or three a few metres apart 5-13 deg off); 0: not turned")
-    surface_margin: float = Field(
-        _JUDGE.surface_margin, ge=0, description="in that check, a candidate pose is taken only where every "
-        "different candidate scores this much less (the fraction of the depth points on the model's surfaces and in "
-        "sight); a smaller margin localizes sooner and risks a wrong pose where the building repeats itself")
-    verified_min_landmarks: int = Field(
-        _REGISTRATION.verified_min_landmarks, ge=1,
-        description="with the surface check, candidate poses are weighed from this many landmarks. "
-        "From one door or window (gravity known) they are every alike feature of the model, seen from either side; "
-        "the walls must single one out")
-    surface_retry_s: float = Field(
-        _REGISTRATION.surface_retry_s, gt=0,
-        description="while not localized and no new landmark came, the walls weigh the candidate poses "
-        "again this often as more of them is seen, s (each check costs 0.1-0.4 s of CPU on a 2-core machine)")
+        _LANDMARKS.associate_m, description="a sighting this close to a same-type landmark re-observes it, m")
     far_range_m: float = Field(
         _LANDMARKS.far_range_m, ge=0,
         description="doors and windows seen beyond the 7 m sighting range, up to this range, check "
         "candidate poses by their bearings and, before any door came within range, resect the pose, m "
         "(their stereo range is coarse, their bearing good to a fraction of a degree)")
+
+
+class RegistrationConfig(_Params):
+    """Registering the map's landmarks to the model (graph.params.RegistrationParams, graph.registrar)."""
+
+    inlier_threshold_m: float = Field(
+        _REGISTRATION.inlier_threshold_m, gt=0,
+        description="an aligned landmark this close to a same-type CAD feature supports the pose (the "
+        "registration's inlier and ambiguity tolerance, as [localize] inlier_threshold_m is the one-shot "
+        "localize's), m (perception's landmarks lie 0.1-0.5 m off their feature: a tighter tolerance leaves the "
+        "right pose too few inliers to beat its rivals)")
+    registration_min_landmarks: int = Field(
+        _REGISTRATION.registration_min_landmarks, ge=2,
+        description="registration is tried once this many landmarks have been seen twice, and a pose "
+        "must explain as many. With gravity two doors fix a pose, but at the tolerance above a building of a "
+        "hundred alike doors offers chance fits of three landmarks (a wrong localization was seen with 3)")
+    verified_min_landmarks: int = Field(
+        _REGISTRATION.verified_min_landmarks, ge=1,
+        description="with the surface check ([graph] surface_check), candidate poses are weighed from this many "
+        "landmarks. From one door or window (gravity known) they are every alike feature of the model, seen from "
+        "either side; the walls must single one out")
+    surface_retry_s: float = Field(
+        _REGISTRATION.surface_retry_s, gt=0,
+        description="while not localized and no new landmark came, the walls weigh the candidate poses "
+        "again this often as more of them is seen, s (each check costs 0.1-0.4 s of CPU on a 2-core machine)")
+
+
+class AnchorConfig(_Params):
+    """Holding the graph to the model once localized (graph.params.AnchorParams)."""
+
+    cad_link_m: float = Field(
+        _ANCHOR.cad_link_m, description="once localized, a landmark this close to a CAD feature is linked, m")
+    cad_link_max_turn_deg: float = Field(
+        _ANCHOR.cad_link_max_turn_deg, ge=0,
+        description="... by its orientation too where that lies within this of the CAD feature's, deg "
+        "(else by its position only: a door's plane from its corners can be far off on a door seen obliquely, and "
+        "would turn the flight to fit it)")
+
+
+class JudgeConfig(_Params):
+    """The walls' judgement of candidate poses, the surface check ([graph] surface_check; graph.judge,
+    graph.params.JudgeParams)."""
+
+    surface_turn_deg: float = Field(
+        _JUDGE.surface_turn_deg, ge=0,
+        description="a candidate pose from one to three doors is first turned about one of them, within this, to "
+        "the heading that fits the walls best while keeping its doors by theirs in the model, deg (from one door "
+        "its heading is the door's plane: perception's is ~20 deg off on a door seen obliquely; from two or three "
+        "a few metres apart 5-13 deg off); 0: not turned")
+    surface_margin: float = Field(
+        _JUDGE.surface_margin, ge=0, description="a candidate pose is taken only where every different candidate "
+        "scores this much less (the fraction of the depth points on the model's surfaces and in sight); a smaller "
+        "margin localizes sooner and risks a wrong pose where the building repeats itself")
+
+
+class FarConfig(_Params):
+    """The doors and windows seen beyond the sighting range (graph.far_window, graph.params.FarParams)."""
+
     far_resection: bool = Field(
         _FAR.far_resection,
         description="before any door came within the sighting range, candidate poses from two far doors or "
         "windows seen at least 10 deg apart from one keyframe, for the walls to choose among")
+
+
+class StatusConfig(_Params):
+    """The localized status decaying while no CAD-linked landmark is seen (graph.params.StatusParams)."""
+
+    degraded_after_s: float = Field(
+        _STATUS.degraded_after_s,
+        description="localized, but no sighting of a CAD-linked landmark for this long: degraded")
+    lost_after_s: float = Field(_STATUS.lost_after_s, description="... for this long: lost")
+
+
+class IsamConfig(_Params):
+    """The pose graph's iSAM2 (graph.posegraph.IsamSettings)."""
+
+    relinearize_threshold: float = Field(_ISAM.relinearize_threshold, description="iSAM2 relinearization threshold")
+
+
+# The [graph] keys before its tables (issue 36), still read: each moves to its table, with a warning.
+LEGACY_GRAPH_KEYS: dict[str, tuple[str, str]] = {
+    "keyframe_translation_m": ("keyframes", "translation_m"),
+    "keyframe_rotation_rad": ("keyframes", "rotation_rad"),
+    "keyframe_interval_s": ("keyframes", "interval_s"),
+    "keyframe_while_exploring": ("keyframes", "while_exploring"),
+    "keyframe_without_sightings_m": ("keyframes", "without_sightings_m"),
+    "associate_m": ("landmarks", "associate_m"),
+    "far_range_m": ("landmarks", "far_range_m"),
+    "registration_tolerance_m": ("registration", "inlier_threshold_m"),
+    "registration_min_landmarks": ("registration", "registration_min_landmarks"),
+    "verified_min_landmarks": ("registration", "verified_min_landmarks"),
+    "surface_retry_s": ("registration", "surface_retry_s"),
+    "cad_link_m": ("anchor", "cad_link_m"),
+    "cad_link_max_turn_deg": ("anchor", "cad_link_max_turn_deg"),
+    "surface_turn_deg": ("judge", "surface_turn_deg"),
+    "surface_margin": ("judge", "surface_margin"),
+    "far_resection": ("far", "far_resection"),
+    "degraded_after_s": ("status", "degraded_after_s"),
+    "lost_after_s": ("status", "lost_after_s"),
+    "relinearize_threshold": ("isam", "relinearize_threshold"),
+}
+
+
+class GraphConfig(_Section):
+    """The pose graph and the localizer (graph/posegraph, graph/localizer): the storey, the surface check, and one
+    table per component, named as its part of graph.params.LocalizerParams (`[graph.judge]` is `JudgeParams`)."""
+
+    storey_hint: str | None = Field(
+        None, description="the storey the vehicle flies on, when the operator knows it (it took off there): "
+        "registration then considers only that storey's doors and windows. Storeys built alike are otherwise "
+        "told apart only by what differs between them, and the status stays ambiguous until that is seen")
+    surface_check: bool = Field(
+        True, description="check registrations against the walls: with depth points (stereo), a pose from as "
+        "few as [graph.registration] verified_min_landmarks landmarks is taken when it puts most of the points on "
+        "the model's surfaces, in sight of the camera, and no other candidate pose does (IFC models; "
+        "[graph.judge])")
+    line_of_sight: bool = Field(
+        True, description="in that check, count against a pose the points it would have the camera see through "
+        "a wall or column of the model; turn off for a model whose glass partitions are modelled as walls")
+    keyframes: KeyframesConfig = Field(default_factory=lambda: KeyframesConfig(),
+                                       description="[graph.keyframes]: which frames become keyframes")
+    landmarks: LandmarksConfig = Field(default_factory=lambda: LandmarksConfig(),
+                                       description="[graph.landmarks]: sightings into landmarks")
+    registration: RegistrationConfig = Field(default_factory=lambda: RegistrationConfig(),
+                                             description="[graph.registration]: the map registered to the model")
+    anchor: AnchorConfig = Field(default_factory=lambda: AnchorConfig(),
+                                 description="[graph.anchor]: landmarks linked to the model once localized")
+    judge: JudgeConfig = Field(default_factory=lambda: JudgeConfig(),
+                               description="[graph.judge]: the surface check's judgement of candidate poses")
+    far: FarConfig = Field(default_factory=lambda: FarConfig(),
+                           description="[graph.far]: doors and windows beyond the sighting range")
+    status: StatusConfig = Field(default_factory=lambda: StatusConfig(),
+                                 description="[graph.status]: the localized status decaying")
+    isam: IsamConfig = Field(default_factory=lambda: IsamConfig(), description="[graph.isam]: the pose graph's iSAM2")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _nest_legacy_keys(cls, data: Any) -> Any:  # noqa: ANN401
+        """A flat key of the [graph] section before its tables moves to its table, with one warning line each
+        (where both are given, the flat key wins: it came from the environment over a file, or from a flag)."""
+        if not isinstance(data, dict) or not LEGACY_GRAPH_KEYS.keys() & data.keys():
+            return data
+        out = dict(data)
+        for old in [k for k in data if k in LEGACY_GRAPH_KEYS]:
+            table, key = LEGACY_GRAPH_KEYS[old]
+            log.warning("config: [graph] %s is now [graph.%s] %s", old, table, key)
+            current = out.get(table) or {}
+            if isinstance(current, BaseModel):
+                current = current.model_dump()
+            out[table] = {**current, key: out.pop(old)} if isinstance(current, dict) else current
+        return out
 
 
 class RosConfig(_Section):
@@ -303,6 +443,14 @@ class MacrolocConfig(BaseSettings):
         return env_settings, init_settings, dotenv_settings, file_secret_settings
 
 
+def _merged(base: dict, values: dict) -> dict:
+    """`base` with `values` over it, table by table (a [graph.judge] override keeps the table's other keys)."""
+    out = dict(base)
+    for key, value in values.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
 def load_config(path: Path | None = None, **overrides: dict) -> MacrolocConfig:
     """Defaults < file (JSON or TOML) < environment (MACROLOC_<SECTION>__<KEY>) < explicit overrides (one dict
     per section, e.g. from command-line flags)."""
@@ -318,7 +466,7 @@ def load_config(path: Path | None = None, **overrides: dict) -> MacrolocConfig:
         cfg = MacrolocConfig(**doc)
         for section, values in overrides.items():
             current = getattr(cfg, section)
-            setattr(cfg, section, type(current).model_validate({**current.model_dump(), **values}))
+            setattr(cfg, section, type(current).model_validate(_merged(current.model_dump(), values)))
         return cfg
     except ValidationError as exc:
         first = exc.errors()[0]

@@ -17,16 +17,15 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from macroloc.graph.features import BuildingModel
-from macroloc.graph.keyframes import KeyframePolicy, KeyframeRule
+from macroloc.graph.keyframes import KeyframeRule
 from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
 from macroloc.graph.mapstore import StoredMap
-from macroloc.graph.params import StatusParams
 from macroloc.graph.posegraph import IsamSettings, PoseGraph
 from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.surfaces import SurfaceIndex
@@ -175,23 +174,14 @@ def _finite(est: Estimate) -> bool:
 
 def settings_from_config(graph: GraphConfig, *, storey_hint: str | None = None, method: str = "robust",
                          covariance: bool = False) -> SessionSettings:
-    """The factory's half that reads the config's [graph] section: typed arguments for the components.
+    """The factory's half that reads the config's [graph] section: typed arguments for the components, each
+    [graph.<part>] table onto its part of `LocalizerParams` (the rest at their defaults), [graph.keyframes] onto
+    the `KeyframeRule`, [graph.isam] onto the `IsamSettings`.
     `storey_hint`: a checked one (BuildingModel.checked_storey), else the section's own."""
     d = LocalizerParams()
-    params = LocalizerParams(
-        landmarks=replace(d.landmarks, associate_m=graph.associate_m, far_range_m=graph.far_range_m),
-        registration=replace(d.registration, registration_tolerance_m=graph.registration_tolerance_m,
-                             registration_min_landmarks=graph.registration_min_landmarks,
-                             verified_min_landmarks=graph.verified_min_landmarks,
-                             surface_retry_s=graph.surface_retry_s),
-        anchor=replace(d.anchor, cad_link_m=graph.cad_link_m, cad_link_max_turn_deg=graph.cad_link_max_turn_deg),
-        far=replace(d.far, far_resection=graph.far_resection),
-        judge=replace(d.judge, surface_turn_deg=graph.surface_turn_deg, surface_margin=graph.surface_margin),
-        status=StatusParams(degraded_after_s=graph.degraded_after_s, lost_after_s=graph.lost_after_s))
-    policy = KeyframePolicy(graph.keyframe_translation_m, graph.keyframe_rotation_rad, graph.keyframe_interval_s)
-    rule = KeyframeRule(policy, graph.keyframe_while_exploring, graph.keyframe_without_sightings_m or None)
-    return SessionSettings(params, rule,
-                           IsamSettings(relinearize_threshold=graph.relinearize_threshold),
+    params = replace(d, **{f.name: getattr(graph, f.name).to_params(getattr(d, f.name)) for f in fields(d)
+                           if f.name in type(graph).model_fields})  # [graph.judge] to LocalizerParams.judge, ...
+    return SessionSettings(params, graph.keyframes.to_rule(), graph.isam.to_params(IsamSettings()),
                            storey_hint if storey_hint is not None else graph.storey_hint, method, covariance)
 
 

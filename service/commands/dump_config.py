@@ -26,9 +26,15 @@ def register(app: typer.Typer) -> None:
         if not toml_out:
             sys.stdout.write(json.dumps(doc, indent=2) + "\n")
             return
-        for section, values in doc.items():
-            sys.stdout.write(f"[{section}]\n")
+        def table(name: str, values: dict) -> None:  # its keys, then its own tables ([graph], [graph.judge], ...)
+            sys.stdout.write(f"[{name}]\n")
             for key, value in values.items():
-                if value is not None:
+                if value is not None and not isinstance(value, dict):
                     sys.stdout.write(f"{key} = {json.dumps(value)}\n")
             sys.stdout.write("\n")
+            for key, value in values.items():
+                if isinstance(value, dict):
+                    table(f"{name}.{key}", value)
+
+        for section, values in doc.items():
+            table(section, values)

@@ -39,12 +39,12 @@ def register(app: typer.Typer) -> None:
 
         obs = parse_observations(read_json(observations, "observations file"))
         model = load_building(building)
-        overrides = {}
-        if config is not None:
+        params = None  # the method's defaults
+        if config is not None and method == "robust":
             from macroloc.service.config import load_config
 
-            overrides = load_config(config).localize.robust_params() if method == "robust" else {}
-        result = run_registration(model, obs, method=method, **overrides)
+            params = load_config(config).localize.robust_params()
+        result = run_registration(model, obs, method=method, params=params)
         result.total_ms = (time.perf_counter() - t_start) * 1000.0
         if json_out:
             print_json(result.to_json())

@@ -265,7 +265,7 @@ def test_one_false_landmark_does_not_take_the_truth_out_of_the_candidates(office
                 ObservedRect(2, "door", T_map_w @ feature_frame_cad(c))]
     false_corners = apply(T_map_w, c.corners_cad)
     # the registrar's tolerance is the one W was built with (tau): its verification gate (graph.verify)
-    result = ModelRegistrar(office_model, min_landmarks=4, candidates_from=1, registration_tolerance_m=tau)(
+    result = ModelRegistrar(office_model, min_landmarks=4, candidates_from=1, inlier_threshold_m=tau)(
         observed, corners + [false_corners])
     assert result.status == "ambiguous" and result.inliers == 3  # the wrong pose explains all three
 

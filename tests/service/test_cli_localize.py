@@ -69,14 +69,18 @@ def test_localize_takes_the_config_files_localize_section(tmp_path: Path, capsys
     assert json.loads(run(base, capsys)[1])["status"] == "localized"
     assert json.loads(run([*base, "--config", str(config)], capsys)[1])["status"] == "not_localized"
 def test_the_configured_registration_parameters_are_the_registrations(office_model) -> None:
-    """`LocalizeConfig.robust_params()` names only parameters the robust registration takes."""
+    """`LocalizeConfig.robust_params()` is the robust registration's parameters, every key of the section but
+    `method` among them."""
     from macroloc.graph.observations import parse_observations
     from macroloc.graph.registration import register
     from macroloc.service.config import LocalizeConfig
 
     T = random_T(np.random.default_rng(2), yaw_only=True)
     obs = parse_observations(obs_doc(office_model, np.linalg.inv(T), "Level 2"))
-    assert register(office_model, obs, **LocalizeConfig().robust_params()).status in ("localized", "ambiguous")
+    assert register(office_model, obs, params=LocalizeConfig().robust_params()).status in ("localized", "ambiguous")
+    changed = LocalizeConfig(inlier_threshold_m=0.25, landing_alpha=0.05, min_inliers=5, seed=7).robust_params()
+    assert {k: getattr(changed, k) for k in LocalizeConfig.model_fields if k != "method"} == \
+        dict(inlier_threshold_m=0.25, landing_alpha=0.05, min_inliers=5, seed=7)
 
 
 BAD_INPUTS = {

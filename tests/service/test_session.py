@@ -17,7 +17,7 @@ def _T(x_m: float) -> np.ndarray:
 
 def test_the_service_and_the_replay_make_the_same_keyframes() -> None:
     """The service's odometry events and the replay's frames go through one keyframe rule: the same frames
-    become keyframes (here every 0.28 m: 0.04 m a frame, more than keyframe_translation_m = 0.25 m)."""
+    become keyframes (here every 0.28 m: 0.04 m a frame, more than [graph.keyframes] translation_m = 0.25 m)."""
     model = corridor_model()
     backend = LocalizerBackend.fresh_or_restored(model, None)
     bare = make_session(model)

@@ -264,8 +264,9 @@ def test_the_graph_section_reaches_the_localizer(tmp_path: Path) -> None:
     from macroloc.service.session import settings_from_config
 
     path = tmp_path / "config.toml"
-    path.write_text("[graph]\ncad_link_max_turn_deg = 4.5\nsurface_turn_deg = 0.0\nassociate_m = 0.7\n"
-                    "surface_retry_s = 2.5\nfar_range_m = 12.0\nfar_resection = false\n")
+    path.write_text("[graph.anchor]\ncad_link_max_turn_deg = 4.5\n[graph.judge]\nsurface_turn_deg = 0.0\n"
+                    "[graph.landmarks]\nassociate_m = 0.7\nfar_range_m = 12.0\n[graph.registration]\n"
+                    "surface_retry_s = 2.5\n[graph.far]\nfar_resection = false\n")
     params = settings_from_config(load_config(path).graph).localizer
     assert (params.anchor.cad_link_max_turn_deg, params.judge.surface_turn_deg, params.landmarks.associate_m) == \
         (4.5, 0.0, 0.7)
