@@ -21,6 +21,7 @@ from macroloc.graph.errors import UserInputError
 from macroloc.graph.keyframes import KeyframeRule
 from macroloc.graph.params import (
     AnchorParams,
+    DepthParams,
     FarParams,
     IsamSettings,
     JudgeParams,
@@ -282,6 +283,24 @@ class IsamConfig(_Params):
     """The pose graph's iSAM2 (graph.posegraph.IsamSettings)."""
 
     relinearize_threshold: float = Field(_ISAM.relinearize_threshold, description="iSAM2 relinearization threshold")
+    relinearize_skip: int = Field(_ISAM.relinearize_skip, ge=1,
+                                  description="iSAM2 checks for relinearization every this many updates")
+    window_keyframes: int = Field(
+        _ISAM.window_keyframes, ge=0,
+        description="keyframes kept as variables behind the newest; older ones are marginalised into a prior, so a "
+        "keyframe's cost stays flat over a long mission (0: all kept, plain iSAM2). At least 60, the oldest keyframe "
+        "the surface check reads back")
+    marginalise_every: int = Field(
+        _ISAM.marginalise_every, ge=1,
+        description="with a window: keyframes are marginalised this many at a time (one re-factorisation each time)")
+
+    @model_validator(mode="after")
+    def _window_holds_the_surface_check(self) -> IsamConfig:
+        least = DepthParams().surface_window_keyframes
+        if 0 < self.window_keyframes < least:
+            raise ValueError(f"window_keyframes must be 0 (all kept) or at least {least}, the keyframes the surface "
+                             "check reads back")
+        return self
 
 
 # The [graph] keys before its tables (issue 36), still read: each moves to its table, with a warning.

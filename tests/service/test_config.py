@@ -176,3 +176,13 @@ def test_dump_config_prints_the_tables_and_reads_back(tmp_path: Path) -> None:
     path = tmp_path / "dumped.toml"
     path.write_text(text)
     assert load_config(path).graph == GraphConfig()
+
+
+def test_a_window_too_short_for_the_surface_check_is_refused(tmp_path: Path) -> None:
+    """The iSAM2 window must hold the keyframes the surface check reads back (0 keeps them all)."""
+    path = tmp_path / "c.toml"
+    path.write_text("[graph.isam]\nwindow_keyframes = 30\n")
+    with pytest.raises(UserInputError, match="window_keyframes must be 0"):
+        load_config(path)
+    path.write_text("[graph.isam]\nwindow_keyframes = 0\n")
+    assert settings_from_config(load_config(path).graph).isam.window_keyframes == 0
