@@ -1,11 +1,11 @@
 """The detector's figures on the held-out real test photos (never trained on), new beside old, from one run.
 
-    python -m bench.eval_detector [--old /tmp/old/detector.onnx] [--rendered DIR] [--json out/detector/compare.json]
+    python -m bench.eval_detector [--old /tmp/old/detector.onnx] [--rendered DIR ...] [--json out/detector/compare.json]
 
 Indoor test split: `perception.trainset.split_indoor` (seed 0, by source photo); facade test split: img_n with
 n % 5 == 0. Per model: door AP50 / AP30 and precision/recall at the model's own threshold, doors by height fraction
 and doors cut by the border (indoor), windows and doors on the facades. The old model defaults to the shipped one
-before issue 32 (from git). `--rendered DIR` adds rendered frames with YOLO labels (0 door, 1 window) of a building
+before issue 32 (from git). `--rendered DIR ...` adds rendered frames with YOLO labels (0 door, 1 window) of a building
 never trained on, e.g. Office_A exported by `sim.export.render_training_frames`. A benchmark: it prints figures, it
 asserts nothing.
 """
@@ -19,15 +19,15 @@ import tempfile
 from pathlib import Path
 
 from bench.bench_detector import old_from_git
+from macroloc.perception.detector import Detector
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MACROLOC_SHARED_DATA", ROOT.parent / "shared" / "data")) / "images"
 TARGET_AP50 = 0.85
 
 
-def score(model: Path, threads: int, rendered: Path | None) -> dict[str, object]:
+def score(model: Path, threads: int, rendered: list[Path]) -> dict[str, object]:
     from macroloc.perception import detector_eval
-    from macroloc.perception.detector import Detector
     from macroloc.perception.train import load_facades, load_indoor, load_sim
 
     detector = Detector(model, threads=threads)
@@ -35,12 +35,40 @@ def score(model: Path, threads: int, rendered: Path | None) -> dict[str, object]
     out: dict[str, object] = {"threshold": t}
     parts = [("indoor_test", load_indoor(SHARED / "indoor_doors", 0)["test"]),
              ("facade_test", load_facades(SHARED / "facades", 0)["test"])]
-    if rendered is not None:
-        parts.append(("rendered", load_sim([rendered])))
+    parts += [(f"rendered_{folder.name}", load_sim([folder])) for folder in rendered]
     for name, samples in parts:
         dets, truths = detector_eval.detect_all(detector, samples)
         out[name] = detector_eval.figures(samples, dets, truths, t, subsets=name == "indoor_test")
+    out["real_double_door"] = real_double_door(detector)
     return out
+
+
+def real_double_door(detector: Detector) -> dict[str, dict[str, float]]:
+    """The real stereo pairs' double doors (rtabmap_stereo_rect, frames 50 and 60): the best score of a door box at
+    IoU >= 0.5 with the hand-drawn box (`bench.eval_perception_real.HAND_BOX_PX`), and that IoU."""
+    import cv2
+
+    from bench.eval_perception_real import HAND_BOX_PX, PAIR
+
+    out = {}
+    for frame, hand in HAND_BOX_PX.items():
+        image = cv2.imread(str(PAIR / "left" / f"{frame}.jpg"))
+        if image is None:
+            continue
+        best = (0.0, 0.0)
+        for det in detector.detect(image, score_threshold=0.01):
+            overlap = _iou(det.box_xyxy, hand)
+            if det.type == "door" and overlap >= 0.5 and det.score > best[0]:
+                best = (det.score, overlap)
+        out[frame] = {"door_score": round(best[0], 3), "iou": round(best[1], 2)}
+    return out
+
+
+def _iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
+    w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = w * h
+    return inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter)
 
 
 def _pr(v: dict) -> str:  # type: ignore[type-arg]
@@ -58,8 +86,11 @@ def lines(name: str, fig: dict) -> list[str]:  # type: ignore[type-arg]
         rows.append(f"    door {k:<10} {_pr(v)}")
     for k in ("window", "door"):
         rows.append(f"  facade {k:<6} {_pr(fac[k])}")
-    for k in ("door", "window") if "rendered" in fig else ():
-        rows.append(f"  rendered {k:<6} {_pr(fig['rendered'][k])}")
+    rows.append("  real double door (rtabmap), best door box at IoU >= 0.5: " + ", ".join(
+        f"frame {k} score {v['door_score']:.3f} (IoU {v['iou']:.2f})" for k, v in fig["real_double_door"].items()))
+    for part in (p for p in fig if p.startswith("rendered_")):
+        for k in ("door", "window"):
+            rows.append(f"  {part} {k:<6} {_pr(fig[part][k])}")
     return rows
 
 
@@ -68,7 +99,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--new", type=Path, default=None, help="ONNX model (default: the shipped one)")
     ap.add_argument("--old", type=Path, default=None)
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--rendered", type=Path, default=None, help="folder of rendered frames (images/, labels/)")
+    ap.add_argument("--rendered", type=Path, nargs="*", default=[],
+                    help="folders of rendered frames (images/, labels/) of buildings never trained on, one part each")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     from macroloc.perception.detector import DEFAULT_MODEL

@@ -46,6 +46,7 @@ from macroloc.perception.trainset import (
     augment,
     facade_label_path,
     load_sample,
+    mosaic,
     split_facades,
     split_indoor,
 )
@@ -166,6 +167,14 @@ def augment_for_training(sample: Sample, rng: np.random.Generator) -> tuple[np.n
                    zoom_prob=0.35, aspect_range=(0.7, 1.45))
 
 
+def mosaic_for_training(samples: list[Sample], rng: np.random.Generator
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Four samples in the quadrants of one training image (`perception.trainset.mosaic`), each with the
+    training augmentation."""
+    return mosaic(samples, INPUT_WH, rng, scale_range=(0.7, 2.5), rotation_prob=0.5, min_visible=0.3,
+                  zoom_prob=0.35, aspect_range=(0.7, 1.45))
+
+
 def real_shares(n_real: int, indoor_fraction: float, has_indoor: bool, has_facades: bool) -> tuple[int, int]:
     """(indoor, facade) photos among a batch's `n_real` real ones; where one set is absent the other fills them."""
     if not has_indoor or not has_facades:
@@ -263,8 +272,9 @@ def train(args: argparse.Namespace) -> None:
         pools.append((_Shuffled(sim, rng), n_sim))
     t0 = time.time()
     for step in range(args.steps):
-        picked = [s for pool, n in pools for s in pool.take(n)]
-        batch = [augment_for_training(s, rng) for s in picked]
+        picked = [(s, pool) for pool, n in pools for s in pool.take(n)]
+        batch = [mosaic_for_training([s, *pool.take(3)], rng) if args.mosaic > 0 and rng.random() < args.mosaic
+                 else augment_for_training(s, rng) for s, pool in picked]
         x = torch.from_numpy(np.stack([b[0] for b in batch]).astype(np.float32) / 255.0).permute(0, 3, 1, 2)
         targets = build_targets([b[1] for b in batch], [b[2] for b in batch], anchors, grid_hw, STRIDE_PX)
         model.train()
@@ -303,7 +313,7 @@ def training_settings(args: argparse.Namespace) -> dict[str, object]:
     """The settings of this run, and of the run it started from (`--init`), for the sidecar and checkpoint."""
     out: dict[str, object] = {"steps": args.steps, "batch": args.batch, "lr": args.lr, "seed": args.seed,
                               "width": args.width, "indoor_fraction": args.indoor_fraction,
-                              "sim_fraction": args.sim_fraction}
+                              "sim_fraction": args.sim_fraction, "mosaic": args.mosaic}
     init = getattr(args, "init", None)
     if init is not None:
         info = getattr(args, "init_info", {})
@@ -340,7 +350,8 @@ def reproduce_command(args: argparse.Namespace) -> str:
         return cmd
     sims = "".join(f" --sim {d}" for d in getattr(args, "sim", []))
     tail = (f" --indoor-fraction {args.indoor_fraction} --lr {args.lr} --steps {args.steps} --batch {args.batch} "
-            f"--seed {args.seed}{sims}" + (f" --sim-fraction {args.sim_fraction}" if sims else ""))
+            f"--seed {args.seed}{sims}" + (f" --sim-fraction {args.sim_fraction}" if sims else "")
+            + (f" --mosaic {args.mosaic}" if args.mosaic else ""))
     base = (getattr(args, "init_info", None) or {}).get("settings") or {}
     if not base or "init" in base or sims or Path(init).resolve() == SHIPPED_WEIGHTS.resolve():
         shown = "perception/models/detector.pt" if Path(init).resolve() == SHIPPED_WEIGHTS.resolve() else init
@@ -421,6 +432,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                     help="folders of rendered frames with YOLO labels; out/sim_yolo is made by bench.sim_trainset "
                          "on first use (default: none, the shipped model is trained on real photos only)")
     ap.add_argument("--sim-fraction", type=float, default=0.5, help="share of each batch drawn from rendered frames")
+    ap.add_argument("--mosaic", type=float, default=0.0,
+                    help="share of training images made of four samples in quadrants (smaller, far openings)")
     ap.add_argument("--steps", type=int, default=4200, help="training steps (0 with --init: export the init)")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--lr", type=float, default=2e-3)

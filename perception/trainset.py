@@ -220,6 +220,25 @@ def augment(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator,
     return _photometric(image, rng), boxes, classes
 
 
+def mosaic(samples: list[Sample], out_wh: tuple[int, int], rng: np.random.Generator,
+           **augment_kwargs: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Four samples, each augmented into one quadrant of the output (the split point drawn within the middle
+    30 % of each axis), so that their openings appear at half the size or less, with real surroundings, not
+    padding: what a far door, or a facade's window, looks like to the network. Boxes cut by a quadrant's edge
+    follow `augment`'s `min_visible` rule."""
+    w, h = out_wh
+    cx, cy = round(rng.uniform(0.35, 0.65) * w), round(rng.uniform(0.35, 0.65) * h)
+    canvas = np.full((h, w, 3), PAD_VALUE, np.uint8)
+    boxes, classes = [], []
+    for sample, (x0, y0, x1, y1) in zip(samples, [(0, 0, cx, cy), (cx, 0, w, cy), (0, cy, cx, h), (cx, cy, w, h)],
+                                        strict=True):
+        image, b, c = augment(sample, (x1 - x0, y1 - y0), rng, **augment_kwargs)  # type: ignore[arg-type]
+        canvas[y0:y1, x0:x1] = image
+        boxes.append(b + np.array([x0, y0, x0, y0], dtype=np.float64))
+        classes.append(c)
+    return canvas, np.concatenate(boxes).reshape(-1, 4), np.concatenate(classes)
+
+
 def transform_boxes(boxes_xyxy: np.ndarray, classes: np.ndarray, M: np.ndarray, out_wh: tuple[int, int],
                     min_visible: float) -> tuple[np.ndarray, np.ndarray]:
     """Boxes through a 2x3 affine map: bounds of the mapped corners, clipped; mostly hidden ones dropped."""

@@ -10,6 +10,7 @@ from macroloc.perception.trainset import (
     _affine,
     augment,
     is_real_test,
+    mosaic,
     read_yolo_labels,
     split_facades,
     transform_boxes,
@@ -51,6 +52,18 @@ def test_augmented_boxes_enclose_the_object():
         for x0, y0, x1, y1 in boxes.astype(int):
             inside = image[max(0, y0 + 2):y1 - 2, max(0, x0 + 2):x1 - 2].astype(int).sum(axis=2)
             assert inside.size == 0 or inside.max() > 300  # the white object is within its box
+
+
+def test_mosaic_puts_four_samples_in_quadrants_with_their_boxes_on_their_objects():
+    """Each quadrant holds one sample's object, smaller than the sample alone, and its box encloses it."""
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        image, boxes, classes = mosaic([_sample()] * 4, (320, 240), rng, scale_range=(0.8, 1.2), rotation_prob=0.0)
+        assert image.shape == (240, 320, 3) and len(boxes) == len(classes) <= 4
+        assert len(boxes) >= 1 and (boxes[:, 3] - boxes[:, 1]).max() < 0.5 * 240
+        for x0, y0, x1, y1 in boxes.astype(int):
+            inside = image[y0 + 2:y1 - 2, x0 + 2:x1 - 2].astype(int).sum(axis=2)
+            assert inside.size == 0 or inside.max() > 300
 
 
 def test_rotations_are_the_papers_and_inverse_warping_leaves_no_holes():
