@@ -2,17 +2,18 @@
 the same run: visual odometry, depth points, detector, stereo, line refinement, reconstruction, stage by stage
 in CPU ms (the process's, all threads) and wall ms, beside the 30 frames/s target.
 
-    python -m bench.bench_chain [--frames 60] [--sgbm-scale 1.0] [--json]
+    python -m bench.bench_chain [--frames 60] [--sgbm-scale 1.0] [--vo klt] [--json]
 
 Frames: bench.chain_frames (Office_A seed 1, 60 consecutive frames, rendered once and cached). The detector runs
 on every frame and is timed, but the boxes reconstructed are the true ones (the shipped detector finds few
 openings in these renders; the issue's figures are for a door in view). The gyroscope's rotation between frames
 is the true one. OLD: the chain as it was (its own band SGBM at 64 disparities, a full-frame SGBM at 128 for the
 depth points every third frame and another at the odometry's keyframes; the pure-Python segment joiner; the
-wall plane's RANSAC hypothesis by hypothesis and np.nanmedian; ORB 2000: bench.chain_old). NEW: the chain as it
-is. Old and new run frame by frame in turn, so both see the same load. Accuracy: each opening's corners, old
-against new and both against the truth; the odometry's drift against the true path. A benchmark: it prints
-figures, asserts nothing.
+wall plane's RANSAC hypothesis by hypothesis and np.nanmedian; ORB 2000 matched every frame: bench.chain_old).
+NEW: the chain as it is (the odometry's default: optical flow between keyframes, ORB only for new keyframes).
+Old and new run frame by frame in turn, so both see the same load. Accuracy: each opening's corners, old against
+new and both against the truth; the odometry's drift against the true path. A benchmark: it prints figures,
+asserts nothing.
 """
 
 from __future__ import annotations
@@ -60,9 +61,9 @@ class Chain:
         return out
 
 
-def make_chains(rig, sgbm_scale: float = 1.0) -> tuple[Chain, Chain]:  # type: ignore[no-untyped-def]
+def make_chains(rig, sgbm_scale: float = 1.0, vo: str | None = None) -> tuple[Chain, Chain]:  # type: ignore[no-untyped-def]
     from bench.chain_old import OLD_ODOMETRY, join_segments_python
-    from macroloc.perception.odometry import StereoOdometry
+    from macroloc.perception.odometry import OdometryConfig, StereoOdometry
     from macroloc.perception.pipeline import Perception
     from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher
     from macroloc.perception.threads import THREADS
@@ -71,7 +72,8 @@ def make_chains(rig, sgbm_scale: float = 1.0) -> tuple[Chain, Chain]:  # type: i
     old = Chain("old", StereoOdometry(rig, OLD_ODOMETRY), StereoDepth(), Perception.create(threads=2),
                 join_segments_python)
     shared = FrameDisparity(SgbmMatcher(SgbmConfig(num_disparities=128, scale=sgbm_scale)))
-    new = Chain("new", StereoOdometry(rig, disparity=shared), StereoDepth(disparity=shared),
+    config = OdometryConfig() if vo is None else OdometryConfig(tracker=vo)
+    new = Chain("new", StereoOdometry(rig, config, disparity=shared), StereoDepth(disparity=shared),
                 Perception.create(threads=THREADS.onnxruntime, disparity=shared), None)
     return old, new
 
@@ -135,6 +137,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--sgbm-scale", type=float, default=1.0, help="the new chain's SGBM on the pair shrunk so")
     ap.add_argument("--boxes", type=int, default=0, help="keep the N largest openings a frame (0: all)")
+    ap.add_argument("--vo", choices=("orb", "klt"), default=None,
+                    help="the new chain's odometry tracker (default: OdometryConfig's)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     from bench.chain_frames import load, render
@@ -145,7 +149,7 @@ def main(argv: list[str] | None = None) -> None:
     fr = load(render(ROOT / "data" / "buildings" / "office_a.ifc", 1, 60, 30.0))
     fx, fy, cx, cy, baseline_m, w, h = fr.rig
     rig = StereoRig(fx, fy, cx, cy, baseline_m, int(w), int(h))
-    old, new = make_chains(rig, args.sgbm_scale)
+    old, new = make_chains(rig, args.sgbm_scale, args.vo)
     n = min(args.frames, len(fr.left))
     boxes, truth = fr.boxes, fr.corners_cam
     if args.boxes:  # the N largest openings of each frame (--boxes 1: the issue's "one door in view")

@@ -60,7 +60,7 @@ def join_segments_python(segments: list[np.ndarray], cfg: LineConfig | None = No
 
 
 # The odometry's settings before issue 37 (perception.odometry.OdometryConfig's defaults then).
-OLD_ODOMETRY = OdometryConfig(n_features=2000)
+OLD_ODOMETRY = OdometryConfig(n_features=2000, tracker="orb")  # ORB matched every frame
 
 
 def sample_depth_nanmedian(depth_m: np.ndarray, uv_px: np.ndarray, half_width_px: int = 2) -> np.ndarray:

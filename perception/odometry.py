@@ -1,7 +1,18 @@
-"""Stereo visual odometry: ORB features, SGBM depth at keyframes, PnP-RANSAC against the last keyframe.
+"""Stereo visual odometry: ORB matches (or optical flow between keyframes), SGBM depth at keyframes, PnP-RANSAC
+against the last keyframe.
 
-Each frame: ORB on the left image; its features are matched to the reference keyframe's 3D points and
-`cv2.solvePnPRansac` (then Levenberg-Marquardt on the inliers) gives the camera's motion since that keyframe.
+Each frame with `OdometryConfig.tracker` "klt": up to `flow_points` of the reference keyframe's 3D-pointed
+keypoints, spread over the grid, are followed from the last frame into this one by pyramidal Lucas-Kanade, each
+starting where the last pose moved on at the last velocity and turned by the gyro's rotation puts it; a point that
+does not come back to within `flow_round_trip_px` when followed back, or nears the image's edge, is dropped
+(`flow_from` "keyframe": followed from the keyframe's image instead, their positions there kept).
+`cv2.solvePnPRansac` (then Levenberg-Marquardt on the inliers) on the followed points against their keyframe 3D
+points gives the camera's motion since that keyframe, and only PnP's inliers are followed on. ORB is detected and
+described only for a new keyframe, and on a frame where the flow fails (too few points, PnP failing, or a pose no
+drone could reach): that frame is matched as with "orb", and the flow goes on from the matches PnP kept. With
+"orb" (the default), every frame: ORB on the left image, matched to the reference keyframe's descriptors. The
+figures, ORB against flow: docs/measurements.md, "Visual odometry by optical flow (issue 37, item 1)".
+
 A frame becomes the reference when tracking thins out or the camera has moved far from it; only then is the
 stereo pair matched: OpenCV SGBM's sub-pixel disparity at each keypoint gives its 3D point by eq. 2
 (z = fx * baseline / disparity), kept where the disparity is consistent over the 3 x 3 pixels around it (not
@@ -67,6 +78,15 @@ class OdometryConfig:
     #                                  (27 m/s^2 at 30 Hz) is a wrong PnP solution (a wall filling the view)
     gyro_tolerance_rad: float = 0.035  # a PnP rotation this far from the gyro's is replaced by the gyro's
     pnp_rotation_gain: float = 0.2  # with a gyro: the share of PnP's rotation taken per frame (see _agree_with_gyro)
+    tracker: str = "orb"  # "orb": ORB detected, described and matched to the keyframe every frame; "klt": the
+    #                       keyframe's points followed by optical flow between keyframes (a third of the CPU; not the
+    #                       default: it drifted more on the Jasmin-Sun flights, docs/measurements.md)
+    flow_points: int = 300  # the keyframe's points followed by the flow, spread over the grid (cost grows with them)
+    flow_window_px: int = 15  # Lucas-Kanade's window
+    flow_levels: int = 2  # its pyramid's levels above the image (the gyro's prediction leaves little to search)
+    flow_from: str = "last"  # "last": each point followed from the last frame; "keyframe": from the keyframe's image
+    flow_round_trip_px: float = 1.0  # a point tracked forward then back further than this from where it was: lost
+    flow_border_px: float = 8.0  # a point tracked this near the image's edge or nearer: lost
 
 
 @dataclass
@@ -81,6 +101,17 @@ class _Keyframe:
     T_odom_cam: np.ndarray
     descriptors: np.ndarray  # (N, 32) uint8
     points_cam: np.ndarray  # (N, 3) metres, in this keyframe's camera frame
+    uv: np.ndarray  # (N, 2) pixels: where the points are in this keyframe's left image
+    response: np.ndarray  # (N,) their ORB keypoints' corner response
+
+
+@dataclass
+class _Tracks:
+    """The keyframe's points followed by optical flow: `index` into its points, `uv` in the last frame."""
+
+    index: np.ndarray  # (M,) int
+    uv: np.ndarray  # (M, 2) float32
+    gray: np.ndarray  # the last frame's left image, grey
 
 
 class StereoOdometry:
@@ -96,11 +127,18 @@ class StereoOdometry:
             nfeatures=self.config.detect_features, fastThreshold=self.config.fast_threshold)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self.sgbm = disparity or SgbmMatcher(SgbmConfig(num_disparities=self.config.num_disparities))
+        if self.config.tracker not in ("klt", "orb") or self.config.flow_from not in ("last", "keyframe"):
+            raise ValueError(f"OdometryConfig.tracker {self.config.tracker!r}: 'klt' or 'orb'; flow_from "
+                             f"{self.config.flow_from!r}: 'last' or 'keyframe'")
         self.K = rig.K
         self._ref: _Keyframe | None = None
+        self._tracks: _Tracks | None = None  # tracker "klt" only
+        self._ref_gray = np.zeros((0, 0), np.uint8)  # the keyframe's left image, grey (tracker "klt")
         self._T_last = np.eye(4)
         self._T_prev = np.eye(4)
         self._inliers: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3)), np.zeros((0, 2)))  # of the last PnP
+        self._inlier_rows: np.ndarray = np.zeros(0, np.int64)  # their rows in its input
+        self._inlier_index: np.ndarray = np.zeros(0, np.int64)  # their keyframe points (ORB's matches)
 
     def track(self, left: np.ndarray, right: np.ndarray, R_prev_cur: np.ndarray | None = None,
               lost_position: Callable[[np.ndarray], np.ndarray | None] | None = None) -> OdometryResult:
@@ -113,17 +151,31 @@ class StereoOdometry:
         last velocity (T_odom_cam, the gyro's rotation) for the camera's position to take instead (e.g. with the
         height dead-reckoned on the IMU, perception.inertial); None from it, or no callable: the coasted pose."""
         gray = to_gray(left)
-        kp, desc = self.orb.compute(gray, self._spread(self.orb.detect(gray, None), gray.shape))
-        kp = list(kp)
-        desc = desc if desc is not None else np.zeros((0, 32), np.uint8)
+        klt = self.config.tracker == "klt"
         if self._ref is None:
-            self._ref = self._keyframe(np.eye(4), left, right, kp, desc)
-            return OdometryResult(np.eye(4), len(self._ref.points_cam), True)
-        T_ref_cam, inliers = self._pnp(kp, desc)
-        if T_ref_cam is not None and R_prev_cur is not None:
-            T_ref_cam = self._agree_with_gyro(T_ref_cam, self._ref.T_odom_cam[:3, :3].T @ self._T_last[:3, :3]
-                                              @ R_prev_cur)
-        if T_ref_cam is None or not self._plausible(self._ref.T_odom_cam @ T_ref_cam, inliers):
+            first = self._new_keyframe(np.eye(4), left, right, *self._features(gray), gray)
+            return OdometryResult(np.eye(4), len(first.points_cam), True)
+        ref = self._ref
+        R_ref_cam_gyro = None if R_prev_cur is None else ref.T_odom_cam[:3, :3].T @ self._T_last[:3, :3] @ R_prev_cur
+        kp: list | None = None  # type: ignore[type-arg]
+        desc = np.zeros((0, 32), np.uint8)
+        T_ref_cam: np.ndarray | None = None
+        inliers = 0
+        if klt and self._tracks is not None:
+            T_ref_cam, inliers, tracked = self._flow(gray, R_prev_cur)
+            T_ref_cam = self._checked(T_ref_cam, inliers, R_ref_cam_gyro)
+            if T_ref_cam is not None:
+                self._tracks = tracked
+        if T_ref_cam is None:  # ORB against the keyframe: every frame ("orb"), or where the flow lost its points
+            kp, desc = self._features(gray)
+            T_ref_cam, inliers = self._pnp(kp, desc)
+            T_ref_cam = self._checked(T_ref_cam, inliers, R_ref_cam_gyro)
+            if T_ref_cam is not None and klt:  # the flow goes on from the matches PnP kept
+                self._tracks = (_Tracks(self._inlier_index, self._inliers[1].astype(np.float32), gray)
+                                if self.config.flow_from == "last" else
+                                _Tracks(self._inlier_index, ref.uv[self._inlier_index].astype(np.float32),
+                                        self._ref_gray))
+        if T_ref_cam is None:
             T = self._T_last @ (np.linalg.inv(self._T_prev) @ self._T_last)  # constant velocity
             if R_prev_cur is not None:
                 T[:3, :3] = self._T_last[:3, :3] @ R_prev_cur
@@ -131,34 +183,110 @@ class StereoOdometry:
             if position is not None:
                 T[:3, 3] = position
             self._advance(T)
-            self._ref = self._keyframe(T, left, right, kp, desc)
+            assert kp is not None
+            self._new_keyframe(T, left, right, kp, desc, gray)
             return OdometryResult(T, inliers, False)
-        T = self._ref.T_odom_cam @ T_ref_cam
+        T = ref.T_odom_cam @ T_ref_cam
         self._advance(T)
         if self._should_rekey(T_ref_cam, inliers):
-            self._ref = self._keyframe(T, left, right, kp, desc)
+            if kp is None:
+                kp, desc = self._features(gray)
+            self._new_keyframe(T, left, right, kp, desc, gray)
         return OdometryResult(T, inliers, True)
+
+    def _features(self, gray: np.ndarray) -> tuple[list, np.ndarray]:  # type: ignore[type-arg]
+        """ORB keypoints, spread (`_spread`), and their descriptors."""
+        kp, desc = self.orb.compute(gray, self._spread(self.orb.detect(gray, None), gray.shape))
+        return list(kp), desc if desc is not None else np.zeros((0, 32), np.uint8)
+
+    def _checked(self, T_ref_cam: np.ndarray | None, inliers: int,
+                 R_ref_cam_gyro: np.ndarray | None) -> np.ndarray | None:
+        """PnP's T_ref_cam agreed with the gyro (where there is one); None where it is None or not plausible."""
+        if T_ref_cam is None:
+            return None
+        if R_ref_cam_gyro is not None:
+            T_ref_cam = self._agree_with_gyro(T_ref_cam, R_ref_cam_gyro)
+        assert self._ref is not None
+        return T_ref_cam if self._plausible(self._ref.T_odom_cam @ T_ref_cam, inliers) else None
+
+    def _new_keyframe(self, T_odom_cam: np.ndarray, left: np.ndarray, right: np.ndarray, kp: list,  # type: ignore[type-arg]
+                      desc: np.ndarray, gray: np.ndarray) -> _Keyframe:
+        self._ref = self._keyframe(T_odom_cam, left, right, kp, desc)
+        if self.config.tracker == "klt":
+            keep = self._spread_index(self._ref.uv, self._ref.response, self.config.flow_points, gray.shape)
+            self._tracks = _Tracks(keep, self._ref.uv[keep].astype(np.float32), gray)
+            self._ref_gray = gray
+        return self._ref
+
+    def _flow(self, gray: np.ndarray, R_prev_cur: np.ndarray | None) -> tuple[np.ndarray | None, int, _Tracks]:
+        """T_ref_cam from the keyframe's points followed from the last frame into this one by pyramidal
+        Lucas-Kanade, the inlier count, and the points kept (PnP's inliers). Each point starts where the last
+        frame's pose moved on at the last velocity, turned by the gyro's rotation, puts it; a point that does
+        not come back to within `flow_round_trip_px` of where it was when followed back is dropped."""
+        c, ref, tracks = self.config, self._ref, self._tracks
+        assert ref is not None and tracks is not None
+        lost: tuple[np.ndarray | None, int, _Tracks] = (None, 0, tracks)
+        if len(tracks.index) < c.min_inliers:
+            return lost
+        T_pred = self._T_last @ (np.linalg.inv(self._T_prev) @ self._T_last)  # this frame at the last velocity
+        if R_prev_cur is not None:
+            T_pred[:3, :3] = self._T_last[:3, :3] @ R_prev_cur
+        T_cam_ref = np.linalg.inv(T_pred) @ ref.T_odom_cam
+        x = ref.points_cam[tracks.index] @ T_cam_ref[:3, :3].T + T_cam_ref[:3, 3]
+        guess = tracks.uv.copy()
+        ahead = x[:, 2] > 0.05
+        guess[ahead] = np.column_stack([self.rig.fx_px * x[ahead, 0] / x[ahead, 2] + self.rig.cx_px,
+                                        self.rig.fy_px * x[ahead, 1] / x[ahead, 2] + self.rig.cy_px])
+        win = (c.flow_window_px, c.flow_window_px)
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03)
+        prev = tracks.uv.reshape(-1, 1, 2)
+        cur, ok, _ = cv2.calcOpticalFlowPyrLK(tracks.gray, gray, prev, guess.reshape(-1, 1, 2).copy(),
+                                              winSize=win, maxLevel=c.flow_levels, criteria=criteria, flags=flags)
+        back, ok_back, _ = cv2.calcOpticalFlowPyrLK(gray, tracks.gray, cur, prev.copy(), winSize=win,
+                                                    maxLevel=c.flow_levels, criteria=criteria, flags=flags)
+        cur, back = cur.reshape(-1, 2), back.reshape(-1, 2)
+        h, w = self.rig.height_px, self.rig.width_px
+        b = c.flow_border_px
+        keep = ((ok.ravel() == 1) & (ok_back.ravel() == 1)
+                & (np.linalg.norm(back - tracks.uv, axis=1) <= c.flow_round_trip_px)
+                & (cur[:, 0] >= b) & (cur[:, 0] <= w - 1 - b) & (cur[:, 1] >= b) & (cur[:, 1] <= h - 1 - b))
+        index, uv = tracks.index[keep], cur[keep]
+        if len(index) < c.min_inliers:
+            return lost
+        T_ref_cam, inl = self._solve(ref.points_cam[index].astype(np.float64), uv.astype(np.float64))
+        if T_ref_cam is None:
+            return None, inl, tracks
+        rows = self._inlier_rows
+        if c.flow_from == "last":
+            return T_ref_cam, inl, _Tracks(index[rows], uv[rows], gray)
+        return T_ref_cam, inl, _Tracks(index[rows], tracks.uv[keep][rows], tracks.gray)
 
     def _spread(self, keypoints: tuple, shape: tuple[int, ...]) -> list:  # type: ignore[type-arg]
         """At most `n_features` keypoints spread over the image: each grid cell keeps its strongest, as many as
         an equal share, and what cells with fewer leave goes to the strongest of the rest. Matching cost grows
         with the count squared (2000 a frame: 24 ms of brute-force matching here), and features bunched on one
         textured patch constrain the pose less than the same number spread."""
-        c = self.config
-        if len(keypoints) <= c.n_features:
+        if len(keypoints) <= self.config.n_features:
             return list(keypoints)
+        keep = self._spread_index(np.array([k.pt for k in keypoints]), np.array([k.response for k in keypoints]),
+                                  self.config.n_features, shape)
+        return [keypoints[i] for i in keep]
+
+    def _spread_index(self, uv: np.ndarray, response: np.ndarray, n: int, shape: tuple[int, ...]) -> np.ndarray:
+        """The rows of at most `n` of the points `uv` spread over the grid (see `_spread`)."""
+        c = self.config
+        if len(uv) <= n:
+            return np.arange(len(uv))
         h, w = shape[:2]
-        uv = np.array([k.pt for k in keypoints])
-        response = np.array([k.response for k in keypoints])
         cell = (np.minimum(uv[:, 1] * c.grid_rows // h, c.grid_rows - 1) * c.grid_cols
                 + np.minimum(uv[:, 0] * c.grid_cols // w, c.grid_cols - 1)).astype(np.int64)
         order = np.lexsort((-response, cell))  # by cell, strongest first within each
         first = np.searchsorted(cell[order], cell[order], side="left")
         rank = np.empty(len(order), np.int64)
         rank[order] = np.arange(len(order)) - first  # 0 for a cell's strongest
-        share = c.n_features // (c.grid_cols * c.grid_rows)
-        keep = np.lexsort((-response, rank >= share, ))[:c.n_features]  # the cells' shares first, then the strongest
-        return [keypoints[i] for i in keep]
+        share = n // (c.grid_cols * c.grid_rows)
+        return np.lexsort((-response, rank >= share, ))[:n]  # the cells' shares first, then the strongest
 
     def _agree_with_gyro(self, T_ref_cam: np.ndarray, R_ref_cam_gyro: np.ndarray) -> np.ndarray:
         """T_ref_cam with the gyro's rotation where they disagree by more than `gyro_tolerance_rad` (PnP took a
@@ -190,7 +318,9 @@ class StereoOdometry:
         """A reference keyframe: the keypoints with a reliable stereo depth, their 3D points and descriptors."""
         points = self._keypoint_points(left, right, kp)
         valid = points[:, 2] > 0
-        return _Keyframe(T_odom_cam, desc[valid], points[valid])
+        uv = np.array([k.pt for k in kp], np.float64).reshape(-1, 2)
+        response = np.array([k.response for k in kp], np.float64)
+        return _Keyframe(T_odom_cam, desc[valid], points[valid], uv[valid], response[valid])
 
     def _plausible(self, T: np.ndarray, inliers: int) -> bool:
         """Is the motion since the last frame one a drone can make? Few inliers (a textureless view) also have
@@ -226,6 +356,14 @@ class StereoOdometry:
             return None, len(pairs)
         obj = np.array([ref.points_cam[m.trainIdx] for m in pairs], np.float64)
         img = np.array([kp[m.queryIdx].pt for m in pairs], np.float64)
+        T_ref_cam, inliers = self._solve(obj, img)
+        if T_ref_cam is not None:
+            self._inlier_index = np.array([m.trainIdx for m in pairs], np.int64)[self._inlier_rows]
+        return T_ref_cam, inliers
+
+    def _solve(self, obj: np.ndarray, img: np.ndarray) -> tuple[np.ndarray | None, int]:
+        """T_ref_cam from the keyframe's 3D points `obj` seen at pixels `img`: RANSAC (EPnP), then
+        Levenberg-Marquardt on the inliers, which are kept (`_inliers`, and their rows `_inlier_rows`)."""
         ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, self.K, None, iterationsCount=200,
                                                  reprojectionError=self.config.ransac_reprojection_px,
                                                  flags=cv2.SOLVEPNP_EPNP)
@@ -233,6 +371,7 @@ class StereoOdometry:
             return None, 0 if inl is None else len(inl)
         idx = inl[:, 0]
         self._inliers = (obj[idx], img[idx])
+        self._inlier_rows = idx
         rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], self.K, None, rvec, tvec)
         T_cam_ref = np.eye(4)
         T_cam_ref[:3, :3] = cv2.Rodrigues(rvec)[0]

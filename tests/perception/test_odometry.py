@@ -32,9 +32,13 @@ def view(texture: np.ndarray, camera_x_m: float) -> tuple[np.ndarray, np.ndarray
     return crop(shift_px), crop(shift_px + disparity_px)
 
 
-def test_recovers_a_sideways_slide() -> None:
+TRACKERS = ("klt", "orb")
+
+
+@pytest.mark.parametrize("tracker", TRACKERS)
+def test_recovers_a_sideways_slide(tracker: str) -> None:
     texture = wall_texture()
-    vo = StereoOdometry(RIG)
+    vo = StereoOdometry(RIG, OdometryConfig(tracker=tracker))
     xs = np.arange(0, 21) * 0.03  # 0.6 m to the right, 3 cm per frame
     for x in xs:
         result = vo.track(*view(texture, x))
@@ -95,7 +99,8 @@ def test_a_noisy_pnp_rotation_is_pulled_towards_the_gyros() -> None:
     assert np.linalg.norm(fused[:3, 3] - T_ref_cam[:3, 3]) < 0.4 * np.linalg.norm(pnp[:3, 3] - T_ref_cam[:3, 3])
 
 
-def test_a_weak_jump_no_drone_can_make_is_coasted_over() -> None:
+@pytest.mark.parametrize("tracker", TRACKERS)
+def test_a_weak_jump_no_drone_can_make_is_coasted_over(tracker: str) -> None:
     """A slide at 2.5 cm per frame; one frame's images jump 10 cm ahead (within the 15 cm step bound). Its PnP,
     were it weak (fewer inliers than `rekey_inliers`: a textureless view, where wrong solutions come from), puts
     the pose 10 cm off the path at the last step's velocity: the odometry coasts over it, and tracks on from
@@ -107,9 +112,9 @@ def test_a_weak_jump_no_drone_can_make_is_coasted_over() -> None:
     xs = list(np.arange(0, 11) * 0.025)
     glitch = len(xs)
     xs += [xs[-1] + 0.025 + 0.10] + [xs[-1] + 0.025 * k for k in (2, 3, 4)]
-    every_pnp_weak = OdometryConfig(rekey_inliers=100_000)
-    unbounded = OdometryConfig(rekey_inliers=100_000, max_step_change_m=0.0)
-    for config, coasts in ((every_pnp_weak, True), (unbounded, False), (OdometryConfig(), False)):
+    every_pnp_weak = OdometryConfig(rekey_inliers=100_000, tracker=tracker)
+    unbounded = OdometryConfig(rekey_inliers=100_000, max_step_change_m=0.0, tracker=tracker)
+    for config, coasts in ((every_pnp_weak, True), (unbounded, False), (OdometryConfig(tracker=tracker), False)):
         vo = StereoOdometry(RIG, config)
         results = [vo.track(*view(texture, x)) for x in xs]
         x = [r.T_odom_cam[0, 3] for r in results]
@@ -119,3 +124,62 @@ def test_a_weak_jump_no_drone_can_make_is_coasted_over() -> None:
         else:  # the 12.5 cm jump taken as it came
             assert x[glitch] - x[glitch - 1] > 0.11
         assert results[-1].tracked and abs(results[-1].T_odom_cam[0, 3] - xs[-1]) < 0.05
+
+
+def counted(vo: StereoOdometry) -> dict[str, int]:
+    """Counts of the odometry's ORB runs (detection and description) and keyframes, as it goes."""
+    counts = {"orb": 0, "keyframes": 0}
+    features, keyframe = vo._features, vo._keyframe
+
+    def counted_features(*a):  # noqa: ANN002, ANN202
+        counts["orb"] += 1
+        return features(*a)
+
+    def counted_keyframe(*a):  # noqa: ANN002, ANN202
+        counts["keyframes"] += 1
+        return keyframe(*a)
+    vo._features, vo._keyframe = counted_features, counted_keyframe  # type: ignore[method-assign]
+    return counts
+
+
+def test_optical_flow_runs_orb_only_for_keyframes() -> None:
+    """Between keyframes the keyframe's points are followed by optical flow: ORB runs on the frames that become
+    keyframes and no others (ORB every frame: on each)."""
+    texture = wall_texture()
+    xs = np.arange(0, 31) * 0.02  # 0.6 m: past the 0.3 m rekey distance
+    for tracker in TRACKERS:
+        vo = StereoOdometry(RIG, OdometryConfig(tracker=tracker))
+        counts = counted(vo)
+        results = [vo.track(*view(texture, x)) for x in xs]
+        assert all(r.tracked for r in results)
+        assert abs(results[-1].T_odom_cam[0, 3] - xs[-1]) < 0.05
+        assert 2 <= counts["keyframes"] < len(xs) // 5, counts
+        assert counts["orb"] == (counts["keyframes"] if tracker == "klt" else len(xs)), counts
+
+
+def test_a_frame_the_flow_loses_falls_back_to_orb_and_tracks_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Lucas-Kanade loses every point on one frame (its status 0): that frame is matched by ORB against the
+    keyframe instead, stays tracked, and the flow goes on from ORB's matches on the next frames."""
+    texture = wall_texture()
+    xs = np.arange(0, 14) * 0.02  # 0.26 m: short of the 0.3 m rekey distance
+    lose = 7
+    vo = StereoOdometry(RIG, OdometryConfig(tracker="klt"))
+    counts = counted(vo)
+    flow = cv2.calcOpticalFlowPyrLK
+    frame = {"i": 0}
+
+    def losing_flow(*a, **kw):  # noqa: ANN002, ANN003, ANN202
+        out = flow(*a, **kw)
+        return (out[0], np.zeros_like(out[1]), out[2]) if frame["i"] == lose else out
+    monkeypatch.setattr(cv2, "calcOpticalFlowPyrLK", losing_flow)
+    orb_before = []
+    results = []
+    for i, x in enumerate(xs):
+        frame["i"] = i
+        orb_before.append(counts["orb"])
+        results.append(vo.track(*view(texture, x)))
+    orb_on = [b - a for a, b in zip(orb_before, [*orb_before[1:], counts["orb"]], strict=True)]
+    assert orb_on[lose] == 1 and orb_on[lose + 1:] == [0] * (len(xs) - lose - 1)  # no keyframe after it
+    assert all(r.tracked for r in results)
+    assert results[lose].T_odom_cam[0, 3] == pytest.approx(xs[lose], abs=0.01)
+    assert results[-1].T_odom_cam[0, 3] == pytest.approx(xs[-1], abs=0.02)
