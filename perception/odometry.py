@@ -85,6 +85,8 @@ class OdometryConfig:
     flow_window_px: int = 15  # Lucas-Kanade's window
     flow_levels: int = 2  # its pyramid's levels above the image (the gyro's prediction leaves little to search)
     flow_from: str = "last"  # "last": each point followed from the last frame; "keyframe": from the keyframe's image
+    flow_min_eigen: float = 1e-4  # LK's minEigThreshold (OpenCV's): a point whose window's gradients are weaker is
+    #                               lost (higher: fewer points on edges, which slide along them)
     flow_round_trip_px: float = 1.0  # a point tracked forward then back further than this from where it was: lost
     flow_border_px: float = 8.0  # a point tracked this near the image's edge or nearer: lost
 
@@ -242,9 +244,11 @@ class StereoOdometry:
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03)
         prev = tracks.uv.reshape(-1, 1, 2)
         cur, ok, _ = cv2.calcOpticalFlowPyrLK(tracks.gray, gray, prev, guess.reshape(-1, 1, 2).copy(),
-                                              winSize=win, maxLevel=c.flow_levels, criteria=criteria, flags=flags)
+                                              winSize=win, maxLevel=c.flow_levels, criteria=criteria, flags=flags,
+                                              minEigThreshold=c.flow_min_eigen)
         back, ok_back, _ = cv2.calcOpticalFlowPyrLK(gray, tracks.gray, cur, prev.copy(), winSize=win,
-                                                    maxLevel=c.flow_levels, criteria=criteria, flags=flags)
+                                                    maxLevel=c.flow_levels, criteria=criteria, flags=flags,
+                                                    minEigThreshold=c.flow_min_eigen)
         cur, back = cur.reshape(-1, 2), back.reshape(-1, 2)
         h, w = self.rig.height_px, self.rig.width_px
         b = c.flow_border_px
