@@ -36,11 +36,13 @@ eval-shared: setup  ## the independent harness in ../shared/eval on every shared
 eval-matrix: setup    ## issue 38's table: every shared IFC x 3 variants x default/hard/3-5 observations x 2 seeds, n=200, in one process
 	$(VENV)/python -m bench.eval_shared --matrix --seeds $(or $(SEEDS),8101,8202) --n 200 --out out/eval_shared
 
-train: setup         ## reproduce the shipped detector weights (needs torch: the train extra; ~85 min on 2 cores)
+train: setup         ## reproduce the shipped detector weights (needs torch: the train extra; ~115 min on 2 cores)
 	MACROLOC_EXTRAS=dev,train bash scripts/setup.sh
 	$(VENV)/python -m macroloc.perception.train --out out/detector/base --report out/detector/base
 	$(VENV)/python -m macroloc.perception.train --init out/detector/base/checkpoint.pt --indoor-fraction 0.35 \
-	  --lr 5e-4 --steps 2000
+	  --lr 5e-4 --steps 2000 --out out/detector/stage2 --report out/detector/stage2
+	$(VENV)/python -m macroloc.perception.train --init out/detector/stage2/checkpoint.pt --sim out/sim_yolo \
+	  --sim-fraction 0.25 --indoor-fraction 0.35 --lr 5e-4 --steps 1500
 
 proto: setup         ## regenerate the committed Python from proto/
 	$(VENV)/python scripts/gen_proto.py

@@ -1,9 +1,11 @@
-"""Train the door/window detector and export it; `make train` reproduces the shipped weights in two runs.
+"""Train the door/window detector and export it; `make train` reproduces the shipped weights in three runs.
 
 The shipped weights: a run from scratch with the defaults (`--out out/detector/base --report out/detector/base`,
-4,200 steps, 60 % indoor photos), then a fine-tune of its weights with a larger facade share
-(`--init out/detector/base/checkpoint.pt --indoor-fraction 0.35 --lr 5e-4 --steps 2000`); the sidecar's `training`
-(with `init`) and `reproduce` say so. `--init` takes a run's `checkpoint.pt` or the `detector.pt` written beside
+4,200 steps, 60 % indoor photos), a fine-tune of its weights with a larger facade share
+(`--init out/detector/base/checkpoint.pt --indoor-fraction 0.35 --lr 5e-4 --steps 2000`), then a fine-tune of those
+with rendered frames of the duplex and FZK-Haus in a quarter of each batch (`--sim out/sim_yolo --sim-fraction 0.25
+--steps 1500`); the sidecar's `training` (with `init`) and `reproduce` say so.
+`--init` takes a run's `checkpoint.pt` or the `detector.pt` written beside
 every exported ONNX (the same weights before the batch norms are folded) and keeps their anchors;
 `macroloc adapt-detector` fine-tunes the shipped `perception/models/detector.pt` on renders of one building.
 
