@@ -47,28 +47,24 @@ def real_double_door(detector: Detector) -> dict[str, dict[str, float]]:
     """The real stereo pairs' double doors (rtabmap_stereo_rect, frames 50 and 60): the best score of a door box at
     IoU >= 0.5 with the hand-drawn box (`bench.eval_perception_real.HAND_BOX_PX`), and that IoU."""
     import cv2
+    import numpy as np
 
     from bench.eval_perception_real import HAND_BOX_PX, PAIR
+    from macroloc.perception.evaluate import iou_xyxy
 
     out = {}
     for frame, hand in HAND_BOX_PX.items():
         image = cv2.imread(str(PAIR / "left" / f"{frame}.jpg"))
         if image is None:
             continue
-        best = (0.0, 0.0)
-        for det in detector.detect(image, score_threshold=0.01):
-            overlap = _iou(det.box_xyxy, hand)
-            if det.type == "door" and overlap >= 0.5 and det.score > best[0]:
-                best = (det.score, overlap)
-        out[frame] = {"door_score": round(best[0], 3), "iou": round(best[1], 2)}
+        doors = [d for d in detector.detect(image, score_threshold=0.01) if d.type == "door"]
+        overlap = iou_xyxy(np.array([d.box_xyxy for d in doors]).reshape(-1, 4), np.array([hand]))[:, 0]
+        score = np.array([d.score for d in doors])
+        found = np.flatnonzero(overlap >= 0.5)
+        k = found[np.argmax(score[found])] if len(found) else None
+        out[frame] = {"door_score": 0.0 if k is None else round(float(score[k]), 3),
+                      "iou": 0.0 if k is None else round(float(overlap[k]), 2)}
     return out
-
-
-def _iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
-    w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = w * h
-    return inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter)
 
 
 def _pr(v: dict) -> str:  # type: ignore[type-arg]

@@ -163,18 +163,24 @@ def load_indoor(root: Path, seed: int) -> dict[str, list[Sample]]:
             for name, paths in split.items()}
 
 
+def _augment(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The training augmentation (see the module docstring) into `out_wh`; boxes at least 30 % visible are kept
+    (cut doors)."""
+    return augment(sample, out_wh, rng, scale_range=(0.7, 2.5), rotation_prob=0.5, min_visible=0.3, zoom_prob=0.35,
+                   aspect_range=(0.7, 1.45))
+
+
 def augment_for_training(sample: Sample, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The training augmentation (see the module docstring); boxes at least 30 % visible are kept (cut doors)."""
-    return augment(sample, INPUT_WH, rng, scale_range=(0.7, 2.5), rotation_prob=0.5, min_visible=0.3,
-                   zoom_prob=0.35, aspect_range=(0.7, 1.45))
+    """One training image from one sample."""
+    return _augment(sample, INPUT_WH, rng)
 
 
 def mosaic_for_training(samples: list[Sample], rng: np.random.Generator
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Four samples in the quadrants of one training image (`perception.trainset.mosaic`), each with the
     training augmentation."""
-    return mosaic(samples, INPUT_WH, rng, scale_range=(0.7, 2.5), rotation_prob=0.5, min_visible=0.3,
-                  zoom_prob=0.35, aspect_range=(0.7, 1.45))
+    return mosaic(samples, INPUT_WH, rng, _augment)
 
 
 def real_shares(n_real: int, indoor_fraction: float, has_indoor: bool, has_facades: bool) -> tuple[int, int]:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -220,19 +221,23 @@ def augment(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator,
     return _photometric(image, rng), boxes, classes
 
 
+Augmented = tuple[np.ndarray, np.ndarray, np.ndarray]  # image (H, W, 3) uint8, boxes_xyxy (K, 4), classes (K,)
+
+
 def mosaic(samples: list[Sample], out_wh: tuple[int, int], rng: np.random.Generator,
-           **augment_kwargs: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+           tile: Callable[[Sample, tuple[int, int], np.random.Generator], Augmented] = augment) -> Augmented:
     """Four samples, each augmented into one quadrant of the output (the split point drawn within the middle
     30 % of each axis), so that their openings appear at half the size or less, with real surroundings, not
-    padding: what a far door, or a facade's window, looks like to the network. Boxes cut by a quadrant's edge
-    follow `augment`'s `min_visible` rule."""
+    padding: what a far door, or a facade's window, looks like to the network. `tile(sample, (w, h), rng)` makes
+    each quadrant (e.g. `augment` with the training's settings); boxes cut by a quadrant's edge follow its
+    `min_visible` rule."""
     w, h = out_wh
     cx, cy = round(rng.uniform(0.35, 0.65) * w), round(rng.uniform(0.35, 0.65) * h)
     canvas = np.full((h, w, 3), PAD_VALUE, np.uint8)
     boxes, classes = [], []
     for sample, (x0, y0, x1, y1) in zip(samples, [(0, 0, cx, cy), (cx, 0, w, cy), (0, cy, cx, h), (cx, cy, w, h)],
                                         strict=True):
-        image, b, c = augment(sample, (x1 - x0, y1 - y0), rng, **augment_kwargs)  # type: ignore[arg-type]
+        image, b, c = tile(sample, (x1 - x0, y1 - y0), rng)
         canvas[y0:y1, x0:x1] = image
         boxes.append(b + np.array([x0, y0, x0, y0], dtype=np.float64))
         classes.append(c)

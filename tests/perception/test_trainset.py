@@ -1,3 +1,4 @@
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +59,8 @@ def test_mosaic_puts_four_samples_in_quadrants_with_their_boxes_on_their_objects
     """Each quadrant holds one sample's object, smaller than the sample alone, and its box encloses it."""
     rng = np.random.default_rng(4)
     for _ in range(20):
-        image, boxes, classes = mosaic([_sample()] * 4, (320, 240), rng, scale_range=(0.8, 1.2), rotation_prob=0.0)
+        image, boxes, classes = mosaic([_sample()] * 4, (320, 240), rng,
+                                       partial(augment, scale_range=(0.8, 1.2), rotation_prob=0.0))
         assert image.shape == (240, 320, 3) and len(boxes) == len(classes) <= 4
         assert len(boxes) >= 1 and (boxes[:, 3] - boxes[:, 1]).max() < 0.5 * 240
         for x0, y0, x1, y1 in boxes.astype(int):
