@@ -216,11 +216,18 @@ class _Shuffled:
 
 def ensure_sim_frames(dirs: list[Path]) -> list[Path]:
     """The default rendered-frames folder is made on first use by `python -m bench.sim_trainset` (a separate
-    process: perception does not import the simulator)."""
+    process: perception does not import the simulator), however it is spelt (`out/sim_yolo` from the project's
+    root, as the Makefile does, or absolute); any other folder must exist."""
     for d in dirs:
-        if d == DEFAULT_SIM_DIR and not (d / "images").exists():
+        if (d / "images").exists():
+            continue
+        if d.resolve() == DEFAULT_SIM_DIR.resolve():
             log.info("rendering training frames into %s (python -m bench.sim_trainset)", d)
-            subprocess.run([sys.executable, "-m", "bench.sim_trainset", "--out", str(d)], cwd=ROOT, check=True)
+            subprocess.run([sys.executable, "-m", "bench.sim_trainset", "--out", str(d.resolve())], cwd=ROOT,
+                           check=True)
+        else:
+            raise SystemExit(f"error: {d} has no images/ folder of rendered frames (make one with "
+                             f"`python -m bench.sim_trainset --out {d}`)")
     return dirs
 
 

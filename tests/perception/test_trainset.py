@@ -110,6 +110,16 @@ def test_a_trained_model_names_the_flights_its_rendered_frames_came_from():
     assert rendered_sources(sim) == ["duplex_s2", "office_a_s11"]
 
 
+def test_rendered_frames_folder_missing_is_one_line_naming_how_to_make_it(tmp_path: Path):
+    from macroloc.perception.train import ensure_sim_frames
+
+    made = tmp_path / "frames"
+    (made / "images").mkdir(parents=True)
+    assert ensure_sim_frames([made]) == [made]
+    with pytest.raises(SystemExit, match="bench.sim_trainset --out .*elsewhere"):
+        ensure_sim_frames([tmp_path / "elsewhere"])
+
+
 def test_source_stem_joins_augmented_copies_second_downloads_and_video_frames():
     from macroloc.perception.trainset import source_stem
 
