@@ -87,7 +87,7 @@ def build_targets(boxes: list[np.ndarray], classes: list[np.ndarray], anchors: n
     twh = np.zeros((n, a, 2, h_g, w_g), np.float32)
     tcls = np.zeros((n, a, h_g, w_g), np.int64)
     weight = np.zeros((n, a, h_g, w_g), np.float32)
-    area_in = INPUT_WH[0] * INPUT_WH[1]
+    area_in = w_g * stride * h_g * stride
     for i, (b, c) in enumerate(zip(boxes, classes, strict=True)):
         for (x0, y0, x1, y1), k in zip(b, c, strict=True):
             w, h = x1 - x0, y1 - y0
@@ -171,16 +171,17 @@ def _augment(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator
                    aspect_range=(0.7, 1.45))
 
 
-def augment_for_training(sample: Sample, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One training image from one sample."""
-    return _augment(sample, INPUT_WH, rng)
+def augment_for_training(sample: Sample, rng: np.random.Generator, out_wh: tuple[int, int] = INPUT_WH
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One training image (`out_wh`, the network's input size) from one sample."""
+    return _augment(sample, out_wh, rng)
 
 
-def mosaic_for_training(samples: list[Sample], rng: np.random.Generator
+def mosaic_for_training(samples: list[Sample], rng: np.random.Generator, out_wh: tuple[int, int] = INPUT_WH
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Four samples in the quadrants of one training image (`perception.trainset.mosaic`), each with the
     training augmentation."""
-    return mosaic(samples, INPUT_WH, rng, _augment)
+    return mosaic(samples, out_wh, rng, _augment)
 
 
 def real_shares(n_real: int, indoor_fraction: float, has_indoor: bool, has_facades: bool) -> tuple[int, int]:
@@ -248,6 +249,19 @@ def load_init(path: Path):  # type: ignore[no-untyped-def]
                                                                    if k not in ("ema", "anchors")}
 
 
+def init_input_wh(init_info: dict[str, object]) -> tuple[int, int]:
+    """The input size the init's weights were trained at (runs before `--input-wh` were 320 x 240)."""
+    settings = init_info.get("settings")
+    wh = settings.get("input_wh") if isinstance(settings, dict) else None
+    return (int(wh[0]), int(wh[1])) if wh else INPUT_WH
+
+
+def anchors_for_input(anchors_px: np.ndarray, from_wh: tuple[int, int], to_wh: tuple[int, int]) -> np.ndarray:
+    """Anchors (k, 2) px learned at input size `from_wh`, for the same openings at `to_wh` (the image is scaled
+    to the input: an anchor covers the same fraction of it)."""
+    return np.asarray(anchors_px, float) * (np.asarray(to_wh, float) / np.asarray(from_wh, float))
+
+
 def train(args: argparse.Namespace) -> None:
     import torch
 
@@ -262,14 +276,18 @@ def train(args: argparse.Namespace) -> None:
     indoor, facades = data["indoor"]["train"], data["facades"]["train"]
     log.info("train: %d indoor, %d facade, %d rendered; val %d + %d", len(indoor), len(facades), len(sim),
              len(data["indoor"]["val"]), len(data["facades"]["val"]))
+    input_wh = (int(args.input_wh[0]), int(args.input_wh[1]))
+    if input_wh[0] % STRIDE_PX or input_wh[1] % STRIDE_PX:
+        raise SystemExit(f"error: --input-wh {input_wh[0]} {input_wh[1]}: both must be multiples of {STRIDE_PX}")
     if args.init is not None:  # fine-tune: the init's weights, anchors (the head is tied to them) and width
         model, anchors, init_info = load_init(args.init)
         args.width, args.init_info = int(init_info.get("width", 1)), init_info
-        log.info("init from %s (%s steps); anchors (px): %s", args.init, init_info.get("steps"),
-                 np.round(anchors, 1).tolist())
+        anchors = anchors_for_input(anchors, init_input_wh(init_info), input_wh)
+        log.info("init from %s (%s steps); anchors (px at %dx%d): %s", args.init, init_info.get("steps"),
+                 *input_wh, np.round(anchors, 1).tolist())
     else:
         wh = np.concatenate([b[:, 2:] - b[:, :2] for _ in range(2) for s in indoor + facades + sim
-                             for b in [augment_for_training(s, rng)[1]] if len(b)])
+                             for b in [augment_for_training(s, rng, input_wh)[1]] if len(b)])
         anchors = kmeans_anchors(wh, N_ANCHORS, rng)
         log.info("anchors (px): %s", np.round(anchors, 1).tolist())
         model = TinyYolo(N_ANCHORS, len(CLASS_NAMES), args.width)
@@ -279,7 +297,7 @@ def train(args: argparse.Namespace) -> None:
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=5e-4)
     sched = (torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=args.lr, total_steps=args.steps, pct_start=0.05)
              if args.steps > 0 else None)  # --steps 0: export the init as it is
-    grid_hw = (INPUT_WH[1] // STRIDE_PX, INPUT_WH[0] // STRIDE_PX)
+    grid_hw = (input_wh[1] // STRIDE_PX, input_wh[0] // STRIDE_PX)
     n_sim = round(args.sim_fraction * args.batch) if sim else 0
     n_indoor, n_facades = real_shares(args.batch - n_sim, args.indoor_fraction, bool(indoor), bool(facades))
     pools = [(_Shuffled(indoor, rng), n_indoor), (_Shuffled(facades, rng), n_facades)]
@@ -288,8 +306,9 @@ def train(args: argparse.Namespace) -> None:
     t0 = time.time()
     for step in range(args.steps):
         picked = [(s, pool) for pool, n in pools for s in pool.take(n)]
-        batch = [mosaic_for_training([s, *pool.take(3)], rng) if args.mosaic > 0 and rng.random() < args.mosaic
-                 else augment_for_training(s, rng) for s, pool in picked]
+        batch = [mosaic_for_training([s, *pool.take(3)], rng, input_wh)
+                 if args.mosaic > 0 and rng.random() < args.mosaic else augment_for_training(s, rng, input_wh)
+                 for s, pool in picked]
         x = torch.from_numpy(np.stack([b[0] for b in batch]).astype(np.float32) / 255.0).permute(0, 3, 1, 2)
         targets = build_targets([b[1] for b in batch], [b[2] for b in batch], anchors, grid_hw, STRIDE_PX)
         model.train()
@@ -328,7 +347,8 @@ def training_settings(args: argparse.Namespace) -> dict[str, object]:
     """The settings of this run, and of the run it started from (`--init`), for the sidecar and checkpoint."""
     out: dict[str, object] = {"steps": args.steps, "batch": args.batch, "lr": args.lr, "seed": args.seed,
                               "width": args.width, "indoor_fraction": args.indoor_fraction,
-                              "sim_fraction": args.sim_fraction, "mosaic": args.mosaic}
+                              "sim_fraction": args.sim_fraction, "mosaic": args.mosaic,
+                              "input_wh": list(args.input_wh)}
     init = getattr(args, "init", None)
     if init is not None:
         info = getattr(args, "init_info", {})
@@ -348,7 +368,7 @@ def export_only(args: argparse.Namespace) -> None:
     data = {"facades": load_facades(args.facades, args.seed), "indoor": load_indoor(args.indoor, args.seed)}
     args.width, args.steps = int(ckpt["width"]), int(ckpt["steps"])
     settings = ckpt.get("settings") or {}
-    for k in ("batch", "lr", "seed", "indoor_fraction", "sim_fraction"):
+    for k in ("batch", "lr", "seed", "indoor_fraction", "sim_fraction", "input_wh"):
         if k in settings:
             setattr(args, k, settings[k])
     if isinstance(settings.get("init"), dict):
@@ -366,7 +386,8 @@ def reproduce_command(args: argparse.Namespace) -> str:
     sims = "".join(f" --sim {d}" for d in getattr(args, "sim", []))
     tail = (f" --indoor-fraction {args.indoor_fraction} --lr {args.lr} --steps {args.steps} --batch {args.batch} "
             f"--seed {args.seed}{sims}" + (f" --sim-fraction {args.sim_fraction}" if sims else "")
-            + (f" --mosaic {args.mosaic}" if args.mosaic else ""))
+            + (f" --mosaic {args.mosaic}" if args.mosaic else "")
+            + (" --input-wh {} {}".format(*args.input_wh) if tuple(args.input_wh) != INPUT_WH else ""))
     base = (getattr(args, "init_info", None) or {}).get("settings") or {}
     if not base or "init" in base or sims or Path(init).resolve() == SHIPPED_WEIGHTS.resolve():
         shown = "perception/models/detector.pt" if Path(init).resolve() == SHIPPED_WEIGHTS.resolve() else init
@@ -393,13 +414,14 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
     args.report.mkdir(parents=True, exist_ok=True)
     onnx_path = args.out / "detector.onnx"
     model.eval()
-    dummy = torch.zeros(1, 3, INPUT_WH[1], INPUT_WH[0])
+    input_wh = (int(args.input_wh[0]), int(args.input_wh[1]))
+    dummy = torch.zeros(1, 3, input_wh[1], input_wh[0])
     torch.onnx.export(model, (dummy,), str(onnx_path), input_names=["image"], output_names=["raw"],
                       opset_version=13, dynamo=False)
     # The weights themselves beside the ONNX (which folds the batch norms): `--init` fine-tunes from them.
     torch.save({"ema": model.state_dict(), "anchors": np.asarray(anchors), "width": args.width, "steps": args.steps,
                 "settings": training_settings(args)}, onnx_path.with_suffix(".pt"))
-    spec = DetectorSpec(CLASS_NAMES, INPUT_WH, STRIDE_PX, tuple((float(w), float(h)) for w, h in anchors), 0.5)
+    spec = DetectorSpec(CLASS_NAMES, input_wh, STRIDE_PX, tuple((float(w), float(h)) for w, h in anchors), 0.5)
     detector = Detector(onnx_path, spec, threads=args.threads)
     val_samples = data["indoor"]["val"] + data["facades"]["val"]
     val_dets, val_truths = detector_eval.detect_all(detector, val_samples)
@@ -428,7 +450,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
         "figures": figures,
         "reproduce": reproduce_command(args),
     }
-    spec = DetectorSpec(CLASS_NAMES, INPUT_WH, STRIDE_PX, spec.anchors_px, threshold, spec.nms_iou, extra)
+    spec = DetectorSpec(CLASS_NAMES, input_wh, STRIDE_PX, spec.anchors_px, threshold, spec.nms_iou, extra)
     onnx_path.with_suffix(".json").write_text(json.dumps(spec.to_json(), indent=1) + "\n")
     plot_pr(val_curves, threshold, str(args.out / "detector_pr.png"),
             f"validation parts (real indoor + facade photos, {len(val_samples)} images)")
@@ -449,6 +471,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--sim-fraction", type=float, default=0.5, help="share of each batch drawn from rendered frames")
     ap.add_argument("--mosaic", type=float, default=0.0,
                     help="share of training images made of four samples in quadrants (smaller, far openings)")
+    ap.add_argument("--input-wh", type=int, nargs=2, default=list(INPUT_WH), metavar=("W", "H"),
+                    help="the network's input size in px (a multiple of the stride, 16); with --init at another "
+                         "size the init's anchors are scaled to it")
     ap.add_argument("--steps", type=int, default=4200, help="training steps (0 with --init: export the init)")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--lr", type=float, default=2e-3)

@@ -162,3 +162,13 @@ def test_indoor_split_has_no_source_photo_in_two_parts():
     parts = _parts_by_stem(split)
     assert all(len(p) == 1 for p in parts.values())
     assert len(parts) > 1000 and min(len(v) for v in split.values()) > 300
+
+
+def test_anchors_follow_the_input_size_and_old_runs_were_320_by_240():
+    from macroloc.perception.train import anchors_for_input, init_input_wh
+
+    anchors = np.array([[18.0, 27.0], [220.0, 235.0]])
+    scaled = anchors_for_input(anchors, (320, 240), (448, 336))
+    np.testing.assert_allclose(scaled / [448, 336], anchors / [320, 240])  # the same fraction of the image
+    assert init_input_wh({"settings": {"steps": 1500}}) == (320, 240)
+    assert init_input_wh({"settings": {"input_wh": [448, 336]}}) == (448, 336)

@@ -157,11 +157,11 @@ def _busy(stop: threading.Event) -> None:
 
 
 def test_lockstep_flies_the_same_flight_on_an_idle_and_a_loaded_machine() -> None:
-    """The vehicle's clock waits for the service: 8 simulated seconds of seed 1 give the same flight to the digit,
-    once as it is and once with a busy thread beside it."""
+    """The vehicle's clock waits for the service: 4 simulated seconds of seed 1 (localized at 1.4 s) give the same
+    flight to the digit, once as it is and once with a busy thread beside it."""
     from macroloc.sim.demo import DemoParams, run_demo
 
-    params = DemoParams(seed=1, timeout_s=8.0, lockstep=True)
+    params = DemoParams(seed=1, timeout_s=4.0, lockstep=True)
     first = run_demo(params=params)
     stop = threading.Event()
     load = threading.Thread(target=_busy, args=(stop,), daemon=True)
@@ -171,9 +171,10 @@ def test_lockstep_flies_the_same_flight_on_an_idle_and_a_loaded_machine() -> Non
     finally:
         stop.set()
         load.join()
-    assert len(first.true_xy) == len(second.true_xy) > 200
+    assert len(first.true_xy) == len(second.true_xy) > 100
+    assert first.localized and len(first.estimated_xy) > 50  # the estimates compared are the localized ones
     assert first.true_xy == second.true_xy and first.estimated_xy == second.estimated_xy
-    assert first.localization_time_s == second.localization_time_s or (first.localized == second.localized is False)
+    assert first.localization_time_s == second.localization_time_s
 
 
 @pytest.mark.slow

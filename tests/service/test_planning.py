@@ -178,9 +178,11 @@ def test_the_model_s_triangles_come_in_the_elements_order(fzk_path) -> None:
     elements' id order, and two reads give the same mesh."""
     import ifcopenshell
 
-    from macroloc.service.planning_grid import NOT_SEEN, _iterate_shapes, _read_solids
+    from macroloc.service.planning_grid import NOT_SEEN, _iterate_shapes
 
-    ids = [element.id() for element, _, _ in _iterate_shapes(ifcopenshell.open(str(fzk_path)), exclude=list(NOT_SEEN))]
-    assert len(ids) > 10 and ids == sorted(ids)
-    first, again = _read_solids(fzk_path, NOT_SEEN), _read_solids(fzk_path, NOT_SEEN)
-    assert np.array_equal(first.vertices_cad, again.vertices_cad) and np.array_equal(first.faces, again.faces)
+    first, again = ([(element.id(), verts, faces) for element, verts, faces in
+                     _iterate_shapes(ifcopenshell.open(str(fzk_path)), exclude=list(NOT_SEEN))] for _ in range(2))
+    ids = [element_id for element_id, _, _ in first]
+    assert len(ids) > 10 and ids == sorted(ids) == [element_id for element_id, _, _ in again]
+    assert all(np.array_equal(v1, v2) and np.array_equal(f1, f2)
+               for (_, v1, f1), (_, v2, f2) in zip(first, again, strict=True))
