@@ -1,6 +1,7 @@
 """The detector's own time per 640 x 480 frame (letterbox, onnxruntime, decode, NMS), new beside old, one run.
 
-    python -m bench.bench_detector [--old /tmp/old/detector.onnx] [--frames 100] [--threads 2]
+    python -m bench.bench_detector [--new out/run/detector.onnx] [--old /tmp/old/detector.onnx] [--frames 100]
+        [--threads 2]
 
 The frame is the real left image of ../shared/data/stereo/rtabmap_stereo_rect (a random one when absent). The old
 model is whichever ONNX file `--old` names, with its sidecar beside it (default: the shipped one before issue 32,
@@ -50,6 +51,7 @@ def load_frame() -> np.ndarray:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--new", type=Path, default=None, help="ONNX model with its sidecar (default: the shipped one)")
     ap.add_argument("--old", type=Path, default=None)
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--threads", type=int, default=2)
@@ -60,7 +62,7 @@ def main(argv: list[str] | None = None) -> None:
     frame = load_frame()
     with tempfile.TemporaryDirectory() as tmp:
         old = args.old or old_from_git(Path(tmp))
-        models = [("new", DEFAULT_MODEL)] + ([("old", old)] if old is not None else [])
+        models = [("new", args.new or DEFAULT_MODEL)] + ([("old", old)] if old is not None else [])
         print(f"onnxruntime intra-op threads: {args.threads}; frame 640x480 "
               f"({'rtabmap_stereo_rect/left/50.jpg' if FRAME.exists() else 'random'}); {args.frames} frames")
         for name, path in models:

@@ -2,6 +2,7 @@
 
     python -m bench.bench_posegraph [--keyframes 1100]
     python -m bench.bench_posegraph --long [--keyframes 10000] [--window W] [--chunk K] [--wall-fits]  # issue 37
+    python -m bench.bench_posegraph --long --loop 10 5 --windowed-only   # a small loop: its doors mapped by 100
 
 A drone flies laps of a 40 m x 20 m loop corridor lined with doors and windows (0.3 m per keyframe, every
 door re-observed on each lap: loop closures), localized in the model after a few metres, so the graph holds
@@ -29,12 +30,13 @@ LOOP_X_M, LOOP_Y_M, STEP_M = 40.0, 20.0, 0.3
 WALL_FIT_INFORMATION = np.diag(np.r_[np.full(3, 0.02**-2), np.full(3, 0.03**-2)])  # [rot; trans] a wall fit's
 
 
-def loop_building(seed: int = 0) -> BuildingModel:
-    """Doors/windows on the outer and inner walls of a rectangular loop corridor (2.4 m wide)."""
+def loop_building(seed: int = 0, size_m: tuple[float, float] = (LOOP_X_M, LOOP_Y_M)) -> BuildingModel:
+    """Doors/windows on the outer and inner walls of a rectangular loop corridor (2.4 m wide), `size_m` (x, y) its
+    centre line's sides."""
     rng = np.random.default_rng(seed)
     feats = []
-    for k, s in enumerate(np.arange(0.0, 2 * (LOOP_X_M + LOOP_Y_M), 2.7)):
-        p, t = _loop_point(s + rng.uniform(-0.6, 0.6))
+    for k, s in enumerate(np.arange(0.0, 2 * sum(size_m), 2.7)):
+        p, t = _loop_point(s + rng.uniform(-0.6, 0.6), size_m)
         outward = np.array([t[1], -t[0], 0.0])  # right of the direction of travel: the outer wall
         side = 1.0 if k % 2 == 0 else -1.0
         kind = "window" if k % 3 == 2 else "door"
@@ -48,12 +50,12 @@ def loop_building(seed: int = 0) -> BuildingModel:
     return BuildingModel("loop", "loop-bench", feats, storeys=["L1"])
 
 
-def _loop_point(s: float) -> tuple[np.ndarray, np.ndarray]:
+def _loop_point(s: float, size_m: tuple[float, float] = (LOOP_X_M, LOOP_Y_M)) -> tuple[np.ndarray, np.ndarray]:
     """Point (3,) at arc length s along the loop's centre line (z = 1.4 m) and its unit tangent."""
-    s %= 2 * (LOOP_X_M + LOOP_Y_M)
-    legs = [(np.array([0.0, 0.0]), np.array([1.0, 0.0]), LOOP_X_M), (np.array([LOOP_X_M, 0.0]), np.array([0.0, 1.0]),
-            LOOP_Y_M), (np.array([LOOP_X_M, LOOP_Y_M]), np.array([-1.0, 0.0]), LOOP_X_M),
-            (np.array([0.0, LOOP_Y_M]), np.array([0.0, -1.0]), LOOP_Y_M)]
+    x_m, y_m = size_m
+    s %= 2 * (x_m + y_m)
+    legs = [(np.array([0.0, 0.0]), np.array([1.0, 0.0]), x_m), (np.array([x_m, 0.0]), np.array([0.0, 1.0]), y_m),
+            (np.array([x_m, y_m]), np.array([-1.0, 0.0]), x_m), (np.array([0.0, y_m]), np.array([0.0, -1.0]), y_m)]
     for start, d, length in legs:
         if s <= length:
             xy = start + s * d
@@ -75,14 +77,15 @@ def sightings(model: BuildingModel, T_cad_body: np.ndarray, rng: np.random.Gener
 
 def run(n_keyframes: int, settings: IsamSettings | None = None, step_cpu_ms: np.ndarray | None = None,
         reeliminated: np.ndarray | None = None, error_m: np.ndarray | None = None,
-        wall_fits: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, Localizer]:
+        wall_fits: bool = False, size_m: tuple[float, float] = (LOOP_X_M, LOOP_Y_M)
+        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Localizer]:
     """Wall and CPU ms of each keyframe's iSAM2 update, wall ms of each whole add_keyframe, the localizer; the
     CPU ms of each whole add_keyframe into `step_cpu_ms`, the variables iSAM2 re-eliminated in its last update
     into `reeliminated` and the newest keyframe's position error in the model (NaN before localized) into
     `error_m`, where given. `wall_fits`: once localized, every keyframe also gets a T_cad_body measurement and a
     second update, as the localizer's fit of its depth to the walls gives one (`Localizer._fit_to_surfaces`, not
     run here: the bench has no depth): a factor between the anchor and every keyframe."""
-    model = loop_building()
+    model = loop_building(size_m=size_m)
     known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features]
     loc = make_localizer(model, isam=settings, registrar=StoredMapRegistrar(known))  # the session's factory
     rng = np.random.default_rng(1)
@@ -91,7 +94,7 @@ def run(n_keyframes: int, settings: IsamSettings | None = None, step_cpu_ms: np.
     T_odom_cad[:3, 3] = (5.0, -3.0, 0.0)
     drift = np.eye(4)
     for i in range(n_keyframes):
-        p, t = _loop_point(i * STEP_M)
+        p, t = _loop_point(i * STEP_M, size_m)
         yaw = np.arctan2(t[1], t[0]) + 0.25 * np.sin(0.2 * i)
         T = np.eye(4)
         T[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]
@@ -120,15 +123,22 @@ def run(n_keyframes: int, settings: IsamSettings | None = None, step_cpu_ms: np.
     return update_ms, cpu_ms, step_ms, loc
 
 
-def long_mission(n_keyframes: int, window: int, chunk: int, wall_fits: bool) -> None:
+def long_mission(n_keyframes: int, window: int, chunk: int, wall_fits: bool,
+                 size_m: tuple[float, float] = (LOOP_X_M, LOOP_Y_M), all_kept: bool = True) -> None:
     """Issue 37's table: CPU ms per keyframe (iSAM2's update, the whole add_keyframe), mean over the last 100
-    keyframes before 100 / 1,000 / 10,000 (those reached), without a window (all keyframes kept) and with one."""
+    keyframes before 100 / 1,000 / 10,000 (those reached), without a window (all keyframes kept, unless not
+    `all_kept`) and with one, on a loop of `size_m`."""
     at = [n for n in (100, 1000, 3000, 10000) if n <= n_keyframes]
     results = {}
     windowed = IsamSettings(window_keyframes=window, marginalise_every=chunk)
-    for name, settings in (("all kept", IsamSettings(window_keyframes=0)), (f"window {window}/{chunk}", windowed)):
+    lap = 2 * sum(size_m) / STEP_M
+    print(f"loop {size_m[0]:g} x {size_m[1]:g} m: {len(loop_building(size_m=size_m).features)} doors and windows, "
+          f"{lap:.0f} keyframes a lap")
+    runs = ((("all kept", IsamSettings(window_keyframes=0)),) if all_kept else ()) + \
+        ((f"window {window}/{chunk}", windowed),)
+    for name, settings in runs:
         step_cpu, reelim, error_m = np.zeros(n_keyframes), np.zeros(n_keyframes), np.zeros(n_keyframes)
-        _, cpu_ms, _, loc = run(n_keyframes, settings, step_cpu, reelim, error_m, wall_fits)
+        _, cpu_ms, _, loc = run(n_keyframes, settings, step_cpu, reelim, error_m, wall_fits, size_m)
         results[name] = (cpu_ms, step_cpu, reelim, 1e3 * error_m)
         last = loc.graph.n_keyframes - 1
         cov_ms = float(np.median(time_ms(lambda: loc.graph.covariance_cad_body(last), repeat=5)))  # noqa: B023
@@ -153,9 +163,13 @@ def main() -> None:
     parser.add_argument("--chunk", type=int, default=IsamSettings().marginalise_every,
                         help="keyframes marginalised at a time (--long)")
     parser.add_argument("--wall-fits", action="store_true", help="a T_cad_body factor on every keyframe (--long)")
+    parser.add_argument("--loop", type=float, nargs=2, default=(LOOP_X_M, LOOP_Y_M), metavar=("X", "Y"),
+                        help="the loop corridor's sides, m (--long; a lap is 2 (X + Y) / 0.3 keyframes)")
+    parser.add_argument("--windowed-only", action="store_true", help="skip the all-kept run (--long)")
     args = parser.parse_args()
     if args.long:
-        long_mission(args.keyframes, args.window, args.chunk, args.wall_fits)
+        long_mission(args.keyframes, args.window, args.chunk, args.wall_fits, tuple(args.loop),
+                     not args.windowed_only)
         return
     update_ms, cpu_ms, step_ms, loc = run(args.keyframes)
     print(f"loop corridor: {len(loc.model.features)} features, {loc.graph.n_keyframes} keyframes, "
