@@ -48,6 +48,11 @@ app = typer.Typer(
 
 
 def _register_all() -> None:
+    """Each command into `app`, once per process: typer keeps every registration, so registering again at each
+    `main()` made an in-process caller's n-th call build n copies of every command (1.5 s a call after a few
+    hundred calls)."""
+    if app.registered_commands:
+        return
     for name in COMMAND_MODULES:
         try:
             module = importlib.import_module(f"macroloc.service.commands.{name}")

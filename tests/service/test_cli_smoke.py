@@ -62,3 +62,14 @@ def test_replay_names_a_missing_detector_from_the_config_in_one_line(tmp_path, c
                "--config", str(cfg)])
     err = capsys.readouterr().err
     assert rc == 2 and len(err.strip().splitlines()) == 1 and "detector model" in err and "nope.onnx" in err
+
+
+def test_calling_main_again_registers_no_command_twice(capsys) -> None:
+    """An in-process caller (the eval driver, the tests) calls main() many times: each call must find the commands
+    registered once, not once more per call (the n-th call built n copies of every command)."""
+    from macroloc.service.cli import app
+
+    for _ in range(3):
+        assert main(["dump-config"]) == 0
+    names = [c.name or c.callback.__name__ for c in app.registered_commands if c.callback is not None]
+    assert len(names) == len(set(names)) >= len(COMMAND_MODULES)
