@@ -35,10 +35,10 @@ def view(texture: np.ndarray, camera_x_m: float) -> tuple[np.ndarray, np.ndarray
 TRACKERS = ("klt", "orb")
 
 
-@pytest.mark.parametrize("tracker", TRACKERS)
-def test_recovers_a_sideways_slide(tracker: str) -> None:
+@pytest.mark.parametrize(("tracker", "flow_from"), [("klt", "last"), ("klt", "keyframe"), ("orb", "last")])
+def test_recovers_a_sideways_slide(tracker: str, flow_from: str) -> None:
     texture = wall_texture()
-    vo = StereoOdometry(RIG, OdometryConfig(tracker=tracker))
+    vo = StereoOdometry(RIG, OdometryConfig(tracker=tracker, flow_from=flow_from))
     xs = np.arange(0, 21) * 0.03  # 0.6 m to the right, 3 cm per frame
     for x in xs:
         result = vo.track(*view(texture, x))
