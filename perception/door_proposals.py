@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from macroloc.perception.calib import StereoRig
+from macroloc.perception.evaluate import iou_xyxy
 from macroloc.perception.lines import JOIN_GAP_PX, LineConfig, Sides, detect_segments
 from macroloc.perception.reconstruct import WallPlaneConfig, wall_plane
 from macroloc.perception.size_check import OpeningSizes, SizeTolerance, fitting
@@ -281,7 +282,7 @@ def _best(lines: _Lines, i: np.ndarray, j: np.ndarray, width: np.ndarray, height
     for k in np.flatnonzero(keep)[np.argsort(-fit[keep])]:
         pts = np.vstack([lines.top[[i[k], j[k]]], lines.bottom[[i[k], j[k]]]])
         box = np.array([pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max()])
-        if boxes and _iou(box, np.array(boxes)).max() >= 0.3:
+        if boxes and iou_xyxy(box[None], np.array(boxes))[0].max() >= 0.3:
             continue
         if not on_wall(lines, int(i[k]), int(j[k])):
             continue
@@ -313,9 +314,3 @@ class _OnWall:
                       (True, True))
         return wall_plane(sides, self.depth_m, self.rig, self.gravity_cam, self.cfg) is not None
 
-
-def _iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    lt, rb = np.maximum(box[:2], boxes[:, :2]), np.minimum(box[2:], boxes[:, 2:])
-    inter = np.prod(np.clip(rb - lt, 0, None), axis=1)
-    area = np.prod(box[2:] - box[:2])
-    return np.asarray(inter / np.maximum(area + np.prod(boxes[:, 2:] - boxes[:, :2], axis=1) - inter, 1e-9))
