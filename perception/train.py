@@ -256,6 +256,11 @@ def init_input_wh(init_info: dict[str, object]) -> tuple[int, int]:
     return (int(wh[0]), int(wh[1])) if wh else INPUT_WH
 
 
+def input_size(args: argparse.Namespace) -> tuple[int, int]:
+    """The network's input size (w, h) px of a run (`--input-wh`)."""
+    return int(args.input_wh[0]), int(args.input_wh[1])
+
+
 def anchors_for_input(anchors_px: np.ndarray, from_wh: tuple[int, int], to_wh: tuple[int, int]) -> np.ndarray:
     """Anchors (k, 2) px learned at input size `from_wh`, for the same openings at `to_wh` (the image is scaled
     to the input: an anchor covers the same fraction of it)."""
@@ -276,7 +281,7 @@ def train(args: argparse.Namespace) -> None:
     indoor, facades = data["indoor"]["train"], data["facades"]["train"]
     log.info("train: %d indoor, %d facade, %d rendered; val %d + %d", len(indoor), len(facades), len(sim),
              len(data["indoor"]["val"]), len(data["facades"]["val"]))
-    input_wh = (int(args.input_wh[0]), int(args.input_wh[1]))
+    input_wh = input_size(args)
     if input_wh[0] % STRIDE_PX or input_wh[1] % STRIDE_PX:
         raise SystemExit(f"error: --input-wh {input_wh[0]} {input_wh[1]}: both must be multiples of {STRIDE_PX}")
     if args.init is not None:  # fine-tune: the init's weights, anchors (the head is tied to them) and width
@@ -387,7 +392,7 @@ def reproduce_command(args: argparse.Namespace) -> str:
     tail = (f" --indoor-fraction {args.indoor_fraction} --lr {args.lr} --steps {args.steps} --batch {args.batch} "
             f"--seed {args.seed}{sims}" + (f" --sim-fraction {args.sim_fraction}" if sims else "")
             + (f" --mosaic {args.mosaic}" if args.mosaic else "")
-            + (" --input-wh {} {}".format(*args.input_wh) if tuple(args.input_wh) != INPUT_WH else ""))
+            + (" --input-wh {} {}".format(*input_size(args)) if input_size(args) != INPUT_WH else ""))
     base = (getattr(args, "init_info", None) or {}).get("settings") or {}
     if not base or "init" in base or sims or Path(init).resolve() == SHIPPED_WEIGHTS.resolve():
         shown = "perception/models/detector.pt" if Path(init).resolve() == SHIPPED_WEIGHTS.resolve() else init
@@ -414,7 +419,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
     args.report.mkdir(parents=True, exist_ok=True)
     onnx_path = args.out / "detector.onnx"
     model.eval()
-    input_wh = (int(args.input_wh[0]), int(args.input_wh[1]))
+    input_wh = input_size(args)
     dummy = torch.zeros(1, 3, input_wh[1], input_wh[0])
     torch.onnx.export(model, (dummy,), str(onnx_path), input_names=["image"], output_names=["raw"],
                       opset_version=13, dynamo=False)

@@ -48,9 +48,8 @@ app = typer.Typer(
 
 
 def _register_all() -> None:
-    """Each command into `app`, once per process: typer keeps every registration, so registering again at each
-    `main()` made an in-process caller's n-th call build n copies of every command (1.5 s a call after a few
-    hundred calls)."""
+    """Each command into `app`, once per process: typer keeps every registration, so registering at each `main()`
+    would make an in-process caller's n-th call build n copies of every command."""
     if app.registered_commands:
         return
     for name in COMMAND_MODULES:
