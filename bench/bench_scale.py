@@ -209,6 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"# Office_A 1x, ~30 observations, gravity, n={args.n_office}")
     overrides = {} if args.prune_top is None else {"prune_top": args.prune_top}
     office = run_size(base, args.n_office, (30,), methods, overrides=overrides)
+    missed: list[str] = []
+    if office["robust"]["p95"] > TARGET_OFFICE_P95_MS:
+        missed.append(f"office_a: p95 {office['robust']['p95']:.1f} ms > {TARGET_OFFICE_P95_MS:.0f} ms")
     for method in methods:
         m = office[method]
         verdict = "ok" if m["p95"] <= TARGET_OFFICE_P95_MS else "MISSED"
@@ -221,7 +224,6 @@ def main(argv: list[str] | None = None) -> int:
     print("| kind      | size | feats  | idx s  | method | hyps    | p50 ms  | p95 ms  | ok  | wrg | imp "
           "| amb | n/l |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    missed: list[str] = []
     recalls: list[str] = []
     for kind in args.kinds.split(","):
         for units in (int(s) for s in args.sizes.split(",")):

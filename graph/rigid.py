@@ -105,3 +105,41 @@ def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     k = v / s  # axis-angle form (Rodrigues), well conditioned also near pi, unlike I + K + K^2 / (1 + c)
     K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+
+
+def yaw_rigid_fits(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """`yaw_rigid_fit` of K point sets at once: src, dst (K, M, 3), weights (K, M) (0 drops a point; each set
+    needs a positive total) -> (K, 4, 4)."""
+    w = np.asarray(weights, dtype=float)
+    w_sum = w.sum(axis=1)[:, None]
+    a_bar = (w[..., None] * src).sum(axis=1) / w_sum
+    b_bar = (w[..., None] * dst).sum(axis=1) / w_sum
+    x, y = src[..., :2] - a_bar[:, None, :2], dst[..., :2] - b_bar[:, None, :2]
+    s_cos = (w * (x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1])).sum(axis=1)
+    s_sin = (w * (x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0])).sum(axis=1)
+    return _stack_T(rot_z(np.arctan2(s_sin, s_cos)), a_bar, b_bar)
+
+
+def weighted_rigid_fits(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """`weighted_rigid_fit` (eqs. 11-17) of K point sets at once: src, dst (K, M, 3), weights (K, M) (0 drops a
+    point; each set needs a positive total and 3 points not collinear) -> (K, 4, 4)."""
+    w = np.asarray(weights, dtype=float)
+    w_sum = w.sum(axis=1)[:, None]
+    a_bar = (w[..., None] * src).sum(axis=1) / w_sum  # eq. (12)
+    b_bar = (w[..., None] * dst).sum(axis=1) / w_sum
+    x, y = src - a_bar[:, None], dst - b_bar[:, None]  # eq. (13)
+    S = np.einsum("km,kmi,kmj->kij", w, x, y)  # eq. (14)
+    U, _, Vt = np.linalg.svd(S)  # eq. (15)
+    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+    sign = np.sign(np.linalg.det(V @ Ut))
+    D = np.broadcast_to(np.eye(3), S.shape).copy()
+    D[:, 2, 2] = np.where(sign == 0, 1.0, sign)
+    return _stack_T(V @ D @ Ut, a_bar, b_bar)  # eqs. (16), (17)
+
+
+def _stack_T(R: np.ndarray, a_bar: np.ndarray, b_bar: np.ndarray) -> np.ndarray:
+    """(K, 4, 4) transforms with rotations R (K, 3, 3) that take the centroids a_bar onto b_bar (K, 3)."""
+    T = np.broadcast_to(np.eye(4), (len(R), 4, 4)).copy()
+    T[:, :3, :3] = R
+    T[:, :3, 3] = b_bar - np.einsum("kij,kj->ki", R, a_bar)
+    return T

@@ -26,16 +26,15 @@ from macroloc.graph.features import FEATURE_TYPES
 from macroloc.graph.model_index import TYPE_SEPARATION_M, ModelIndex
 from macroloc.graph.observations import Observation, ObservationSet
 from macroloc.graph.rectangle import unordered_edges
-from macroloc.graph.registration_types import RegistrationResult, corner_correspondences, majority_storey
+from macroloc.graph.registration_types import RegistrationResult, majority_storey
 from macroloc.graph.rigid import (
     apply,
     levelled,
     make_T,
     rot_z,
     rotation_aligning,
-    rotation_angle_deg,
-    weighted_rigid_fit,
-    yaw_rigid_fit,
+    weighted_rigid_fits,
+    yaw_rigid_fits,
 )
 from macroloc.graph.verify import (
     Noise,
@@ -45,10 +44,13 @@ from macroloc.graph.verify import (
     chance_term,
     full_term,
     observed_shapes,
+    one_per_feature,
     verify,
+    verify_all,
 )
 
 GRAVITY_CAD = np.array([0.0, 0.0, -1.0])
+NEAREST_ANY = 4  # `_nearest_both` asks for this many nearest features (exact for any value; more, rarely asked)
 FITTED_CLOSURE_M = 1e-3  # a rectangle that closes this well was fitted, not measured: no sensor is this exact
 
 
@@ -136,9 +138,10 @@ def _seed_hypotheses(rect: _Rect, cand: np.ndarray, index: ModelIndex, params: R
         if not ok.any():
             continue
         U, V, c_cad = U[ok], V[ok], index.centroids[cand][ok]
+        W = np.cross(U, V)
         for s1 in (1.0, -1.0):
             for s2 in (1.0, -1.0):
-                Mc = np.stack([s1 * U, s2 * V, s1 * s2 * np.cross(U, V)], axis=2)  # (h, 3, 3) columns
+                Mc = np.stack([s1 * U, s2 * V, s1 * s2 * W], axis=2)  # (h, 3, 3) columns
                 R = Mc @ M_obs.T
                 if gravity_known:  # map' is gravity-aligned: R must keep +z up
                     keep = R[:, 2, 2] > np.cos(np.radians(params.gravity_tolerance_deg))
@@ -191,6 +194,30 @@ def _nearest_same_type(points: np.ndarray, types: np.ndarray, index: ModelIndex,
     return d.reshape(shape), idx.reshape(shape)
 
 
+def _nearest_both(points: np.ndarray, types: np.ndarray, index: ModelIndex, upper_m: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`_nearest_same_type` and the nearest CAD feature of any type (distance, index; inf / len(features) where none
+    within `upper_m`, as `cKDTree.query` gives them) in one query: the `NEAREST_ANY` nearest features within
+    `upper_m` hold the nearest of the same type unless all of them are taken by other types (then it is asked for)."""
+    shape = points.shape[:-1]
+    flat = points.reshape(-1, 3)
+    codes = np.broadcast_to(_type_codes(types), shape).reshape(-1)
+    k = min(NEAREST_ANY, len(index.features))
+    d, j = index.tree_all.query(flat, k=k, distance_upper_bound=upper_m)
+    d, j = d.reshape(-1, k), j.reshape(-1, k)
+    found = np.isfinite(d)
+    same = found & (index.type_codes[np.where(found, j, 0)] == codes[:, None])
+    has = same.any(axis=1)
+    first = np.argmax(same, axis=1)
+    rows = np.arange(len(flat))
+    d_same = np.where(has, d[rows, first], np.inf)
+    j_same = np.where(has, j[rows, first], -1)
+    full = found[:, -1] & ~has  # every one of the k is of another type: the same type may lie farther
+    if full.any():
+        d_same[full], j_same[full] = _nearest_same_type(flat[full], codes[full], index, upper_m)
+    return d_same.reshape(shape), j_same.reshape(shape), d[:, 0].reshape(shape), j[:, 0].reshape(shape)
+
+
 def _type_codes(types: np.ndarray) -> np.ndarray:
     """Feature types as small integers (index into FEATURE_TYPES); string compares are slow in hot loops.
     Integer arrays (already codes) pass through."""
@@ -213,50 +240,80 @@ class _Pose:
     score: float
 
 
-def _explain(T: np.ndarray, c_obs: np.ndarray, types: np.ndarray, index: ModelIndex, tau_m: float,
+def _explain(moved: np.ndarray, types: np.ndarray, index: ModelIndex, tau_m: float,
              cross_type_weight: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per observation: its support under T (truncated quadratic of the distance to the nearest CAD feature of the
-    same type; a feature of the other type counts `cross_type_weight` as much — detectors confuse doors and
-    windows) and the CAD feature that gives it (-1: none within tau_m)."""
-    moved = apply(T, c_obs)
-    d_same, j_same = _nearest_same_type(moved, types, index, upper_m=tau_m)
+    """Per observation (moved: (..., N, 3) centroids, CAD): its support (truncated quadratic of the distance to the
+    nearest CAD feature of the same type; a feature of the other type counts `cross_type_weight` as much —
+    detectors confuse doors and windows) and the CAD feature that gives it (-1: none within tau_m)."""
+    d_same, j_same, d_any, j_any = _nearest_both(moved, types, index, tau_m)
     s_same = np.where(d_same < tau_m, 1.0 - (d_same / tau_m) ** 2, 0.0)
-    d_any, j_any = index.tree_all.query(moved, distance_upper_bound=tau_m)
     s_any = cross_type_weight * np.where(d_any < tau_m, 1.0 - (np.minimum(d_any, tau_m) / tau_m) ** 2, 0.0)
     use_any = s_any > s_same
     return np.where(use_any, s_any, s_same), np.where(use_any, j_any, j_same)
 
 
-def _refine(T: np.ndarray, obs: list[Observation], c_obs: np.ndarray, types: np.ndarray, index: ModelIndex,
-            params: RobustParams, gravity_known: bool) -> _Pose:
+def _refine_all(T: Sequence[np.ndarray], prep: _Prepared, index: ModelIndex, params: RobustParams) -> list[_Pose]:
+    """Each pose T (map' -> CAD) refined: `refine_iterations` times, every observation matched to the CAD feature
+    that explains it best (`_explain` at 1.5 inlier_threshold_m, one observation per feature) and the pose refitted
+    to the matched corners (centroids where an observation has none; yaw + translation when gravity is known, else
+    SE(3)); a pose stops where fewer than 2 observations or 3 points match. Then its inliers within
+    inlier_threshold_m (one per feature) and their summed support. All poses at once; each result is the pose's
+    own."""
+    if len(T) == 0:
+        return []
+    T_all = np.array(T, dtype=float).reshape(-1, 4, 4)
+    points, base_w = _corner_points(prep)
+    active = np.ones(len(T_all), dtype=bool)
+    fit = yaw_rigid_fits if prep.gravity_known else weighted_rigid_fits
     for _ in range(params.refine_iterations):
-        s, j = _explain(T, c_obs, types, index, params.inlier_threshold_m * 1.5, params.cross_type_weight)
-        if (s > 0).sum() < 2:
+        s, j = _explain(_moved(T_all, prep.centroids), prep.types, index, params.inlier_threshold_m * 1.5,
+                        params.cross_type_weight)
+        active &= (s > 0).sum(axis=1) >= 2
+        keep = one_per_feature(np.where(s > 0, j, -1), s) & active[:, None]
+        w = keep[:, :, None] * base_w[None]  # (H, N, 4)
+        active &= w.sum(axis=(1, 2)) >= 3
+        if not active.any():
             break
-        pairs = _one_to_one([(int(i), int(j[i])) for i in np.flatnonzero(s > 0)], -s)
-        src, dst = corner_correspondences(T, obs, pairs, index)
-        if len(src) < 3:
-            break
-        T = yaw_rigid_fit(src, dst) if gravity_known else weighted_rigid_fit(src, dst)
-    s, j = _explain(T, c_obs, types, index, params.inlier_threshold_m, params.cross_type_weight)
-    pairs = _one_to_one([(int(i), int(j[i])) for i in np.flatnonzero(s > 0)], -s)
-    keep = np.zeros(len(obs), dtype=bool)
-    keep[[i for i, _ in pairs]] = True
-    return _Pose(T, keep, j, float(np.where(keep, s, 0.0).sum()))
+        dst = _matched_corners(T_all[active], points, prep.shapes.has_rect, j[active], index)
+        h = len(dst)
+        T_all[active] = fit(np.broadcast_to(points.reshape(1, -1, 3), (h, points.size // 3, 3)),
+                            dst.reshape(h, -1, 3), w[active].reshape(h, -1))
+    s, j = _explain(_moved(T_all, prep.centroids), prep.types, index, params.inlier_threshold_m,
+                    params.cross_type_weight)
+    keep = one_per_feature(np.where(s > 0, j, -1), s)
+    score = np.where(keep, s, 0.0).sum(axis=1)
+    return [_Pose(T_all[k].copy(), keep[k], j[k], float(score[k])) for k in range(len(T_all))]
 
 
-def _refine_prepared(T: np.ndarray, prep: _Prepared, index: ModelIndex, params: RobustParams) -> _Pose:
-    """`_refine` of the pose T on the prepared observations."""
-    return _refine(T, prep.obs, prep.centroids, prep.types, index, params, prep.gravity_known)
+def _moved(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (N, 3) under each pose T (H, 4, 4): (H, N, 3)."""
+    return np.matmul(points[None], np.swapaxes(T[:, :3, :3], 1, 2)) + T[:, None, :3, 3]
 
 
-def _one_to_one(pairs: list[tuple[int, int]], d: np.ndarray) -> list[tuple[int, int]]:
-    """Keep, for each CAD feature, only the observation of least cost `d` claiming it."""
-    best: dict[int, int] = {}
-    for i, j in pairs:
-        if j not in best or d[i] < d[best[j]]:
-            best[j] = i
-    return sorted((i, j) for j, i in best.items())
+def _corner_points(prep: _Prepared) -> tuple[np.ndarray, np.ndarray]:
+    """The points a refinement fits, per observation (N, 4, 3) map': its four corners, or its centroid (first slot)
+    where it has none; and their weights (N, 4): 1, or 0 for the unused slots."""
+    points = np.repeat(prep.centroids[:, None, :], 4, axis=1)
+    w = np.zeros((len(prep.obs), 4))
+    w[:, 0] = 1.0
+    for i, o in enumerate(prep.obs):
+        if o.corners_map is not None:
+            points[i] = np.asarray(o.corners_map, dtype=float).reshape(4, 3)
+            w[i] = 1.0
+    return points, w
+
+
+def _matched_corners(T: np.ndarray, points: np.ndarray, has_rect: np.ndarray, match: np.ndarray,
+                     index: ModelIndex) -> np.ndarray:
+    """Per pose (T: (H, 4, 4)) and observation, the CAD points its `_corner_points` pair with under the pose: each
+    observed corner's nearest corner of its matched feature (`match`, (H, N); corners come unordered), or the
+    feature's centroid for a centroid-only observation. (H, N, 4, 3)."""
+    jj = np.maximum(match, 0)
+    cc = index.corners[jj]  # (H, N, 4, 3) CAD
+    moved = _moved(T, points.reshape(-1, 3)).reshape(cc.shape)
+    nearest = np.argmin(np.linalg.norm(moved[:, :, :, None, :] - cc[:, :, None, :, :], axis=4), axis=3)
+    dst = np.take_along_axis(cc, nearest[..., None], axis=2)
+    return np.where(has_rect[None, :, None, None], dst, index.centroids[jj][:, :, None, :])
 
 
 def _distinct_top(order: np.ndarray, moved: np.ndarray, params: RobustParams, rotations: np.ndarray | None = None,
@@ -267,23 +324,27 @@ def _distinct_top(order: np.ndarray, moved: np.ndarray, params: RobustParams, ro
     distinct_deg (two doors in one wall, seen from either side, stay where they are)."""
     limit = params.refine_top if limit is None else limit
     cos_max = np.cos(np.radians(params.distinct_deg))
+    order = np.asarray(order, dtype=int)
+    alive = np.ones(len(order), dtype=bool)
+    mean = moved[order].mean(axis=1)  # the mean displacement is at least the displacement of the mean
+
+    def drop_alike(R: np.ndarray | None, m: np.ndarray) -> None:  # every hypothesis still in play alike (R, m)
+        rows = np.flatnonzero(alive)
+        rows = rows[np.linalg.norm(mean[rows] - m.mean(axis=0), axis=1) <= params.distinct_m / 2 + 1e-9]
+        alike = np.linalg.norm(moved[order[rows]] - m[None], axis=2).mean(axis=1) <= params.distinct_m / 2
+        if rotations is not None and R is not None:
+            alike &= (np.einsum("kij,ij->k", rotations[order[rows]], R) - 1.0) / 2.0 >= cos_max
+        alive[rows[alike]] = False
+
+    for R, m in kept:
+        drop_alike(R, m)
     chosen: list[int] = []
-    chosen_R = [R for R, _ in kept]
-    chosen_moved = [m for _, m in kept]
-    for h in order:
-        if len(chosen) == limit:
-            break
-        if chosen_moved:
-            apart = np.linalg.norm(np.stack(chosen_moved) - moved[h][None], axis=2).mean(axis=1)
-            alike = apart <= params.distinct_m / 2
-            if rotations is not None:
-                alike &= (np.einsum("kij,ij->k", np.stack(chosen_R), rotations[h]) - 1.0) / 2.0 >= cos_max
-            if alike.any():
-                continue
-        chosen.append(int(h))
-        chosen_moved.append(moved[h])
-        if rotations is not None:
-            chosen_R.append(rotations[h])
+    while len(chosen) < limit and alive.any():
+        k = int(np.argmax(alive))  # the best left
+        h = int(order[k])
+        chosen.append(h)
+        alive[k] = False
+        drop_alike(None if rotations is None else rotations[h], moved[h])
     return chosen
 
 
@@ -297,6 +358,12 @@ class _Prepared:
     T_mp_m: np.ndarray  # map -> map'
     gravity_known: bool
     shapes: ObservedShapes
+
+    def rect(self, i: int) -> _Rect:
+        """Observation i's rectangle (it has corners), as `rectangle_edges` gives it."""
+        sh = self.shapes
+        return _Rect(np.asarray(self.obs[i].corners_map, dtype=float).mean(axis=0), sh.edge_a[i], sh.edge_b[i],
+                     float(sh.len_a[i]), float(sh.len_b[i]))
 
 
 def _prepare(obs_set: ObservationSet) -> _Prepared:
@@ -332,7 +399,7 @@ def _coarse(seed: int, prep: _Prepared, index: ModelIndex, params: RobustParams)
     R, t = np.zeros((0, 3, 3)), np.zeros((0, 3))
     cand = seed_candidates(seed, prep, index, params)
     if o.corners_map is not None:
-        R, t = _seed_hypotheses(rectangle_edges(o.corners_map), cand, index, params, prep.gravity_known)
+        R, t = _seed_hypotheses(prep.rect(seed), cand, index, params, prep.gravity_known)
     if prep.gravity_known and len(prep.obs) > 1:
         R2, t2 = _pair_hypotheses(seed, prep, index, params,
                                   None if len(cand) == len(index.type_indices[o.type]) else cand)
@@ -348,8 +415,7 @@ def _coarse(seed: int, prep: _Prepared, index: ModelIndex, params: RobustParams)
     R, t = _polish(R, t, c_near, prep.gravity_known, index, j_same, _support(d_same, tau))
     moved = np.einsum("hij,nj->hni", R, c_near) + t[:, None, :]
     tau_p = params.polish_tau_m
-    d_same, _ = _nearest_same_type(moved, types_near, index, upper_m=tau_p)
-    d_any, _ = index.tree_all.query(moved, distance_upper_bound=tau_p)
+    d_same, _, d_any, _ = _nearest_both(moved, types_near, index, tau_p)
     support = np.maximum(_support(d_same, tau_p), params.cross_type_weight * _support(d_any, tau_p)).sum(axis=-1)
     return _Hypotheses(R, t, np.einsum("hij,nj->hni", R, prep.centroids) + t[:, None, :], support,
                        np.full(len(R), seed, dtype=int))
@@ -367,7 +433,7 @@ def seed_candidates(seed: int, prep: _Prepared, index: ModelIndex, params: Robus
         return cand
     if len(prep.obs) < params.complete_below:  # every pose was asked for (the walls choose among them): a layout
         return cand  # of so few observations would rank the candidates by little more than chance
-    rect = rectangle_edges(o.corners_map)
+    rect = prep.rect(seed)
     tol = params.size_tolerance_m
     lu, lv = index.len_u[cand], index.len_v[cand]
     miss = np.minimum(np.abs(lu - rect.la) + np.abs(lv - rect.lb), np.abs(lv - rect.la) + np.abs(lu - rect.lb))
@@ -399,12 +465,12 @@ def _pair_hypotheses(seed: int, prep: _Prepared, index: ModelIndex, params: Robu
     if d_obs < params.pair_min_baseline_m:
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
     pairs = index.pairs_within(params.pair_max_baseline_m)
-    rows = slice(None) if among is None else index.pairs_of(params.pair_max_baseline_m, among)
-    pi, pj, pv, pd, pz = pairs.i[rows], pairs.j[rows], pairs.v[rows], pairs.d_xy[rows], pairs.dz[rows]
+    rows = np.arange(len(pairs.i)) if among is None else index.pairs_of(params.pair_max_baseline_m, among)
     tol = params.pair_tolerance_m
-    ok = ((index.type_codes[pi] == prep.types[seed]) & (index.type_codes[pj] == prep.types[partner])
-          & (np.abs(pd - d_obs) < tol) & (np.abs(pz - v_obs[2]) < tol))
-    i, j, v = pi[ok], pj[ok], pv[ok]
+    rows = rows[(np.abs(pairs.d_xy[rows] - d_obs) < tol) & (np.abs(pairs.dz[rows] - v_obs[2]) < tol)]
+    rows = rows[(index.type_codes[pairs.i[rows]] == prep.types[seed])
+                & (index.type_codes[pairs.j[rows]] == prep.types[partner])]
+    i, j, v = pairs.i[rows], pairs.j[rows], pairs.v[rows]
     yaw = np.arctan2(v[:, 1], v[:, 0]) - np.arctan2(v_obs[1], v_obs[0])
     cs, sn = np.cos(yaw), np.sin(yaw)
     R = np.zeros((len(yaw), 3, 3))
@@ -460,6 +526,7 @@ def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustPa
     seeds = np.random.default_rng(params.seed).permutation(rect_ids)[: params.max_seeds]
     hyps = _Hypotheses(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, n, 3)), np.zeros(0), np.zeros(0, int))
     poses: list[_Pose] = []
+    verdicts: list[Verdict] = []  # of poses[:refine_top] under the noise model of poses[0]
     used = 0
     for start in range(0, len(seeds), params.min_seeds):
         for s in seeds[start:start + params.min_seeds]:
@@ -468,18 +535,19 @@ def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustPa
         if len(hyps.R) == 0:
             continue
         top = _distinct_top(np.argsort(-hyps.coarse, kind="stable")[: params.scan_top], hyps.moved, params)
-        poses = sorted((_refine_prepared(make_T(hyps.R[h], hyps.t[h]), prep, index, params) for h in top),
+        poses = sorted(_refine_all([make_T(hyps.R[h], hyps.t[h]) for h in top], prep, index, params),
                        key=lambda p: -p.score)
         noise = _prior_noise(poses[0], prep, index, params)
-        if max(_verify(p.T, prep, index, noise, params).n_inliers for p in poses[:3]) >= params.early_stop_fraction * n:
+        verdicts = _verify_all(poses[: params.refine_top], prep, index, noise, params)
+        if max(v.n_inliers for v in verdicts[:3]) >= params.early_stop_fraction * n:
             break  # well supported; its symmetric rivals come from the same seeds
     images: list[_Pose] = []
     if poses:
-        noise = _prior_noise(poses[0], prep, index, params)
-        ref = max(poses[: params.refine_top], key=lambda p: _verify(p.T, prep, index, noise, params).loglik)
+        ref = poses[int(np.argmax([v.loglik for v in verdicts]))]
         images = _layout_images(ref, prep, index, params)
     return _decide(poses + images, hyps, prep, index, params,
-                   {"hypotheses": int(len(hyps.R)), "seeds": used, "images": len(images)})
+                   {"hypotheses": int(len(hyps.R)), "seeds": used, "images": len(images)},
+                   (noise, verdicts) if poses else None)
 
 
 def _fitted_rms(d: np.ndarray, gravity_known: bool) -> float | None:
@@ -518,6 +586,15 @@ def _verify(T: np.ndarray, prep: _Prepared, index: ModelIndex, noise: Noise, par
     return verify(T, prep.shapes, index, noise, params.ambiguity_tau_m, params.cross_type_weight, params.verify)
 
 
+def _verify_all(poses: Sequence[_Pose | np.ndarray], prep: _Prepared, index: ModelIndex, noise: Noise,
+                params: RobustParams) -> list[Verdict]:
+    """`_verify` of each pose (a `_Pose` or a 4x4 T), all at once."""
+    if not poses:
+        return []
+    T = np.stack([p.T if isinstance(p, _Pose) else p for p in poses])
+    return verify_all(T, prep.shapes, index, noise, params.ambiguity_tau_m, params.cross_type_weight, params.verify)
+
+
 def _matched_rms(T: np.ndarray, verdict: Verdict, prep: _Prepared, index: ModelIndex) -> float:
     """`_fitted_rms` of a pose's inliers' distances to their matched features; 0 where too few."""
     d = np.linalg.norm(apply(T, prep.centroids[verdict.inlier]) - index.centroids[verdict.match[verdict.inlier]],
@@ -542,26 +619,25 @@ def _rival_candidates(best: _Pose, hyps: _Hypotheses, prep: _Prepared, index: Mo
 
 
 def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: ModelIndex, params: RobustParams,
-            diag: dict) -> RegistrationResult:
+            diag: dict, judged: tuple[Noise, list[Verdict]] | None = None) -> RegistrationResult:
     """The best pose by verification (`graph.verify`), unless a different pose comes within the rival margin
     (`rival_margin`): then 'ambiguous' with the rivals listed. The rivals always scored: the refined candidates,
     the best pose of each seed observation's own hypotheses, and every self-map image of the best pose that maps
-    at least half of its matches (`graph.self_maps`)."""
+    at least half of its matches (`graph.self_maps`). `judged`: the noise model of poses[0] and the verdicts of the
+    first poses under it, where already known."""
     n = len(prep.obs)
     if not poses:
         return RegistrationResult("not_localized", None, [], 0, None, diagnostics=diag)
     first = poses[0]
-    noise = _prior_noise(first, prep, index, params)
-    judge = lambda T: _verify(T, prep, index, noise, params)  # noqa: E731
-    candidates = poses + [_refine_prepared(make_T(hyps.R[h], hyps.t[h]), prep, index, params)
-                          for h in _rival_candidates(first, hyps, prep, index, params)]
-    candidates += _seed_bests(first, hyps, prep, index, params, judge)
-    verdicts = [judge(p.T) for p in candidates]
+    noise, verdicts = judged if judged is not None else (_prior_noise(first, prep, index, params), [])
+    rival_h = _rival_candidates(first, hyps, prep, index, params) + _seed_bests(first, hyps, prep, index, params, noise)
+    candidates = poses + _refine_all([make_T(hyps.R[h], hyps.t[h]) for h in rival_h], prep, index, params)
+    verdicts = verdicts + _verify_all(candidates[len(verdicts):], prep, index, noise, params)
     k_best = int(np.argmax([v.loglik for v in verdicts]))
     best, v_best = candidates[k_best], verdicts[k_best]
-    for p in _self_map_images(best.T, v_best, prep, index, params):
-        candidates.append(p)
-        verdicts.append(judge(p.T))
+    images = _self_map_images(best.T, v_best, prep, index, params)
+    candidates += images
+    verdicts += _verify_all(images, prep, index, noise, params)
     k_best = int(np.argmax([v.loglik for v in verdicts]))
     # the noise model again, from the best pose's own matches (the first guess took any near feature), and every
     # candidate judged by it
@@ -569,7 +645,7 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
     noise = Noise.from_rms(max(_matched_rms(candidates[k_best].T, verdicts[k_best], prep, index), params.noise_floor_m),
                            params.verify, prep.shapes.corner_sigma_m)
     if abs(noise.centroid_rms_m - prior.centroid_rms_m) > 0.05 * prior.centroid_rms_m:  # else the same verdicts
-        verdicts = [judge(p.T) for p in candidates]
+        verdicts = _verify_all(candidates, prep, index, noise, params)
     k_best = int(np.argmax([v.loglik for v in verdicts]))
     best, v_best = candidates[k_best], verdicts[k_best]
     n_best = v_best.n_inliers
@@ -583,11 +659,12 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
         return RegistrationResult("not_localized", None, [], n_best, None, diagnostics=diag)
     anchor = prep.centroids[v_best.inlier]
     scored = sorted(zip(verdicts, candidates, strict=True), key=lambda vp: -vp[0].loglik)
-    rivals = [(v, p) for v, p in scored if p is not best and _distinct_T(best.T, p.T, anchor, params)]
+    apart = _distinct_T(np.stack([p.T for _, p in scored]), best.T, anchor, params)
+    rivals = [(v, p) for (v, p), a in zip(scored, apart, strict=True) if p is not best and a]
     close: list[tuple[Verdict, _Pose]] = []
     for v, p in rivals:  # the rivals within the margin, each pose once
         if v.loglik >= v_best.loglik - margin(v.n_inliers) \
-                and all(_distinct_T(q.T, p.T, anchor, params) for _, q in close):
+                and (not close or _distinct_T(np.stack([q.T for _, q in close]), p.T, anchor, params).all()):
             close.append((v, p))
     diag.update(rival_loglik=round(rivals[0][0].loglik, 2) if rivals else None,
                 rival_inliers=rivals[0][0].n_inliers if rivals else 0)
@@ -596,7 +673,7 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
     distinct: list[np.ndarray] = []
     candidate_poses: list[tuple[np.ndarray, int]] = []
     for v, p in [(v_best, best)] + sorted(zip(verdicts, candidates, strict=True), key=lambda vp: -vp[0].n_inliers):
-        if v.n_inliers >= min_inliers and all(_distinct_T(q, p.T, anchor, params) for q in distinct):
+        if v.n_inliers >= min_inliers and (not distinct or _distinct_T(np.stack(distinct), p.T, anchor, params).all()):
             distinct.append(p.T)
             candidate_poses.append((p.T @ prep.T_mp_m, v.n_inliers))
     if n_best < params.complete_below:
@@ -678,30 +755,33 @@ def _poisson_quantile(mu: float, alpha: float) -> int:
     return k
 
 
-def _distinct_T(A: np.ndarray, B: np.ndarray, anchor: np.ndarray, params: RobustParams) -> bool:
-    """Two poses (4x4) are different when they move the anchor points apart or differ in rotation."""
-    D = A - B  # apply(A, p) - apply(B, p) = p (R_A - R_B)^T + (t_A - t_B): one product, no temporaries
-    diff = anchor @ D[:3, :3].T + D[:3, 3]
-    moved_apart = float(np.sqrt(np.einsum("ij,ij->i", diff, diff)).sum()) > params.distinct_m * len(anchor)
-    return bool(moved_apart or rotation_angle_deg(A[:3, :3] @ B[:3, :3].T) > params.distinct_deg)
+def _distinct_T(A: np.ndarray, B: np.ndarray, anchor: np.ndarray, params: RobustParams) -> np.ndarray:
+    """Per pose A (K, 4, 4): whether it differs from the pose B (4x4): it moves the anchor points (M, 3) apart by
+    more than distinct_m on average, or turns by more than distinct_deg. (K,) bool."""
+    D = np.asarray(A) - B  # apply(A, p) - apply(B, p) = p (R_A - R_B)^T + (t_A - t_B): one product per pose
+    diff = np.matmul(anchor[None], np.swapaxes(D[:, :3, :3], 1, 2)) + D[:, None, :3, 3]
+    moved_apart = np.sqrt(np.einsum("kij,kij->ki", diff, diff)).sum(axis=1) > params.distinct_m * len(anchor)
+    cos = (np.einsum("kij,ij->k", A[:, :3, :3], B[:3, :3]) - 1.0) / 2.0  # trace(R_A R_B^T) = 1 + 2 cos(angle)
+    return moved_apart | (np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) > params.distinct_deg)
 
 
 def _seed_bests(first: _Pose, hyps: _Hypotheses, prep: _Prepared, index: ModelIndex, params: RobustParams,
-                judge) -> list[_Pose]:
+                noise: Noise) -> list[int]:
     """Per seed observation: among its best distinct coarse hypotheses (`seed_rivals`, different from `first`), the
-    one the verification prefers, refined (a pose that centroid coincidences outrank is still scored)."""
-    out = []
-    anchor = prep.centroids
+    one the verification (under `noise`) prefers, to be refined and scored (a pose that centroid coincidences
+    outrank is still scored)."""
+    kept = [(first.T[:3, :3], apply(first.T, prep.centroids))]
+    tops = []
     for seed in np.unique(hyps.seed):
         own = np.flatnonzero(hyps.seed == seed)
         order = own[np.argsort(-hyps.coarse[own], kind="stable")][: params.scan_top]
-        kept = [(first.T[:3, :3], apply(first.T, anchor))]
         top = _distinct_top(order, hyps.moved, params, rotations=hyps.R, kept=kept, limit=params.seed_rivals)
-        if not top:
-            continue
-        h = max(top, key=lambda k: judge(make_T(hyps.R[k], hyps.t[k])).loglik)
-        out.append(_refine_prepared(make_T(hyps.R[h], hyps.t[h]), prep, index, params))
-    return out
+        if top:
+            tops.append(top)
+    flat = [h for top in tops for h in top]
+    logliks = iter([v.loglik for v in _verify_all([make_T(hyps.R[h], hyps.t[h]) for h in flat], prep, index,
+                                                   noise, params)])
+    return [top[int(np.argmax([next(logliks) for _ in top]))] for top in tops]
 
 
 def _self_map_images(T: np.ndarray, verdict: Verdict, prep: _Prepared, index: ModelIndex,
@@ -716,8 +796,7 @@ def _self_map_images(T: np.ndarray, verdict: Verdict, prep: _Prepared, index: Mo
     order = np.argsort(-count, kind="stable")
     order = order[count[order] >= max(2, len(matched) / 2.0)][: params.rival_self_maps]
     S_all = maps.transforms()
-    return [_refine_prepared(S_all[m] @ T, prep, index, params)
-            for m in order]
+    return _refine_all([S_all[m] @ T for m in order], prep, index, params)
 
 
 def _layout_images(best: _Pose, prep: _Prepared, index: ModelIndex, params: RobustParams) -> list[_Pose]:

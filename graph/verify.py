@@ -116,57 +116,73 @@ def verify(T: np.ndarray, shapes: ObservedShapes, index: ModelIndex, noise: Nois
            cross_type_weight: float, params: VerifyParams) -> Verdict:
     """Verdict of the pose T (map' -> CAD, 4x4) on the observations (see module doc); `tau_m` bounds the centroid
     distance of a match whatever the noise model."""
-    n = len(shapes.centroids)
+    return verify_all(np.asarray(T, dtype=float)[None], shapes, index, noise, tau_m, cross_type_weight, params)[0]
+
+
+def verify_all(T: np.ndarray, shapes: ObservedShapes, index: ModelIndex, noise: Noise, tau_m: float,
+               cross_type_weight: float, params: VerifyParams) -> list[Verdict]:
+    """`verify` of each pose T (K, 4, 4) at once: each verdict is the pose's own (vectorised over poses)."""
+    n, n_poses = len(shapes.centroids), len(T)
     if n == 0 or len(index.features) == 0:
-        return Verdict(np.zeros(n), np.full(n, -1), np.zeros(n, dtype=bool))
-    R, t = T[:3, :3], T[:3, 3]
-    moved = shapes.centroids @ R.T + t
+        return [Verdict(np.zeros(n), np.full(n, -1), np.zeros(n, dtype=bool)) for _ in range(n_poses)]
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    Rt = np.swapaxes(R, 1, 2)
+    moved = np.matmul(shapes.centroids[None], Rt) + t[:, None, :]  # (K, N, 3) CAD
     g = params.gate_sigmas
     gate_m = min(tau_m, noise.position_gate_m(params))
     k = min(params.neighbours, len(index.features))
-    d, j = index.tree_all.query(moved, k=k, distance_upper_bound=gate_m)
-    d, j = d.reshape(n, k), j.reshape(n, k)
+    d, j = index.tree_all.query(moved.reshape(-1, 3), k=k, distance_upper_bound=gate_m)
+    d, j = d.reshape(n_poses, n, k), j.reshape(n_poses, n, k)
     found = np.isfinite(d)
     jj = np.where(found, j, 0)
     sigma_axis = noise.centroid_rms_m / np.sqrt(3.0)  # the 3-D RMS is sqrt(3) times the per-axis sigma
     x = (params.position_gate_chi2 - (np.where(found, d, 0.0) / sigma_axis) ** 2) / 2.0
     ok = found.copy()
     # wall normal, up to its sign
-    n_obs = shapes.normals @ R.T  # (N, 3) CAD
-    cos = np.abs(np.einsum("nc,nkc->nk", n_obs, index.normals[jj]))
+    n_obs = np.matmul(shapes.normals[None], Rt)  # (K, N, 3) CAD
+    cos = np.abs(np.einsum("pnc,pnkc->pnk", n_obs, index.normals[jj]))
     theta = np.arccos(np.clip(cos, -1.0, 1.0))
     short = np.maximum(np.minimum(shapes.len_a, shapes.len_b), 1e-3)
-    sigma_n = np.maximum(noise.corner_sigma_m / short, np.radians(params.normal_floor_deg))[:, None]
+    sigma_n = np.maximum(noise.corner_sigma_m / short, np.radians(params.normal_floor_deg))[None, :, None]
     # side lengths: the observed edge most parallel to the feature's u edge is its width
-    a_cad, b_cad = shapes.edge_a @ R.T, shapes.edge_b @ R.T
+    a_cad, b_cad = np.matmul(shapes.edge_a[None], Rt), np.matmul(shapes.edge_b[None], Rt)
     u = index.edge_u[jj]
-    a_is_u = np.abs(np.einsum("nc,nkc->nk", a_cad, u)) >= np.abs(np.einsum("nc,nkc->nk", b_cad, u))
+    a_is_u = np.abs(np.einsum("pnc,pnkc->pnk", a_cad, u)) >= np.abs(np.einsum("pnc,pnkc->pnk", b_cad, u))
     lu, lv = index.len_u[jj], index.len_v[jj]
-    la, lb = shapes.len_a[:, None], shapes.len_b[:, None]
+    la, lb = shapes.len_a[None, :, None], shapes.len_b[None, :, None]
     du = np.where(a_is_u, la - lu, lb - lu)
     dv = np.where(a_is_u, lb - lv, la - lv)
     r_n, r_u, r_v = theta / sigma_n, du / noise.size_sigma_m, dv / noise.size_sigma_m
-    rect = shapes.has_rect[:, None]
+    rect = shapes.has_rect[None, :, None]
     ok &= ~rect | ((r_n < g) & (np.abs(r_u) < g) & (np.abs(r_v) < g))
     x = x + np.where(rect, (3.0 * g * g - r_n**2 - r_u**2 - r_v**2) / 2.0, 0.0)
     eps = params.false_detection_rate
-    same = index.type_codes[jj] == shapes.types[:, None]
+    same = index.type_codes[jj] == shapes.types[None, :, None]
     weight = np.where(same, 1.0, cross_type_weight)
     term_k = np.where(ok, weight * np.logaddexp(0.0, np.log((1.0 - eps) / eps) + x), 0.0)
-    best = np.argmax(term_k, axis=1)
-    term = term_k[np.arange(n), best]
-    match = np.where(term > 0, jj[np.arange(n), best], -1)
-    # one observation per CAD feature: the one it explains best keeps it
-    order = np.argsort(-term, kind="stable")
-    taken: set[int] = set()
-    inlier = np.zeros(n, dtype=bool)
-    for i in order:
-        if match[i] < 0 or int(match[i]) in taken:
-            continue
-        taken.add(int(match[i]))
-        inlier[i] = True
+    best = np.argmax(term_k, axis=2)[..., None]
+    term = np.take_along_axis(term_k, best, axis=2)[..., 0]
+    match = np.where(term > 0, np.take_along_axis(jj, best, axis=2)[..., 0], -1)
+    inlier = one_per_feature(match, term)
     term = np.where(inlier, term, 0.0)
-    return Verdict(term, np.where(inlier, match, -1), inlier)
+    match = np.where(inlier, match, -1)
+    return [Verdict(term[p], match[p], inlier[p]) for p in range(n_poses)]
+
+
+def one_per_feature(match: np.ndarray, worth: np.ndarray) -> np.ndarray:
+    """Per pose (rows of match / worth, (K, N)): which observations keep their CAD feature `match` (>= 0) when
+    each feature keeps one observation: the one of greatest `worth`, the first among equals."""
+    keep = np.zeros(match.shape, dtype=bool)
+    rows, cols = np.nonzero(match >= 0)
+    if len(rows) == 0:
+        return keep
+    m = match[rows, cols]
+    order = np.lexsort((cols, -worth[rows, cols], m, rows))
+    rows, cols, m = rows[order], cols[order], m[order]
+    first = np.ones(len(rows), dtype=bool)
+    first[1:] = (rows[1:] != rows[:-1]) | (m[1:] != m[:-1])
+    keep[rows[first], cols[first]] = True
+    return keep
 
 
 def full_term(has_rect: bool, params: VerifyParams) -> float:

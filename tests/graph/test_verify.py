@@ -10,7 +10,7 @@ from macroloc.graph.observations import Observation, ObservationSet
 from macroloc.graph.rectangle import opening_rectangle
 from macroloc.graph.registration import register
 from macroloc.graph.rigid import apply, invert, make_T
-from macroloc.graph.verify import Noise, VerifyParams, observed_shapes, verify
+from macroloc.graph.verify import Noise, VerifyParams, observed_shapes, one_per_feature, verify, verify_all
 from tests.graph.helpers import box_vertices, random_building
 
 
@@ -131,3 +131,31 @@ def test_the_pose_graphs_registrar_answers_the_symmetric_storey_pair_as_the_one_
     assert both.status == "ambiguous"
     assert alone.status == "localized"
     assert np.allclose(alone.T_cad_map, invert(T_map_cad), atol=1e-3)
+
+
+def test_each_cad_feature_keeps_the_observation_it_explains_best_pose_by_pose() -> None:
+    """Per pose (row): the greatest worth keeps the feature, the first among equals; -1 matches nothing; two poses
+    matching the same feature do not compete."""
+    match = np.array([[5, 5, -1, 7, 7], [-1, -1, 7, 7, -1], [5, -1, 7, 7, 5]])
+    worth = np.array([[1.0, 3.0, 9.0, 2.0, 2.0], [9.0, 9.0, 1.0, 1.5, 9.0], [2.0, 9.0, 1.0, 1.5, 2.0]])
+    np.testing.assert_array_equal(one_per_feature(match, worth), [[False, True, False, True, False],
+                                                                  [False, False, False, True, False],
+                                                                  [True, False, False, True, False]])
+
+
+def test_verifying_poses_together_gives_each_its_own_verdict() -> None:
+    rng = np.random.default_rng(4)
+    features = random_building(rng, n=30, size_m=25.0)
+    index = ModelIndex.build(features)
+    T_map_cad = _yaw_T(20.0, (1.0, -2.0, 0.3))
+    obs = _observe(features[:10], T_map_cad, rng, 0.02) + _observe(features[:2], T_map_cad, rng, 0.05)  # seen twice
+    types = np.array([0 if o.type == "door" else 1 for o in obs], dtype=np.int8)
+    shapes = observed_shapes(obs, types)
+    noise, params = Noise.from_rms(0.05, VerifyParams()), VerifyParams()
+    poses = np.stack([invert(T_map_cad), _yaw_T(0.5, (0.05, 0.0, 0.0)) @ invert(T_map_cad), _yaw_T(90.0, (3, 0, 0))])
+    together = verify_all(poses, shapes, index, noise, 0.3, 0.5, params)
+    assert together[0].n_inliers == 10  # each feature seen twice keeps one observation
+    for T, v in zip(poses, together, strict=True):
+        alone = verify(T, shapes, index, noise, 0.3, 0.5, params)
+        np.testing.assert_array_equal(v.match, alone.match)
+        np.testing.assert_allclose(v.term, alone.term, atol=1e-12)
