@@ -133,9 +133,10 @@ class Anchoring:
             return Choice(T_reg, T_reg is not None)
         points_map, origins_map = self.depth.points_map()
         T_newest = self.graph.T_map_body(self.graph.n_keyframes - 1)
-        return self.judge.choose(result, stamp_ns, points_map, origins_map,
-                                 self.landmarks.centres_map(self.confirmed()),
-                                 lambda T_best, rivals: self.far.not_contradicted(T_best, rivals, T_newest))
+        confirmed = self.confirmed()
+        return self.judge.choose(result, stamp_ns, points_map, origins_map, self.landmarks.centres_map(confirmed),
+                                 lambda T_best, rivals: self.far.not_contradicted(T_best, rivals, T_newest),
+                                 self.landmarks.walls_map(confirmed))
 
     def _add_far_pose(self, T_cad_map: np.ndarray, sigmas: np.ndarray | None) -> None:
         """The newest keyframe's pose resected from far sightings (`FarSightings.refined`) as a measurement in the

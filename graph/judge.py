@@ -14,7 +14,7 @@ Frames: map = the flight's odometry frame, z up; cad = the model's. A candidate 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Generic, NamedTuple, Protocol, TypeVar
 
@@ -68,7 +68,8 @@ class SurfaceJudge:
         return check.seen_through > self.params.surface_refuse_seen_through
 
     def choose(self, result: Alignment, stamp_ns: int, points_map: np.ndarray, origins_map: np.ndarray,
-               landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals) -> Choice:
+               landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals,
+               walls_map: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> Choice:
         """The pose to anchor the map with, or None, and whether it is the registrar's answer (whose matches
         then hold): the registrar's answer `result` and its candidates, checked by the walls. By: the map's depth
         points `points_map` (N, 3) seen from `origins_map` (N, 3), the confirmed landmarks as (type, centre (3,)),
@@ -86,12 +87,25 @@ class SurfaceJudge:
         confirm a different pose. Few points on the surfaces alone do not refuse it: a true pose among furniture
         the model lacks puts only half of them there.
 
+        Candidates that each explain one landmark are weighed only by the points off the confirmed landmarks'
+        walls (`walls_map`: (centre, normal) per landmark, map frame; `own_wall_points`): any pose that puts a
+        door on a CAD door of its size puts the wall it sits in, and its reveals, onto that door's wall, true or
+        not, so those points cannot tell the candidates apart. Where fewer than `surface_min_points` are left,
+        the walls do not choose (docs/measurements.md, "Points on a door's own wall are no evidence").
+
         Candidates from one landmark are first turned to the walls' heading (`turned`); where then none fits,
         those from up to `surface_turn_max_inliers` are turned too and all are weighed again. Turned, wrong poses
         fit better too, so a pose from two or three doors is turned only when it must be (docs/measurements.md,
         "Turning candidates to the walls")."""
         p = self.params
         T_reg = result.T_cad_map if result.status == "localized" else None
+        if T_reg is None and walls_map and max((n for _, n in result.candidates), default=0) <= 1:
+            off = ~self.own_wall_points(points_map, walls_map)
+            if off.sum() < p.surface_min_points:
+                log.info("%d of %d points off the walls of the landmarks: too few to choose among candidates "
+                         "from one landmark", off.sum(), len(points_map))
+                return Choice(None, False)
+            points_map, origins_map = points_map[off], origins_map[off]
         if T_reg is not None:
             T_reg = self._fitted.get(T_reg, lambda T: self.refined(T, points_map))
             moved_reg = apply(T_reg, points_map)
@@ -150,6 +164,15 @@ class SurfaceJudge:
         checks = [self._checked.get(T, partial(self.check, m, origins_map))
                   for T, m in zip(candidates, moved, strict=True)]
         return candidates, moved, checks
+
+    def own_wall_points(self, points_map: np.ndarray, walls_map: Sequence[tuple[np.ndarray, np.ndarray]]
+                        ) -> np.ndarray:
+        """Which points (N, 3) lie within `surface_own_wall_m` of one of the planes `walls_map` ((centre,
+        normal) pairs, map frame): on a landmark's wall, either face, or in its opening's reveals."""
+        near = np.zeros(len(points_map), dtype=bool)
+        for centre, normal in walls_map:
+            near |= np.abs((points_map - centre) @ normal) <= self.params.surface_own_wall_m
+        return near
 
     def fits(self, check: SurfaceCheck) -> bool:
         """Whether a pose's surface check fits the walls: enough points on them, few seen through one."""
@@ -291,7 +314,8 @@ class Judge(Protocol):
     def contradicts(self, T_cad_map: np.ndarray, points_map: np.ndarray, origins_map: np.ndarray) -> bool: ...
 
     def choose(self, result: Alignment, stamp_ns: int, points_map: np.ndarray, origins_map: np.ndarray,
-               landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals) -> Choice: ...
+               landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals,
+               walls_map: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> Choice: ...
 
 
 class NullJudge:
@@ -308,7 +332,8 @@ class NullJudge:
         return False
 
     def choose(self, result: Alignment, stamp_ns: int, points_map: np.ndarray, origins_map: np.ndarray,
-               landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals) -> Choice:
+               landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals,
+               walls_map: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> Choice:
         T_reg = result.T_cad_map if result.status == "localized" else None
         return Choice(T_reg, T_reg is not None)
 

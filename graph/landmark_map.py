@@ -116,3 +116,7 @@ class LandmarkMap:
     def centres_map(self, keys: list[int]) -> list[tuple[str, np.ndarray]]:
         """The landmarks `keys` as (type, centre (3,) in the map frame)."""
         return [(self.landmarks[j].type, self.graph.T_map_rect(j)[:3, 3]) for j in keys]
+
+    def walls_map(self, keys: list[int]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The planes of the landmarks `keys` (the walls they sit in) as (centre (3,), unit normal (3,)), map frame."""
+        return [(T[:3, 3], T[:3, 1]) for T in (self.graph.T_map_rect(j) for j in keys)]

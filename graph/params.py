@@ -118,6 +118,9 @@ class JudgeParams:
     surface_turn_step_deg: float = 3.0  # these steps, to the heading that puts most points on the walls (`turned`)
     surface_turn_points: int = 100  # ... judged by this many points; where no candidate then fits the walls, so is
     surface_turn_max_inliers: int = 3  # one from up to this many doors, keeping as many by a CAD feature
+    surface_own_wall_m: float = 1.0  # candidates from one door are weighed by the points farther than this from its
+    #                                  wall's plane (both faces of the thickest walls, the reveals): nearer, every
+    #                                  candidate puts them on a wall (`SurfaceJudge.choose`)
 
 
 @dataclass(frozen=True)

@@ -79,7 +79,10 @@ def test_candidates_from_one_door_keep_the_full_margin_against_a_rival_that_does
     `surface_margin`, fitting or not."""
     half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))
     loc = fly_in_room(room, PartialRegistrar([half_turn @ T_TRUE, T_TRUE]), surface_margin_unfit=0.15)
-    assert sorted(loc.judge.checks[-1][1]) == pytest.approx([0.77, 1.0], abs=0.03)
+    rival, best = sorted(loc.judge.checks[-1][1])  # by the points off the doors' walls (0.77 by all of them)
+    params = localizer_params().judge
+    assert best == pytest.approx(1.0, abs=0.03) and rival < params.surface_min_support  # the rival does not fit ...
+    assert best - rival < params.surface_margin  # ... but comes within the full margin
     assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None
 
 
@@ -190,3 +193,27 @@ def test_the_null_judge_takes_the_registrars_answer_only() -> None:
     assert taken.T_cad_map is T and taken.registrars
     offered = judge.choose(Alignment("ambiguous", None, [], 1, [(T, 1)]), 0, none, none, [], lambda _, r: r)
     assert offered.T_cad_map is None and not offered.registrars
+
+
+def test_points_on_the_one_doors_own_wall_do_not_choose_among_its_candidates(room: SurfaceIndex) -> None:
+    """Any pose that puts a door on a CAD door puts the wall it sits in there too: points on that wall are no
+    evidence for a candidate from that door alone; points on another wall are."""
+    from macroloc.graph.judge import SurfaceJudge
+    from macroloc.graph.params import JudgeParams
+
+    rng = np.random.default_rng(3)
+    judge = SurfaceJudge(room, JudgeParams(), lambda kind: np.zeros((0, 3)), 0.3, 0.05)
+    own = np.column_stack([rng.uniform(6.0, 11.5, 400), np.zeros(400), rng.uniform(0.5, 2.5, 400)])  # y = 0 wall
+    other = np.column_stack([np.full(300, 12.0), rng.uniform(0.5, 6.5, 300), rng.uniform(0.5, 2.5, 300)])
+    door_wall = [(np.array([8.0, 0.0, 1.05]), np.array([0.0, 1.0, 0.0]))]
+    offered = Alignment("ambiguous", None, [], 1, [(np.eye(4), 1)])
+
+    def choice(points: np.ndarray, walls: list) -> np.ndarray | None:
+        judge.new_attempt()
+        origins = np.tile([8.0, 4.0, 1.4], (len(points), 1))
+        return judge.choose(offered, 0, points, origins, [("door", door_wall[0][0])], lambda _, r: r, walls).T_cad_map
+
+    assert choice(own, []) is not None  # as before: every point on a wall, no rival
+    assert choice(own, door_wall) is None  # all of them on the door's own wall
+    chosen = choice(np.vstack([own, other]), door_wall)
+    assert chosen is not None and np.abs(chosen[:3, 3]).max() < 0.05
