@@ -78,6 +78,39 @@ def resection_candidates(camera_map: np.ndarray, centroids_map: np.ndarray, feat
     return T[level]
 
 
+def resection_spread_m(camera_map: np.ndarray, centroids_map: np.ndarray, range_sigma_m: Callable[[float], float],
+                       range_steps: int = 401) -> float:
+    """How far the camera of a resection from two sightings (`resection_candidates`: camera `camera_map` (3,),
+    centroids `centroids_map` (2, 3)) can move with their ranges, metres: the largest distance, in the frame of
+    the two features, between the camera positions whose ranges keep the sightings their measured distance apart
+    along their bearings and cost within 1 of the least (within one sigma, `range_sigma_m(range)`). Two doors a
+    metre or two apart at 10 m pin the camera to a circle, and their ranges only coarsely to a place on it."""
+    c = np.asarray(camera_map, float)
+    P = np.asarray(centroids_map, float)
+    rel = P[:, :2] - c[:2]
+    r_hat = np.linalg.norm(rel, axis=1)
+    u = rel / r_hat[:, None]
+    cos_a = float(u[0] @ u[1])
+    sin_a = float(abs(u[0, 0] * u[1, 1] - u[0, 1] * u[1, 0]))
+    d = float(np.linalg.norm(P[1, :2] - P[0, :2]))
+    sigma = np.array([range_sigma_m(float(r)) for r in r_hat])
+    if d <= 0.0:
+        return np.inf
+    ra = np.linspace(max(0.3, r_hat[0] - 3 * sigma[0]), r_hat[0] + 3 * sigma[0], range_steps)
+    disc = d**2 - (ra * sin_a) ** 2
+    root = np.sqrt(np.clip(disc, 0.0, None))
+    rb = ra[:, None] * cos_a + np.column_stack([-root, root])  # (S, 2): both roots
+    cost = ((ra[:, None] - r_hat[0]) / sigma[0]) ** 2 + ((rb - r_hat[1]) / sigma[1]) ** 2
+    cost = np.where((disc[:, None] >= 0) & (rb > 0.3), cost, np.inf)
+    if not np.isfinite(cost).any():
+        return np.inf
+    x = (ra[:, None] ** 2 - rb**2 + d**2) / (2.0 * d)  # the camera with feature a at 0 and b at (d, 0)
+    y = np.sqrt(np.clip(ra[:, None] ** 2 - x**2, 0.0, None))
+    near = cost <= cost.min() + 1.0
+    xy = np.column_stack([x[near], y[near]])
+    return float(np.max(np.linalg.norm(xy[:, None] - xy[None], axis=2)))
+
+
 def refined_by_bearings(T_cad_map: np.ndarray, cameras_map: np.ndarray, centroids_map: np.ndarray,
                         kinds: np.ndarray, features_cad: dict[str, np.ndarray], bearing_sigma_rad: float,
                         range_sigma_m: Callable[[np.ndarray], np.ndarray], bearing_tolerance_rad: float,

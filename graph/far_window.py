@@ -18,7 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
-from macroloc.graph.far import refined_by_bearings, resection_candidates
+from macroloc.graph.far import refined_by_bearings, resection_candidates, resection_spread_m
 from macroloc.graph.features import CentroidsByType
 from macroloc.graph.params import FarParams, Ranges
 from macroloc.graph.relocalize import Alignment, distinct_poses
@@ -167,9 +167,11 @@ class FarSightings:
         """Candidate poses from the far sightings alone, before any landmark (`far_resection`): from each of the
         newest `far_pairs` keyframes that saw a far door or window `far_pair_min_deg` apart in bearing from another
         (seen by it or by another keyframe of the window, `pairs`), the widest such pair matched to every pair of
-        same-type features of the model (`graph.far`); those explaining
+        same-type features of the model (`graph.far`), where its ranges leave the camera no more than `far_place_m`
+        to move (`resection_spread_m`: else the truth need not be among the candidates, and the walls would choose
+        among wrong ones); those explaining
         `far_min_explained` of the far sightings (`fractions`, `far_resection_sightings` of them, evenly drawn),
-        one of each place (1 m, 5 deg), most explaining first. None is the registrar's answer: the walls choose
+        one of each place (`far_place_m`, 5 deg), most explaining first. None is the registrar's answer: the walls choose
         (graph.judge), with the full margin (no landmark vouches for any of them). `far`: `in_map`. A flight that
         sees doors only beyond the sighting range for its first seconds is localized by them
         (docs/measurements.md, "Far sightings' tolerances")."""
@@ -180,6 +182,11 @@ class FarSightings:
         far = (far[0][::every], far[1][::every], far[2][::every])
         poses = []
         for camera_map, kinds, centroids_map in self.pairs()[-p.far_pairs:]:
+            spread_m = resection_spread_m(camera_map, centroids_map, self.position_sigma_m)
+            if spread_m > p.far_place_m:  # one pose per pair of CAD features would stand for none of its places
+                log.info("far sightings %.1f and %.1f m away: their ranges leave the camera %.1f m to move, more "
+                         "than a place", *np.linalg.norm(centroids_map - camera_map, axis=1), spread_m)
+                continue
             poses.append(resection_candidates(camera_map, centroids_map, self._centroids_cad(kinds[0]),
                                               self._centroids_cad(kinds[1]), self.position_sigma_m,
                                               same_features=kinds[0] == kinds[1]))
@@ -188,7 +195,7 @@ class FarSightings:
         T_all = np.concatenate(poses)
         explained = np.concatenate([self.fractions(T_all[k:k + 256], far) for k in range(0, len(T_all), 256)])
         order = [k for k in np.argsort(-explained, kind="stable") if explained[k] >= p.far_min_explained]
-        kept = distinct_poses(T_all, order, angle_rad=np.radians(5.0))
+        kept = distinct_poses(T_all, order, trans_m=p.far_place_m, angle_rad=np.radians(5.0))
         log.info("resection from far sightings: %d candidate poses, %d explaining %.2f of %d far sightings, %d "
                  "places", len(T_all), len(order), p.far_min_explained, len(far[0]), len(kept))
         if not kept:

@@ -95,6 +95,8 @@ class FarParams:
     far_pair_min_deg: float = 10.0  # ... at least this far apart in bearing (graph.far), in the newest
     far_pairs: int = 3  # ... this many keyframes that saw such a pair, the widest pair of each (`resected`)
     far_resection_sightings: int = 60  # the candidates are judged by this many of the far sightings, evenly drawn
+    far_place_m: float = 1.0  # one candidate per place this size; a pair whose ranges leave the camera more than
+    #                           this to move (within one sigma) resects none (`FarSightings.resected`)
     far_height_sigma_m: float = 0.2  # the pose taken holds the anchoring keyframe's height with this sigma ...
     far_bearing_sigma_deg: float = 0.5  # ... and is fitted to the far bearings with this one (`FarSightings.refined`)
 

@@ -121,3 +121,18 @@ def test_two_far_doors_27_degrees_apart_resect_the_true_pose(yaw: float, tx: flo
     k = int(np.argmin(off_m))
     assert off_m[k] <= 1.2 * abs(range_error) * float(sigma_m(13.1)) + 0.02
     assert rotation_angle_deg(candidates[k][:3, :3] @ T_cad_map[:3, :3].T) < 3.0
+
+
+def test_two_doors_close_together_far_away_leave_the_camera_metres_to_move() -> None:
+    """Two doors 2 m apart 10 m away (11 deg apart) pin the camera to a circle, their ranges (0.4 m sigma) to
+    metres of it; two doors 14 m apart, 61 deg apart in bearing, to a place."""
+    from macroloc.graph.far import resection_spread_m
+    from macroloc.graph.params import LandmarkParams
+
+    sigma = LandmarkParams().position_sigma_m
+    camera = np.array([0.0, 0.0, 1.4])
+    narrow = np.array([[10.0, -1.0, 1.05], [10.0, 1.0, 1.05]])
+    wide = np.array([[7.7 * np.cos(0.3), 7.7 * np.sin(0.3), 1.05],
+                     [15.8 * np.cos(0.3 - 1.066), 15.8 * np.sin(0.3 - 1.066), 1.05]])
+    assert resection_spread_m(camera, narrow, sigma) > 2.0
+    assert resection_spread_m(camera, wide, sigma) < 1.0

@@ -118,3 +118,19 @@ def test_two_far_doors_seen_from_different_keyframes_resect_the_pose(yaw: float,
     off = [(np.linalg.norm(T[:3, 3] - T_cad_map[:3, 3]), rotation_angle_deg(T[:3, :3] @ T_cad_map[:3, :3].T))
            for T, _ in result.candidates]
     assert min(m + d for m, d in off) < 0.05
+
+
+def test_a_pair_that_leaves_the_camera_metres_to_move_resects_nothing() -> None:
+    """Doors 2 m apart 10 m away, seen exactly: the one pose per pair of CAD doors that their ranges would give
+    is a sample of a metres-long arc, so none is offered for the walls to choose among."""
+    doors = np.array([[14.0, 2.0, 1.05], [14.0, 4.0, 1.05], [-6.0, -9.0, 1.05]])
+    features = [MacroFeature(f"N{k}", "door", "L1", c + np.array([[-0.5, 0, -1.05], [0.5, 0, -1.05], [0.5, 0, 1.05],
+                                                                  [-0.5, 0, 1.05]]), c, np.array([1.0, 0.0, 0.0]),
+                             1.0, 2.1) for k, c in enumerate(doors)]
+    T_map_body = make_T(np.eye(3), np.array([4.0, 3.0, 1.4]))  # map = CAD
+    far = FarSightings(FarParams(far_min_sightings=3), 3, LandmarkParams().position_sigma_m, VIEWER_BODY,
+                       CentroidsByType(features), lambda i: T_map_body)
+    for i in range(3):
+        far.add(i, ["door", "door"], apply(np.linalg.inv(T_map_body), doors[:2]))
+    assert far.pairs()  # the bearings are 11 deg apart: a pair ...
+    assert far.resected(far.in_map()).status == "not_localized"  # ... that resects nothing
