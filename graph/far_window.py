@@ -169,10 +169,10 @@ class FarSightings:
         (seen by it or by another keyframe of the window, `pairs`), the widest such pair matched to every pair of
         same-type features of the model (`graph.far`), where its ranges leave the camera no more than `far_place_m`
         to move (`resection_spread_m`: else the truth need not be among the candidates, and the walls would choose
-        among wrong ones); those explaining
-        `far_min_explained` of the far sightings (`fractions`, `far_resection_sightings` of them, evenly drawn),
-        one of each place (`far_place_m`, 5 deg), most explaining first. None is the registrar's answer: the walls choose
-        (graph.judge), with the full margin (no landmark vouches for any of them). `far`: `in_map`. A flight that
+        among wrong ones); those explaining `far_min_explained` of the far sightings (`fractions`,
+        `far_resection_sightings` of them, evenly drawn), one of each place (`far_place_m`, 5 deg), most explaining
+        first. None is the registrar's answer: the walls choose (graph.judge), with the full margin (no landmark
+        vouches for any of them). `far`: `in_map`. A flight that
         sees doors only beyond the sighting range for its first seconds is localized by them
         (docs/measurements.md, "Far sightings' tolerances")."""
         p = self.params
