@@ -136,7 +136,7 @@ class Anchoring:
         confirmed = self.confirmed()
         return self.judge.choose(result, stamp_ns, points_map, origins_map, self.landmarks.centres_map(confirmed),
                                  lambda T_best, rivals: self.far.not_contradicted(T_best, rivals, T_newest),
-                                 self.landmarks.walls_map(confirmed))
+                                 self.landmarks.walls_map(confirmed), lambda T: self.far.explains(T, T_newest))
 
     def _add_far_pose(self, T_cad_map: np.ndarray, sigmas: np.ndarray | None) -> None:
         """The newest keyframe's pose resected from far sightings (`FarSightings.refined`) as a measurement in the

@@ -147,6 +147,11 @@ class FarSightings:
         turns = [rot_z(np.radians(k * p.far_turn_step_deg)) for k in range(-n_turns, n_turns + 1)]
         return float(self.fractions(np.array([make_T(R, pivot - R @ pivot) @ T_cad_map for R in turns]), far).max())
 
+    def explains(self, T_cad_map: np.ndarray, T_map_newest: np.ndarray) -> bool:
+        """Whether there are far sightings (`far_min_sightings`) and the pose explains `far_min_explained` of them."""
+        far = self.in_map()
+        return far is not None and self.explained(T_cad_map, far, T_map_newest) >= self.params.far_min_explained
+
     def not_contradicted(self, T_best: np.ndarray, rivals: list[np.ndarray], T_map_newest: np.ndarray
                          ) -> list[np.ndarray]:
         """The rival poses that the far sightings do not contradict: all of them unless the best pose explains

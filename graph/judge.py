@@ -69,7 +69,8 @@ class SurfaceJudge:
 
     def choose(self, result: Alignment, stamp_ns: int, points_map: np.ndarray, origins_map: np.ndarray,
                landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals,
-               walls_map: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> Choice:
+               walls_map: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+               far_explains: Callable[[np.ndarray], bool] = lambda T: False) -> Choice:
         """The pose to anchor the map with, or None, and whether it is the registrar's answer (whose matches
         then hold): the registrar's answer `result` and its candidates, checked by the walls. By: the map's depth
         points `points_map` (N, 3) seen from `origins_map` (N, 3), the confirmed landmarks as (type, centre (3,)),
@@ -91,7 +92,9 @@ class SurfaceJudge:
         walls (`walls_map`: (centre, normal) per landmark, map frame; `own_wall_points`): any pose that puts a
         door on a CAD door of its size puts the wall it sits in, and its reveals, onto that door's wall, true or
         not, so those points cannot tell the candidates apart. Where fewer than `surface_min_points` are left,
-        the walls do not choose (docs/measurements.md, "Points on a door's own wall are no evidence").
+        all the points weigh them, but a candidate is taken only where the far sightings explain it
+        (`far_explains`: independent evidence of the place) and rule out its rivals (docs/measurements.md, "Wrong
+        answers on fresh seeds").
 
         Candidates from one landmark are first turned to the walls' heading (`turned`); where then none fits,
         those from up to `surface_turn_max_inliers` are turned too and all are weighed again. Turned, wrong poses
@@ -99,13 +102,15 @@ class SurfaceJudge:
         "Turning candidates to the walls")."""
         p = self.params
         T_reg = result.T_cad_map if result.status == "localized" else None
+        walls_alone = True  # the points may single out a candidate by themselves
         if T_reg is None and walls_map and max((n for _, n in result.candidates), default=0) <= 1:
             off = ~self.own_wall_points(points_map, walls_map)
-            if off.sum() < p.surface_min_points:
-                log.info("%d of %d points off the walls of the landmarks: too few to choose among candidates "
-                         "from one landmark", off.sum(), len(points_map))
-                return Choice(None, False)
-            points_map, origins_map = points_map[off], origins_map[off]
+            if off.sum() >= p.surface_min_points:
+                points_map, origins_map = points_map[off], origins_map[off]
+            else:
+                log.info("%d of %d points off the walls of the landmarks: the far sightings must explain the "
+                         "candidate from one landmark", off.sum(), len(points_map))
+                walls_alone = False
         if T_reg is not None:
             T_reg = self._fitted.get(T_reg, lambda T: self.refined(T, points_map))
             moved_reg = apply(T_reg, points_map)
@@ -137,7 +142,7 @@ class SurfaceJudge:
         if best_fits and rivals:
             rivals = far_rivals(candidates[best], rivals)
         rivalled = bool(rivals)
-        confirmed = best_fits and not rivalled
+        confirmed = best_fits and not rivalled and (walls_alone or far_explains(candidates[best]))
         if T_reg is not None:
             i_reg = next(k for k, (T, m) in enumerate(zip(candidates, moved, strict=True))
                          if not poses_differ(T, T_reg, m, moved_reg))
@@ -315,7 +320,8 @@ class Judge(Protocol):
 
     def choose(self, result: Alignment, stamp_ns: int, points_map: np.ndarray, origins_map: np.ndarray,
                landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals,
-               walls_map: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> Choice: ...
+               walls_map: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+               far_explains: Callable[[np.ndarray], bool] = lambda T: False) -> Choice: ...
 
 
 class NullJudge:
@@ -333,7 +339,8 @@ class NullJudge:
 
     def choose(self, result: Alignment, stamp_ns: int, points_map: np.ndarray, origins_map: np.ndarray,
                landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals,
-               walls_map: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> Choice:
+               walls_map: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+               far_explains: Callable[[np.ndarray], bool] = lambda T: False) -> Choice:
         T_reg = result.T_cad_map if result.status == "localized" else None
         return Choice(T_reg, T_reg is not None)
 

@@ -196,8 +196,8 @@ def test_the_null_judge_takes_the_registrars_answer_only() -> None:
 
 
 def test_points_on_the_one_doors_own_wall_do_not_choose_among_its_candidates(room: SurfaceIndex) -> None:
-    """Any pose that puts a door on a CAD door puts the wall it sits in there too: points on that wall are no
-    evidence for a candidate from that door alone; points on another wall are."""
+    """Any pose that puts a door on a CAD door puts the wall it sits in there too: points on that wall alone do not
+    single out a candidate from that door (the far sightings may); points on another wall do."""
     from macroloc.graph.judge import SurfaceJudge
     from macroloc.graph.params import JudgeParams
 
@@ -208,12 +208,14 @@ def test_points_on_the_one_doors_own_wall_do_not_choose_among_its_candidates(roo
     door_wall = [(np.array([8.0, 0.0, 1.05]), np.array([0.0, 1.0, 0.0]))]
     offered = Alignment("ambiguous", None, [], 1, [(np.eye(4), 1)])
 
-    def choice(points: np.ndarray, walls: list) -> np.ndarray | None:
+    def choice(points: np.ndarray, walls: list, far_explains: bool = False) -> np.ndarray | None:
         judge.new_attempt()
         origins = np.tile([8.0, 4.0, 1.4], (len(points), 1))
-        return judge.choose(offered, 0, points, origins, [("door", door_wall[0][0])], lambda _, r: r, walls).T_cad_map
+        return judge.choose(offered, 0, points, origins, [("door", door_wall[0][0])], lambda _, r: r, walls,
+                            lambda T: far_explains).T_cad_map
 
     assert choice(own, []) is not None  # as before: every point on a wall, no rival
-    assert choice(own, door_wall) is None  # all of them on the door's own wall
+    assert choice(own, door_wall) is None  # all of them on the door's own wall ...
+    assert choice(own, door_wall, far_explains=True) is not None  # ... unless the far sightings explain the pose
     chosen = choice(np.vstack([own, other]), door_wall)
     assert chosen is not None and np.abs(chosen[:3, 3]).max() < 0.05
