@@ -32,15 +32,7 @@ def resection_candidates(camera_map: np.ndarray, centroids_map: np.ndarray, feat
     +-3 sigmas of the first in `range_steps`; a pair is dropped where that costs more than `max_cost` (the sum
     of the two squared normalised range errors) or where the features' height difference and the sightings' (at
     those ranges and their measured elevations) differ by more than `height_tolerance_m`."""
-    c = np.asarray(camera_map, float)
-    P = np.asarray(centroids_map, float)
-    rel = P[:, :2] - c[:2]
-    r_hat = np.linalg.norm(rel, axis=1)
-    u = rel / r_hat[:, None]
-    tan_e = (P[:, 2] - c[2]) / r_hat
-    sigma = np.array([range_sigma_m(float(r)) for r in r_hat])
-    cos_a = float(u[0] @ u[1])
-    sin_a = float(abs(u[0, 0] * u[1, 1] - u[0, 1] * u[1, 0]))
+    c, r_hat, u, tan_e, sigma = _bearings(camera_map, centroids_map, range_sigma_m)
     A = np.asarray(features_a_cad, float).reshape(-1, 3)
     B = np.asarray(features_b_cad, float).reshape(-1, 3)
     grid_a, grid_b = np.meshgrid(np.arange(len(A)), np.arange(len(B)), indexing="ij")
@@ -49,12 +41,8 @@ def resection_candidates(camera_map: np.ndarray, centroids_map: np.ndarray, feat
         ka, kb = ka[ka != kb], kb[ka != kb]
     Da, Db = A[ka], B[kb]
     d = np.linalg.norm(Db[:, :2] - Da[:, :2], axis=1)  # (N,)
-    ra = np.linspace(max(0.3, r_hat[0] - 3 * sigma[0]), r_hat[0] + 3 * sigma[0], range_steps)  # (S,)
-    disc = d[:, None] ** 2 - (ra[None] * sin_a) ** 2  # (N, S)
-    root = np.sqrt(np.clip(disc, 0.0, None))
-    rb = ra[None, :, None] * cos_a + np.stack([-root, root], axis=-1)  # (N, S, 2)
-    cost = ((ra[None, :, None] - r_hat[0]) / sigma[0]) ** 2 + ((rb - r_hat[1]) / sigma[1]) ** 2
-    cost = np.where((disc[..., None] >= 0) & (rb > 0.3), cost, np.inf).reshape(len(d), -1)
+    ra, rb, cost = _range_pairs(d, r_hat, u, sigma, range_steps)
+    cost = cost.reshape(len(d), -1)
     best = np.argmin(cost, axis=1)
     ok = cost[np.arange(len(d)), best] <= max_cost
     s_best, root_best = np.divmod(best, 2)
@@ -85,30 +73,46 @@ def resection_spread_m(camera_map: np.ndarray, centroids_map: np.ndarray, range_
     the two features, between the camera positions whose ranges keep the sightings their measured distance apart
     along their bearings and cost within 1 of the least (within one sigma, `range_sigma_m(range)`). Two doors a
     metre or two apart at 10 m pin the camera to a circle, and their ranges only coarsely to a place on it."""
+    _, r_hat, u, _, sigma = _bearings(camera_map, centroids_map, range_sigma_m)
+    P = np.asarray(centroids_map, float)
+    d = float(np.linalg.norm(P[1, :2] - P[0, :2]))
+    if d <= 0.0:
+        return np.inf
+    ra, rb, cost = _range_pairs(np.array([d]), r_hat, u, sigma, range_steps)
+    ra, rb, cost = ra[:, None], rb[0], cost[0]  # (S, 1), (S, 2), (S, 2)
+    if not np.isfinite(cost).any():
+        return np.inf
+    x = (ra**2 - rb**2 + d**2) / (2.0 * d)  # the camera with feature a at 0 and b at (d, 0)
+    y = np.sqrt(np.clip(ra**2 - x**2, 0.0, None))
+    near = cost <= cost.min() + 1.0
+    xy = np.column_stack([x[near], y[near]])
+    return float(np.max(np.linalg.norm(xy[:, None] - xy[None], axis=2)))
+
+
+def _bearings(camera_map: np.ndarray, centroids_map: np.ndarray, range_sigma_m: Callable[[float], float]
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Two sightings from one camera: the camera (3,), their horizontal ranges (2,), unit bearings (2, 2), tangents
+    of elevation (2,) and range sigmas (2,)."""
     c = np.asarray(camera_map, float)
     P = np.asarray(centroids_map, float)
     rel = P[:, :2] - c[:2]
     r_hat = np.linalg.norm(rel, axis=1)
-    u = rel / r_hat[:, None]
+    return c, r_hat, rel / r_hat[:, None], (P[:, 2] - c[2]) / r_hat, np.array([range_sigma_m(float(r)) for r in r_hat])
+
+
+def _range_pairs(d: np.ndarray, r_hat: np.ndarray, u: np.ndarray, sigma: np.ndarray, range_steps: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For features `d` (N,) apart horizontally: the first range swept over +-3 sigmas (S,), the second range that
+    puts the two that far apart along the bearings `u` (N, S, 2: both solutions), and the cost of each pair (the
+    sum of the two squared normalised range errors; inf where no second range exists)."""
     cos_a = float(u[0] @ u[1])
     sin_a = float(abs(u[0, 0] * u[1, 1] - u[0, 1] * u[1, 0]))
-    d = float(np.linalg.norm(P[1, :2] - P[0, :2]))
-    sigma = np.array([range_sigma_m(float(r)) for r in r_hat])
-    if d <= 0.0:
-        return np.inf
-    ra = np.linspace(max(0.3, r_hat[0] - 3 * sigma[0]), r_hat[0] + 3 * sigma[0], range_steps)
-    disc = d**2 - (ra * sin_a) ** 2
+    ra = np.linspace(max(0.3, r_hat[0] - 3 * sigma[0]), r_hat[0] + 3 * sigma[0], range_steps)  # (S,)
+    disc = d[:, None] ** 2 - (ra[None] * sin_a) ** 2  # (N, S)
     root = np.sqrt(np.clip(disc, 0.0, None))
-    rb = ra[:, None] * cos_a + np.column_stack([-root, root])  # (S, 2): both roots
-    cost = ((ra[:, None] - r_hat[0]) / sigma[0]) ** 2 + ((rb - r_hat[1]) / sigma[1]) ** 2
-    cost = np.where((disc[:, None] >= 0) & (rb > 0.3), cost, np.inf)
-    if not np.isfinite(cost).any():
-        return np.inf
-    x = (ra[:, None] ** 2 - rb**2 + d**2) / (2.0 * d)  # the camera with feature a at 0 and b at (d, 0)
-    y = np.sqrt(np.clip(ra[:, None] ** 2 - x**2, 0.0, None))
-    near = cost <= cost.min() + 1.0
-    xy = np.column_stack([x[near], y[near]])
-    return float(np.max(np.linalg.norm(xy[:, None] - xy[None], axis=2)))
+    rb = ra[None, :, None] * cos_a + np.stack([-root, root], axis=-1)  # (N, S, 2)
+    cost = ((ra[None, :, None] - r_hat[0]) / sigma[0]) ** 2 + ((rb - r_hat[1]) / sigma[1]) ** 2
+    return ra, rb, np.where((disc[..., None] >= 0) & (rb > 0.3), cost, np.inf)
 
 
 def refined_by_bearings(T_cad_map: np.ndarray, cameras_map: np.ndarray, centroids_map: np.ndarray,
