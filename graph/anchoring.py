@@ -56,6 +56,7 @@ class Anchoring:
         self.placed: list[int] = []  # keyframes placed in a stored map (place recognition) and taken
         self._registered_with = 0
         self._registered_at: tuple[int, int] = (0, 0)  # (stamp_ns, depth points) of the last registration
+        self._held = True  # whether the pose was held (`held`) when last asked
 
     def confirmed(self) -> list[int]:
         """The landmarks seen often enough (`min_sightings_to_register`) to take part in a registration."""
@@ -175,12 +176,29 @@ class Anchoring:
         self.graph.update(extra_iterations=2)
         self.links.link_new(self.landmarks.landmarks, stamp_ns)
 
+    def held(self) -> bool:
+        """Whether the graph is anchored and the newest keyframe's horizontal sigma is within `held_sigma_m`: a
+        wall fit or a link by proximity is a local association, right only where the pose is known within its
+        reach. A pose the odometry carried alone (dead-reckoned, loosened) is not: a fit from there may lock onto
+        another wall and a false door may land by a model door, and either would then hold the wrong pose with a
+        small sigma (docs/measurements.md, "A pose the odometry carried alone is not held")."""
+        if not self.graph.has_anchor:
+            return False
+        sigma_m = self.graph.horizontal_sigma_m(self.graph.n_keyframes - 1)
+        held = sigma_m <= self.status_params.held_sigma_m
+        if held != self._held:
+            log.info("the pose is %s: horizontal sigma %.2f m (limit %.2f m)", "held again" if held else
+                     "no longer held, no wall fits or new links", sigma_m, self.status_params.held_sigma_m)
+        self._held = held
+        return held
+
     def update_status(self, stamp_ns: int) -> None:
-        """Localized, degraded or lost by how long no CAD-linked landmark was seen (`StatusParams`)."""
+        """Localized, degraded or lost by how long no CAD-linked landmark was seen (`StatusParams`); degraded at
+        least while the pose is not held (`held`)."""
         last_ns = self.links.last_link_ns
         if self.status not in ("localized", "degraded", "lost") or last_ns is None:
             return
         silent_s = (stamp_ns - last_ns) * 1e-9
         p = self.status_params
-        self.status = "lost" if silent_s > p.lost_after_s else "degraded" if silent_s > p.degraded_after_s \
-            else "localized"
+        self.status = "lost" if silent_s > p.lost_after_s else \
+            "degraded" if silent_s > p.degraded_after_s or not self.held() else "localized"

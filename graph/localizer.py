@@ -124,9 +124,9 @@ class Localizer:
             self.anchoring.place(i, stamp_ns, T_cad_body_placed)
         if self.anchoring.should_register(stamp_ns):
             self.anchoring.register(stamp_ns)
-        elif self.graph.has_anchor:
+        elif self.anchoring.held():  # local associations only where the pose is known within their reach
             self.cad_links.link_new(self.map.landmarks, stamp_ns)
-        self.fitter.fit_newest()
+            self.fitter.fit_newest()
         self.anchoring.update_status(stamp_ns)
         return self._estimate(stamp_ns, i, with_covariance)
 

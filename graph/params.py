@@ -140,10 +140,14 @@ class SurfaceFitParams:
 
 @dataclass(frozen=True)
 class StatusParams:
-    """The localized status decaying while no CAD-linked landmark is seen."""
+    """The localized status: decaying while no CAD-linked landmark is seen, and while the pose is not held."""
 
     degraded_after_s: float = 10.0  # localized but no CAD-linked sighting for this long
     lost_after_s: float = 30.0
+    held_sigma_m: float = 0.17  # the pose is held to the model while its horizontal sigma (the graph's marginal,
+    #                             worst direction) is within this: 3 sigma inside the 0.5 m a wall fit may move it
+    #                             and a link may reach (surface_fit_max_correction_m, cad_link_m). Only then is it
+    #                             `localized` and are the keyframe's wall fit and new links made (graph.anchoring)
 
 
 @dataclass(frozen=True)

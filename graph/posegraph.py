@@ -291,3 +291,12 @@ class PoseGraph:
         anchor.between(pose, H1, H2)
         J = np.hstack([H1, H2])
         return J @ joint @ J.T
+
+    def horizontal_sigma_m(self, i: int) -> float:
+        """Keyframe i's horizontal position sigma in the CAD frame (metres, the worst horizontal direction): the
+        translation block of `covariance_cad_body`, turned from the body's tangent into the CAD frame."""
+        T_cad_map = self.T_cad_map()
+        assert T_cad_map is not None, "the graph is not anchored"
+        R_cad_body = (T_cad_map @ self.T_map_body(i))[:3, :3]
+        C_cad = R_cad_body @ self.covariance_cad_body(i)[3:, 3:] @ R_cad_body.T
+        return float(np.sqrt(max(np.linalg.eigvalsh(C_cad[:2, :2])[-1], 0.0)))

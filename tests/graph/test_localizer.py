@@ -370,3 +370,26 @@ def test_odometry_that_lost_track_gives_way_to_the_doors(corridor, dead_reckoned
     assert loc.status == "localized"
     errors = [position_error(loc, poses, i) for i in (*range(30), *range(35, 60))]  # a few keyframes to settle
     assert (max(errors) < 0.1) == recovered, max(errors)
+
+
+def test_a_pose_the_odometry_carried_alone_links_no_door_and_is_not_localized(corridor) -> None:
+    """The odometry loses track for 3 s and extrapolates 1 m too far along the corridor (Jasmin-Sun seed 73, the
+    generic detector: 1.8 m over 6 s). Then a false window is seen exactly where the drifted pose puts a model
+    window no landmark is linked to. Linked by its position, it would hold the wrong pose and call it localized;
+    with the pose's sigma beyond `held_sigma_m`, nothing is linked and the status is degraded."""
+    poses = straight_flight(40)
+    jump = make_T(np.eye(3), np.array([1.0, 0.0, 0.0]))
+    loc = fly(corridor, poses[:30], poses[:30])
+    assert loc.status == "localized" and loc.anchoring.held()
+    T_odom = jump @ poses[30]
+    loc.add_keyframe(30 * 100_000_000, T_odom, [], UP, dead_reckoned_s=3.0)
+    T_cad_body_believed = loc.graph.T_cad_map() @ loc.graph.T_map_body(30)
+    linked = set(loc.links.values())
+    expected = sightings_from(corridor, T_cad_body_believed, max_range_m=6.0)  # what the drifted pose expects
+    false_door = [s for s in expected if s.truth_id not in linked][:1]  # F05, a window
+    assert len(false_door) == 1
+    for k in (31, 32):
+        est = loc.add_keyframe(k * 100_000_000, T_odom, [replace(false_door[0], truth_id=None)], UP)
+    assert false_door[0].truth_id not in loc.links.values()
+    assert est.status == "degraded" and not loc.anchoring.held()
+    assert position_error(loc, [*poses[:30], poses[30], poses[30], poses[30]], 32) > 0.9  # the drift is still there

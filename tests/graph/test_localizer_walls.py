@@ -147,7 +147,8 @@ def test_a_door_seen_turned_is_turned_back_by_the_walls(room_with_walls: Surface
                                     localizer_params(base, cad_link_max_turn_deg=180.0, surface_fit=surface_fit),
                                     seen_turn_deg=15.0, keyframes=12)
         T_oriented = oriented.graph.T_cad_map()
-        assert oriented.status == "localized" and T_oriented is not None
+        # without the walls' fits, the one door 3.5 m away holds the pose to 0.27 m: not held, degraded
+        assert oriented.status == ("localized" if surface_fit else "degraded") and T_oriented is not None
         assert turned_deg[0] < rotation_angle_deg(T_oriented[:3, :3] @ T_TRUE[:3, :3].T) < turned_deg[1]
 
 
@@ -341,7 +342,8 @@ def test_the_walls_turn_back_a_pose_localized_degrees_off(room_with_walls: Surfa
     for params in (base, localizer_params(base, surface_fit_settling_turn_deg=5.0), never_settling):
         loc = fly_seeing(room_with_walls, CandidatesRegistrar([T_off], localized=True), cameras, params)
         T_cad_map = loc.graph.T_cad_map()
-        assert loc.status == "localized" and T_cad_map is not None
+        # every fit refused, nothing holds the pose (no door is linked here): not held, degraded
+        assert loc.status == ("localized" if params is base else "degraded") and T_cad_map is not None
         errors.append(rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T))
     assert errors[0] < 1.0 and errors[1] > 7.0 and errors[2] > 7.0
 
