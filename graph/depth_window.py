@@ -47,13 +47,13 @@ class DepthWindow:
         """Points at the camera's height in the window."""
         return sum(len(p) for _, p, _ in self._window)
 
-    def points_map(self, at_most: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    def points_map(self, at_most: int = 2000, since: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """The window's points at the camera's height (N, 3) in the map frame, at the keyframes' current
         estimates, and the camera each was seen from (N, 3); `at_most` of them, evenly drawn (a support known to
-        ~1 % is enough, and each point costs a k-d tree query and a line of sight)."""
+        ~1 % is enough, and each point costs a k-d tree query and a line of sight); of keyframes from `since` on."""
         points, origins = [np.zeros((0, 3))], [np.zeros((0, 3))]
         for i, p, _ in self._window:
-            if len(p):
+            if len(p) and i >= since:
                 T_map_body = self._T_map_body(i)
                 points.append(apply(T_map_body, p))
                 origins.append(np.repeat(apply(T_map_body, self._viewer_body[None]), len(p), axis=0))

@@ -3,12 +3,14 @@
 Per keyframe: predict the pose from odometry, level it with gravity, add the sightings of doors and windows
 as landmark factors (re-observations or new landmarks), update iSAM2 with the new factors only, register the
 map to the building model while exploring, link newly seen landmarks to their CAD features once localized and fit
-the keyframe's depth to the walls and the floor, and return the pose in the CAD frame with its status.
+the keyframe's depth to the walls and the floor while the pose is held to the model (or, where it is not, find it
+again by the walls), and return the pose in the CAD frame with its status.
 
 Its components: the landmark map (graph.landmark_map: sightings into landmarks), the anchoring (graph.anchoring:
 registration attempts through the registrar, graph.registrar, and keyframes placed in a stored map), the
 landmarks' links to the model (graph.cad_links), the keyframes' fits to the walls (graph.surface_fit), the recent
-keyframes' depth points (graph.depth_window) and far sightings (graph.far_window: bearings of doors beyond the
+keyframes' depth points (graph.depth_window), the walls' recovery of a pose no longer held (graph.recovery) and
+far sightings (graph.far_window: bearings of doors beyond the
 sighting range, and the resection from them), and the judge (graph.judge; a null one without the model's
 surfaces), which weighs the registrar's candidate poses against the model's walls and the lines of sight through
 them (graph.surfaces).
@@ -34,6 +36,7 @@ from macroloc.graph.landmark_map import LandmarkMap
 from macroloc.graph.mapstore import KeyframeView, StoredLandmark, StoredMap
 from macroloc.graph.params import LocalizerParams, RegistrationParams
 from macroloc.graph.posegraph import PoseGraph
+from macroloc.graph.recovery import NullRecovery, WallRecovery
 from macroloc.graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
 from macroloc.graph.relocalize import KnownRect
 from macroloc.graph.rigid import apply, levelled
@@ -85,13 +88,16 @@ class Localizer:
         self.depth = DepthWindow(p.depth.surface_window_keyframes, self.viewer_body, graph.T_map_body)
         self.far = FarSightings(p.far, p.depth.surface_window_keyframes, p.landmarks.position_sigma_m,
                                 self.viewer_body, centroids_cad, graph.T_map_body)
-        self.judge: Judge = NullJudge() if surfaces is None else SurfaceJudge(
+        judge = None if surfaces is None else SurfaceJudge(
             surfaces, p.judge, centroids_cad, p.registration.inlier_threshold_m, p.fit.surface_fit_sigma_m)
+        self.judge: Judge = NullJudge() if judge is None else judge
         self.fitter = NullFitter() if surfaces is None else SurfaceFitter(p.fit, graph, self.depth, surfaces)
         self.map = LandmarkMap(p.landmarks, graph, self.viewer_body)
         self.cad_links = CadLinks(p.anchor, graph, self.features)
         self.anchoring = Anchoring(p.registration, p.anchor, p.far, p.status, graph, registrar, self.judge,
                                    self.depth, self.far, self.map, self.cad_links, self.fitter)
+        self.recovery: WallRecovery | NullRecovery = NullRecovery() if surfaces is None or judge is None else \
+            WallRecovery(p.recovery, graph, surfaces, judge, self.depth)
         self.keyframe_stamps_ns: list[int] = []
         self.views: dict[int, KeyframeView] = {}  # keyframe -> what place recognition keeps of it, where given
         self._T_odom_prev: np.ndarray | None = None
@@ -124,9 +130,14 @@ class Localizer:
             self.anchoring.place(i, stamp_ns, T_cad_body_placed)
         if self.anchoring.should_register(stamp_ns):
             self.anchoring.register(stamp_ns)
-        elif self.anchoring.held():  # local associations only where the pose is known within their reach
-            self.cad_links.link_new(self.map.landmarks, stamp_ns)
-            self.fitter.fit_newest()
+        elif self.graph.has_anchor:
+            held = self.anchoring.held()
+            self.recovery.keyframe(i, dead_reckoned_s, held)
+            if held:  # local associations only where the pose is known within their reach
+                self.cad_links.link_new(self.map.landmarks, stamp_ns)
+                self.fitter.fit_newest()
+            else:
+                self.recovery.attempt(stamp_ns, self.params.registration.surface_retry_s)
         self.anchoring.update_status(stamp_ns)
         return self._estimate(stamp_ns, i, with_covariance)
 

@@ -151,6 +151,21 @@ class StatusParams:
 
 
 @dataclass(frozen=True)
+class RecoveryParams:
+    """A pose no longer held to the model found again by the walls (graph.recovery)."""
+
+    recovery: bool = True
+    recovery_step_m: float = 0.5  # candidate shifts on a grid this fine, within 3 sigma of the pose: the walls' fit
+    #                               of each candidate (JudgeParams.surface_refine_m, 0.6) reaches the truth from the
+    #                               nearest grid point (at most 0.35 m away)
+    recovery_max_m: float = 4.0  # ... and within this
+    recovery_candidates: int = 8  # the shifts that put most points on the walls, at least recovery_apart_m apart, are
+    recovery_apart_m: float = 1.0  # fitted and judged (JudgeParams.surface_screen_top, the judge's own cut)
+    recovery_sigma_m: float = 0.15  # the pose found: its sigmas in the CAD frame (a placement's, AnchorParams)
+    recovery_sigma_deg: float = 2.0
+
+
+@dataclass(frozen=True)
 class IsamSettings:
     """The pose graph's iSAM2 (graph.posegraph, which re-exports it)."""
 
@@ -175,3 +190,4 @@ class LocalizerParams:
     judge: JudgeParams = field(default_factory=JudgeParams)
     fit: SurfaceFitParams = field(default_factory=SurfaceFitParams)
     status: StatusParams = field(default_factory=StatusParams)
+    recovery: RecoveryParams = field(default_factory=RecoveryParams)

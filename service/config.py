@@ -26,6 +26,7 @@ from macroloc.graph.params import (
     IsamSettings,
     JudgeParams,
     LandmarkParams,
+    RecoveryParams,
     RegistrationParams,
     StatusParams,
 )
@@ -164,7 +165,7 @@ class PerceptionConfig(_Section):
 
 
 # the localizer's defaults, written once (graph.params, graph.keyframes): the [graph] tables take theirs from these
-_LANDMARKS, _ANCHOR, _STATUS = LandmarkParams(), AnchorParams(), StatusParams()
+_LANDMARKS, _ANCHOR, _STATUS, _RECOVERY = LandmarkParams(), AnchorParams(), StatusParams(), RecoveryParams()
 _REGISTRATION, _JUDGE, _FAR = RegistrationParams(), JudgeParams(), FarParams()
 _RULE, _ISAM = KeyframeRule(), IsamSettings()
 
@@ -277,6 +278,24 @@ class StatusConfig(_Params):
         _STATUS.degraded_after_s,
         description="localized, but no sighting of a CAD-linked landmark for this long: degraded")
     lost_after_s: float = Field(_STATUS.lost_after_s, description="... for this long: lost")
+    held_sigma_m: float = Field(
+        _STATUS.held_sigma_m, gt=0,
+        description="the pose is held to the model while its horizontal sigma (the pose graph's) is within this: "
+        "only then is it localized, fitted to the walls and are new doors linked by proximity. Beyond (the "
+        "odometry lost track and extrapolated), the walls look for it again ([graph.recovery])")
+
+
+class RecoveryConfig(_Params):
+    """A pose no longer held to the model found again by the walls (graph.params.RecoveryParams)."""
+
+    recovery: bool = Field(
+        _RECOVERY.recovery,
+        description="look for a pose that is no longer held among shifts of it within 3 sigma, by the walls seen "
+        "since the odometry tracks again; taken only where no other shift fits them as well ([graph.judge])")
+    recovery_step_m: float = Field(_RECOVERY.recovery_step_m, gt=0, description="the shifts' grid spacing")
+    recovery_max_m: float = Field(_RECOVERY.recovery_max_m, gt=0, description="the largest shift")
+    recovery_sigma_m: float = Field(_RECOVERY.recovery_sigma_m, gt=0,
+                                    description="the position sigma of a pose found again")
 
 
 class IsamConfig(_Params):
@@ -357,6 +376,8 @@ class GraphConfig(_Section):
                            description="[graph.far]: doors and windows beyond the sighting range")
     status: StatusConfig = Field(default_factory=lambda: StatusConfig(),
                                  description="[graph.status]: the localized status decaying")
+    recovery: RecoveryConfig = Field(default_factory=lambda: RecoveryConfig(),
+                                     description="[graph.recovery]: a pose no longer held found again by the walls")
     isam: IsamConfig = Field(default_factory=lambda: IsamConfig(), description="[graph.isam]: the pose graph's iSAM2")
 
     @model_validator(mode="before")

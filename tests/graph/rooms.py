@@ -59,7 +59,7 @@ def seen_points(rng: np.random.Generator, camera_xy: np.ndarray, n: int = 150, z
         hit = (np.abs(den) > 1e-12) & (t > 0) & (s >= 0) & (s <= 1) & (t < nearest)
         nearest[hit] = t[hit]
     xy = camera_xy + d * nearest[:, None]
-    return np.column_stack([xy, z + rng.uniform(-0.4, 0.4, n)])
+    return np.column_stack([xy, z + rng.uniform(-0.4, 0.4, n)])[np.isfinite(nearest)]  # where a wall was hit
 
 
 def wall_points(rng: np.random.Generator, n: int = 400, z: float = 1.4, n_walls: int = 5) -> np.ndarray:

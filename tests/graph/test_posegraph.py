@@ -146,3 +146,25 @@ def test_the_work_per_keyframe_is_bounded_over_a_long_mission() -> None:
     assert held[-1] < bound < held[-1] + (n - bound)
     _, unbounded = _ring_mission(PoseGraph(IsamSettings(window_keyframes=0)), n)
     assert unbounded[-1] == n + 24 + 1
+
+
+def test_the_horizontal_sigma_is_the_cad_frame_s_not_the_body_s() -> None:
+    """A keyframe tilted 5 deg, its pose in the CAD frame measured to 5 cm horizontally and 5 m in height (the
+    walls see no height): in its body frame the height's sigma leaks into y (0.44 m), in the CAD frame the
+    horizontal sigma is the measurement's."""
+    from macroloc.graph.rigid import rotation_aligning
+
+    R_tilt = rotation_aligning(UP, [0.0, np.sin(np.radians(5.0)), np.cos(np.radians(5.0))])
+    T_map_body, T_cad_body = make_T(R_tilt, np.zeros(3)), make_T(R_tilt, np.array([2.0, 1.0, 1.4]))
+    graph = PoseGraph()
+    graph.add_first_keyframe(T_map_body)
+    graph.add_anchor(T_map_body @ np.linalg.inv(T_cad_body))  # T_map_cad
+    cov_trans_cad = np.diag([0.05, 0.05, 5.0]) ** 2.0
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = np.eye(3) * np.radians(0.5) ** 2.0
+    cov[3:, 3:] = R_tilt.T @ cov_trans_cad @ R_tilt  # the body's tangent
+    graph.add_cad_pose(0, T_cad_body, np.linalg.inv(cov))
+    graph.update(extra_iterations=3)
+    body = graph.covariance_cad_body(0)[3:, 3:]
+    assert np.sqrt(body[1, 1]) > 0.3
+    assert 0.04 < graph.horizontal_sigma_m(0) < 0.06
