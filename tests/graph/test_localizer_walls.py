@@ -432,4 +432,3 @@ def test_doors_beyond_the_sighting_range_and_the_walls_localize(room_with_walls:
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.1
     assert rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T) < 0.5
     assert runs[False].status == "exploring"
-
