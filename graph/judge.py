@@ -115,7 +115,7 @@ class SurfaceJudge:
             T_reg = self._fitted.get(T_reg, lambda T: self.refined(T, points_map))
             moved_reg = apply(T_reg, points_map)
         reg = None if T_reg is None else (T_reg, moved_reg)
-        sample = self._screening_sample(points_map, origins_map)
+        sample = self.screening_sample(points_map, origins_map)
         counts = [n for _, n in result.candidates]
         poses = self.turned(result.candidates, sample[0], 1, 1, landmarks)
         candidates, moved, checks = self._weighed(poses, reg, points_map, origins_map, sample)
@@ -184,7 +184,7 @@ class SurfaceJudge:
         p = self.params
         return check.support >= p.surface_min_support and check.seen_through <= p.surface_max_seen_through
 
-    def _screening_sample(self, points_map: np.ndarray, origins_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def screening_sample(self, points_map: np.ndarray, origins_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`surface_screen_points` of the points and their cameras, evenly drawn, to screen candidates by."""
         every = max(1, int(np.ceil(len(points_map) / self.params.surface_screen_points)))
         return points_map[::every], origins_map[::every]
@@ -192,7 +192,7 @@ class SurfaceJudge:
     def _screened(self, poses: list[np.ndarray], pts: np.ndarray, origins: np.ndarray) -> list[np.ndarray]:
         """The candidate poses worth fitting to the walls: all of a few; of more (one door: each alike door of the
         building, from either side, most of them in rooms whose walls stand nowhere near the points), the
-        `surface_screen_top` that score best by the points `pts` (`_screening_sample`, seen from `origins`) as
+        `surface_screen_top` that score best by the points `pts` (`screening_sample`, seen from `origins`) as
         they are, unfitted (turned to the walls' heading before, `turned`). The points'
         support under every pose is one k-d tree query; only the best supported 3 x `surface_screen_top` have
         their lines of sight checked (most of a check's cost)."""

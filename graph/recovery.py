@@ -41,7 +41,7 @@ class WallRecovery:
         self.depth = depth
         self.recoveries: list[tuple[int, float]] = []  # (stamp_ns, how far the pose was moved, m)
         self._consistent_from = 0  # the first keyframe since the odometry last extrapolated
-        self._tried: tuple[int, int] = (-1, 0)  # (stamp_ns, points) of the last attempt
+        self._tried: tuple[int, int] | None = None  # (stamp_ns, points) of the last attempt
 
     def keyframe(self, i: int, dead_reckoned_s: float, held: bool) -> None:
         """Keyframe i came (its odometry extrapolated for `dead_reckoned_s` before it) and the pose is `held` or
@@ -56,16 +56,18 @@ class WallRecovery:
         if not self.params.recovery or not self.graph.has_anchor:
             return False
         points_map, origins_map = self.depth.points_map(since=self._consistent_from)
-        last_ns, last_points = self._tried
-        if not self.judge.can_check(len(points_map)) or len(points_map) <= last_points and last_ns >= 0 \
-                or last_ns >= 0 and (stamp_ns - last_ns) * 1e-9 < retry_s:
+        if not self.judge.can_check(len(points_map)):
             return False
+        if self._tried is not None:
+            last_ns, last_points = self._tried
+            if len(points_map) <= last_points or (stamp_ns - last_ns) * 1e-9 < retry_s:
+                return False
         self._tried = (stamp_ns, len(points_map))
         i = self.graph.n_keyframes - 1
         T_cad_map = self.graph.T_cad_map()
         assert T_cad_map is not None
         radius_m = min(3.0 * self.graph.horizontal_sigma_m(i), self.params.recovery_max_m)
-        candidates = self._candidates(T_cad_map, points_map, radius_m)
+        candidates = self._candidates(T_cad_map, points_map, origins_map, radius_m)
         self.judge.new_attempt()
         choice = self.judge.choose(Alignment("not_localized", None, candidates=[(T, 0) for T in candidates]),
                                    stamp_ns, points_map, origins_map, [], lambda T_best, rivals: rivals)
@@ -84,7 +86,8 @@ class WallRecovery:
         self.recoveries.append((stamp_ns, moved_m))
         return True
 
-    def _candidates(self, T_cad_map: np.ndarray, points_map: np.ndarray, radius_m: float) -> list[np.ndarray]:
+    def _candidates(self, T_cad_map: np.ndarray, points_map: np.ndarray, origins_map: np.ndarray, radius_m: float
+                    ) -> list[np.ndarray]:
         """The pose shifted horizontally on a grid of `recovery_step_m` within `radius_m`; of these, the
         `recovery_candidates` that put most points on the walls, each at least `recovery_apart_m` from the others
         (the judge compares distinct places, not neighbours on the grid)."""
@@ -92,8 +95,7 @@ class WallRecovery:
         n = int(np.floor(radius_m / p.recovery_step_m))
         steps = np.arange(-n, n + 1) * p.recovery_step_m
         shifts = np.array([(x, y) for x in steps for y in steps if x * x + y * y <= radius_m**2 + 1e-9])
-        moved = apply(T_cad_map, points_map)
-        sample = moved[:: max(1, int(np.ceil(len(moved) / 200)))]
+        sample = apply(T_cad_map, self.judge.screening_sample(points_map, origins_map)[0])  # as the judge screens
         offsets = np.c_[shifts, np.zeros(len(shifts))]
         support = self.surfaces.supports(sample[None, :, :] + offsets[:, None, :])
         order = np.argsort(-support, kind="stable")
