@@ -168,3 +168,21 @@ def test_the_horizontal_sigma_is_the_cad_frame_s_not_the_body_s() -> None:
     body = graph.covariance_cad_body(0)[3:, 3:]
     assert np.sqrt(body[1, 1]) > 0.3
     assert 0.04 < graph.horizontal_sigma_m(0) < 0.06
+
+
+def test_the_covariance_read_again_is_the_same_until_an_update_changes_it() -> None:
+    """Read twice without an update, the covariance is the same (computed once); an update with a new measurement
+    changes it, and a caller altering the matrix it got does not alter the next reading."""
+    T = make_T(np.eye(3), np.array([2.0, 1.0, 1.4]))
+    graph = PoseGraph()
+    graph.add_first_keyframe(np.eye(4))
+    graph.add_anchor(np.linalg.inv(T))  # T_map_cad
+    graph.add_cad_pose(0, T, np.eye(6) * 0.1**-2.0)
+    graph.update()
+    first = graph.covariance_cad_body(0)
+    first[:] = 0.0
+    again = graph.covariance_cad_body(0)
+    assert np.allclose(np.sqrt(again[3:, 3:].diagonal()), 0.1, rtol=0.1)
+    graph.add_cad_pose(0, T, np.eye(6) * 0.01**-2.0)
+    graph.update()
+    assert np.sqrt(graph.covariance_cad_body(0)[3:, 3:].diagonal()).max() < 0.011
