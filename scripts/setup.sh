@@ -4,7 +4,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-APT_PACKAGES=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libusb-1.0-0)
+# MACROLOC_EXTRAS: "runtime" (what `make demo` needs: no torch, no linters), "dev" (tests, the default), "dev,bench"...
+EXTRAS=${MACROLOC_EXTRAS:-dev}
+APT_PACKAGES=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2)  # EGL: headless rendering (the demo, the simulator)
+[[ ",$EXTRAS," == *",bench,"* ]] && APT_PACKAGES+=(libusb-1.0-0)  # Open3D (the bench extra) loads libusb
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
     dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")
@@ -17,8 +20,6 @@ if ((${#missing[@]})); then
 fi
 
 PY=${PYTHON:-python3}
-# MACROLOC_EXTRAS: "runtime" (what `make demo` needs: no torch, no linters), "dev" (tests, the default), "dev,bench"...
-EXTRAS=${MACROLOC_EXTRAS:-dev}
 stamp=.venv/.setup-stamp
 hash="$(sha256sum pyproject.toml | cut -c1-16)"
 if [ -f "$stamp" ]; then

@@ -52,3 +52,25 @@ def test_round_trip_of_every_message() -> None:
         if "header" in desc.fields_by_name:
             msg.header.stamp_ns = 123
         assert cls.FromString(msg.SerializeToString()) == msg
+
+
+def test_the_declared_protobuf_runtime_is_one_the_generated_code_accepts() -> None:
+    """The generated modules refuse a protobuf runtime older than the protoc that made them
+    (`ValidateProtobufRuntimeVersion`) or of another major: pyproject.toml must not allow one."""
+    import re
+    import tomllib
+
+    from packaging.requirements import Requirement
+    from packaging.version import Version
+
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    declared = next(Requirement(d) for d in deps if Requirement(d).name == "protobuf").specifier
+    for module in (ROOT / "service" / "wire").rglob("*_pb2.py"):
+        found = re.search(r"ValidateProtobufRuntimeVersion\(\s*\S+,\s*(\d+),\s*(\d+),\s*(\d+),", module.read_text())
+        assert found, f"{module}: no runtime version check found"
+        needed = Version(".".join(found.groups()))
+        older = Version(f"{needed.major}.{needed.minor}.{needed.micro - 1}") if needed.micro else \
+            Version(f"{needed.major}.{needed.minor - 1}.99") if needed.minor else Version(f"{needed.major - 1}.99")
+        assert declared.contains(needed), f"pyproject.toml's protobuf{declared} refuses {needed}, {module.name}'s"
+        assert not declared.contains(older), f"pyproject.toml's protobuf{declared} allows {older} < {needed}"
+        assert not declared.contains(f"{needed.major + 1}.0.0"), f"protobuf{declared} allows another major"
