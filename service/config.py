@@ -26,9 +26,11 @@ from macroloc.graph.params import (
     IsamSettings,
     JudgeParams,
     LandmarkParams,
+    OdometryParams,
     RecoveryParams,
     RegistrationParams,
     StatusParams,
+    SurfaceFitParams,
 )
 from macroloc.perception.image_header import DEFAULT_MAX_PIXELS
 
@@ -167,6 +169,7 @@ class PerceptionConfig(_Section):
 # the localizer's defaults, written once (graph.params, graph.keyframes): the [graph] tables take theirs from these
 _LANDMARKS, _ANCHOR, _STATUS, _RECOVERY = LandmarkParams(), AnchorParams(), StatusParams(), RecoveryParams()
 _REGISTRATION, _JUDGE, _FAR = RegistrationParams(), JudgeParams(), FarParams()
+_ODOMETRY, _DEPTH, _FIT = OdometryParams(), DepthParams(), SurfaceFitParams()
 _RULE, _ISAM = KeyframeRule(), IsamSettings()
 
 
@@ -197,6 +200,20 @@ class KeyframesConfig(_Params):
         return self.to_params(replace(_RULE, policy=self.to_params(_RULE.policy)))
 
 
+class OdometryConfig(_Params):
+    """The odometry factor between consecutive keyframes (graph.params.OdometryParams)."""
+
+    odometry_sigma_per_m: float = Field(
+        _ODOMETRY.odometry_sigma_per_m, gt=0, description="the odometry's translation sigma per metre travelled "
+        "(its drift), m/m")
+    odometry_rot_sigma_per_m: float = Field(
+        _ODOMETRY.odometry_rot_sigma_per_m, gt=0, description="its rotation sigma per metre travelled, rad/m")
+    odometry_dead_reckoned_sigma_mps: float = Field(
+        _ODOMETRY.odometry_dead_reckoned_sigma_mps, gt=0,
+        description="translation sigma per second the odometry lost track and only extrapolated (a drone's speed "
+        "it could not see change), m/s")
+
+
 class LandmarksConfig(_Params):
     """Sightings into landmarks (graph.params.LandmarkParams)."""
 
@@ -207,6 +224,18 @@ class LandmarksConfig(_Params):
         description="doors and windows seen beyond the 7 m sighting range, up to this range, check "
         "candidate poses by their bearings and, before any door came within range, resect the pose, m "
         "(their stereo range is coarse, their bearing good to a fraction of a degree)")
+    max_range_m: float = Field(
+        _LANDMARKS.max_range_m, gt=0, description="sightings further away make no landmark: their corners are too "
+        "coarse, m")
+    sighting_sigma_m: tuple[float, float] = Field(
+        _LANDMARKS.sighting_sigma_m, description="a sighting's position sigma is a + b * range^2 (stereo), [a m, b "
+        "1/m]")
+    sighting_sigma_rad: tuple[float, float] = Field(
+        _LANDMARKS.sighting_sigma_rad, description="... its orientation's (the plane of noisy corners), [a rad, b "
+        "rad/m^2]")
+    truncated_sigma_m: float = Field(
+        _LANDMARKS.truncated_sigma_m, gt=0, description="position sigma along an axis on which the sighting is cut by "
+        "the image border, m")
 
 
 class RegistrationConfig(_Params):
@@ -232,6 +261,14 @@ class RegistrationConfig(_Params):
         _REGISTRATION.surface_retry_s, gt=0,
         description="while not localized and no new landmark came, the walls weigh the candidate poses "
         "again this often as more of them is seen, s (each check costs 0.1-0.4 s of CPU on a 2-core machine)")
+    min_sightings_to_register: int = Field(
+        _REGISTRATION.min_sightings_to_register, ge=1,
+        description="a landmark takes part in registration once seen this often (one sighting may be a passing "
+        "false detection)")
+    registration_early_stop: float = Field(
+        _REGISTRATION.registration_early_stop, gt=0, le=1,
+        description="with the surface check, hypotheses stop being seeded once a pose explains this fraction of the "
+        "landmarks (1: never)")
 
 
 class AnchorConfig(_Params):
@@ -244,6 +281,18 @@ class AnchorConfig(_Params):
         description="... by its orientation too where that lies within this of the CAD feature's, deg "
         "(else by its position only: a door's plane from its corners can be far off on a door seen obliquely, and "
         "would turn the flight to fit it)")
+    placed_sigma_m: float = Field(
+        _ANCHOR.placed_sigma_m, gt=0, description="a keyframe placed in a stored map (place recognition): its "
+        "position sigma in the model, m (the stored keyframe's error and PnP's together)")
+    placed_sigma_deg: float = Field(_ANCHOR.placed_sigma_deg, gt=0, description="... its orientation sigma, deg")
+
+
+class DepthConfig(_Params):
+    """The recent keyframes whose depth points and far sightings are kept (graph.params.DepthParams)."""
+
+    surface_window_keyframes: int = Field(
+        _DEPTH.surface_window_keyframes, ge=1, description="the depth points of this many recent keyframes check a "
+        "registration and find a pose again; [graph.isam] window_keyframes keeps at least as many")
 
 
 class JudgeConfig(_Params):
@@ -260,6 +309,39 @@ class JudgeConfig(_Params):
         _JUDGE.surface_margin, ge=0, description="a candidate pose is taken only where every different candidate "
         "scores this much less (the fraction of the depth points on the model's surfaces and in sight); a smaller "
         "margin localizes sooner and risks a wrong pose where the building repeats itself")
+    surface_margin_unfit: float = Field(
+        _JUDGE.surface_margin_unfit, ge=0, description="... or this much less where that other pose does not fit the "
+        "walls itself (candidates from two landmarks or more)")
+    surface_min_points: int = Field(
+        _JUDGE.surface_min_points, ge=1, description="fewer depth points than this: no check (the registration needs "
+        "[graph.registration] registration_min_landmarks)")
+    surface_min_support: float = Field(
+        _JUDGE.surface_min_support, ge=0, le=1, description="a pose must put this fraction of the depth points on the "
+        "model's surfaces")
+    surface_max_seen_through: float = Field(
+        _JUDGE.surface_max_seen_through, ge=0, le=1, description="... and let at most this fraction be seen through a "
+        "wall ([graph] line_of_sight)")
+    surface_refuse_seen_through: float = Field(
+        _JUDGE.surface_refuse_seen_through, ge=0, le=1, description="a registrar's own answer is refused where more "
+        "than this fraction is seen through a wall")
+    surface_refine_m: float = Field(
+        _JUDGE.surface_refine_m, ge=0, description="each candidate pose is first fitted to the walls, moving the "
+        "points at most this, m")
+    surface_screen_top: int = Field(
+        _JUDGE.surface_screen_top, ge=1, description="of more candidates (one door: every alike door of the model, "
+        "from both sides), only the best this many are fitted and checked ...")
+    surface_screen_points: int = Field(
+        _JUDGE.surface_screen_points, ge=1, description="... screened by this many depth points, unfitted")
+    surface_turn_step_deg: float = Field(
+        _JUDGE.surface_turn_step_deg, gt=0, description="the steps of surface_turn_deg's turns, deg")
+    surface_turn_points: int = Field(
+        _JUDGE.surface_turn_points, ge=1, description="the turns are judged by this many depth points")
+    surface_turn_max_inliers: int = Field(
+        _JUDGE.surface_turn_max_inliers, ge=1, description="where no candidate fits the walls unturned, candidates "
+        "from up to this many doors are turned too (keeping as many by a CAD feature)")
+    surface_own_wall_m: float = Field(
+        _JUDGE.surface_own_wall_m, ge=0, description="candidates from one door are weighed by the depth points "
+        "farther than this from its wall's plane (nearer, every candidate puts them on a wall), m")
 
 
 class FarConfig(_Params):
@@ -269,6 +351,60 @@ class FarConfig(_Params):
         _FAR.far_resection,
         description="before any door came within the sighting range, candidate poses from two far doors or "
         "windows seen at least 10 deg apart from one keyframe, for the walls to choose among")
+    far_bearing_deg: float = Field(
+        _FAR.far_bearing_deg, gt=0, description="a far sighting is explained where a same-type CAD feature lies within "
+        "this horizontal bearing of it, seen from the keyframe's camera (and 3 sigmas of its range), deg")
+    far_elevation_deg: float = Field(
+        _FAR.far_elevation_deg, gt=0, description="... and within this of its elevation, deg")
+    far_turn_deg: float = Field(
+        _FAR.far_turn_deg, ge=0, description="... turning the candidate pose by up to this to do so, deg")
+    far_turn_step_deg: float = Field(_FAR.far_turn_step_deg, gt=0, description="... in these steps, deg")
+    far_min_sightings: int = Field(
+        _FAR.far_min_sightings, ge=1, description="with this many far sightings in the window, a candidate pose "
+        "explaining ...")
+    far_min_explained: float = Field(
+        _FAR.far_min_explained, ge=0, le=1, description="... at least this fraction of them is not rivalled by one "
+        "explaining ...")
+    far_margin: float = Field(_FAR.far_margin, ge=0, description="... this fraction less")
+    far_pair_min_deg: float = Field(
+        _FAR.far_pair_min_deg, gt=0, description="far_resection: the two far features at least this far apart in "
+        "bearing, deg")
+    far_pairs: int = Field(
+        _FAR.far_pairs, ge=1, description="... from this many of the newest keyframes that saw such a pair (the "
+        "widest pair of each)")
+    far_resection_sightings: int = Field(
+        _FAR.far_resection_sightings, ge=1, description="the resected candidates are judged by this many far "
+        "sightings, evenly drawn")
+    far_place_m: float = Field(
+        _FAR.far_place_m, gt=0, description="one resected candidate per place this size; a pair whose ranges leave "
+        "the camera more than this to move resects none, m")
+    far_height_sigma_m: float = Field(
+        _FAR.far_height_sigma_m, gt=0, description="the pose taken from far sightings holds the keyframe's height "
+        "with this sigma, m ...")
+    far_bearing_sigma_deg: float = Field(
+        _FAR.far_bearing_sigma_deg, gt=0, description="... and is fitted to the far bearings with this one, deg")
+
+
+class FitConfig(_Params):
+    """Once localized, each keyframe's depth points fitted to the model's walls and floor
+    (graph.params.SurfaceFitParams, graph.surface_fit)."""
+
+    surface_fit: bool = Field(
+        _FIT.surface_fit, description="once localized, each keyframe's depth points fitted to the walls join the "
+        "graph as a measured pose in the model")
+    surface_fit_max_correction_m: float = Field(
+        _FIT.surface_fit_max_correction_m, gt=0, description="a fit that moves the pose further is not trusted (a "
+        "wrong wall), m ...")
+    surface_fit_max_turn_deg: float = Field(
+        _FIT.surface_fit_max_turn_deg, gt=0, description="... nor one that turns it further, deg ...")
+    surface_fit_settling_turn_deg: float = Field(
+        _FIT.surface_fit_settling_turn_deg, gt=0, description="... but this far in the first keyframes after "
+        "localizing, while the heading is the few doors' it was found by, deg")
+    surface_fit_settling_keyframes: int = Field(
+        _FIT.surface_fit_settling_keyframes, ge=0, description="those first keyframes")
+    surface_fit_sigma_m: float = Field(
+        _FIT.surface_fit_sigma_m, gt=0, description="a fitted point's distance to its wall, model against reality "
+        "(the judge's fits of candidate poses use it too), m")
 
 
 class StatusConfig(_Params):
@@ -294,8 +430,15 @@ class RecoveryConfig(_Params):
         "since the odometry tracks again; taken only where no other shift fits them as well ([graph.judge])")
     recovery_step_m: float = Field(_RECOVERY.recovery_step_m, gt=0, description="the shifts' grid spacing")
     recovery_max_m: float = Field(_RECOVERY.recovery_max_m, gt=0, description="the largest shift")
+    recovery_candidates: int = Field(
+        _RECOVERY.recovery_candidates, ge=1, description="the shifts that put most depth points on the walls, this "
+        "many ...")
+    recovery_apart_m: float = Field(
+        _RECOVERY.recovery_apart_m, ge=0, description="... at least this far apart, are fitted and judged, m")
     recovery_sigma_m: float = Field(_RECOVERY.recovery_sigma_m, gt=0,
                                     description="the position sigma of a pose found again")
+    recovery_sigma_deg: float = Field(_RECOVERY.recovery_sigma_deg, gt=0,
+                                      description="... its orientation sigma, deg")
 
 
 class IsamConfig(_Params):
@@ -312,14 +455,6 @@ class IsamConfig(_Params):
     marginalise_every: int = Field(
         _ISAM.marginalise_every, ge=1,
         description="with a window: keyframes are marginalised this many at a time (one re-factorisation each time)")
-
-    @model_validator(mode="after")
-    def _window_holds_the_surface_check(self) -> IsamConfig:
-        least = DepthParams().surface_window_keyframes
-        if 0 < self.window_keyframes < least:
-            raise ValueError(f"window_keyframes must be 0 (all kept) or at least {least}, the keyframes the surface "
-                             "check reads back")
-        return self
 
 
 # The [graph] keys before its tables (issue 36), still read: each moves to its table, with a warning.
@@ -364,6 +499,8 @@ class GraphConfig(_Section):
         "a wall or column of the model; turn off for a model whose glass partitions are modelled as walls")
     keyframes: KeyframesConfig = Field(default_factory=lambda: KeyframesConfig(),
                                        description="[graph.keyframes]: which frames become keyframes")
+    odometry: OdometryConfig = Field(default_factory=lambda: OdometryConfig(),
+                                     description="[graph.odometry]: the odometry between keyframes")
     landmarks: LandmarksConfig = Field(default_factory=lambda: LandmarksConfig(),
                                        description="[graph.landmarks]: sightings into landmarks")
     registration: RegistrationConfig = Field(default_factory=lambda: RegistrationConfig(),
@@ -372,13 +509,25 @@ class GraphConfig(_Section):
                                  description="[graph.anchor]: landmarks linked to the model once localized")
     judge: JudgeConfig = Field(default_factory=lambda: JudgeConfig(),
                                description="[graph.judge]: the surface check's judgement of candidate poses")
+    depth: DepthConfig = Field(default_factory=lambda: DepthConfig(),
+                               description="[graph.depth]: the recent keyframes' depth points kept")
     far: FarConfig = Field(default_factory=lambda: FarConfig(),
                            description="[graph.far]: doors and windows beyond the sighting range")
+    fit: FitConfig = Field(default_factory=lambda: FitConfig(),
+                           description="[graph.fit]: each keyframe fitted to the walls once localized")
     status: StatusConfig = Field(default_factory=lambda: StatusConfig(),
                                  description="[graph.status]: the localized status decaying")
     recovery: RecoveryConfig = Field(default_factory=lambda: RecoveryConfig(),
                                      description="[graph.recovery]: a pose no longer held found again by the walls")
     isam: IsamConfig = Field(default_factory=lambda: IsamConfig(), description="[graph.isam]: the pose graph's iSAM2")
+
+    @model_validator(mode="after")
+    def _window_holds_the_depth_window(self) -> GraphConfig:
+        least = self.depth.surface_window_keyframes
+        if 0 < self.isam.window_keyframes < least:
+            raise ValueError(f"[graph.isam] window_keyframes must be 0 (all kept) or at least {least}, the keyframes "
+                             "the surface check reads back ([graph.depth] surface_window_keyframes)")
+        return self
 
     @model_validator(mode="before")
     @classmethod

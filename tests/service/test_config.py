@@ -27,8 +27,10 @@ def _other(value: object) -> object:
         return not value
     if isinstance(value, int):
         return value + 1
+    if isinstance(value, tuple):  # one element changed: one leaf of the settings
+        return (_other(value[0]), *value[1:])
     assert isinstance(value, float)
-    return value * 1.5 + 0.125
+    return value * 0.5 + 0.0625 if value <= 1.0 else value * 1.5 + 0.125  # fractions stay fractions
 
 
 def _leaves(settings: SessionSettings) -> list[object]:
@@ -55,6 +57,20 @@ def test_tables_are_named_as_the_components() -> None:
     """Each table but [graph.keyframes] and [graph.isam] is the `LocalizerParams` part of its name."""
     parts = {f.name for f in dataclasses.fields(LocalizerParams)}
     assert set(TABLES) - parts == {"keyframes", "isam"}
+
+
+def test_every_parameter_of_the_localizer_and_the_graph_is_a_key() -> None:
+    """Every field of each `LocalizerParams` part, of the `KeyframeRule` and of `IsamSettings` is a key of its
+    table: nothing that changes the localizer's behaviour is out of the config's (and `dump-config`'s) reach."""
+    graph = GraphConfig()
+    for part in dataclasses.fields(LocalizerParams):
+        keys = set(type(getattr(graph, part.name)).model_fields)
+        missing = {f.name for f in dataclasses.fields(getattr(LocalizerParams(), part.name))} - keys
+        assert not missing, f"[graph.{part.name}] lacks {sorted(missing)}"
+    rule = {f.name for f in dataclasses.fields(KeyframeRule)} - {"policy"} | \
+        {f.name for f in dataclasses.fields(KeyframePolicy)}
+    assert not rule - set(type(graph.keyframes).model_fields)
+    assert not {f.name for f in dataclasses.fields(IsamSettings)} - set(type(graph.isam).model_fields)
 
 
 @pytest.mark.parametrize("table", TABLES)
