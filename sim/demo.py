@@ -57,6 +57,7 @@ class DemoParams:
     listen: tuple[str, ...] = ()  # extra Zenoh endpoints the service listens on, for a bridge or a subscriber
     ros: bool = False  # also publish ROS 2 messages (service.ros_out)
     px4: bool = False  # also publish PX4's fmu/in/ topics (service.px4)
+    config: Path | None = None  # the service's config file (JSON or TOML): the demo's own settings above win
 
 
 @dataclass
@@ -159,6 +160,23 @@ def take_off_storey(model: BuildingModel) -> str | None:
     return levels[0][1] if levels else None
 
 
+def demo_config(building: Path, params: DemoParams, port: int) -> MacrolocConfig:
+    """The service's configuration for a demo flight: `params.config`'s keys (or the defaults), under the demo's
+    own: its building, vehicle, endpoints and outputs; the take-off storey and the building's detector where the
+    file names none."""
+    own = load_config(params.config)
+    perceive = params.observations == "perception"
+    detector = (params.detector_model or own.perception.detector_model or bundled_detector(building)) \
+        if perceive else own.perception.detector_model
+    return load_config(params.config, service={"building": building, "vehicle": params.vehicle,
+                                               "status_period_s": 1.0, "perception": perceive,
+                                               "lockstep": params.lockstep},
+                       zenoh={"listen": [f"tcp/127.0.0.1:{port}", *params.listen]},
+                       ros={"enabled": params.ros}, px4={"enabled": params.px4},
+                       graph={"storey_hint": own.graph.storey_hint or take_off_storey(load_building(building))},
+                       perception={"detector_model": detector})
+
+
 def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None,
              cfg: MacrolocConfig | None = None) -> DemoResult:
     """One closed-loop flight; the service and the agent each on their own Zenoh session (loopback)."""
@@ -175,13 +193,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     wall_start = time.monotonic()
     port = _free_port()
     perceive = params.observations == "perception"
-    detector = (params.detector_model or bundled_detector(building)) if perceive else None
-    cfg = cfg or load_config(None, service={"building": building, "vehicle": params.vehicle, "status_period_s": 1.0,
-                                            "perception": perceive, "lockstep": params.lockstep},
-                             zenoh={"listen": [f"tcp/127.0.0.1:{port}", *params.listen]},
-                             ros={"enabled": params.ros}, px4={"enabled": params.px4},
-                             graph={"storey_hint": take_off_storey(load_building(building))},
-                             perception={"detector_model": detector})
+    cfg = cfg or demo_config(building, params, port)
     if params.record is not None and not perceive:
         raise UserInputError("--record needs --observations perception (a recording holds the stereo frames)")
     rng = np.random.default_rng([params.seed, 0xDE40])

@@ -41,6 +41,9 @@ def register(app: typer.Typer) -> None:
                                  "trajectory_setpoint and offboard_control_mode."),
         vehicle: str = typer.Option("demo", "--vehicle", help="Vehicle name: keys macroloc/<vehicle>/..., ROS "
                                     "topics /<vehicle>/macroloc/..."),
+        config: Path | None = typer.Option(None, "--config", "-c", help="The service's config file (JSON or TOML, "
+                                           "see dump-config): its [graph], [perception], [planning] ... keys; the "
+                                           "demo's own flags and its building, vehicle and Zenoh endpoints win."),
     ) -> None:
         """Take off, explore, localize in the BIM, fly to a room given by its IFC name, and report the paper's
         Table 2 row: localization time, error at the goal, and that error as % of the path length.
@@ -54,6 +57,7 @@ def register(app: typer.Typer) -> None:
 
         from macroloc.graph.errors import UserInputError
         from macroloc.service.commands._io import existing_file, print_json
+        from macroloc.service.config import load_config
         from macroloc.service.planning import Planner
         from macroloc.sim.demo import DEFAULT_BUILDING, DemoParams, plot_flight, result_json, run_demo
 
@@ -64,15 +68,17 @@ def register(app: typer.Typer) -> None:
             raise UserInputError(f"--observations must be truth or perception, not {observations!r}")
         if detector is not None:
             existing_file(detector, "detector model")
+        planning = load_config(config).planning  # checks the file before the first flight
         rows, pictures = [], []
         for s in seed:
             recording = None if record is None else record if len(seed) == 1 else \
                 record.with_name(f"{record.stem}-seed{s}{record.suffix or '.mcap'}")
             result = run_demo(path, DemoParams(seed=s, speedup=speedup, observations=observations,
                                                detector_model=detector, record=recording, vehicle=vehicle,
-                                               listen=tuple(listen or ()), ros=ros, px4=px4, lockstep=lockstep))
+                                               listen=tuple(listen or ()), ros=ros, px4=px4, lockstep=lockstep,
+                                               config=config))
             picture = out if len(seed) == 1 else out.with_name(f"{out.stem}-seed{s}{out.suffix or '.png'}")
-            planner = Planner.for_building(path, 0.2, 0.35, 1.4)
+            planner = Planner.for_building(path, planning.cell_m, planning.vehicle_radius_m, planning.flight_height_m)
             plot_flight(result, planner, picture)
             rows.append(result)
             pictures.append(picture)

@@ -40,6 +40,29 @@ def test_serve_refuses_bad_input_with_one_line(tmp_path: Path) -> None:
         assert len(done.stderr.strip().splitlines()) == 1, done.stderr
 
 
+def test_the_demo_runs_with_a_config_file_under_its_own_settings(tmp_path: Path) -> None:
+    """`demo --config`: the file's keys reach the service (a [graph.judge] margin, a storey, a detector), the
+    demo's own (building, vehicle, endpoints, observations) win over the file's; a bad file is one line, exit 2,
+    before any flight."""
+    from macroloc.sim.demo import DEFAULT_BUILDING, DemoParams, demo_config
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[service]\nvehicle = "from-file"\nperception = true\n\n[graph]\nstorey_hint = "Level 9"\n\n'
+                   '[graph.judge]\nsurface_margin = 0.2\n\n[perception]\ndetector_model = "/x/d.onnx"\n')
+    got = demo_config(DEFAULT_BUILDING, DemoParams(vehicle="demo", config=cfg), 7447)
+    assert got.graph.judge.surface_margin == 0.2 and got.graph.storey_hint == "Level 9"
+    assert got.service.vehicle == "demo" and got.service.perception is False  # truth observations: no chain
+    assert got.service.building == DEFAULT_BUILDING and str(got.perception.detector_model) == "/x/d.onnx"
+    plain = demo_config(DEFAULT_BUILDING, DemoParams(observations="perception"), 7447)
+    assert plain.graph.judge.surface_margin == 0.3 and plain.graph.storey_hint  # the take-off storey
+    assert plain.perception.detector_model is not None  # the building's own detector
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[graph.judge]\nsurface_margn = 0.2\n")
+    done = subprocess.run([MACROLOC, "demo", "--config", str(bad)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "surface_margn" in done.stderr
+
+
 def test_serve_stops_cleanly_on_sigterm_and_saves_the_map(office_path: Path, tmp_path: Path) -> None:
     port = free_port()
     proc = subprocess.Popen([MACROLOC, "serve", "--building", str(office_path), "--vehicle", "cli",
