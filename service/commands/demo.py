@@ -42,7 +42,7 @@ def register(app: typer.Typer) -> None:
         vehicle: str = typer.Option("demo", "--vehicle", help="Vehicle name: keys macroloc/<vehicle>/..., ROS "
                                     "topics /<vehicle>/macroloc/..."),
         config: Path | None = typer.Option(None, "--config", "-c", help="The service's config file (JSON or TOML, "
-                                           "see dump-config): its [graph], [perception], [planning] ... keys; the "
+                                           "see dump-config): its graph, perception, planning ... sections; the "
                                            "demo's own flags and its building, vehicle and Zenoh endpoints win."),
     ) -> None:
         """Take off, explore, localize in the BIM, fly to a room given by its IFC name, and report the paper's
