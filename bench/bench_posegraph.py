@@ -83,7 +83,7 @@ def run(n_keyframes: int, settings: IsamSettings | None = None, step_cpu_ms: np.
     CPU ms of each whole add_keyframe into `step_cpu_ms`, the variables iSAM2 re-eliminated in its last update
     into `reeliminated` and the newest keyframe's position error in the model (NaN before localized) into
     `error_m`, where given. `wall_fits`: once localized, every keyframe also gets a T_cad_body measurement and a
-    second update, as the localizer's fit of its depth to the walls gives one (`Localizer._fit_to_surfaces`, not
+    second update, as the localizer's fit of its depth to the walls gives one (`SurfaceFitter.fit_newest`, not
     run here: the bench has no depth): a factor between the anchor and every keyframe."""
     model = loop_building(size_m=size_m)
     known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features]

@@ -181,7 +181,7 @@ class Anchoring:
         wall fit or a link by proximity is a local association, right only where the pose is known within its
         reach. A pose the odometry carried alone (dead-reckoned, loosened) is not: a fit from there may lock onto
         another wall and a false door may land by a model door, and either would then hold the wrong pose with a
-        small sigma (docs/measurements.md, "A pose the odometry carried alone is not held")."""
+        small sigma (docs/measurements.md, "A pose the odometry carried alone: not held")."""
         if not self.graph.has_anchor:
             return False
         sigma_m = self.graph.horizontal_sigma_m(self.graph.n_keyframes - 1)

@@ -2,11 +2,12 @@
 one to three landmarks, or those resected from far doors, each fitted to the model's walls and scored by the
 flight's depth points on them and in sight of their cameras (graph.surfaces).
 
-One door with gravity fixes the pose up to which of the model's alike doors it is and from which side: Office_A's
-87 alike doors give 174 candidates. A few points screen them, the best are turned to the walls' heading where
-their doors' orientations are coarse, fitted to the walls, and checked; a candidate is taken when it fits the
-walls (`surface_min_support`, `surface_max_seen_through`) and no different pose scores within `surface_margin`
-of it, or the rivals are contradicted by the doors seen beyond the sighting range (graph.far_window).
+One door with gravity fixes the pose up to which of the model's alike doors it is and from which side: N alike doors
+give 2N candidates (docs/measurements.md, "The diagnoses behind the rules"). A few points screen them, the best are
+turned to the walls' heading where their doors' orientations are coarse, fitted to the walls, and checked; a
+candidate is taken when it fits the walls (`surface_min_support`, `surface_max_seen_through`) and no different pose
+scores within `surface_margin` of it, or the rivals are contradicted by the doors seen beyond the sighting range
+(graph.far_window).
 
 Frames: map = the flight's odometry frame, z up; cad = the model's. A candidate is a T_cad_map (4, 4). Metres.
 """

@@ -88,13 +88,14 @@ class RobustParams:
     # Below this many inliers the answer is only candidates for other evidence (the walls) to choose among: then
     # they are every distinct hypothesis that explains as many observations as the best, or one fewer (down to
     # two), not the refined few (a building with many alike door pairs offers dozens, and the truth must be among
-    # them, also where one observation is a false detection that a wrong pose happens to explain: Office_A seed 6,
-    # perception, at 3.2 s the truth explained two of three, wrong poses all three, and the walls, offered no true
-    # pose, found one that fitted them at 0.90-0.92). 0: the refined few.
+    # them, also where one observation is a false detection that a wrong pose happens to explain: the truth then
+    # explains one fewer than the best, and the walls, offered no true pose, may take a wrong one that fits them;
+    # docs/measurements.md, "Registration's candidates below four landmarks"). 0: the refined few.
     complete_below: int = 0
     # Issue 37: candidates ranked by the layout descriptor (graph.layout), and rivals found by it.
     prune_top: int = 64  # per seed rectangle (gravity known), the CAD candidates kept, best layout score first (0:
-    # every one); 64 keeps the true one for 99.9 % of the seeds on Office_A (bench.bench_scale)
+    # every one); 64 keeps the true one for nearly every seed rectangle (bench.bench_scale; docs/measurements.md,
+    # "Issue 37: registration that scales")
     image_anchors: int = 3  # matched features of the best pose whose alike features propose its images
     image_anchor_gap_m: float = 3.0  # anchors: the matched features with most matched ones around, this far apart
     image_alike_fraction: float = 0.7  # alike: its layout explains this fraction of the anchor's relations

@@ -30,10 +30,9 @@ class Landmark:
     compares with the model's (graph.robust, `size_tolerance_m`), is the median of its sightings' sides: the width
     over the sightings not cut by the image border sideways, the height over those not cut at the top or bottom
     (over all of them where every one is cut: a cut side is short). One sighting's is not enough: perception sees
-    the doors of a corridor obliquely (65-75 deg off their normal) and with their frames, and the first sightings of
-    two 1.07 m doors were 1.64 and 1.58 m wide (`macroloc demo --observations perception`, seed 0), so the true
-    doors were no candidates for them and the walls chose among wrong ones. By 4.9 s the first had been seen 1.17 m
-    wide too: its median, 1.41 m, passes, and seeded from it the true pose is a candidate (the second stays 1.58 m)."""
+    the doors of a corridor obliquely (65-75 deg off their normal) and with their frames, so a first sighting can be
+    wider than the door by half a metre: the true door is then no candidate for it and the walls choose among wrong
+    ones, while the median of a few sightings passes (docs/measurements.md, "Change by change")."""
 
     key: int
     type: str

@@ -1,7 +1,8 @@
 """The building's surfaces as a check on registration: do the points the camera saw lie on the model's walls?
 
 A registration from two or three doors is often not unique in an office: other doors of the building sit at
-the same distances (the chance that a wrong pose lines up three of them within 0.6 m is ~0.3 on Office_A). The
+the same distances (a wrong pose often lines up three of them within 0.6 m: docs/measurements.md, "The walls as a
+check: chance fits and look-alike rooms"). The
 walls, furniture and door frames around the doors are far more specific. `SurfaceIndex` samples the model's
 non-horizontal surfaces (walls, door and window frames, furniture sides; floors and ceilings say nothing about
 where on a storey one is) and answers, for a pose hypothesis, which fraction of the observed points lies within
@@ -10,7 +11,7 @@ depth noise, which grows with range squared: a wall 8 m away is measured to +-0.
 choose among the registrar's candidate poses and to refuse a pose the walls contradict (graph.localizer).
 
 Support alone is a weak test in a building of look-alike rooms: a pose turned 90 deg in the next room puts 80 % of
-the points near some wall (Jasmin-Sun). What a camera measured also says where the walls are *not*: the line of
+the points near some wall. What a camera measured also says where the walls are *not*: the line of
 sight from the camera to each point is free. `WallVoxels` holds the model's walls (without doors, windows and
 openings: a camera sees through doorways and glass) as occupied voxels, and `SurfaceIndex.check` counts the points
 whose line of sight crosses a wall well before the point (further than its depth noise): under a wrong pose most
@@ -61,7 +62,7 @@ class WallVoxels:
 
     def __init__(self, keys: np.ndarray, voxel_m: float = 0.1) -> None:
         keys = np.asarray(keys, np.int64)
-        # sorted and unique as they come from the cache: np.unique again cost Office_A's start 0.95 s
+        # sorted and unique as they come from the cache: np.unique again would cost a large model's start a second
         self.keys = keys if bool(np.all(keys[1:] > keys[:-1])) else np.unique(keys)
         self.voxel_m = voxel_m
 

@@ -32,7 +32,8 @@ class ProposalConfig:
     max_tilt_deg: float = LineConfig.max_tilt_deg  # from vertical: the drone rolls up to ~20 deg (perception.lines)
     join_offset_px: float = LineConfig.join_offset_px  # collinear pieces of one side (perception.lines) ...
     join_gap_px: float = JOIN_GAP_PX  # ... whose ends lie within the paper's joining distance
-    min_side_px: float = 40.0  # px: a 1.52 m door (Office_A's shortest) at 18 m, f = 480: past the 12 m range
+    min_side_px: float = 40.0  # px: a 1.52 m door at 18 m, f = 480: past the 12 m range (1.52 m: a short door,
+    # docs/measurements.md, "Door proposals' shortest side")
     strip_px: tuple[float, float] = (6.0, 24.0)  # the wall's depth from this far outside a side (WallPlaneConfig)
     depth_tol_m: tuple[float, float] = (0.03, 0.0125)  # stereo's noise, a + b z^2 (WallPlaneConfig.threshold_m)
     border_fraction: float = 40 / 480  # a side's end this near the border runs on past it (pipeline's margin)

@@ -6,7 +6,7 @@ climbs. The IMU still measures that. Its specific force, rotated into the odomet
 gravity; integrating it twice from the velocity at the loss follows the manoeuvre.
 
 Doing that with gravity taken as 9.81 m/s^2 along the odometry frame's z fails: that frame is levelled once, at the
-first frame (1.1 deg off on Jasmin-Sun seed 8), the gyro-driven rotation tilts it further, and the accelerometer
+first frame (a degree off is common), the gyro-driven rotation tilts it further, and the accelerometer
 has a bias (0.05 m/s^2 a side on the simulated IMU). At 1 deg, gravity leaks 0.17 m/s^2 sideways: 1.2 m after
 3.8 s. So gravity is calibrated against the odometry, as perception.gravity does for its direction: over the last
 `calibrate_s` of tracked frames, the mean specific force in the odometry frame minus the odometry's own mean
@@ -14,17 +14,14 @@ acceleration (the difference of the velocities fitted at the span's ends) is gra
 this accelerometer see it, tilt and bias included. The velocity at the loss is a line fitted to the last
 `end_s` of tracked positions.
 
-The replay's visual odometry (service.offline.replay_sources.VisualOdometry) takes only the height from it and keeps the
-coasted horizontal position. Measured on its output over 15 rendered 60 s flights (Office_A and Jasmin-Sun), with
-dropouts cut every 2 s into stretches it tracked (a study on recorded flights, not shipped; the tests check the
-principle on a synthetic flight), error at the end of the dropout, RMS over 293 / 323 of them: 3.8 s, height
-0.50 m coasting against 0.17 m dead-reckoned, horizontal 1.38 against 0.48 m; 2 s, 0.22 against 0.07 m and 0.49
-against 0.14 m. But the one real loss in these flights (Jasmin-Sun seed 8, 5.0-8.8 s facing a door 0.26-0.34 m
-away) comes after frames the odometry tracked poorly: the velocity fitted there was 6-7 cm/s off, and the
-horizontal dead reckoning ended 1.42 m off against 0.60 m coasting, while the height ended 0.06 m off against
-0.58 m. The height needs neither the tilt nor a good horizontal velocity (gravity's magnitude is calibrated, and a
-degree of tilt changes it by 0.015 %). A body that yaws turns the accelerometer's bias in the odometry frame away
-from what was calibrated: 0.23 m after 3 s at 0.3 rad/s with a 0.06 m/s^2 bias (the test's flight).
+The replay's visual odometry (service.offline.replay_sources.VisualOdometry) takes only the height from it and keeps
+the coasted horizontal position. Where the odometry tracked well up to the loss, dead reckoning beats coasting on
+both axes; but a real loss comes after frames the odometry tracked poorly (a camera closing on a wall), the velocity
+fitted there is off, and the horizontal dead reckoning then ends further off than coasting, while the height still
+gains (docs/measurements.md, "Dead reckoning on the accelerometer"). The height needs neither the tilt nor a good
+horizontal velocity (gravity's magnitude is calibrated, and a degree of tilt changes it by 0.015 %). A body that
+yaws turns the accelerometer's bias in the odometry frame away from what was calibrated: 0.23 m after 3 s at 0.3
+rad/s with a 0.06 m/s^2 bias (the test's flight).
 
 Frames: the odometry frame (z roughly up) and the body frame of the IMU; metres, seconds.
 """

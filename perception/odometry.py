@@ -18,22 +18,17 @@ stereo pair matched: OpenCV SGBM's sub-pixel disparity at each keypoint gives it
 (z = fx * baseline / disparity), kept where the disparity is consistent over the 3 x 3 pixels around it (not
 on a depth edge); 128 disparities reach down to 0.45 m, for a wall close by. With a gyroscope, a PnP rotation
 more than 2 deg from the gyro's since the keyframe is replaced by the gyro's and the translation refitted: a wall
-filling the view lets PnP take a turn for a slide. Measured on simulated 60 s flights, drift at the end against
-the first version (ORB matched along rows: integer disparities, wrong matches on horizontal edges; no gyro):
-Office_A seed 1 0.33 m instead of 2.41 m, Jasmin-Sun seed 3 0.09 m instead of 6.3 m (a 70 deg turn facing a
-wall, which that version missed entirely). SGBM runs only at keyframes. Chosen over dense RGB-D odometry (Open3D)
-for cost, and it does not import open3d (which needs libusb here).
+filling the view lets PnP take a turn for a slide. Sub-pixel SGBM depth and the gyro's check drift several times
+less than ORB matched along rows (integer disparities, wrong matches on horizontal edges), which can miss a turn
+facing a wall entirely. SGBM runs only at keyframes. Chosen over dense RGB-D odometry (Open3D) for cost, and it
+does not import open3d (which needs libusb here).
 
 With a gyroscope, each frame's rotation is the gyro's since the last frame, pulled a fifth of the way towards
-PnP's (a complementary filter), and the translation refitted to PnP's inliers for it. PnP's own rotation is
-noisy by 0.1-0.4 deg a frame on rendered flights, and a rotation error is taken for a sideways slide: the pose
-jittered by 1.5-2 cm a frame, and each new reference keyframe kept its error. Measured on Office_A seed 5 (60 s,
-51 m), against PnP's rotation as it was: translation error over 2 m of path (RPE) 20.9 -> 8.4 cm, over 5 m
-24.8 -> 11.6 cm; seed 1: 7.1 -> 3.7 cm and 8.5 -> 4.1 cm. The gyro's bias leaks in more: the drift at the
-end of seed 1, whose gyro is biased by 0.26 deg/s, rose from 0.37 to 0.74 m and its heading error from 3.5 to
-4.4 deg (the gyro's alone: 15.5 deg); the graph's landmarks and walls correct drift, not jitter (replays with
-truth-vo, ten flights: APE RMSE 0.065 -> 0.041 m on average, every flight better). A gain of 0.05 jittered
-less but drifted 10.8 deg on seed 1.
+PnP's (a complementary filter, `pnp_rotation_gain`), and the translation refitted to PnP's inliers for it. PnP's
+own rotation is noisy by tenths of a degree a frame, and a rotation error is taken for a sideways slide: the pose
+jitters by centimetres a frame, and each new reference keyframe keeps its error. The filter trades that jitter for
+the gyro's bias, which leaks in as drift: the graph's landmarks and walls correct drift, not jitter. A lower gain
+jitters less but drifts more (docs/measurements.md, "Visual odometry: the gyro prior and keyframes").
 
 Frames: `odom` = the first frame's left camera (optical: x right, y down, z forward); `T_odom_cam` 4x4, metres.
 """
@@ -80,7 +75,8 @@ class OdometryConfig:
     pnp_rotation_gain: float = 0.2  # with a gyro: the share of PnP's rotation taken per frame (see _agree_with_gyro)
     tracker: str = "orb"  # "orb": ORB detected, described and matched to the keyframe every frame; "klt": the
     #                       keyframe's points followed by optical flow between keyframes (a third of the CPU; not the
-    #                       default: it drifted more on the Jasmin-Sun flights, docs/measurements.md)
+    #                       default: it drifted more than ORB in one of the two buildings measured:
+    #                       docs/measurements.md, "Visual odometry by optical flow")
     flow_points: int = 300  # the keyframe's points followed by the flow, spread over the grid (cost grows with them)
     flow_window_px: int = 15  # Lucas-Kanade's window
     flow_levels: int = 2  # its pyramid's levels above the image (the gyro's prediction leaves little to search)

@@ -31,9 +31,8 @@ from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher, 
 log = logging.getLogger(__name__)
 
 # An opening whose box or corners come this near the image border (fraction of the image's height) is taken to
-# run on past it (ObservedFeature.truncation): 40 px at 640 x 480. Ten simulated flights through two buildings,
-# replayed from cached perception with the margin applied to the corners: APE 0.026-0.106 m at 2 px, 0.026-0.083 m
-# at 20 px, 0.024-0.080 m at 40 px, 0.024-0.083 m at 60 px.
+# run on past it (ObservedFeature.truncation): 40 px at 640 x 480. A margin of a few pixels lets cut openings through
+# as whole; from 20 to 60 px the replayed flights' APE is flat (docs/measurements.md, "The border margin").
 BORDER_MARGIN_FRACTION = 40 / 480
 
 
@@ -71,8 +70,8 @@ class ObservedFeature:
 
         True where its box, or its corners as projected (`corners_px`, (4, 2)), come within `margin_fraction`
         of the image's height of the border. The margin is wide on purpose: where a window runs on below the
-        image, the detector's box still stops 10-25 px short of the border (Jasmin-Sun flights, 640 x 480), and
-        the corners then cut the window to two thirds of its height, unflagged."""
+        image, the detector's box may still stop tens of pixels short of the border (docs/measurements.md, "The
+        border margin"), and the corners then cut the window to two thirds of its height, unflagged."""
         margin = margin_fraction * height_px
         x0, y0, x1, y1 = box_xyxy
         u = [x0, x1] if corners_px is None else [min(x0, *corners_px[:, 0]), max(x1, *corners_px[:, 0])]

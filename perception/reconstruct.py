@@ -184,13 +184,12 @@ def wall_plane(sides: Sides, depth_m: np.ndarray, rig: StereoRig, gravity_cam: n
     (tolerance growing with depth squared, as stereo's noise does) and refitted to its inliers. It must hold
     `min_strips` of the strips and `min_inlier_fraction` of their points, and stand vertical where gravity is
     known. Inside the opening a camera sees the leaf, or through an open doorway the room behind, metres away;
-    beside a side, within a few pixels, the jamb's reveal: a side's depth from there put perception's doors
-    0.4-0.9 m off along the line of sight (Office_A seed 7) and their planes ~10 deg off at range.
+    beside a side, within a few pixels, the jamb's reveal: a side's depth from there puts a door up to a metre off
+    along the line of sight and its plane degrees off at range.
 
-    Measured by `bench.eval_perception_sim` (Office_A, simulated seeds 1 and 2, 302 frames), corner error median /
-    p90 against the sides' depth: with the true boxes, 2-4 m seen within 45 deg of head-on 0.093 / 0.143 ->
-    0.074 / 0.103 m, 4-8 m 0.126 / 0.27 -> 0.109 / 0.311 m; with the detector's boxes, 2-4 m 0.124 / 0.351 ->
-    0.105 / 0.374 m, 4-8 m 0.167 / 0.469 -> 0.151 / 0.538 m, where 16 % more pass the plausibility checks.
+    Against the sides' depth, the wall's plane lowers the corners' median error at every range, with the true
+    boxes and the detector's, and lets more of the detector's openings pass the plausibility checks
+    (`bench.eval_perception_sim`: docs/measurements.md, "Door corners from the wall beside the opening").
     Where the box itself is wrong (wider than the door, or a doorway's box around a door seen through it) the
     wall beside it is some other wall: the tail grows a little."""
     cfg = cfg or WallPlaneConfig()

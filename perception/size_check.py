@@ -9,8 +9,8 @@ same model size.
 
 Door or window: the opening takes the kind of the nearest model size that fits, re-typed where that is the other
 kind (`retyped_from`), the detector's kind winning a tie. The metric size is evidence the image classifier lacks:
-on Office_A renders the shipped detector called 100 of 140 matched doors "window" (all door-sized); kept as
-windows they would lose their corners downstream, dropped they would be lost.
+a detector may call most door-sized openings "window" (docs/measurements.md, "The detector's kind and the size
+tolerance"); kept as windows they would lose their corners downstream, dropped they would be lost.
 """
 
 from __future__ import annotations
@@ -45,10 +45,9 @@ class OpeningSizes:
 @dataclass(frozen=True)
 class SizeTolerance:
     """How far a reconstructed width or height may lie from the true one: `floor_m + per_m * depth_m`, from the
-    chain's error measured on rendered frames with known truth (`bench.bench_size_check --measure`: Office_A sim
-    seeds 1-3, 453 frames, the detector's boxes matched to the truth; 98.2 % of 219 widths and heights not cut by
-    the border lie within it; their 95th percentile is 0.15-0.19 m from 3 to 9 m, 0.22-0.23 m nearer and beyond;
-    docs/measurements.md).
+    chain's error measured on rendered frames with known truth (`bench.bench_size_check --measure`, the detector's
+    boxes matched to the truth): it holds nearly all widths and heights not cut by the border (docs/measurements.md,
+    "The detector's kind and the size tolerance").
     Stereo's depth error grows as depth squared, but a width or height is a difference of two corners at the
     same depth, so its error grows with depth (the pixel error of a side times depth / f) plus a constant part
     (the box and the LSD side missing the frame by a few centimetres)."""

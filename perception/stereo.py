@@ -48,8 +48,8 @@ class SgbmMatcher:
     the left edge falls in the padding: a near-edge pixel whose match lies inside the right image is kept. A
     disparity that puts the match in the padding (greater than the pixel's column) is dropped: the padding
     repeats the right image's first column, and SGBM matches the left image's first columns to it at any
-    disparity (Office_A seed 3, 128 disparities: walls 5-7 m away measured at 0.5 m, a band down the left edge
-    that stood between the true pose and the walls).
+    disparity: far walls measured metres too near, a band down the left edge that stands between the true pose and
+    the walls (docs/measurements.md, "SGBM's padding on the left edge").
     """
 
     def __init__(self, config: SgbmConfig | None = None) -> None:

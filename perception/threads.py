@@ -6,12 +6,11 @@ sizes its pool to the cores and onnxruntime its intra-op pool too, so on 2 cores
 service's intake threads (and any other process) share two cores, and a pool waiting at a barrier for a
 descheduled thread stalls the whole call. The rule: OpenCV gets the cores (`opencv`, its calls are long enough
 to split, SGBM's rows in stripes), onnxruntime one thread (`onnxruntime`: the detector's net is too small to
-split: 5.5 ms CPU a frame with 1 intra-op thread and with 2, rendered 640 x 480 frames; perception.detector also
-turns its pool's spinning off). OpenCV's CPU time is the same with 1 or 2 threads (SGBM at 128 disparities
-69-71 ms, ORB 6.6-6.8 ms, LSD on a box 3.5 ms); 2 lets a long call finish in about half the time where the other
-core is free. Measured on a machine loaded by other jobs (load average 10 on 2 cores), where wall times said
-nothing. Call `set_threads` once, at the composition root (the service's pipeline, the replay's perception
-source, benchmarks); library code never changes them.
+split: its CPU time a frame is the same with 1 intra-op thread and with 2; perception.detector also turns its
+pool's spinning off). OpenCV's CPU time is the same with 1 or 2 threads; 2 lets a long call finish in about half
+the time where the other core is free. The choice is made on CPU time: on a loaded machine wall times say nothing
+(docs/measurements.md, "Thread pools on two cores"). Call `set_threads` once, at the composition root (the
+service's pipeline, the replay's perception source, benchmarks); library code never changes them.
 """
 
 from __future__ import annotations

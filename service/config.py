@@ -191,7 +191,8 @@ class KeyframesConfig(_Params):
     interval_s: float = Field(_RULE.policy.interval_s, description="... or this much time, s")
     while_exploring: bool = Field(
         _RULE.while_exploring, description="also every frame with sightings while not localized (slower to "
-                                           "localize on 30 fps flights: docs/measurements.md)")
+                                           "localize on 30 fps flights: docs/measurements.md, "
+                                           "\"One keyframe rule for replay and service\")")
     without_sightings_m: float = Field(
         _RULE.without_sightings_m, description="a frame without sightings is a keyframe only after this much "
         "motion, m (0: the translation, rotation and interval above decide for it too)")
@@ -251,7 +252,8 @@ class RegistrationConfig(_Params):
         _REGISTRATION.registration_min_landmarks, ge=2,
         description="registration is tried once this many landmarks have been seen twice, and a pose "
         "must explain as many. With gravity two doors fix a pose, but at the tolerance above a building of a "
-        "hundred alike doors offers chance fits of three landmarks (a wrong localization was seen with 3)")
+        "hundred alike doors offers chance fits of three landmarks "
+        "(docs/measurements.md, \"Registration from three landmarks\")")
     verified_min_landmarks: int = Field(
         _REGISTRATION.verified_min_landmarks, ge=1,
         description="with the surface check ([graph] surface_check), candidate poses are weighed from this many "
@@ -589,8 +591,8 @@ class InputsConfig(_Section):
     max_image_pixels: int = Field(
         DEFAULT_MAX_PIXELS, ge=1, le=DEFAULT_MAX_PIXELS, description="an image larger than this (width x height, "
         "read from the PNG/JPEG header before decoding, or declared for raw images) is refused; also caps images read "
-        "from files. At most 4096 x 4096: the stereo matcher's and the decoder's own cap (a 20000 x 20000 pair "
-        "crashed OpenCV's SGBM)")
+        "from files. At most 4096 x 4096: the stereo matcher's and the decoder's own cap (larger pairs can crash "
+        "OpenCV's SGBM: docs/measurements.md, \"The image size cap\")")
     max_stereo_bytes: int = Field(128 * 2**20, ge=1, description="largest StereoFrame payload taken, bytes")
     max_message_bytes: int = Field(2**20, ge=1, description="largest payload on the other input keys, bytes")
     max_features: int = Field(256, ge=1, description="most doors/windows in one ObservedFeatures message")

@@ -49,10 +49,10 @@ class StereoDepth:
 
     Its SGBM searches `num_disparities` (128: down to fx * baseline / 128, 0.45 m with the simulated rig), not the
     perception chain's 64 (0.9 m): a wall nearer than the search reaches is matched at a wrong disparity and lands
-    behind itself. Over two rendered Office_A flights 76 % of the points at 0.6-0.9 m were more than 0.1 m off with
-    64 disparities, 12 % with 128; a drone turning 1.2 m in front of a door (the demo's take-off) sees such walls in
-    much of its view, and the true pose then put 0.86 of the window's points on the model's walls, below the 0.9 a
-    pose must reach (0.97 with 128; `macroloc demo --observations perception`, seed 1)."""
+    behind itself. With 64 disparities most points at 0.6-0.9 m lie more than 0.1 m off, with 128 few; a drone
+    turning in front of a door (the demo's take-off) sees such walls in much of its view, and with 64 the true pose
+    then puts fewer of the window's points on the model's walls than a pose must (docs/measurements.md, "Change by
+    change")."""
 
     def __init__(self, every: int = 3, stride_px: int = 16, num_disparities: int = 128,
                  disparity=None) -> None:  # noqa: ANN001 - perception.stereo.FrameDisparity

@@ -1,10 +1,10 @@
 """Place recognition at keyframes, for the replay and the service: views kept for the map this flight saves, and
 keyframes placed in a stored map's views (perception.place) while the localizer is not localized.
 
-Both cost image work at keyframes only: a view to keep is ORB and SGBM on the stereo pair (~40 ms here); placing a
-keyframe is ORB and a match against every stored view (tried while the status is anything but `localized`, at
-most every `every_s` of flight: 1 s, ~9 ms each while the new flight is where the map has no view; 28 ms with
-OpenCV's brute-force matcher for the vote, before faiss: perception.place).
+Both cost image work at keyframes only: a view to keep is ORB and SGBM on the stereo pair; placing a keyframe is ORB
+and a match against every stored view (tried while the status is anything but `localized`, at most every `every_s`
+of flight; faiss votes, several times faster than OpenCV's brute-force matcher: perception.place). Their costs:
+docs/measurements.md, "Place recognition's cost".
 """
 
 from __future__ import annotations

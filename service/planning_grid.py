@@ -79,8 +79,8 @@ def load_solids(ifc_path: Path, with_doors_and_windows: bool = False) -> Buildin
 def _iterate_shapes(ifc_file, **filters):  # noqa: ANN001, ANN202 - ifcopenshell types
     """(element, vertices (V, 3), faces (F, 3)) of each shape, in the elements' id order: the iterator's two
     threads hand them over in whichever order they finish, and the cached meshes' triangle order decides which
-    points the surface index samples (a 7 s re-localization replay's APE was below 0.10 m with some cache builds,
-    0.118-0.126 m with others)."""
+    points the surface index samples, and so a replay's answer (docs/measurements.md, "Mesh order and the surface
+    index")."""
     import ifcopenshell.geom
 
     settings = ifcopenshell.geom.settings()
