@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from macroloc.graph.bim import BuildingModel, cache_dir
+from macroloc.graph.building_assets import BuildingSolids
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.service.config import GraphConfig, PlanningConfig
 from macroloc.service.planning import Planner
-from macroloc.service.planning_grid import BuildingSolids
 
 log = logging.getLogger(__name__)
 
@@ -55,8 +55,8 @@ def prepare_building(building: Path, graph: GraphConfig, planning: PlanningConfi
     Surfaces and wall voxels come from IFC models only: for a mesh model registrations go unchecked (logged).
     """
     from macroloc.graph.bim import load_building
+    from macroloc.graph.building_assets import load_solids, surfaces_for
     from macroloc.graph.model_index import index_for
-    from macroloc.service.planning_grid import load_solids, surfaces_for
 
     parts: list[PreparedPart] = []
 

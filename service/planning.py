@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from macroloc.graph.building_assets import BuildingSolids, Space
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.features import BuildingModel
-from macroloc.service.planning_grid import BuildingSolids, ObstacleLayer, OccupancyGrid, Space, inflate, section_grid
+from macroloc.service.planning_grid import ObstacleLayer, OccupancyGrid, inflate, section_grid
 
 log = logging.getLogger(__name__)
 
@@ -193,7 +194,7 @@ class Planner:
     @classmethod
     def for_building(cls, path: Path, cell_m: float, vehicle_radius_m: float, flight_height_m: float) -> Planner:
         from macroloc.graph.bim import load_building
-        from macroloc.service.planning_grid import load_solids
+        from macroloc.graph.building_assets import load_solids
 
         return cls(load_building(path), load_solids(Path(path)), cell_m, vehicle_radius_m, flight_height_m)
 

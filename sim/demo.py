@@ -32,8 +32,8 @@ from macroloc.service.config import MacrolocConfig, load_config
 from macroloc.service.recording import FlightWriter
 
 if TYPE_CHECKING:  # the service's planner, imported where used: sim/ imports only service's wire and config at its top
+    from macroloc.graph.building_assets import Space
     from macroloc.service.planning import Planner
-    from macroloc.service.planning_grid import Space
 
 log = logging.getLogger(__name__)
 

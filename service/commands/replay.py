@@ -122,7 +122,7 @@ def register(app: typer.Typer) -> None:
         storey = model.checked_storey(storey if storey is not None else cfg.graph.storey_hint)
         surfaces = None
         if cfg.graph.surface_check:
-            from macroloc.service.planning_grid import surfaces_for
+            from macroloc.graph.building_assets import surfaces_for
 
             with step(f"preparing {building.name}'s surfaces (its first time: minutes, cached after)"):
                 surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)

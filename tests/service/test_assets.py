@@ -30,14 +30,14 @@ def test_prepare_builds_every_part_and_a_second_run_builds_nothing(tmp_path: Pat
     assert cached == ["features", "opaque", "seen", "selfmaps", "solids", "surfaces", "tables"]
 
     import macroloc.graph.bim_ifc as bim_ifc
+    import macroloc.graph.building_assets as building_assets
     import macroloc.graph.surfaces as surfaces
-    import macroloc.service.planning_grid as planning_grid
 
     def must_not_run(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
         raise AssertionError("rebuilt a cached asset")
 
     monkeypatch.setattr(bim_ifc, "read_ifc_features", must_not_run)
-    monkeypatch.setattr(planning_grid, "_read_solids", must_not_run)
+    monkeypatch.setattr(building_assets, "_read_solids", must_not_run)
     monkeypatch.setattr(surfaces.SurfaceIndex, "from_mesh", must_not_run)
     model_index._CACHE.clear()
     monkeypatch.setattr(model_index, "build_tables", must_not_run)

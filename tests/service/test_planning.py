@@ -125,11 +125,11 @@ def test_seen_obstacles_change_the_plan(office_path) -> None:
 
 
 def test_lines_of_sight_pass_doorways_not_the_walls_beside_them(fzk_path) -> None:
-    """The model's walls as voxels for the surface check (service.planning_grid.surfaces_for): through every door
+    """The model's walls as voxels for the surface check (graph.building_assets.surfaces_for): through every door
     of FZK-Haus, 1.5 m either side of it, the line of sight is free (IFC openings are cut from the walls); 0.4 m
     beside the door it crosses the wall. `line_of_sight=False` leaves the voxels out."""
     from macroloc.graph.bim import load_building
-    from macroloc.service.planning_grid import surfaces_for
+    from macroloc.graph.building_assets import surfaces_for
 
     surfaces = surfaces_for(fzk_path)
     assert surfaces is not None and surfaces.walls is not None and len(surfaces.walls) > 10_000
@@ -151,10 +151,10 @@ def test_the_surfaces_read_from_the_cache_are_those_built(fzk_path, tmp_path, mo
     of sight, so no hidden faces dropped) is cached apart."""
     import macroloc.graph.bim as bim
     import macroloc.graph.surfaces as surfaces
-    from macroloc.service.planning_grid import surfaces_for
+    from macroloc.graph.building_assets import surfaces_for
 
     monkeypatch.setattr(bim, "cache_dir", lambda: tmp_path)
-    monkeypatch.setattr("macroloc.service.planning_grid.cache_dir", lambda: tmp_path)
+    monkeypatch.setattr("macroloc.graph.building_assets.cache_dir", lambda: tmp_path)
     built = surfaces_for(fzk_path)
     assert built is not None and len(list(tmp_path.glob("surfaces-*.npz"))) == 1
     monkeypatch.setattr(surfaces.SurfaceIndex, "from_mesh", None)  # a rebuild would fail
@@ -166,7 +166,7 @@ def test_the_surfaces_read_from_the_cache_are_those_built(fzk_path, tmp_path, mo
     assert np.array_equal(cached.horizontal[1], built.horizontal[1])
     assert np.array_equal(cached.walls.keys, built.walls.keys)
     monkeypatch.undo()
-    monkeypatch.setattr("macroloc.service.planning_grid.cache_dir", lambda: tmp_path)
+    monkeypatch.setattr("macroloc.graph.building_assets.cache_dir", lambda: tmp_path)
     unchecked = surfaces_for(fzk_path, line_of_sight=False)
     assert unchecked is not None and len(unchecked) > len(built)  # its hidden faces are kept
     assert len(list(tmp_path.glob("surfaces-*.npz"))) == 2
@@ -178,7 +178,7 @@ def test_the_model_s_triangles_come_in_the_elements_order(fzk_path) -> None:
     elements' id order, and two reads give the same mesh."""
     import ifcopenshell
 
-    from macroloc.service.planning_grid import NOT_SEEN, _iterate_shapes
+    from macroloc.graph.building_assets import NOT_SEEN, _iterate_shapes
 
     first, again = ([(element.id(), verts, faces) for element, verts, faces in
                      _iterate_shapes(ifcopenshell.open(str(fzk_path)), exclude=list(NOT_SEEN))] for _ in range(2))
