@@ -29,6 +29,8 @@ class GravityParams:
     min_span_s: float = 0.5  # a shorter history gives the specific force alone (as at take-off)
     max_accel_mps2: float = 4.0  # a larger fitted acceleration is not a flight's: no estimate for this frame
     end_s: float = 0.25  # the velocities at the window's ends: lines fitted to this long a part of it
+    min_specific_force_mps2: float = 5.0  # an IMU sample outside these is no flight's: a free fall or a knock,
+    max_specific_force_mps2: float = 15.0  # left out (in the service and a replay alike)
 
 
 class GravityEstimator:
@@ -40,8 +42,10 @@ class GravityEstimator:
 
     def update(self, stamp_ns: int, T_odom_body: np.ndarray, accel_body_mps2: np.ndarray) -> np.ndarray | None:
         """This frame's IMU specific forces (K, 3, body frame, m/s^2) and odometry pose (4x4) -> up in the body
-        frame, or None without IMU samples (or when the odometry jumped)."""
+        frame, or None without IMU samples within the specific force's bounds (or when the odometry jumped)."""
         f = np.asarray(accel_body_mps2, float).reshape(-1, 3)
+        norm_f = np.linalg.norm(f, axis=1)
+        f = f[(norm_f > self.params.min_specific_force_mps2) & (norm_f < self.params.max_specific_force_mps2)]
         if len(f) == 0:
             return None
         R = np.asarray(T_odom_body, float)[:3, :3]

@@ -167,10 +167,8 @@ class LocalizerBackend:
     def imu(self, ev: ImuIn) -> None:
         """A specific force sample: with the next odometry sample, it gives up in the body frame
         (perception.gravity: the odometry's own acceleration is taken out)."""
-        norm = float(np.linalg.norm(ev.accel_mps2))
-        if 5.0 < norm < 15.0:  # a knock or a free fall is not gravity
-            self._accel_body.append(np.asarray(ev.accel_mps2, float))
-            del self._accel_body[:-256]
+        self._accel_body.append(np.asarray(ev.accel_mps2, float))  # GravityEstimator leaves out a knock, a free fall
+        del self._accel_body[:-256]
 
     def odometry(self, ev: OdometryIn) -> Estimate:
         """An odometry sample: the sightings that waited for it, then its own frame (no sightings)."""

@@ -71,3 +71,16 @@ def test_no_samples_and_odometry_jumps_give_no_estimate() -> None:
     T_jump = np.eye(4)
     T_jump[0, 3] = 2.0  # the odometry jumped 2 m in one frame: tens of m/s^2, not an acceleration to remove
     assert est.update(int(30 * 1e9 / RATE_HZ), T_jump, still) is None
+
+
+def test_a_knock_or_a_free_fall_is_left_out() -> None:
+    """Specific forces outside the params' bounds (a knock, a free fall) do not tilt up; with none inside, no
+    estimate."""
+    est = GravityEstimator()
+    still = np.array([[0.0, 0.0, G_MPS2]])
+    for k in range(30):
+        est.update(int(k * 1e9 / RATE_HZ), np.eye(4), still)
+    knock = np.array([[0.0, 0.0, G_MPS2], [30.0, 0.0, G_MPS2]])  # one sample of a 3 g knock sideways
+    up = est.update(int(30 * 1e9 / RATE_HZ), np.eye(4), knock)
+    assert up is not None and np.allclose(up, [0.0, 0.0, 1.0], atol=1e-6)
+    assert est.update(int(31 * 1e9 / RATE_HZ), np.eye(4), np.array([[0.0, 0.0, 0.5]])) is None  # falling
