@@ -110,7 +110,8 @@ class LandmarkMap:
     def observed(self, keys: list[int]) -> tuple[list[ObservedRect], list[np.ndarray]]:
         """The landmarks `keys` as the registrar takes them: their rectangles' frames and corners (4, 3), map
         frame, at the graph's current estimates."""
-        observed = [ObservedRect(j, self.landmarks[j].type, self.graph.T_map_rect(j)) for j in keys]
+        observed = [ObservedRect(j, self.landmarks[j].type, self.graph.T_map_rect(j), self.landmarks[j].cut())
+                    for j in keys]
         return observed, [self.landmarks[o.key].corners(o.T_map_rect) for o in observed]
 
     def centres_map(self, keys: list[int]) -> list[tuple[str, np.ndarray]]:

@@ -175,7 +175,7 @@ def _one_rectangle(model: BuildingModel, landmark: ObservedRect, corners_map: np
         return Alignment("not_localized", None)
     index = index_for(model).for_storey(storey_hint)
     params = RobustParams() if size_tolerance_m is None else RobustParams(size_tolerance_m=size_tolerance_m)
-    poses = single_rectangle_poses(index, landmark.type, corners_map, params, among=among)
+    poses = single_rectangle_poses(index, landmark.type, corners_map, params, among=among, cut=landmark.cut)
     if not poses:
         return Alignment("not_localized", None)
     return Alignment("ambiguous", None, [], 1, [(T, 1) for T in poses])

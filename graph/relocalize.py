@@ -36,11 +36,13 @@ class KnownRect:
 
 @dataclass(frozen=True)
 class ObservedRect:
-    """A landmark of this flight: its key j, type, T_map_rect (4x4)."""
+    """A landmark of this flight: its key j, type, T_map_rect (4x4), and whether every sighting of it was cut by
+    the image border (sideways, vertically): its size along such an axis is then only a lower bound."""
 
     key: int
     type: str
     T_map_rect: np.ndarray
+    cut: tuple[bool, bool] = (False, False)
 
 
 @dataclass

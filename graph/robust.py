@@ -125,9 +125,15 @@ def rectangle_edges(corners: np.ndarray) -> _Rect:
 
 
 def _seed_hypotheses(rect: _Rect, cand: np.ndarray, index: ModelIndex, params: RobustParams,
-                     gravity_known: bool) -> tuple[np.ndarray, np.ndarray]:
-    """All rotations R (H, 3, 3) and translations t (H, 3) that put `rect` onto a candidate CAD rectangle."""
+                     gravity_known: bool, at_least: tuple[bool, bool] = (False, False)
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """All rotations R (H, 3, 3) and translations t (H, 3) that put `rect` onto a candidate CAD rectangle of its
+    size within `size_tolerance_m`; `at_least`: rect's side a (b) is a lower bound of the feature's."""
     tol = params.size_tolerance_m
+
+    def alike(l_cad: np.ndarray, l_obs: float, lower_bound: bool) -> np.ndarray:
+        return l_cad > l_obs - tol if lower_bound else np.abs(l_cad - l_obs) < tol
+
     Rs, ts = [], []
     M_obs = np.stack([rect.a, rect.b, np.cross(rect.a, rect.b)], axis=1)  # columns
     for swap in (False, True):
@@ -135,7 +141,7 @@ def _seed_hypotheses(rect: _Rect, cand: np.ndarray, index: ModelIndex, params: R
         V = index.edge_u[cand] if swap else index.edge_v[cand]
         lu = index.len_v[cand] if swap else index.len_u[cand]
         lv = index.len_u[cand] if swap else index.len_v[cand]
-        ok = (np.abs(lu - rect.la) < tol) & (np.abs(lv - rect.lb) < tol)
+        ok = alike(lu, rect.la, at_least[0]) & alike(lv, rect.lb, at_least[1])
         if not ok.any():
             continue
         U, V, c_cad = U[ok], V[ok], index.centroids[cand][ok]
@@ -157,11 +163,15 @@ def _seed_hypotheses(rect: _Rect, cand: np.ndarray, index: ModelIndex, params: R
 
 
 def single_rectangle_poses(index: ModelIndex, kind: str, corners_map: np.ndarray,
-                           params: RobustParams | None = None, among: set[str] | None = None) -> list[np.ndarray]:
+                           params: RobustParams | None = None, among: set[str] | None = None,
+                           cut: tuple[bool, bool] = (False, False)) -> list[np.ndarray]:
     """Every level T_cad_map that puts one observed rectangle (corners (4, 3) in a map frame whose z is up) onto a
     CAD feature of its type and size (`among`: only the features of these ids): with gravity, one door or window
     fixes the pose up to which of the alike features it is and from which side it is seen (two poses per
-    feature). Nothing here can tell them apart; the walls can (graph.localizer's surface check)."""
+    feature). Nothing here can tell them apart; the walls can (graph.localizer's surface check). `cut`: the
+    rectangle's (horizontal, vertical) side is a cut one, short of the opening's (every sighting was cut by the
+    image border there): a feature at least that long less `size_tolerance_m` is alike along it (a door passed at
+    1-2 m fills the frame: docs/measurements.md, "A door measured short")."""
     params = params or RobustParams()
     if not index.has_type(kind):
         return []
@@ -171,7 +181,9 @@ def single_rectangle_poses(index: ModelIndex, kind: str, corners_map: np.ndarray
         if not len(cand):
             return []
     rect = rectangle_edges(corners_map)
-    R, t = _seed_hypotheses(rect, cand, index, params, gravity_known=True)
+    a_level = abs(rect.a[2]) < abs(rect.b[2])  # rect.a the horizontal side
+    at_least = (cut[0], cut[1]) if a_level else (cut[1], cut[0])
+    R, t = _seed_hypotheses(rect, cand, index, params, gravity_known=True, at_least=at_least)
     poses = []
     for r, v in zip(R, t, strict=True):
         T = levelled(make_T(r, v))  # levelled about the rectangle's centre, which stays on its feature's

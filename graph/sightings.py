@@ -62,6 +62,12 @@ class Landmark:
         width, height = (float(np.median(sides[whole[:, k], k] if whole[:, k].any() else sides[:, k])) for k in (0, 1))
         return width, height
 
+    def cut(self) -> tuple[bool, bool]:
+        """Whether every sighting was cut by the image border (sideways, vertically): the size along such an axis
+        (`size_m`) is then a cut side's, short of the opening's."""
+        sides = np.array(self.sides_m, float)
+        return bool(sides[:, 2].all()), bool(sides[:, 3].all())
+
     def corners(self, T_x_rect: np.ndarray) -> np.ndarray:
         """The rectangle (4, 3) of `size_m` about the landmark's frame T_x_rect (axes u along the wall, n, z up)."""
         (w, h), u, z = self.size_m(), T_x_rect[:3, 0], T_x_rect[:3, 2]

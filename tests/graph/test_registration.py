@@ -184,6 +184,39 @@ def test_one_rectangle_gives_a_level_pose_per_alike_feature_and_side(seed: int, 
     assert turned_deg < 1e-4 + 250.0 * noise_m  # 0 without noise, ~2 deg at 3 cm on a 0.9 m edge
 
 
+@pytest.mark.parametrize("cut", [(True, False), (False, True), (True, True)])
+def test_a_side_cut_by_the_image_border_matches_features_at_least_that_long(cut: tuple[bool, bool]) -> None:
+    """A door seen cut by the image border along a side measures short there: the cut side is a lower bound, so
+    every feature of its type at least that long (less the tolerance) is a candidate, the true one among them; an
+    uncut side still has to match within the tolerance, and a cut rectangle is still matched from both sides."""
+    from macroloc.graph.model_index import ModelIndex
+    from macroloc.graph.robust import RobustParams, single_rectangle_poses
+
+    tol = RobustParams().size_tolerance_m
+    sizes = [(1.07, 2.21), (0.9, 2.1), (1.6, 2.1), (0.6, 1.0), (1.07, 2.21)]  # (width, height) m
+    feats = []
+    for k, (w, h) in enumerate(sizes):
+        c = np.array([3.0 * k, 0.0, h / 2])
+        corners = np.array([c + [a * w / 2, 0.0, b * h / 2] for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+        feats.append(MacroFeature(f"D{k}", "door", "L1", corners, c, np.array([0.0, 1.0, 0.0]), w, h))
+    index = ModelIndex.build(feats)
+    seen_w, seen_h = 0.6 if cut[0] else 1.07, 1.61 if cut[1] else 2.21  # the first door, as measured
+    c = np.array([0.0, 0.0, seen_h / 2])
+    corners = np.array([c + [a * seen_w / 2, 0.0, b * seen_h / 2] for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+
+    def alike(f: MacroFeature, uncut: bool = False) -> bool:
+        return all(abs(l_cad - l_obs) < tol if not c_ or uncut else l_cad > l_obs - tol
+                   for l_cad, l_obs, c_ in ((f.width_m, seen_w, cut[0]), (f.height_m, seen_h, cut[1])))
+
+    def true(T: np.ndarray) -> bool:  # this door, from this side (the height is the cut centre's, off)
+        return np.allclose(T[:3, :3], np.eye(3), atol=1e-6) and np.allclose(T[:2, 3], 0.0, atol=1e-6)
+
+    poses = single_rectangle_poses(index, "door", corners, cut=cut)
+    assert len(poses) == 2 * sum(alike(f) for f in feats) and any(true(T) for T in poses)
+    uncut = single_rectangle_poses(index, "door", corners)
+    assert len(uncut) == 2 * sum(alike(f, uncut=True) for f in feats) and not any(true(T) for T in uncut)
+
+
 def test_two_doors_offer_every_alike_pair_to_the_walls(office_model) -> None:
     """Two neighbouring doors of Office_A, seen 0.25 m closer together than the model has them (Office_A seed 10,
     perception): the building has dozens of door pairs alike to them, and the registrar's candidates (for the walls
@@ -326,3 +359,16 @@ def test_the_localizers_registrar_seeds_from_every_landmark(office_model) -> Non
     # inliers (position, normal and size within the noise model, graph.verify), which the wrong pose lacks.
     off_m, off_deg = nearest_to_truth(0.5)
     assert off_m < 0.5 and off_deg < 5.0
+
+
+def test_a_landmark_is_cut_along_an_axis_only_where_every_sighting_was() -> None:
+    """A landmark's side is a lower bound (`Landmark.cut`) only where every sighting was cut there: one whole
+    sighting measures it."""
+    from macroloc.graph.sightings import Landmark
+
+    corners = np.array([[-0.5, 0.0, 2.0], [0.5, 0.0, 2.0], [0.5, 0.0, 0.0], [-0.5, 0.0, 0.0]])
+    landmark = Landmark.first_seen(0, "door", corners, (True, True))
+    landmark.add_sighting(corners, (True, False))
+    assert landmark.cut() == (True, False)
+    landmark.add_sighting(corners, (False, True))
+    assert landmark.cut() == (False, False)
