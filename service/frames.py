@@ -15,6 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
+from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.localizer import Sighting
 from macroloc.graph.rigid import apply
 from macroloc.service.recording import decode_image, matrix_from_pose
@@ -110,14 +111,6 @@ class PerceptionPipeline:
                 for f in result.features]
 
 
-def forward_T_body_cam(forward_m: float = 0.10, left_m: float = 0.06) -> np.ndarray:
-    """A forward-looking optical frame in the body frame: cam z = body x, cam x = -body y, cam y = -body z."""
-    T = np.eye(4)
-    T[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
-    T[:3, 3] = (forward_m, left_m, 0.0)
-    return T
-
-
 def make_perception_pipeline(threads: int | None = None, detector_model: Path | None = None
                              ) -> PerceptionPipeline | None:
     """The perception chain with the given detector (default: the shipped one), or None when it cannot load
@@ -131,7 +124,7 @@ def make_perception_pipeline(threads: int | None = None, detector_model: Path | 
         plan = set_threads()
         log.info("threads: %s", plan.describe())
         chain = Perception.create(detector_model, threads=threads or plan.onnxruntime, disparity=FrameDisparity())
-        return PerceptionPipeline(chain, forward_T_body_cam())
+        return PerceptionPipeline(chain, forward_stereo_T_body_cam())
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception
         log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)
         return None
@@ -147,5 +140,5 @@ def depth_points_body(frame: pb.StereoFrame, stride_px: int = 8, max_range_m: fl
     ok = np.isfinite(depth_m) & (depth_m > 0) & (depth_m <= max_range_m)
     z = depth_m[ok]
     points_cam = np.column_stack([(u[ok] - info.cx) / info.fx * z, (v[ok] - info.cy) / info.fy * z, z])  # pinhole
-    T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_T_body_cam()
+    T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
     return points_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3]

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.geo import GeoReference
 from macroloc.graph.localizer import Estimate
 from macroloc.service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
@@ -308,10 +309,9 @@ class LocalizationService:
         calibration, or nothing due)."""
         if T_odom_body is None:
             return None
-        from macroloc.service.frames import forward_T_body_cam
 
         info = ev.frame.info
-        T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_T_body_cam()
+        T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
         placed = self.places.at_frame(ev.frame, ev.stamp_ns, T_odom_body, T_body_cam, up_body, status)
         return placed if placed.T_cad_body is not None or placed.view is not None else None
 

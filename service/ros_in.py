@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.errors import UserInputError
 from macroloc.service.recording import pose_from_matrix, vector3
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
@@ -96,9 +97,7 @@ def transform_matrix(transform: Any) -> np.ndarray:
 
 def default_T_body_cam(baseline_m: float) -> np.ndarray:
     """The configured mounting where a bag has no /tf_static: the simulator's forward stereo pair."""
-    from macroloc.sim.simulator import forward_camera_T_body_cam
-
-    return forward_camera_T_body_cam(baseline_m)
+    return forward_stereo_T_body_cam(baseline_m)
 
 
 @dataclass

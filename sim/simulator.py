@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.bim import load_building
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.features import BuildingModel, MacroFeature
@@ -34,15 +35,6 @@ from macroloc.sim.textures import facade_crops, make_texture_layers
 log = logging.getLogger(__name__)
 
 DEFAULT_STOREY_HEIGHT_M = 3.0
-
-
-def forward_camera_T_body_cam(baseline_m: float, forward_m: float = 0.10) -> np.ndarray:
-    """T_body_cam of the left camera of a forward stereo pair: cam z = body x, cam x = -body y, cam y = -body z;
-    the pair's centre `forward_m` ahead of the body origin, the left camera baseline/2 to the left (+y)."""
-    T = np.eye(4)
-    T[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # columns: cam x, y, z in body
-    T[:3, 3] = (forward_m, baseline_m / 2, 0.0)
-    return T
 
 
 @dataclass
@@ -110,7 +102,7 @@ class Simulator:
         self.trajectory, self.free_space = plan_flight(self.scene, self.floor_z_m, params.flight, params.seed,
                                                        ceiling, self.features)
         self.ceiling_z_m = ceiling if ceiling is not None else self.floor_z_m + DEFAULT_STOREY_HEIGHT_M
-        self.T_body_cam = forward_camera_T_body_cam(params.camera.baseline_m)
+        self.T_body_cam = forward_stereo_T_body_cam(params.camera.baseline_m)
         look = params.seed if params.appearance_seed is None else params.appearance_seed
         rng = np.random.default_rng([look, 0x5CE])
         self.lighting = make_lighting(self.free_space, self.ceiling_z_m, rng)

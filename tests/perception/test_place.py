@@ -33,14 +33,14 @@ def camera_at(s: float, side_m: float = 0.0, turn_deg: float = 0.0) -> np.ndarra
 
 @pytest.fixture(scope="module")
 def room():  # noqa: ANN201 - (T_body_cam, stored [(T_map_body, view)], {name: (T_map_body, left image)})
+    from macroloc.common.geometry import forward_stereo_T_body_cam
     from macroloc.sim.materials import dress_scene
     from macroloc.sim.render import CameraModel, Lighting, StereoRenderer
-    from macroloc.sim.simulator import forward_camera_T_body_cam
     from macroloc.sim.textures import make_texture_layers
     from tests.sim.room import room_scene
 
     scene, features = room_scene()
-    T_body_cam = forward_camera_T_body_cam(RIG.baseline_m)
+    T_body_cam = forward_stereo_T_body_cam(RIG.baseline_m)
     lighting = Lighting(positions_cad=np.array([[2.0, 2.0, 2.7], [6.0, 4.0, 2.7]]), colours=np.ones((2, 3)),
                         noise_sigma=0.01)
     recognizer = PlaceRecognizer(RIG, T_body_cam)

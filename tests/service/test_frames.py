@@ -21,13 +21,14 @@ def textured_pair(disparity_px: int, seed: int = 0) -> tuple[np.ndarray, np.ndar
 
 def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
     pytest.importorskip("onnxruntime")
+    from macroloc.common.geometry import forward_stereo_T_body_cam
     from macroloc.perception.pipeline import Perception
-    from macroloc.service.frames import PerceptionPipeline, forward_T_body_cam
+    from macroloc.service.frames import PerceptionPipeline
 
-    pipeline = PerceptionPipeline(Perception.create(None), forward_T_body_cam(), depth_every=3)
+    pipeline = PerceptionPipeline(Perception.create(None), forward_stereo_T_body_cam(), depth_every=3)
     left, right = textured_pair(24)
     info = pb.CameraInfo(width=640, height=480, fx=480.0, fy=480.0, cx=319.5, cy=239.5, baseline_m=0.12,
-                         T_body_cam=pose_from_matrix(forward_T_body_cam()))
+                         T_body_cam=pose_from_matrix(forward_stereo_T_body_cam()))
     frame = pb.StereoFrame(left=encode_image(left), right=encode_image(right), info=info)
     measured = []
     for _ in range(4):

@@ -217,7 +217,7 @@ def test_stop_event_drains_and_saves(office_path, office_model, start_pose, tmp_
 
 def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, start_pose, tmp_path) -> None:
     """A wall the model does not have, 1.5 m ahead in a frame's depth image, marks the planner's grid there."""
-    from macroloc.service.frames import forward_T_body_cam
+    from macroloc.common.geometry import forward_stereo_T_body_cam
     from macroloc.service.recording import pose_from_matrix
 
     port = free_port()
@@ -231,7 +231,8 @@ def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, st
                                depth=pb.Image(width=64, height=48, encoding=pb.Image.RAW_DEPTH_F32,
                                               data=depth.tobytes()),
                                info=pb.CameraInfo(width=64, height=48, fx=48, fy=48, cx=31.5, cy=23.5,
-                                                  baseline_m=0.12, T_body_cam=pose_from_matrix(forward_T_body_cam())))
+                                                  baseline_m=0.12,
+                                                  T_body_cam=pose_from_matrix(forward_stereo_T_body_cam())))
         frame.header.stamp_ns = 41 * 33_000_000
         s.put("macroloc/t1/stereo", frame.SerializeToString())
         ahead_cad = T[:3, 3] + T[:3, 0] * 1.6  # body x is forward; the wall is 1.5 m ahead of the camera

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from macroloc.service.frames import forward_T_body_cam
+from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.service.recording import FlightWriter, pose_from_matrix, vector3
 from macroloc.service.state import MapStore
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
@@ -16,7 +16,7 @@ from tests.service.helpers import free_port, loopback, running_service, service_
 
 def write_fake_flight(path: Path, model, start: np.ndarray, frames: int = 45) -> Path:  # noqa: ANN001
     """A recording without images worth perceiving: tiny frames, ground truth of every door/window in range."""
-    T_body_cam = forward_T_body_cam()
+    T_body_cam = forward_stereo_T_body_cam()
     image = pb.Image(width=8, height=6, encoding=pb.Image.RAW_MONO8, data=bytes(48))
     with FlightWriter(path) as writer:
         for k in range(frames):
