@@ -191,3 +191,71 @@ class LocalizerParams:
     fit: SurfaceFitParams = field(default_factory=SurfaceFitParams)
     status: StatusParams = field(default_factory=StatusParams)
     recovery: RecoveryParams = field(default_factory=RecoveryParams)
+
+
+@dataclass(frozen=True)
+class VerifyParams:
+    """How a pose's matches are verified (graph.verify)."""
+
+    gate_sigmas: float = 3.0  # g: a residual beyond g sigma of its noise model is not a match (normal, sides) ...
+    position_gate_chi2: float = 14.16  # ... and a centroid beyond this chi-square (3 dof, the 99.7 % of g = 3)
+    false_detection_rate: float = 0.2  # eps, the prior of a false detection (the outlier process)
+    normal_floor_deg: float = 3.0  # the wall normal is never trusted better than this (CAD and detector frames)
+    size_floor_m: float = 0.10  # nor a side length better than this (opening vs frame of a door)
+    neighbours: int = 4  # CAD features within the position gate considered per observation
+
+
+@dataclass(frozen=True)
+class RobustParams:
+    """The one-shot registration's parameters (graph.robust; `[localize]` sets some of them)."""
+
+    inlier_threshold_m: float = 0.30  # a refined pose explains an observation within this distance
+    size_tolerance_m: float = 0.35  # observed vs CAD rectangle side lengths
+    coarse_base_m: float = 0.45  # coarse verification tolerance: base + slope x distance from the seed
+    coarse_slope: float = 0.12
+    max_seeds: int = 8  # observed rectangles used to generate hypotheses, at most
+    min_seeds: int = 2  # seeds added per round (refinement runs after each round)
+    early_stop_fraction: float = 0.5  # stop seeding once a refined pose explains this fraction
+    refine_top: int = 6  # distinct coarse hypotheses refined (a symmetric rival scores like the best: it is kept)
+    scan_top: int = 300  # coarse hypotheses scanned for distinct ones
+    refine_iterations: int = 2
+    gravity_tolerance_deg: float = 15.0
+    ambiguity_tau_m: float = 0.30  # an observation farther than this from any CAD feature explains nothing
+    rival_self_maps: int = 8  # the best pose's self-map images (graph.self_maps) refined and scored as rivals
+    landing_alpha: float = 0.1  # the rival margin covers the chance landings of false detections but this often
+    seed_rivals: int = 3  # per seed observation, its best distinct coarse hypotheses verified for its best pose
+    noise_floor_m: float = 0.05  # lower bound of the 3-D residual RMS used as the noise scale
+    distinct_m: float = 0.5  # poses that move the matched observations by more than this are different ...
+    distinct_deg: float = 5.0  # ... and so are poses whose rotations differ by more than this
+    pair_min_baseline_m: float = 2.0  # pair hypotheses (gravity known) need observations this far apart ...
+    pair_max_baseline_m: float = 30.0  # ... and CAD pairs up to this far apart are considered
+    pair_tolerance_m: float = 0.35  # horizontal distance / height difference agreement of a pair
+    coarse_observations: int = 12  # observations nearest the seed used to rank its hypotheses
+    polish_tau_m: float = 0.45  # tolerance of the ranking after the vectorised polishing step
+    rival_candidates: int = 4  # best-supported distinct hypotheses refined when looking for a rival
+    min_inlier_fraction: float = 0.35  # a pose explaining fewer of the observations is not trusted
+    cross_type_weight: float = 0.5  # an observation on a feature of the other type (door/window confusion) counts half
+    min_inliers: int = 3
+    min_inliers_without_gravity: int = 4  # 6 DoF: three centroids fit some pose anywhere; ask for more support ...
+    # ... unless every inlier is a rectangle, verified by its wall normal and sides (graph.verify): then min_inliers
+    # Below this many inliers the answer is only candidates for other evidence (the walls) to choose among: then
+    # they are every distinct hypothesis that explains as many observations as the best, or one fewer (down to
+    # two), not the refined few (a building with many alike door pairs offers dozens, and the truth must be among
+    # them, also where one observation is a false detection that a wrong pose happens to explain: the truth then
+    # explains one fewer than the best, and the walls, offered no true pose, may take a wrong one that fits them;
+    # docs/measurements.md, "Registration's candidates below four landmarks"). 0: the refined few.
+    complete_below: int = 0
+    # Issue 37: candidates ranked by the layout descriptor (graph.layout), and rivals found by it.
+    prune_top: int = 64  # per seed rectangle (gravity known), the CAD candidates kept, best layout score first (0:
+    # every one); 64 keeps the true one for nearly every seed rectangle (bench.bench_scale; docs/measurements.md,
+    # "Issue 37: registration that scales")
+    image_anchors: int = 3  # matched features of the best pose whose alike features propose its images
+    image_anchor_gap_m: float = 3.0  # anchors: the matched features with most matched ones around, this far apart
+    image_alike_fraction: float = 0.7  # alike: its layout explains this fraction of the anchor's relations
+    image_landing_m: float = 0.45  # an image maps a matched feature onto one of its type this close ...
+    image_min_fraction: float = 0.5  # ... and does so for this fraction of them (at least 2) ...
+    image_check: int = 8  # ... of this many, spread over the footprint
+    image_slack: float = 2.0  # images explaining fewer observations than the best less the rival margin (in
+    # observations) and this many more cannot come within the margin: they are not judged
+    verify: VerifyParams = VerifyParams()
+    seed: int = 0

@@ -28,17 +28,8 @@ import numpy as np
 
 from macroloc.graph.model_index import ModelIndex
 from macroloc.graph.observations import Observation
+from macroloc.graph.params import VerifyParams
 from macroloc.graph.rectangle import unordered_edges
-
-
-@dataclass(frozen=True)
-class VerifyParams:
-    gate_sigmas: float = 3.0  # g: a residual beyond g sigma of its noise model is not a match (normal, sides) ...
-    position_gate_chi2: float = 14.16  # ... and a centroid beyond this chi-square (3 dof, the 99.7 % of g = 3)
-    false_detection_rate: float = 0.2  # eps, the prior of a false detection (the outlier process)
-    normal_floor_deg: float = 3.0  # the wall normal is never trusted better than this (CAD and detector frames)
-    size_floor_m: float = 0.10  # nor a side length better than this (opening vs frame of a door)
-    neighbours: int = 4  # CAD features within the position gate considered per observation
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from macroloc.graph.params import (
     OdometryParams,
     RecoveryParams,
     RegistrationParams,
+    RobustParams,
     StatusParams,
     SurfaceFitParams,
 )
@@ -36,8 +37,6 @@ from macroloc.perception.image_header import DEFAULT_MAX_PIXELS
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
-
-    from macroloc.graph.robust import RobustParams
 
 log = logging.getLogger(__name__)
 P = TypeVar("P", bound="DataclassInstance")  # a parameter dataclass
@@ -55,6 +54,9 @@ def _replaced(defaults: P, section: BaseModel) -> P:
     return replace(defaults, **{k: getattr(section, k) for k in type(section).model_fields if k in names})
 
 
+_ROBUST = RobustParams()  # the one-shot registration's defaults (graph.params), written once
+
+
 class LocalizeConfig(_Section):
     """One-shot registration of observed macro-features to the CAD model (graph/registration): `macroloc localize
     --config FILE` reads the robust method's keys (graph.robust.RobustParams' fields of the same names); `macroloc
@@ -62,20 +64,20 @@ class LocalizeConfig(_Section):
 
     method: Literal["robust", "paper"] = Field("robust", description="'paper' = the paper's algorithm exactly")
     inlier_threshold_m: float = Field(
-        0.30, description="an observation this close to a same-type CAD feature (centroids) supports the pose, m "
-        "(as [graph.registration] inlier_threshold_m is the pose graph's, for perception's coarser landmarks)")
+        _ROBUST.inlier_threshold_m,
+        description="an observation this close to a same-type CAD feature (centroids) supports the pose, m (as "
+        "[graph.registration] inlier_threshold_m is the pose graph's, for perception's coarser landmarks)")
     landing_alpha: float = Field(
-        0.1, description="a different pose within the rival margin of the best makes the answer 'ambiguous'; the "
-                         "margin covers the false detections' chance landings on features but this often")
-    min_inliers: int = Field(3, description="fewer explained observations than this (4 without gravity): "
-                                            "not_localized")
-    seed: int = Field(0, description="random seed of the hypothesis order (deterministic answers)")
+        _ROBUST.landing_alpha,
+        description="a different pose within the rival margin of the best makes the answer 'ambiguous'; the margin "
+        "covers the false detections' chance landings on features but this often")
+    min_inliers: int = Field(
+        _ROBUST.min_inliers, description="fewer explained observations than this (4 without gravity): not_localized")
+    seed: int = Field(_ROBUST.seed, description="random seed of the hypothesis order (deterministic answers)")
 
     def robust_params(self) -> RobustParams:
         """The robust method's parameters (graph.registration.register(method='robust', params=...)): its
         defaults but for this section's keys of the same names."""
-        from macroloc.graph.robust import RobustParams  # scipy: only where a registration runs
-
         return _replaced(RobustParams(), self)
 
 
