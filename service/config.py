@@ -32,6 +32,7 @@ from macroloc.graph.params import (
     RobustParams,
     StatusParams,
     SurfaceFitParams,
+    VerifyParams,
 )
 from macroloc.perception.image_header import DEFAULT_MAX_PIXELS
 
@@ -54,7 +55,24 @@ def _replaced(defaults: P, section: BaseModel) -> P:
     return replace(defaults, **{k: getattr(section, k) for k in type(section).model_fields if k in names})
 
 
-_ROBUST = RobustParams()  # the one-shot registration's defaults (graph.params), written once
+_ROBUST, _VERIFY = RobustParams(), VerifyParams()  # the one-shot registration's defaults (graph.params), written once
+
+
+class VerifyConfig(_Section):
+    """How the one-shot registration verifies a pose's matches (graph.params.VerifyParams, graph.verify)."""
+
+    gate_sigmas: float = Field(
+        _VERIFY.gate_sigmas, gt=0,
+        description="a residual beyond this many sigmas of its noise model is no match (wall normal, sides)")
+    position_gate_chi2: float = Field(
+        _VERIFY.position_gate_chi2, gt=0, description="... and a centroid beyond this chi-square (3 dof)")
+    false_detection_rate: float = Field(
+        _VERIFY.false_detection_rate, gt=0, lt=1, description="the prior of a false detection (the outlier process)")
+    normal_floor_deg: float = Field(
+        _VERIFY.normal_floor_deg, ge=0, description="the wall normal is never trusted better than this, deg")
+    size_floor_m: float = Field(_VERIFY.size_floor_m, ge=0, description="nor a side length better than this, m")
+    neighbours: int = Field(
+        _VERIFY.neighbours, ge=1, description="CAD features within the position gate considered per observation")
 
 
 class LocalizeConfig(_Section):
@@ -74,11 +92,104 @@ class LocalizeConfig(_Section):
     min_inliers: int = Field(
         _ROBUST.min_inliers, description="fewer explained observations than this (4 without gravity): not_localized")
     seed: int = Field(_ROBUST.seed, description="random seed of the hypothesis order (deterministic answers)")
+    size_tolerance_m: float = Field(
+        _ROBUST.size_tolerance_m, gt=0,
+        description="an observed rectangle's sides match a CAD feature's within this, m")
+    coarse_base_m: float = Field(
+        _ROBUST.coarse_base_m, gt=0,
+        description="the coarse check's tolerance: this plus coarse_slope times the distance from the seed, m")
+    coarse_slope: float = Field(
+        _ROBUST.coarse_slope, ge=0, description="... its growth with the distance from the seed, m/m")
+    max_seeds: int = Field(
+        _ROBUST.max_seeds, ge=1, description="observed rectangles that seed hypotheses, at most")
+    min_seeds: int = Field(
+        _ROBUST.min_seeds, ge=1, description="seeds added per round (the refinement runs after each round)")
+    early_stop_fraction: float = Field(
+        _ROBUST.early_stop_fraction, gt=0, le=1,
+        description="seeding stops once a refined pose explains this fraction of the observations")
+    refine_top: int = Field(
+        _ROBUST.refine_top, ge=1, description="distinct coarse hypotheses refined")
+    scan_top: int = Field(
+        _ROBUST.scan_top, ge=1, description="coarse hypotheses scanned for distinct ones")
+    refine_iterations: int = Field(
+        _ROBUST.refine_iterations, ge=1, description="refinement iterations of each pose")
+    gravity_tolerance_deg: float = Field(
+        _ROBUST.gravity_tolerance_deg, ge=0,
+        description="with gravity given, a hypothesis may tilt the map this much, deg")
+    ambiguity_tau_m: float = Field(
+        _ROBUST.ambiguity_tau_m, gt=0,
+        description="an observation farther than this from any CAD feature explains nothing, m")
+    rival_self_maps: int = Field(
+        _ROBUST.rival_self_maps, ge=0,
+        description="the best pose's images under the building's self-maps refined and scored as rivals")
+    seed_rivals: int = Field(
+        _ROBUST.seed_rivals, ge=0,
+        description="per seed observation, its best distinct coarse hypotheses verified as rivals")
+    noise_floor_m: float = Field(
+        _ROBUST.noise_floor_m, gt=0, description="the residuals' noise scale is never taken below this, m")
+    distinct_m: float = Field(
+        _ROBUST.distinct_m, gt=0,
+        description="poses that move the matched observations by more than this are different, m ...")
+    distinct_deg: float = Field(
+        _ROBUST.distinct_deg, gt=0, description="... and so are poses whose rotations differ by more than this, deg")
+    pair_min_baseline_m: float = Field(
+        _ROBUST.pair_min_baseline_m, ge=0,
+        description="pair hypotheses (gravity given) need observations this far apart, m ...")
+    pair_max_baseline_m: float = Field(
+        _ROBUST.pair_max_baseline_m, gt=0, description="... and consider CAD pairs up to this far apart, m")
+    pair_tolerance_m: float = Field(
+        _ROBUST.pair_tolerance_m, gt=0,
+        description="a pair's horizontal distance and height difference agree within this, m")
+    coarse_observations: int = Field(
+        _ROBUST.coarse_observations, ge=1, description="observations nearest the seed that rank its hypotheses")
+    polish_tau_m: float = Field(
+        _ROBUST.polish_tau_m, gt=0, description="the ranking's tolerance after the polishing step, m")
+    rival_candidates: int = Field(
+        _ROBUST.rival_candidates, ge=0,
+        description="best-supported distinct hypotheses refined when looking for a rival")
+    min_inlier_fraction: float = Field(
+        _ROBUST.min_inlier_fraction, ge=0, le=1,
+        description="a pose explaining fewer of the observations than this fraction is not trusted")
+    cross_type_weight: float = Field(
+        _ROBUST.cross_type_weight, ge=0, le=1,
+        description="an observation on a feature of the other type (door/window confusion) counts this much")
+    min_inliers_without_gravity: int = Field(
+        _ROBUST.min_inliers_without_gravity, ge=1,
+        description="without gravity, fewer explained observations than this: not_localized (unless every one is a "
+        "rectangle: min_inliers)")
+    complete_below: int = Field(
+        _ROBUST.complete_below, ge=0,
+        description="below this many inliers the answer is every distinct hypothesis explaining as many observations "
+        "as the best or one fewer, for other evidence to choose among (0: the refined few)")
+    prune_top: int = Field(
+        _ROBUST.prune_top, ge=0,
+        description="per seed rectangle (gravity given), the CAD candidates kept, best layout score first (0: every "
+        "one)")
+    image_anchors: int = Field(
+        _ROBUST.image_anchors, ge=1,
+        description="matched features of the best pose whose alike features propose its images (rivals)")
+    image_anchor_gap_m: float = Field(
+        _ROBUST.image_anchor_gap_m, ge=0, description="... at least this far apart, m")
+    image_alike_fraction: float = Field(
+        _ROBUST.image_alike_fraction, gt=0, le=1,
+        description="alike: a feature whose layout explains this fraction of the anchor's relations")
+    image_landing_m: float = Field(
+        _ROBUST.image_landing_m, gt=0,
+        description="an image maps a matched feature onto one of its type this close, m ...")
+    image_min_fraction: float = Field(
+        _ROBUST.image_min_fraction, gt=0, le=1, description="... for this fraction of them (at least 2) ...")
+    image_check: int = Field(
+        _ROBUST.image_check, ge=1, description="... of this many, spread over the footprint")
+    image_slack: float = Field(
+        _ROBUST.image_slack, ge=0,
+        description="images short of the best by the rival margin and this many observations more are not judged")
+    verify: VerifyConfig = Field(default_factory=lambda: VerifyConfig(),
+                                 description="[localize.verify]: how a pose's matches are verified")
 
     def robust_params(self) -> RobustParams:
         """The robust method's parameters (graph.registration.register(method='robust', params=...)): its
         defaults but for this section's keys of the same names."""
-        return _replaced(RobustParams(), self)
+        return replace(_replaced(RobustParams(), self), verify=_replaced(VerifyParams(), self.verify))
 
 
 class CameraConfig(_Section):

@@ -130,6 +130,26 @@ def test_a_flat_graph_file_loads_as_its_nested_equivalent_with_one_warning_per_k
         assert sum(w == f"config: [graph] {old} is now [graph.{table}] {key}" for w in warnings) == 1, old
 
 
+def test_every_parameter_of_the_one_shot_registration_is_a_key_and_takes_effect() -> None:
+    """Every field of `RobustParams` is a [localize] key and of its `VerifyParams` a [localize.verify] key; each,
+    set to another value, changes that one value of `robust_params()`."""
+    from macroloc.graph.params import RobustParams, VerifyParams
+    from macroloc.service.config import LocalizeConfig
+
+    keys = set(LocalizeConfig.model_fields) - {"method"}
+    assert keys == {f.name for f in dataclasses.fields(RobustParams)}
+    assert set(type(LocalizeConfig().verify).model_fields) == {f.name for f in dataclasses.fields(VerifyParams)}
+    assert LocalizeConfig().robust_params() == RobustParams()
+    for key in sorted(keys - {"verify"}):
+        value = _other(getattr(RobustParams(), key))
+        got = LocalizeConfig.model_validate({key: value}).robust_params()
+        assert got == dataclasses.replace(RobustParams(), **{key: value}), key
+    for key in type(LocalizeConfig().verify).model_fields:
+        value = _other(getattr(VerifyParams(), key))
+        got = LocalizeConfig.model_validate({"verify": {key: value}}).robust_params()
+        assert got == RobustParams(verify=dataclasses.replace(VerifyParams(), **{key: value})), key
+
+
 def test_one_name_for_the_registration_tolerance() -> None:
     """The one-shot localize's and the pose graph's registration gate are one idea, `inlier_threshold_m`,
     each with its own default; the pose graph's old name still loads."""
