@@ -12,17 +12,15 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
 from macroloc.graph.features import BuildingModel
-from macroloc.graph.keyframes import KeyframePolicy
-from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams
+from macroloc.graph.localizer import Estimate, Localizer
 from macroloc.graph.mapstore import StoredMap
-from macroloc.graph.posegraph import IsamSettings
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
@@ -117,25 +115,22 @@ def _round(v: float | None, nd: int = 4) -> float | None:
 
 
 def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: ObservationSource | None = None,
-           stored: StoredMap | None = None, storey_hint: str | None = None, policy: KeyframePolicy | None = None,
-           sink: FrameSink = null_sink, params: LocalizerParams | None = None,
-           isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None,
+           stored: StoredMap | None = None, sink: FrameSink = null_sink, surfaces: SurfaceIndex | None = None,
            places: KeyframePlaces | None = None, recorder: FrameRecorder | None = None,
            settings: SessionSettings | None = None,
            make: Callable[[np.ndarray], LocalizationSession] | None = None) -> ReplayResult:
     """Run `flight` (a macroloc MCAP recording, or its frames from any reader: service.offline.ros_bag.open_flight)
     through a new localization session (service.session) in `model`; see module doc. `make`: the session for the
     flight's camera (T_body_cam, 4x4), as the CLI and the benchmarks build it (`service.session.session_from_config`);
-    else one from `settings`, else the defaults with `params`, `policy`, `isam`, `storey_hint`, `stored` and `surfaces`
-    where given. `places`: place recognition on the frames (service.places: views kept for the saved map, frames placed
-    in the stored map's views). `recorder`: keeps every frame (e.g. for Foxglove:
-    service.offline.foxglove_out.ReplayRecorder)."""
+    else one from `settings` (the defaults without), with `stored` and `surfaces` where given. `places`: place
+    recognition on the frames (service.places: views kept for the saved map, frames placed in the stored map's
+    views). `recorder`: keeps every frame (e.g. for Foxglove: service.offline.foxglove_out.ReplayRecorder)."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
     from macroloc.service.recording import matrix_from_pose, read_flight
 
     source = source or TruthSource()
-    settings = settings or _settings(params, policy, isam, storey_hint)
+    settings = settings or SessionSettings()
     make = make or (lambda T_body_cam: make_session(model, settings, stored=stored, surfaces=surfaces,
                                                     T_body_cam=T_body_cam))
     places = places or KeyframePlaces(None, keep_views=False)
@@ -170,13 +165,6 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
         raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
     recorder.finish(session.localizer)
     return _score(trace, session.localizer, busy_s, busy_at_localized)
-
-
-def _settings(params: LocalizerParams | None, policy: KeyframePolicy | None, isam: IsamSettings | None,
-              storey_hint: str | None) -> SessionSettings:
-    d = SessionSettings()
-    return SessionSettings(params or d.localizer, replace(d.rule, policy=policy) if policy else d.rule,
-                           isam or d.isam, storey_hint)
 
 
 def _record(trace: ReplayTrace, t_s: float, est: Estimate, T_true: np.ndarray | None, is_kf: bool,
