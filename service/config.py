@@ -314,7 +314,7 @@ class KeyframesConfig(_Params):
         return self.to_params(replace(_RULE, policy=self.to_params(_RULE.policy)))
 
 
-class OdometryConfig(_Params):
+class GraphOdometryConfig(_Params):
     """The odometry factor between consecutive keyframes (graph.params.OdometryParams)."""
 
     odometry_sigma_per_m: float = Field(
@@ -614,8 +614,8 @@ class GraphConfig(_Section):
         "a wall or column of the model; turn off for a model whose glass partitions are modelled as walls")
     keyframes: KeyframesConfig = Field(default_factory=lambda: KeyframesConfig(),
                                        description="[graph.keyframes]: which frames become keyframes")
-    odometry: OdometryConfig = Field(default_factory=lambda: OdometryConfig(),
-                                     description="[graph.odometry]: the odometry between keyframes")
+    odometry: GraphOdometryConfig = Field(default_factory=lambda: GraphOdometryConfig(),
+                                          description="[graph.odometry]: the odometry between keyframes")
     landmarks: LandmarksConfig = Field(default_factory=lambda: LandmarksConfig(),
                                        description="[graph.landmarks]: sightings into landmarks")
     registration: RegistrationConfig = Field(default_factory=lambda: RegistrationConfig(),
