@@ -18,7 +18,8 @@ import numpy as np
 
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.evaluate import iou_xyxy
-from macroloc.perception.lines import JOIN_GAP_PX, LineConfig, Sides, detect_segments
+from macroloc.perception.lines import LineConfig, Sides, detect_segments
+from macroloc.perception.params import JOIN_GAP_PX
 from macroloc.perception.reconstruct import WallPlaneConfig, wall_plane
 from macroloc.perception.size_check import OpeningSizes, SizeTolerance, fitting
 from macroloc.perception.stereo import back_project, to_gray

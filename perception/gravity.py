@@ -18,19 +18,10 @@ Frames: odometry frame (gravity roughly -z), body frame of the IMU; metres, seco
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
 
 import numpy as np
 
-
-@dataclass(frozen=True)
-class GravityParams:
-    window_s: float = 1.0  # positions and specific forces of this long a span estimate the mean acceleration
-    min_span_s: float = 0.5  # a shorter history gives the specific force alone (as at take-off)
-    max_accel_mps2: float = 4.0  # a larger fitted acceleration is not a flight's: no estimate for this frame
-    end_s: float = 0.25  # the velocities at the window's ends: lines fitted to this long a part of it
-    min_specific_force_mps2: float = 5.0  # an IMU sample outside these is no flight's: a free fall or a knock,
-    max_specific_force_mps2: float = 15.0  # left out (in the service and a replay alike)
+from macroloc.perception.params import GravityParams
 
 
 class GravityEstimator:

@@ -13,26 +13,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from macroloc.perception.params import LineConfig
 from macroloc.perception.stereo import to_gray
 
 log = logging.getLogger(__name__)
 
-JOIN_ANGLE_DEG = 2.0  # paper: slopes within 2 degrees
-JOIN_GAP_PX = 10.0  # paper: close endpoints within 10 pixels
-
-
-@dataclass(frozen=True)
-class LineConfig:
-    join_angle_deg: float = JOIN_ANGLE_DEG
-    join_gap_px: float = JOIN_GAP_PX
-    join_offset_px: float = 3.0  # our addition: the joined pieces must also be collinear (perpendicular offset)
-    max_tilt_deg: float = 25.0  # |angle from the image vertical| for a side candidate (drone roll up to ~20 deg)
-    margin: float = 0.10  # the box grows by this fraction of its size on each side before LSD
-    side_band: float = 0.30  # a side candidate lies within this fraction of the box width inside that edge
-    side_band_out: float = 0.08  # ... or this fraction outside it (strong edges beside a feature are not its side)
-    min_length: float = 0.35  # ... and is at least this fraction of the box height long
-    near_length: float = 0.6  # among candidates at least this fraction of the longest, the nearest wins
-    snap: float = 0.04  # a side's end this close (fraction of box height) to the box's top/bottom goes onto it
 
 
 @dataclass(frozen=True)

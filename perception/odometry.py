@@ -45,46 +45,10 @@ from scipy.spatial.transform import Rotation
 
 from macroloc.common.geometry import rotation_angle_rad
 from macroloc.perception.calib import StereoRig
+from macroloc.perception.params import OdometryConfig
 from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher, keypoint_points, to_gray
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class OdometryConfig:
-    n_features: int = 1000  # kept a frame, spread over the grid below (2000 before issue 37, unspread)
-    detect_features: int = 2000  # ORB's keypoints before the grid picks `n_features` (only those are described)
-    grid_cols: int = 8  # the image is cut into grid_cols x grid_rows cells; each keeps its strongest keypoints
-    grid_rows: int = 6
-    fast_threshold: int = 7  # rendered walls are low in contrast: a lower FAST threshold keeps features
-    min_disparity_px: float = 1.0
-    num_disparities: int = 128  # SGBM's search range at keyframes: depth down to fx * baseline / 128 (0.45 m)
-    edge_disparity_px: float = 1.0  # a keypoint whose 3 x 3 disparities spread more lies on a depth edge
-    max_depth_m: float = 15.0
-    ratio: float = 0.8  # Lowe's ratio test for frame-to-keyframe matches
-    ransac_reprojection_px: float = 2.0
-    min_inliers: int = 15  # fewer: tracking lost for this frame
-    rekey_inliers: int = 80  # fewer: the current frame becomes the reference keyframe
-    rekey_translation_m: float = 0.3
-    rekey_rotation_rad: float = 0.35
-    max_step_m: float = 0.15  # a frame-to-frame jump beyond this (4.5 m/s at 30 Hz) is a wrong PnP solution
-    max_step_rad: float = 0.25
-    max_step_change_m: float = 0.03  # a pose from fewer than rekey_inliers this far off the last step's velocity
-    #                                  (27 m/s^2 at 30 Hz) is a wrong PnP solution (a wall filling the view)
-    gyro_tolerance_rad: float = 0.035  # a PnP rotation this far from the gyro's is replaced by the gyro's
-    pnp_rotation_gain: float = 0.2  # with a gyro: the share of PnP's rotation taken per frame (see _agree_with_gyro)
-    tracker: str = "orb"  # "orb": ORB detected, described and matched to the keyframe every frame; "klt": the
-    #                       keyframe's points followed by optical flow between keyframes (a third of the CPU; not the
-    #                       default: it drifted more than ORB in one of the two buildings measured:
-    #                       docs/measurements.md, "Visual odometry by optical flow")
-    flow_points: int = 300  # the keyframe's points followed by the flow, spread over the grid (cost grows with them)
-    flow_window_px: int = 15  # Lucas-Kanade's window
-    flow_levels: int = 2  # its pyramid's levels above the image (the gyro's prediction leaves little to search)
-    flow_from: str = "last"  # "last": each point followed from the last frame; "keyframe": from the keyframe's image
-    flow_min_eigen: float = 1e-4  # LK's minEigThreshold (OpenCV's): a point whose window's gradients are weaker is
-    #                               lost (higher: fewer points on edges, which slide along them)
-    flow_round_trip_px: float = 1.0  # a point tracked forward then back further than this from where it was: lost
-    flow_border_px: float = 8.0  # a point tracked this near the image's edge or nearer: lost
 
 
 @dataclass

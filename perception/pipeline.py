@@ -17,6 +17,7 @@ import numpy as np
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.detector import DEFAULT_MODEL, Detection, Detector
 from macroloc.perception.lines import LineConfig, Sides, refine_box
+from macroloc.perception.params import PerceptionParams
 from macroloc.perception.reconstruct import (
     PlausibilityConfig,
     WallPlaneConfig,
@@ -120,10 +121,13 @@ class Perception:
 
     @staticmethod
     def create(model_path: Path | None = None, sgbm: SgbmConfig | None = None, threads: int = 2,
-               disparity: FrameDisparity | None = None) -> Perception:
+               disparity: FrameDisparity | None = None, params: PerceptionParams | None = None) -> Perception:
         """The chain with the detector at `model_path` (None: the shipped one); stereo from `disparity` (the
-        frame's shared SGBM) where given, else its own band SGBM with `sgbm`."""
-        return Perception(Detector(model_path or DEFAULT_MODEL, threads=threads), disparity or SgbmMatcher(sgbm))
+        frame's shared SGBM) where given, else its own band SGBM with `sgbm`; the sides, plausibility limits and
+        wall plane of `params` (their defaults without)."""
+        p = params or PerceptionParams()
+        return Perception(Detector(model_path or DEFAULT_MODEL, threads=threads), disparity or SgbmMatcher(sgbm),
+                          lines=p.lines, plausibility=p.plausibility, wall=p.wall_plane)
 
     def process(self, pair: StereoPair) -> PerceptionResult:
         clock = _Clock()

@@ -20,6 +20,7 @@ import numpy as np
 
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.lines import Sides
+from macroloc.perception.params import PlausibilityConfig, WallPlaneConfig
 from macroloc.perception.stereo import back_project, ray_cam, sample_depth_m
 
 log = logging.getLogger(__name__)
@@ -85,20 +86,6 @@ def closest_point_to_ray(line: Line3D, ray: np.ndarray) -> np.ndarray | None:
 
 
 @dataclass(frozen=True)
-class PlausibilityConfig:
-    """Limits a reconstructed door/window must meet (m, degrees)."""
-
-    depth_range_m: tuple[float, float] = (0.5, 12.0)
-    door_width_m: tuple[float, float] = (0.5, 2.6)
-    door_height_m: tuple[float, float] = (1.5, 3.2)
-    window_width_m: tuple[float, float] = (0.25, 4.0)
-    window_height_m: tuple[float, float] = (0.25, 3.5)
-    max_tilt_deg: float = 15.0  # side direction vs gravity, when gravity is known
-    max_tilt_no_gravity_deg: float = 30.0  # vs the camera's y axis when it is not (drone roll up to ~20 deg)
-    max_side_angle_deg: float = 15.0  # the two sides must be nearly parallel
-
-
-@dataclass(frozen=True)
 class Reconstruction:
     """4 corners (4,3) in the camera frame (m), width/height (m), tilt of the sides from vertical (deg)."""
 
@@ -146,20 +133,7 @@ def reconstruct_sides(sides: Sides, depth_m: np.ndarray, rig: StereoRig, n_sampl
     return np.stack([tl, tr, br, bl]), lines
 
 
-@dataclass(frozen=True)
-class WallPlaneConfig:
-    """The wall an opening sits in, from the depth beside its sides and above its top (`wall_plane`)."""
 
-    near_px: float = 6.0  # the strips start this far outside the sides (past the frame's edge) ...
-    far_px: float = 24.0  # ... and end this far
-    n_samples: int = 16  # points along each side (and the top) per column (row) of a strip
-    threshold_m: tuple[float, float] = (0.03, 0.0125)  # a point lies on the plane within a + b * depth^2 (stereo)
-    min_points: int = 6  # of a strip (left, right, top) for it to count ...
-    min_strips: int = 2  # ... and this many must lie on the plane (one strip leaves it free to turn about it)
-    min_inlier_fraction: float = 0.8  # of the points of the strips that count (0.6 let more wrong walls through)
-    max_tilt_deg: float = 15.0  # the plane's normal from horizontal (with gravity known): a wall stands
-    min_incidence_deg: float = 10.0  # a corner's viewing ray must meet the plane at least this steeply
-    iterations: int = 64  # RANSAC hypotheses (seeded: the same frame gives the same plane)
 
 
 def _strip_points(edge_px: np.ndarray, offset_px: np.ndarray, depth_m: np.ndarray, rig: StereoRig,

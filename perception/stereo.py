@@ -7,12 +7,12 @@ Frames: pixels (u right, v down) of the rectified left image; points in the left
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from macroloc.perception.calib import StereoRig
+from macroloc.perception.params import SgbmConfig
 
 log = logging.getLogger(__name__)
 
@@ -26,19 +26,6 @@ def to_gray(image: np.ndarray) -> np.ndarray:
         return image[:, :, 0]
     return cv2.cvtColor(image[:, :, :3], cv2.COLOR_BGR2GRAY)
 
-
-@dataclass(frozen=True)
-class SgbmConfig:
-    """SGBM parameters: disparities searched (multiple of 16), block size (odd, px), 3-way mode."""
-
-    num_disparities: int = 64
-    block_size: int = 5
-    uniqueness_ratio: int = 5
-    speckle_window: int = 100
-    speckle_range: int = 2
-    three_way: bool = True
-    scale: float = 1.0  # < 1: matched on the pair shrunk by this factor (disparities and block too), then the
-    #                     disparity brought back to full size (nearest pixel, values / scale): 0.5 costs ~1/4
 
 
 class SgbmMatcher:

@@ -33,7 +33,7 @@ from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
 from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
 from macroloc.graph.surfaces import SurfaceIndex
-from macroloc.perception.gravity import GravityEstimator
+from macroloc.perception.gravity import GravityEstimator, GravityParams
 from macroloc.service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn
 from macroloc.service.places import Placed
 from macroloc.service.recording import matrix_from_pose, pose_from_matrix, vector3
@@ -113,8 +113,9 @@ class LocalizerBackend:
     thread only (the service's worker)."""
 
     def __init__(self, model: BuildingModel, session: LocalizationSession,
-                 T_body_cam: np.ndarray | None = None) -> None:
-        """`T_body_cam`: the left camera in the body frame, for sightings sent in the cam_left frame."""
+                 T_body_cam: np.ndarray | None = None, gravity: GravityParams | None = None) -> None:
+        """`T_body_cam`: the left camera in the body frame, for sightings sent in the cam_left frame; `gravity`:
+        the IMU's up estimate's ([perception.gravity])."""
         self.model = model
         self.session = session
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
@@ -122,7 +123,8 @@ class LocalizerBackend:
         self._pending: list[_Pending] = []  # sightings that arrived before the odometry of their stamp
         self.unmatched = 0  # sightings dropped: no odometry near their stamp
         self._up_body: np.ndarray | None = None
-        self._gravity = GravityEstimator()
+        self._gravity_params = gravity or GravityParams()
+        self._gravity = GravityEstimator(self._gravity_params)
         self._accel_body: list[np.ndarray] = []  # specific forces since the last odometry sample
         self.restored: StoredMap | None = None  # a saved map's keyframe views and T_cad_map, for place recognition
         self.restored_localized = False  # restarted from a saved map that was localized (see `supersedes_saved`)
@@ -135,11 +137,12 @@ class LocalizerBackend:
         """The backend on a session from the config (service.session.session_from_config; the defaults without
         one), with covariance; `surfaces`: the model's walls, to check registrations against the frames' depth
         (graph.surfaces)."""
-        from macroloc.service.config import GraphConfig
+        from macroloc.service.config import GraphConfig, MacrolocConfig
 
+        gravity = cfg.perception.to_params().gravity if isinstance(cfg, MacrolocConfig) else None
         cfg = cfg or GraphConfig()
         if snapshot is None:
-            return cls(model, session_from_config(cfg, model, surfaces=surfaces, covariance=True))
+            return cls(model, session_from_config(cfg, model, surfaces=surfaces, covariance=True), gravity=gravity)
         features = {f.id: f for f in model.features}
         linked = [KnownRect(lm.id, features[lm.id].type, feature_frame_cad(features[lm.id]))
                   for lm in snapshot.landmarks_map if lm.id in features and features[lm.id].orientation == "vertical"]
@@ -152,7 +155,8 @@ class LocalizerBackend:
             return RestoredRegistrar(model, saved_T, linked, fallback, params=s.localizer,
                                      with_surfaces=surfaces is not None)
 
-        backend = cls(model, session_from_config(cfg, model, surfaces=surfaces, registrar=restored, covariance=True))
+        backend = cls(model, session_from_config(cfg, model, surfaces=surfaces, registrar=restored, covariance=True),
+                      gravity=gravity)
         backend.restored_localized = saved_T is not None
         if saved_T is not None and snapshot.views:  # views with their poses, as a map carries an earlier one's
             backend.restored = StoredMap(model.sha256, saved_T, carried=[view_from_wire(v) for v in snapshot.views])
@@ -197,7 +201,7 @@ class LocalizerBackend:
         self._odometry.clear()
         self._pending.clear()
         self._accel_body = []
-        self._gravity = GravityEstimator()  # it differentiates the odometry over stamps; up_body is kept
+        self._gravity = GravityEstimator(self._gravity_params)  # it differentiates the odometry over stamps
         self.session.new_time_base()
 
     def depth(self, stamp_ns: int, points_body: np.ndarray) -> None:

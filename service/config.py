@@ -35,6 +35,7 @@ from macroloc.graph.params import (
     VerifyParams,
 )
 from macroloc.perception.image_header import DEFAULT_MAX_PIXELS
+from macroloc.perception.params import PerceptionParams
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
@@ -269,16 +270,6 @@ class SimConfig(_Section):
                                        "numbered n % 5 != 0 are used (the rest is the detector's test split)")
 
 
-class PerceptionConfig(_Section):
-    """The perception chain (perception/): which door/window detector, and on which frames it runs."""
-
-    detector_model: Path | None = Field(None, description="detector ONNX file with its JSON sidecar beside it; "
-                                        "default: the shipped perception/models/detector.onnx (trained on real "
-                                        "photos). A detector adapted to one building is trained on renders of its "
-                                        "model: python -m macroloc.perception.train --sim FOLDER --out DIR")
-    detect_every: int = Field(3, ge=1, description="replay: run the chain on every n-th stereo frame")
-
-
 # the localizer's defaults, written once (graph.params, graph.keyframes): the [graph] tables take theirs from these
 _LANDMARKS, _ANCHOR, _STATUS, _RECOVERY = LandmarkParams(), AnchorParams(), StatusParams(), RecoveryParams()
 _REGISTRATION, _JUDGE, _FAR = RegistrationParams(), JudgeParams(), FarParams()
@@ -293,6 +284,232 @@ class _Params(_Section):
     def to_params(self, defaults: P) -> P:
         """`defaults` (a parameter dataclass) with this table's keys that are its fields."""
         return _replaced(defaults, self)
+
+
+_PERCEPTION = PerceptionParams()  # the chain's defaults (perception.params), written once
+
+
+class StereoTable(_Params):
+    """The frame's SGBM, shared by the depth points, the openings and the odometry's keyframes
+    (perception.params.SgbmConfig)."""
+
+    num_disparities: int = Field(
+        _PERCEPTION.stereo.num_disparities, ge=16, multiple_of=16,
+        description="disparities searched: depth down to fx * baseline / this (a wider baseline or a nearer wall wants "
+        "more)")
+    block_size: int = Field(_PERCEPTION.stereo.block_size, ge=1, description="matched block, px (odd)")
+    uniqueness_ratio: int = Field(_PERCEPTION.stereo.uniqueness_ratio, ge=0, description="OpenCV's uniquenessRatio, %")
+    speckle_window: int = Field(_PERCEPTION.stereo.speckle_window, ge=0, description="OpenCV's speckleWindowSize, px")
+    speckle_range: int = Field(_PERCEPTION.stereo.speckle_range, ge=0, description="OpenCV's speckleRange")
+    three_way: bool = Field(_PERCEPTION.stereo.three_way, description="OpenCV's 3-way mode (faster than the full mode)")
+    scale: float = Field(
+        _PERCEPTION.stereo.scale, gt=0, le=1,
+        description="below 1: matched on the pair shrunk by this factor, the disparity brought back to full size")
+
+
+class LinesTable(_Params):
+    """The openings' sides from line segments (paper's LSD refinement; perception.params.LineConfig)."""
+
+    join_angle_deg: float = Field(
+        _PERCEPTION.lines.join_angle_deg, ge=0,
+        description="segments joined where their slopes lie within this, deg (the paper's 2)")
+    join_gap_px: float = Field(
+        _PERCEPTION.lines.join_gap_px, ge=0, description="... and their close ends within this, px (the paper's 10)")
+    join_offset_px: float = Field(
+        _PERCEPTION.lines.join_offset_px, ge=0,
+        description="... and they are collinear within this perpendicular offset, px")
+    max_tilt_deg: float = Field(
+        _PERCEPTION.lines.max_tilt_deg, ge=0,
+        description="a side candidate's angle from the image vertical at most this, deg (a drone rolls)")
+    margin: float = Field(
+        _PERCEPTION.lines.margin, ge=0,
+        description="the box grows by this fraction of its size on each side before LSD")
+    side_band: float = Field(
+        _PERCEPTION.lines.side_band, ge=0,
+        description="a side candidate lies within this fraction of the box width inside its edge ...")
+    side_band_out: float = Field(_PERCEPTION.lines.side_band_out, ge=0, description="... or this fraction outside it")
+    min_length: float = Field(
+        _PERCEPTION.lines.min_length, ge=0, description="... and is at least this fraction of the box height long")
+    near_length: float = Field(
+        _PERCEPTION.lines.near_length, ge=0,
+        description="among candidates at least this fraction of the longest, the nearest to the edge wins")
+    snap: float = Field(
+        _PERCEPTION.lines.snap, ge=0,
+        description="a side's end this close to the box's top or bottom (fraction of its height) goes onto it")
+
+
+class PlausibilityTable(_Params):
+    """Limits a reconstructed door or window must meet (perception.params.PlausibilityConfig)."""
+
+    depth_range_m: tuple[float, float] = Field(
+        _PERCEPTION.plausibility.depth_range_m, description="its depth, [near, far] m")
+    door_width_m: tuple[float, float] = Field(
+        _PERCEPTION.plausibility.door_width_m, description="a door's width, [min, max] m")
+    door_height_m: tuple[float, float] = Field(
+        _PERCEPTION.plausibility.door_height_m, description="a door's height, [min, max] m")
+    window_width_m: tuple[float, float] = Field(
+        _PERCEPTION.plausibility.window_width_m, description="a window's width, [min, max] m")
+    window_height_m: tuple[float, float] = Field(
+        _PERCEPTION.plausibility.window_height_m, description="a window's height, [min, max] m")
+    max_tilt_deg: float = Field(
+        _PERCEPTION.plausibility.max_tilt_deg, ge=0,
+        description="its sides from gravity, when gravity is known, at most this, deg")
+    max_tilt_no_gravity_deg: float = Field(
+        _PERCEPTION.plausibility.max_tilt_no_gravity_deg, ge=0,
+        description="... from the camera's y axis when it is not, deg")
+    max_side_angle_deg: float = Field(
+        _PERCEPTION.plausibility.max_side_angle_deg, ge=0,
+        description="its two sides nearly parallel: within this, deg")
+
+
+class WallPlaneTable(_Params):
+    """The wall an opening sits in, from the depth beside its sides and above its top
+    (perception.params.WallPlaneConfig)."""
+
+    near_px: float = Field(
+        _PERCEPTION.wall_plane.near_px, ge=0, description="the strips start this far outside the sides, px ...")
+    far_px: float = Field(_PERCEPTION.wall_plane.far_px, ge=0, description="... and end this far, px")
+    n_samples: int = Field(
+        _PERCEPTION.wall_plane.n_samples, ge=1,
+        description="points along each side (and the top) per column (row) of a strip")
+    threshold_m: tuple[float, float] = Field(
+        _PERCEPTION.wall_plane.threshold_m,
+        description="a point lies on the plane within a + b * depth^2, [a m, b 1/m]")
+    min_points: int = Field(
+        _PERCEPTION.wall_plane.min_points, ge=1, description="points of a strip for it to count ...")
+    min_strips: int = Field(
+        _PERCEPTION.wall_plane.min_strips, ge=1, description="... and this many strips must lie on the plane")
+    min_inlier_fraction: float = Field(
+        _PERCEPTION.wall_plane.min_inlier_fraction, ge=0, le=1,
+        description="of the points of the strips that count, on the plane")
+    max_tilt_deg: float = Field(
+        _PERCEPTION.wall_plane.max_tilt_deg, ge=0,
+        description="the plane's normal from horizontal (gravity known) at most this, deg")
+    min_incidence_deg: float = Field(
+        _PERCEPTION.wall_plane.min_incidence_deg, ge=0,
+        description="a corner's viewing ray meets the plane at least this steeply, deg")
+    iterations: int = Field(_PERCEPTION.wall_plane.iterations, ge=1, description="RANSAC hypotheses (seeded)")
+
+
+class VisualOdometryTable(_Params):
+    """The stereo visual odometry of a replay (perception.params.OdometryConfig; the service takes the vehicle's
+    odometry)."""
+
+    n_features: int = Field(
+        _PERCEPTION.odometry.n_features, ge=1, description="ORB features kept a frame, spread over the grid")
+    detect_features: int = Field(
+        _PERCEPTION.odometry.detect_features, ge=1, description="ORB's keypoints before the grid picks n_features")
+    grid_cols: int = Field(_PERCEPTION.odometry.grid_cols, ge=1, description="the grid's columns ...")
+    grid_rows: int = Field(
+        _PERCEPTION.odometry.grid_rows, ge=1, description="... and rows (each cell keeps its strongest keypoints)")
+    fast_threshold: int = Field(
+        _PERCEPTION.odometry.fast_threshold, ge=1,
+        description="ORB's FAST threshold (low-contrast walls want a lower one)")
+    min_disparity_px: float = Field(
+        _PERCEPTION.odometry.min_disparity_px, ge=0, description="a keypoint's disparity at least this, px")
+    num_disparities: int = Field(
+        _PERCEPTION.odometry.num_disparities, ge=16, multiple_of=16,
+        description="SGBM's range at keyframes where the odometry matches on its own")
+    edge_disparity_px: float = Field(
+        _PERCEPTION.odometry.edge_disparity_px, ge=0,
+        description="a keypoint whose 3 x 3 disparities spread more lies on a depth edge: dropped, px")
+    max_depth_m: float = Field(_PERCEPTION.odometry.max_depth_m, gt=0, description="keypoints farther are dropped, m")
+    ratio: float = Field(
+        _PERCEPTION.odometry.ratio, gt=0, le=1, description="Lowe's ratio test for frame-to-keyframe matches")
+    ransac_reprojection_px: float = Field(
+        _PERCEPTION.odometry.ransac_reprojection_px, gt=0, description="PnP-RANSAC's reprojection threshold, px")
+    min_inliers: int = Field(
+        _PERCEPTION.odometry.min_inliers, ge=1, description="fewer PnP inliers: tracking lost for the frame")
+    rekey_inliers: int = Field(
+        _PERCEPTION.odometry.rekey_inliers, ge=1, description="fewer: the frame becomes the reference keyframe")
+    rekey_translation_m: float = Field(
+        _PERCEPTION.odometry.rekey_translation_m, gt=0, description="... or after this much motion, m")
+    rekey_rotation_rad: float = Field(_PERCEPTION.odometry.rekey_rotation_rad, gt=0, description="... or rotation, rad")
+    max_step_m: float = Field(
+        _PERCEPTION.odometry.max_step_m, gt=0,
+        description="a frame-to-frame jump beyond this is a wrong PnP solution, m")
+    max_step_rad: float = Field(_PERCEPTION.odometry.max_step_rad, gt=0, description="... or a turn beyond this, rad")
+    max_step_change_m: float = Field(
+        _PERCEPTION.odometry.max_step_change_m, gt=0,
+        description="a pose from few inliers this far off the last step's velocity is wrong, m")
+    gyro_tolerance_rad: float = Field(
+        _PERCEPTION.odometry.gyro_tolerance_rad, gt=0,
+        description="a PnP rotation this far from the gyro's is replaced by the gyro's, rad")
+    pnp_rotation_gain: float = Field(
+        _PERCEPTION.odometry.pnp_rotation_gain, ge=0, le=1,
+        description="with a gyro: the share of PnP's rotation taken per frame")
+    tracker: Literal["orb", "klt"] = Field(
+        _PERCEPTION.odometry.tracker,
+        description="orb: ORB matched to the keyframe every frame; klt: the keyframe's points followed by optical "
+        "flow (a third of the CPU; it drifted more in one building: docs/measurements.md)")
+    flow_points: int = Field(
+        _PERCEPTION.odometry.flow_points, ge=1, description="klt: the keyframe's points followed, spread over the grid")
+    flow_window_px: int = Field(_PERCEPTION.odometry.flow_window_px, ge=3, description="klt: Lucas-Kanade's window, px")
+    flow_levels: int = Field(_PERCEPTION.odometry.flow_levels, ge=0, description="klt: its pyramid's levels")
+    flow_from: Literal["last", "keyframe"] = Field(
+        _PERCEPTION.odometry.flow_from,
+        description="klt: each point followed from the last frame or from the keyframe's image")
+    flow_min_eigen: float = Field(
+        _PERCEPTION.odometry.flow_min_eigen, gt=0, description="klt: Lucas-Kanade's minEigThreshold")
+    flow_round_trip_px: float = Field(
+        _PERCEPTION.odometry.flow_round_trip_px, gt=0,
+        description="klt: a point tracked forward then back further than this is lost, px")
+    flow_border_px: float = Field(
+        _PERCEPTION.odometry.flow_border_px, ge=0,
+        description="klt: a point tracked this near the image's edge is lost, px")
+
+
+class GravityTable(_Params):
+    """Gravity's up from the IMU's specific force less the odometry's acceleration (perception.params.GravityParams),
+    in the service and a replay alike."""
+
+    window_s: float = Field(
+        _PERCEPTION.gravity.window_s, gt=0,
+        description="positions and specific forces of this long a span estimate the mean acceleration, s")
+    min_span_s: float = Field(
+        _PERCEPTION.gravity.min_span_s, gt=0,
+        description="a shorter history gives the specific force alone (as at take-off), s")
+    max_accel_mps2: float = Field(
+        _PERCEPTION.gravity.max_accel_mps2, gt=0,
+        description="a larger fitted acceleration is no flight's: no estimate for the frame, m/s^2")
+    end_s: float = Field(
+        _PERCEPTION.gravity.end_s, gt=0,
+        description="the velocities at the window's ends: lines fitted to this long a part of it, s")
+    min_specific_force_mps2: float = Field(
+        _PERCEPTION.gravity.min_specific_force_mps2, ge=0,
+        description="an IMU sample below this (a free fall) is left out, m/s^2 ...")
+    max_specific_force_mps2: float = Field(
+        _PERCEPTION.gravity.max_specific_force_mps2, gt=0, description="... and above this (a knock), m/s^2")
+
+
+class PerceptionConfig(_Section):
+    """The perception chain (perception/): which door/window detector, on which frames it runs, and one table per
+    component, named as its part of perception.params.PerceptionParams (`[perception.lines]` is `LineConfig`)."""
+
+    detector_model: Path | None = Field(None, description="detector ONNX file with its JSON sidecar beside it; "
+                                        "default: the shipped perception/models/detector.onnx (trained on real "
+                                        "photos). A detector adapted to one building is trained on renders of its "
+                                        "model: python -m macroloc.perception.train --sim FOLDER --out DIR")
+    detect_every: int = Field(3, ge=1, description="replay: run the chain on every n-th stereo frame")
+    stereo: StereoTable = Field(default_factory=lambda: StereoTable(),
+                                description="[perception.stereo]: the frame's stereo matching")
+    lines: LinesTable = Field(default_factory=lambda: LinesTable(),
+                              description="[perception.lines]: the openings' sides from line segments")
+    plausibility: PlausibilityTable = Field(default_factory=lambda: PlausibilityTable(),
+                                            description="[perception.plausibility]: a door's or window's limits")
+    wall_plane: WallPlaneTable = Field(default_factory=lambda: WallPlaneTable(),
+                                       description="[perception.wall_plane]: the wall an opening sits in")
+    odometry: VisualOdometryTable = Field(default_factory=lambda: VisualOdometryTable(),
+                                          description="[perception.odometry]: a replay's stereo visual odometry")
+    gravity: GravityTable = Field(default_factory=lambda: GravityTable(),
+                                  description="[perception.gravity]: gravity's up from the IMU")
+
+    def to_params(self) -> PerceptionParams:
+        """The chain's parameters: each table onto its part of `PerceptionParams` (the rest at their defaults)."""
+        d = _PERCEPTION
+        return PerceptionParams(self.stereo.to_params(d.stereo), self.lines.to_params(d.lines),
+                                self.plausibility.to_params(d.plausibility), self.wall_plane.to_params(d.wall_plane),
+                                self.odometry.to_params(d.odometry), self.gravity.to_params(d.gravity))
 
 
 class KeyframesConfig(_Params):

@@ -18,6 +18,7 @@ import numpy as np
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.localizer import Sighting
 from macroloc.graph.rigid import apply
+from macroloc.perception.params import PerceptionParams
 from macroloc.service.recording import decode_image, matrix_from_pose
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
@@ -111,19 +112,22 @@ class PerceptionPipeline:
                 for f in result.features]
 
 
-def make_perception_pipeline(threads: int | None = None, detector_model: Path | None = None
-                             ) -> PerceptionPipeline | None:
+def make_perception_pipeline(threads: int | None = None, detector_model: Path | None = None,
+                             params: PerceptionParams | None = None) -> PerceptionPipeline | None:
     """The perception chain with the given detector (default: the shipped one), or None when it cannot load
     (logged). The libraries' threads follow perception.threads.THREADS (OpenCV's set here, process-wide);
-    `threads`: the detector's, instead of the plan's."""
+    `threads`: the detector's, instead of the plan's; `params`: the chain's ([perception.*]: the frame's SGBM,
+    the sides, the plausibility limits, the wall plane)."""
     try:
         from macroloc.perception.pipeline import Perception
-        from macroloc.perception.stereo import FrameDisparity
+        from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
         from macroloc.perception.threads import set_threads
 
         plan = set_threads()
         log.info("threads: %s", plan.describe())
-        chain = Perception.create(detector_model, threads=threads or plan.onnxruntime, disparity=FrameDisparity())
+        p = params or PerceptionParams()
+        chain = Perception.create(detector_model, threads=threads or plan.onnxruntime,
+                                  disparity=FrameDisparity(SgbmMatcher(p.stereo)), params=p)
         return PerceptionPipeline(chain, forward_stereo_T_body_cam())
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception
         log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)

@@ -27,7 +27,8 @@ def make_pipeline(cfg: MacrolocConfig) -> FramePipeline:
     if cfg.service.perception:
         from macroloc.service.frames import make_perception_pipeline
 
-        pipeline = make_perception_pipeline(detector_model=cfg.perception.detector_model)
+        pipeline = make_perception_pipeline(detector_model=cfg.perception.detector_model,
+                                            params=cfg.perception.to_params())
         if pipeline is not None:
             return pipeline
     return NullPipeline()

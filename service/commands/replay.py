@@ -117,8 +117,10 @@ def register(app: typer.Typer) -> None:
             model = load_building(building)
         stored = StoredMap.load(stored_map, model) if stored_map is not None else None
         source: ObservationSource = (TruthSource(seed=seed) if observations == "truth" else
-                                     TruthFeaturesWithVisualOdometry(seed=seed) if observations == "truth-vo"
-                                     else PerceptionSource(cfg.perception.detect_every, detector))
+                                     TruthFeaturesWithVisualOdometry(seed=seed, params=cfg.perception.to_params())
+                                     if observations == "truth-vo"
+                                     else PerceptionSource(cfg.perception.detect_every, detector,
+                                                           cfg.perception.to_params()))
         storey = model.checked_storey(storey if storey is not None else cfg.graph.storey_hint)
         surfaces = None
         if cfg.graph.surface_check:

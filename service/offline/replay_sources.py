@@ -25,6 +25,7 @@ from macroloc.service.recording import FlightFrame, matrix_from_pose
 if TYPE_CHECKING:
     from macroloc.perception.calib import StereoRig
     from macroloc.perception.odometry import StereoOdometry
+    from macroloc.perception.params import PerceptionParams
     from macroloc.perception.stereo import FrameDisparity
 
 log = logging.getLogger(__name__)
@@ -149,19 +150,22 @@ class VisualOdometry:
     specific force (perception.gravity), and `points_body` the stereo depth points the service would measure on
     that frame (service.frames.StereoDepth: every third frame), or None."""
 
-    def __init__(self, disparity: FrameDisparity | None = None) -> None:
+    def __init__(self, disparity: FrameDisparity | None = None, params: PerceptionParams | None = None) -> None:
         """`disparity`: the frame's one SGBM, shared by the odometry's keyframes, the depth points and (given to
-        it too) the perception chain; None: a new one for the odometry and the depth points."""
+        it too) the perception chain; None: a new one (`params.stereo`) for the odometry and the depth points.
+        `params`: the odometry's and gravity's (their defaults without)."""
         from macroloc.perception.gravity import GravityEstimator
         from macroloc.perception.inertial import InertialDeadReckoning
-        from macroloc.perception.stereo import FrameDisparity
+        from macroloc.perception.params import PerceptionParams
+        from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
         from macroloc.service.frames import StereoDepth
 
-        self._disparity = disparity or FrameDisparity()
+        self._params = p = params or PerceptionParams()
+        self._disparity = disparity or FrameDisparity(SgbmMatcher(p.stereo))
         self._odometry: StereoOdometry | None = None
         self._T_odom_cam0: np.ndarray | None = None
         self._last_imu_ns: int | None = None
-        self._gravity = GravityEstimator()
+        self._gravity = GravityEstimator(p.gravity)
         self._inertial = InertialDeadReckoning()
         self._depth = StereoDepth(disparity=self._disparity)
         self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
@@ -176,7 +180,7 @@ class VisualOdometry:
         T_body_cam = matrix_from_pose(info.T_body_cam)
         if self._odometry is None:
             rig = _rig(info)
-            self._odometry = StereoOdometry(rig, disparity=self._disparity)
+            self._odometry = StereoOdometry(rig, self._params.odometry, disparity=self._disparity)
             T_odom_body0 = np.eye(4)
             up_body = _up_from_imu(frame)
             if up_body is not None:
@@ -220,11 +224,12 @@ class VehicleOdometry:
     a drone's VIO), as the service takes it from the vehicle's odometry key: the sample at the frame's stamp (else
     the newest before it). `up_body` and `points_body` as `VisualOdometry` gives them."""
 
-    def __init__(self, disparity: FrameDisparity | None = None) -> None:
+    def __init__(self, disparity: FrameDisparity | None = None, params: PerceptionParams | None = None) -> None:
         from macroloc.perception.gravity import GravityEstimator
+        from macroloc.perception.params import PerceptionParams
         from macroloc.service.frames import StereoDepth
 
-        self._gravity = GravityEstimator()
+        self._gravity = GravityEstimator((params or PerceptionParams()).gravity)
         self._depth = StereoDepth(disparity=disparity)
         self._T_odom_body: np.ndarray | None = None
         self.points_body: np.ndarray | None = None
@@ -249,9 +254,10 @@ class TruthFeaturesWithVisualOdometry:
     """`--observations truth-vo`: ground-truth sightings (with TruthSource's noise) but the odometry of the
     real stereo visual odometry on the recorded images: the graph against a real front end's drift."""
 
-    def __init__(self, noise: TruthNoise | None = None, seed: int = 0) -> None:
+    def __init__(self, noise: TruthNoise | None = None, seed: int = 0, params: PerceptionParams | None = None
+                 ) -> None:
         self.truth = TruthSource(noise, seed)
-        self.odometry = VisualOdometry()
+        self.odometry = VisualOdometry(params=params)
 
     def __call__(self, frame: FlightFrame) -> FrameInput:
         from macroloc.service.recording import decode_image
@@ -273,18 +279,22 @@ class PerceptionSource:
     scoring only.
     """
 
-    def __init__(self, detect_every: int = 3, detector_model: Path | None = None) -> None:
+    def __init__(self, detect_every: int = 3, detector_model: Path | None = None,
+                 params: PerceptionParams | None = None) -> None:
         try:
             from macroloc.perception.pipeline import Perception
         except ImportError:
             raise UserInputError("--observations perception: the perception chain (perception.pipeline) "
                                  "is not available; use --observations truth") from None
-        from macroloc.perception.stereo import FrameDisparity
+        from macroloc.perception.params import PerceptionParams
+        from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
         from macroloc.perception.threads import set_threads
 
         plan = set_threads()  # the libraries' threads (OpenCV's process-wide), as in the service
-        self.disparity = FrameDisparity()  # one SGBM a frame for the odometry, depth points and the chain
-        self.perception = Perception.create(detector_model, threads=plan.onnxruntime, disparity=self.disparity)
+        self.params = p = params or PerceptionParams()
+        self.disparity = FrameDisparity(SgbmMatcher(p.stereo))  # one SGBM a frame: odometry, depth points, chain
+        self.perception = Perception.create(detector_model, threads=plan.onnxruntime, disparity=self.disparity,
+                                            params=p)
         self.detect_every = detect_every
         self.odometry: VisualOdometry | VehicleOdometry | None = None
         self._n = 0
@@ -297,7 +307,8 @@ class PerceptionSource:
         T_body_cam = matrix_from_pose(info.T_body_cam)
         left, right = decode_image(frame.stereo.left), decode_image(frame.stereo.right)
         if self.odometry is None:
-            self.odometry = VehicleOdometry(self.disparity) if frame.odometry else VisualOdometry(self.disparity)
+            self.odometry = VehicleOdometry(self.disparity, self.params) if frame.odometry else \
+                VisualOdometry(self.disparity, self.params)
             log.info("odometry: %s", "the vehicle's, recorded" if frame.odometry else "stereo visual odometry")
         T_odom_body = self.odometry(frame, left, right)
         up_body = self.odometry.up_body

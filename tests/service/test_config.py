@@ -150,6 +150,28 @@ def test_every_parameter_of_the_one_shot_registration_is_a_key_and_takes_effect(
         assert got == RobustParams(verify=dataclasses.replace(VerifyParams(), **{key: value})), key
 
 
+def test_every_parameter_of_the_perception_chain_is_a_key_and_takes_effect() -> None:
+    """Every field of each `PerceptionParams` part is a key of its [perception.<part>] table; each, set to another
+    value, changes that one value of `to_params()`; no key set: the chain's own defaults."""
+    from macroloc.perception.params import PerceptionParams
+    from macroloc.service.config import PerceptionConfig
+
+    default = PerceptionParams()
+    assert PerceptionConfig().to_params() == default
+    for part in dataclasses.fields(PerceptionParams):
+        table = type(getattr(PerceptionConfig(), part.name))
+        fields_ = {f.name: getattr(getattr(default, part.name), f.name)
+                   for f in dataclasses.fields(getattr(default, part.name))}
+        assert set(table.model_fields) == set(fields_), part.name
+        for key, value in fields_.items():
+            other = {"orb": "klt", "klt": "orb", "last": "keyframe", "keyframe": "last"}[value] \
+                if isinstance(value, str) else 32 if key == "num_disparities" else _other(value)
+            got = PerceptionConfig.model_validate({part.name: {key: other}}).to_params()
+            want = dataclasses.replace(default, **{part.name: dataclasses.replace(getattr(default, part.name),
+                                                                                 **{key: other})})
+            assert got == want, f"[perception.{part.name}] {key}"
+
+
 def test_one_name_for_the_registration_tolerance() -> None:
     """The one-shot localize's and the pose graph's registration gate are one idea, `inlier_threshold_m`,
     each with its own default; the pose graph's old name still loads."""

@@ -56,3 +56,24 @@ def test_depth_points_reach_a_wall_nearer_than_the_chains_search() -> None:
         z_m[n] = points[:, 2]
     assert len(z_m[128]) > 500 and np.mean(np.abs(z_m[128] - 0.70) < 0.02) > 0.95
     assert np.mean(np.abs(z_m[64] - 0.70) < 0.1) < 0.05, "the chain's search range would have measured it too"
+
+
+def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_chains() -> None:
+    """[perception.*] reach the components that use them: the frame's SGBM, the sides, the plausibility limits
+    and the wall plane in the service's chain and the replay's, the odometry and gravity in the replay's."""
+    pytest.importorskip("onnxruntime")
+    from macroloc.service.config import load_config
+    from macroloc.service.frames import make_perception_pipeline
+    from macroloc.service.offline.replay_sources import PerceptionSource, VisualOdometry
+
+    cfg = load_config(None, perception={"stereo": {"num_disparities": 64}, "lines": {"margin": 0.2},
+                                        "plausibility": {"max_side_angle_deg": 9.0}, "wall_plane": {"iterations": 8},
+                                        "odometry": {"tracker": "klt"}, "gravity": {"window_s": 2.0}})
+    params = cfg.perception.to_params()
+    pipeline = make_perception_pipeline(params=params)
+    assert pipeline is not None
+    for chain in (pipeline.perception, PerceptionSource(params=params).perception):
+        assert chain.matcher.config.num_disparities == 64 and chain.lines.margin == 0.2
+        assert chain.plausibility.max_side_angle_deg == 9.0 and chain.wall is not None and chain.wall.iterations == 8
+    odometry = VisualOdometry(params=params)
+    assert odometry._params.odometry.tracker == "klt" and odometry._gravity.params.window_s == 2.0
