@@ -120,6 +120,18 @@ class GravityParams:
 
 
 @dataclass(frozen=True)
+class DepthPointsConfig:
+    """The depth points for the surface check and fit (service.frames.StereoDepth), from the frame's SGBM or from
+    a depth image the vehicle sends."""
+
+    every: int = 3  # every this many stereo frames (the localizer keeps the newest before each keyframe); 0: none
+    stride_px: int = 16  # every this many pixels of the disparity image ...
+    min_range_m: float = 0.3  # ... at this range ...
+    max_range_m: float = 8.0  # ... to this one
+    depth_image_stride_px: int = 20  # a depth image the vehicle sends: every this many pixels, to max_range_m
+
+
+@dataclass(frozen=True)
 class PerceptionParams:
     """The chain's parameters, one part per component: `stereo` is the frame's SGBM (shared by the depth points,
     the openings and the odometry's keyframes: 128 disparities, depth down to fx * baseline / 128)."""
@@ -130,3 +142,4 @@ class PerceptionParams:
     wall_plane: WallPlaneConfig = field(default_factory=WallPlaneConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     gravity: GravityParams = field(default_factory=GravityParams)
+    depth: DepthPointsConfig = field(default_factory=DepthPointsConfig)

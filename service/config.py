@@ -482,6 +482,20 @@ class GravityTable(_Params):
         _PERCEPTION.gravity.max_specific_force_mps2, gt=0, description="... and above this (a knock), m/s^2")
 
 
+class DepthTable(_Params):
+    """The depth points for the surface check and fit, from the frame's SGBM or a depth image the vehicle sends
+    (perception.params.DepthPointsConfig)."""
+
+    every: int = Field(_PERCEPTION.depth.every, ge=0, description="depth points on every this many stereo frames (the "
+                       "localizer keeps the newest before each keyframe); 0: none")
+    stride_px: int = Field(_PERCEPTION.depth.stride_px, ge=1, description="every this many pixels of the disparity, px")
+    min_range_m: float = Field(_PERCEPTION.depth.min_range_m, ge=0, description="points nearer are dropped, m")
+    max_range_m: float = Field(_PERCEPTION.depth.max_range_m, gt=0, description="points farther are dropped, m")
+    depth_image_stride_px: int = Field(
+        _PERCEPTION.depth.depth_image_stride_px, ge=1,
+        description="a depth image the vehicle sends with its stereo frame: every this many pixels, px")
+
+
 class PerceptionConfig(_Section):
     """The perception chain (perception/): which door/window detector, on which frames it runs, and one table per
     component, named as its part of perception.params.PerceptionParams (`[perception.lines]` is `LineConfig`)."""
@@ -503,13 +517,16 @@ class PerceptionConfig(_Section):
                                           description="[perception.odometry]: a replay's stereo visual odometry")
     gravity: GravityTable = Field(default_factory=lambda: GravityTable(),
                                   description="[perception.gravity]: gravity's up from the IMU")
+    depth: DepthTable = Field(default_factory=lambda: DepthTable(),
+                              description="[perception.depth]: the depth points for the walls' checks")
 
     def to_params(self) -> PerceptionParams:
         """The chain's parameters: each table onto its part of `PerceptionParams` (the rest at their defaults)."""
         d = _PERCEPTION
         return PerceptionParams(self.stereo.to_params(d.stereo), self.lines.to_params(d.lines),
                                 self.plausibility.to_params(d.plausibility), self.wall_plane.to_params(d.wall_plane),
-                                self.odometry.to_params(d.odometry), self.gravity.to_params(d.gravity))
+                                self.odometry.to_params(d.odometry), self.gravity.to_params(d.gravity),
+                                self.depth.to_params(d.depth))
 
 
 class KeyframesConfig(_Params):

@@ -18,7 +18,7 @@ import numpy as np
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.localizer import Sighting
 from macroloc.graph.rigid import apply
-from macroloc.perception.params import PerceptionParams
+from macroloc.perception.params import DepthPointsConfig, PerceptionParams
 from macroloc.service.recording import decode_image, matrix_from_pose
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
@@ -57,15 +57,22 @@ class StereoDepth:
     change")."""
 
     def __init__(self, every: int = 3, stride_px: int = 16, num_disparities: int = 128,
-                 disparity=None) -> None:  # noqa: ANN001 - perception.stereo.FrameDisparity
+                 disparity=None, range_m: tuple[float, float] = (0.3, 8.0)) -> None:  # noqa: ANN001 - FrameDisparity
         """`disparity`: the frame's shared SGBM (perception.stereo.FrameDisparity) where the perception chain or
-        the odometry match the same frames; None: its own, with `num_disparities`."""
+        the odometry match the same frames; None: its own, with `num_disparities`. `range_m`: the points kept."""
         from macroloc.perception.stereo import SgbmConfig, SgbmMatcher
 
         self.matcher = disparity or SgbmMatcher(SgbmConfig(num_disparities=num_disparities))
         self.every = every
         self.stride_px = stride_px
+        self.range_m = range_m
         self._n = 0
+
+    @classmethod
+    def configured(cls, params: DepthPointsConfig, disparity=None) -> StereoDepth:  # noqa: ANN001 - FrameDisparity
+        """As [perception.depth] says, on the frame's shared SGBM (`disparity`) where given."""
+        return cls(params.every, params.stride_px, disparity=disparity,
+                   range_m=(params.min_range_m, params.max_range_m))
 
     def __call__(self, left: np.ndarray, right: np.ndarray, rig, T_body_cam: np.ndarray) -> np.ndarray | None:  # noqa: ANN001 - StereoRig
         from macroloc.perception.stereo import back_project, depth_from_disparity, depth_grid
@@ -74,14 +81,14 @@ class StereoDepth:
         if not self.every or n % self.every:
             return None
         depth_m = depth_from_disparity(self.matcher.disparity_px(left, right), rig)
-        return apply(T_body_cam, back_project(*depth_grid(depth_m, self.stride_px, 0.3, 8.0), rig))
+        return apply(T_body_cam, back_project(*depth_grid(depth_m, self.stride_px, *self.range_m), rig))
 
 
 class PerceptionPipeline:
     """StereoFrame -> sightings (corners in the body frame, metres) through the perception chain."""
 
     def __init__(self, perception, default_T_body_cam: np.ndarray,  # noqa: ANN001 - perception.Perception
-                 depth_every: int = 3, depth_stride_px: int = 16) -> None:
+                 depth_every: int = 3, depth_stride_px: int = 16, depth: DepthPointsConfig | None = None) -> None:
         """Every `depth_every`-th frame also gives stereo depth points (`points_body`, SGBM over the whole frame,
         every `depth_stride_px`-th pixel) for the surface check of registrations; 0: never. Where the chain's
         matcher is a shared FrameDisparity, the depth points take the frame's disparity from it (one SGBM)."""
@@ -90,7 +97,8 @@ class PerceptionPipeline:
         self.perception = perception
         self.default_T_body_cam = default_T_body_cam
         shared = perception.matcher if isinstance(perception.matcher, FrameDisparity) else None
-        self.depth = StereoDepth(depth_every, depth_stride_px, disparity=shared)
+        self.depth = StereoDepth.configured(depth, shared) if depth is not None else \
+            StereoDepth(depth_every, depth_stride_px, disparity=shared)
         self.points_body: np.ndarray | None = None  # the last frame's depth points, when it measured them
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
@@ -128,7 +136,7 @@ def make_perception_pipeline(threads: int | None = None, detector_model: Path | 
         p = params or PerceptionParams()
         chain = Perception.create(detector_model, threads=threads or plan.onnxruntime,
                                   disparity=FrameDisparity(SgbmMatcher(p.stereo)), params=p)
-        return PerceptionPipeline(chain, forward_stereo_T_body_cam())
+        return PerceptionPipeline(chain, forward_stereo_T_body_cam(), depth=p.depth)
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception
         log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)
         return None

@@ -24,6 +24,7 @@ import zenoh
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.geo import GeoReference
 from macroloc.graph.localizer import Estimate
+from macroloc.perception.params import DepthPointsConfig
 from macroloc.service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
 from macroloc.service.frames import FramePipeline, NullPipeline
 from macroloc.service.health import DropCounter, LatencyWindow, RateMeter
@@ -72,6 +73,7 @@ class ServiceParams:
     limits: InputLimits = field(default_factory=InputLimits)  # what the input keys take (service.inputs)
     ros_sensors: RosSensorTopics = field(default_factory=RosSensorTopics)  # ROS sensor topics taken ([ros])
     T_body_cam: np.ndarray | None = None  # the camera's mounting for ROS images (None: the simulator's)
+    depth: DepthPointsConfig = field(default_factory=DepthPointsConfig)  # a depth image's points ([perception.depth])
 
 
 class LocalizationService:
@@ -292,7 +294,8 @@ class LocalizationService:
         if ev.frame.HasField("depth") and self.backend.localizer.surfaces is not None:
             from macroloc.service.frames import depth_points_body
 
-            points_body = depth_points_body(ev.frame, stride_px=20, max_range_m=8.0)  # the vehicle's depth
+            d = self.params.depth
+            points_body = depth_points_body(ev.frame, d.depth_image_stride_px, d.max_range_m)  # the vehicle's depth
         with self._lock:
             est = self.backend.stereo(ev.stamp_ns, sightings, points_body, placed)
         if est is None:

@@ -103,7 +103,8 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                            replan_period_s=cfg.planning.replan_period_s, stall_after_s=s.stall_after_s,
                            drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep, geo=geo,
                            limits=limits_from_config(cfg.inputs, model), ros_sensors=ros_sensor_topics(cfg),
-                           T_body_cam=None if cfg.camera.T_body_cam is None else np.array(cfg.camera.T_body_cam, float))
+                           T_body_cam=None if cfg.camera.T_body_cam is None else np.array(cfg.camera.T_body_cam, float),
+                           depth=cfg.perception.to_params().depth)
     vehicle_out, ros_inputs = make_vehicle_io(cfg, session, geo.T_enu_cad() if geo and geo.north_given else None)
     return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), vehicle_out, ros_inputs,
                                notifier)

@@ -167,7 +167,7 @@ class VisualOdometry:
         self._last_imu_ns: int | None = None
         self._gravity = GravityEstimator(p.gravity)
         self._inertial = InertialDeadReckoning()
-        self._depth = StereoDepth(disparity=self._disparity)
+        self._depth = StereoDepth.configured(p.depth, self._disparity)
         self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
         self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
         self.dead_reckoned_s = 0.0  # the last frame's seconds of dead reckoning (tracking lost)
@@ -229,8 +229,9 @@ class VehicleOdometry:
         from macroloc.perception.params import PerceptionParams
         from macroloc.service.frames import StereoDepth
 
-        self._gravity = GravityEstimator((params or PerceptionParams()).gravity)
-        self._depth = StereoDepth(disparity=disparity)
+        p = params or PerceptionParams()
+        self._gravity = GravityEstimator(p.gravity)
+        self._depth = StereoDepth.configured(p.depth, disparity)
         self._T_odom_body: np.ndarray | None = None
         self.points_body: np.ndarray | None = None
         self.up_body: np.ndarray | None = None
