@@ -57,18 +57,21 @@ VERSION = "0.1.0"
 
 @dataclass
 class ServiceParams:
+    """The running service's settings, from the config's [service] and [planning] (service.serve.build_service):
+    no defaults here, the config's are the only ones."""
+
     vehicle: str
     building: str
     building_sha256: str
-    cameras: list[str] = field(default_factory=lambda: ["front"])
-    ring_size: int = 2
-    queue_size: int = 4
-    status_period_s: float = 1.0
-    save_period_s: float = 5.0
-    replan_period_s: float = 2.0
-    stall_after_s: float = 5.0  # a handler busy this long is a stall: liveliness withdrawn, watchdog not fed
-    drain_timeout_s: float = 15.0  # at stop, the queued events get this long; then the map is saved and we exit
-    lockstep: bool = False  # inputs handled in the order sent (one FIFO intake, nothing dropped), replans first
+    cameras: list[str]
+    ring_size: int
+    queue_size: int
+    status_period_s: float
+    save_period_s: float
+    replan_period_s: float
+    stall_after_s: float  # a handler busy this long is a stall: liveliness withdrawn, watchdog not fed
+    drain_timeout_s: float  # at stop, the queued events get this long; then the map is saved and we exit
+    lockstep: bool  # inputs handled in the order sent (one FIFO intake, nothing dropped), replans first
     geo: GeoReference | None = None  # the model's geo-reference: poses also in ENU and WGS84
     limits: InputLimits = field(default_factory=InputLimits)  # what the input keys take (service.inputs)
     ros_sensors: RosSensorTopics = field(default_factory=RosSensorTopics)  # ROS sensor topics taken ([ros])
