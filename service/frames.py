@@ -88,17 +88,16 @@ class PerceptionPipeline:
     """StereoFrame -> sightings (corners in the body frame, metres) through the perception chain."""
 
     def __init__(self, perception, default_T_body_cam: np.ndarray,  # noqa: ANN001 - perception.Perception
-                 depth_every: int = 3, depth_stride_px: int = 16, depth: DepthPointsConfig | None = None) -> None:
-        """Every `depth_every`-th frame also gives stereo depth points (`points_body`, SGBM over the whole frame,
-        every `depth_stride_px`-th pixel) for the surface check of registrations; 0: never. Where the chain's
+                 depth: DepthPointsConfig | None = None) -> None:
+        """Frames also give stereo depth points (`points_body`, SGBM over the whole frame) for the walls' checks,
+        as `depth` says (every third frame, every 16th pixel by default; [perception.depth]). Where the chain's
         matcher is a shared FrameDisparity, the depth points take the frame's disparity from it (one SGBM)."""
         from macroloc.perception.stereo import FrameDisparity
 
         self.perception = perception
         self.default_T_body_cam = default_T_body_cam
         shared = perception.matcher if isinstance(perception.matcher, FrameDisparity) else None
-        self.depth = StereoDepth.configured(depth, shared) if depth is not None else \
-            StereoDepth(depth_every, depth_stride_px, disparity=shared)
+        self.depth = StereoDepth.configured(depth or DepthPointsConfig(), shared)
         self.points_body: np.ndarray | None = None  # the last frame's depth points, when it measured them
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:

@@ -25,7 +25,7 @@ def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
     from macroloc.perception.pipeline import Perception
     from macroloc.service.frames import PerceptionPipeline
 
-    pipeline = PerceptionPipeline(Perception.create(None), forward_stereo_T_body_cam(), depth_every=3)
+    pipeline = PerceptionPipeline(Perception.create(None), forward_stereo_T_body_cam())
     left, right = textured_pair(24)
     info = pb.CameraInfo(width=640, height=480, fx=480.0, fy=480.0, cx=319.5, cy=239.5, baseline_m=0.12,
                          T_body_cam=pose_from_matrix(forward_stereo_T_body_cam()))
