@@ -29,19 +29,11 @@ Frames: the odometry frame (z roughly up) and the body frame of the IMU; metres,
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
 
 import numpy as np
 
 from macroloc.perception.gravity import end_velocities
-
-
-@dataclass(frozen=True)
-class InertialParams:
-    calibrate_s: float = 3.0  # gravity is calibrated over this much tracked flight before the loss ...
-    min_calibrate_s: float = 1.0  # ... at least this much, else the odometry coasts at constant velocity
-    end_s: float = 0.25  # velocities: lines fitted to this long a span of positions
-    max_accel_mps2: float = 4.0  # a larger mean acceleration over the span is not a flight's: no calibration
+from macroloc.perception.params import InertialParams
 
 
 class InertialDeadReckoning:

@@ -132,6 +132,37 @@ class DepthPointsConfig:
 
 
 @dataclass(frozen=True)
+class PlaceConfig:
+    """Place recognition of keyframes in a stored map's views (perception.place)."""
+
+    n_features: int = 1000  # ORB features of the image to place
+    stored_features: int = 400  # ... and at most this many kept per stored view (those with a depth, strongest)
+    fast_threshold: int = 7  # as the visual odometry's: rendered walls are low in contrast
+    num_disparities: int = 128  # SGBM's search range for a stored view's depths (down to 0.45 m)
+    max_depth_m: float = 12.0
+    vote_features: int = 300  # the image's strongest features that vote for stored views ...
+    vote_per_view: int = 150  # ... against each view's strongest (a view's features are stored strongest first)
+    vote_distance: int = 40  # Hamming distance (of 256 bits) under which a nearest descriptor votes for its view
+    top_views: int = 4
+    ratio: float = 0.8
+    ransac_reprojection_px: float = 3.0
+    min_inliers: int = 40
+    max_tilt_deg: float = 5.0
+    rival_ratio: float = 0.5  # a second place explaining the leftover matches with this share of the inliers ...
+    rival_apart_m: float = 1.0  # ... this far from the first: the place is ambiguous (no answer)
+
+
+@dataclass(frozen=True)
+class InertialParams:
+    """The IMU's dead reckoning while the visual odometry has lost track (perception.inertial)."""
+
+    calibrate_s: float = 3.0  # gravity is calibrated over this much tracked flight before the loss ...
+    min_calibrate_s: float = 1.0  # ... at least this much, else the odometry coasts at constant velocity
+    end_s: float = 0.25  # velocities: lines fitted to this long a span of positions
+    max_accel_mps2: float = 4.0  # a larger mean acceleration over the span is not a flight's: no calibration
+
+
+@dataclass(frozen=True)
 class PerceptionParams:
     """The chain's parameters, one part per component: `stereo` is the frame's SGBM (shared by the depth points,
     the openings and the odometry's keyframes: 128 disparities, depth down to fx * baseline / 128)."""
@@ -143,3 +174,5 @@ class PerceptionParams:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     gravity: GravityParams = field(default_factory=GravityParams)
     depth: DepthPointsConfig = field(default_factory=DepthPointsConfig)
+    place: PlaceConfig = field(default_factory=PlaceConfig)
+    inertial: InertialParams = field(default_factory=InertialParams)

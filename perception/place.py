@@ -27,26 +27,8 @@ import numpy as np
 
 from macroloc.common.views import KeyframeView
 from macroloc.perception.calib import StereoRig
+from macroloc.perception.params import PlaceConfig
 from macroloc.perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
-
-
-@dataclass(frozen=True)
-class PlaceConfig:
-    n_features: int = 1000  # ORB features of the image to place
-    stored_features: int = 400  # ... and at most this many kept per stored view (those with a depth, strongest)
-    fast_threshold: int = 7  # as the visual odometry's: rendered walls are low in contrast
-    num_disparities: int = 128  # SGBM's search range for a stored view's depths (down to 0.45 m)
-    max_depth_m: float = 12.0
-    vote_features: int = 300  # the image's strongest features that vote for stored views ...
-    vote_per_view: int = 150  # ... against each view's strongest (a view's features are stored strongest first)
-    vote_distance: int = 40  # Hamming distance (of 256 bits) under which a nearest descriptor votes for its view
-    top_views: int = 4
-    ratio: float = 0.8
-    ransac_reprojection_px: float = 3.0
-    min_inliers: int = 40
-    max_tilt_deg: float = 5.0
-    rival_ratio: float = 0.5  # a second place explaining the leftover matches with this share of the inliers ...
-    rival_apart_m: float = 1.0  # ... this far from the first: the place is ambiguous (no answer)
 
 
 @dataclass(frozen=True)

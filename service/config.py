@@ -496,6 +496,55 @@ class DepthTable(_Params):
         description="a depth image the vehicle sends with its stereo frame: every this many pixels, px")
 
 
+class PlaceTable(_Params):
+    """Place recognition of keyframes in a stored map's views (perception.params.PlaceConfig)."""
+
+    n_features: int = Field(_PERCEPTION.place.n_features, ge=1, description="ORB features of the image to place")
+    stored_features: int = Field(
+        _PERCEPTION.place.stored_features, ge=1,
+        description="at most this many kept per stored view (those with a depth, strongest first)")
+    fast_threshold: int = Field(_PERCEPTION.place.fast_threshold, ge=1, description="ORB's FAST threshold")
+    num_disparities: int = Field(
+        _PERCEPTION.place.num_disparities, ge=16, multiple_of=16,
+        description="SGBM's search range for a stored view's depths")
+    max_depth_m: float = Field(_PERCEPTION.place.max_depth_m, gt=0, description="a stored feature's depth at most, m")
+    vote_features: int = Field(
+        _PERCEPTION.place.vote_features, ge=1, description="the image's strongest features that vote for stored views")
+    vote_per_view: int = Field(
+        _PERCEPTION.place.vote_per_view, ge=1, description="... against each view's strongest this many")
+    vote_distance: int = Field(
+        _PERCEPTION.place.vote_distance, ge=0, le=256,
+        description="Hamming distance (of 256 bits) under which a nearest descriptor votes for its view")
+    top_views: int = Field(_PERCEPTION.place.top_views, ge=1, description="the best-voted views matched")
+    ratio: float = Field(_PERCEPTION.place.ratio, gt=0, le=1, description="Lowe's ratio test of the matches")
+    ransac_reprojection_px: float = Field(
+        _PERCEPTION.place.ransac_reprojection_px, gt=0, description="PnP-RANSAC's reprojection threshold, px")
+    min_inliers: int = Field(_PERCEPTION.place.min_inliers, ge=1, description="a place needs this many PnP inliers")
+    max_tilt_deg: float = Field(
+        _PERCEPTION.place.max_tilt_deg, ge=0, description="... and a pose this close to level, deg")
+    rival_ratio: float = Field(
+        _PERCEPTION.place.rival_ratio, ge=0, le=1,
+        description="a second place explaining the leftover matches with this share of the inliers ...")
+    rival_apart_m: float = Field(
+        _PERCEPTION.place.rival_apart_m, ge=0, description="... this far from the first: the place is ambiguous, m")
+
+
+class InertialTable(_Params):
+    """The IMU's dead reckoning while a replay's visual odometry has lost track (perception.params.InertialParams)."""
+
+    calibrate_s: float = Field(
+        _PERCEPTION.inertial.calibrate_s, gt=0,
+        description="gravity and the velocity are calibrated over this much tracked flight before the loss, s ...")
+    min_calibrate_s: float = Field(
+        _PERCEPTION.inertial.min_calibrate_s, gt=0,
+        description="... at least this much, else the odometry coasts at constant velocity, s")
+    end_s: float = Field(
+        _PERCEPTION.inertial.end_s, gt=0, description="velocities: lines fitted to this long a span of positions, s")
+    max_accel_mps2: float = Field(
+        _PERCEPTION.inertial.max_accel_mps2, gt=0,
+        description="a larger mean acceleration over the span is no flight's: no calibration, m/s^2")
+
+
 class PerceptionConfig(_Section):
     """The perception chain (perception/): which door/window detector, on which frames it runs, and one table per
     component, named as its part of perception.params.PerceptionParams (`[perception.lines]` is `LineConfig`)."""
@@ -519,6 +568,10 @@ class PerceptionConfig(_Section):
                                   description="[perception.gravity]: gravity's up from the IMU")
     depth: DepthTable = Field(default_factory=lambda: DepthTable(),
                               description="[perception.depth]: the depth points for the walls' checks")
+    place: PlaceTable = Field(default_factory=lambda: PlaceTable(),
+                              description="[perception.place]: keyframes placed in a stored map's views")
+    inertial: InertialTable = Field(default_factory=lambda: InertialTable(),
+                                    description="[perception.inertial]: the IMU's dead reckoning in a replay")
 
     def to_params(self) -> PerceptionParams:
         """The chain's parameters: each table onto its part of `PerceptionParams` (the rest at their defaults)."""
@@ -526,7 +579,8 @@ class PerceptionConfig(_Section):
         return PerceptionParams(self.stereo.to_params(d.stereo), self.lines.to_params(d.lines),
                                 self.plausibility.to_params(d.plausibility), self.wall_plane.to_params(d.wall_plane),
                                 self.odometry.to_params(d.odometry), self.gravity.to_params(d.gravity),
-                                self.depth.to_params(d.depth))
+                                self.depth.to_params(d.depth), self.place.to_params(d.place),
+                                self.inertial.to_params(d.inertial))
 
 
 class KeyframesConfig(_Params):

@@ -24,7 +24,7 @@ import zenoh
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.geo import GeoReference
 from macroloc.graph.localizer import Estimate
-from macroloc.perception.params import DepthPointsConfig
+from macroloc.perception.params import DepthPointsConfig, PlaceConfig
 from macroloc.service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
 from macroloc.service.frames import FramePipeline, NullPipeline
 from macroloc.service.health import DropCounter, LatencyWindow, RateMeter
@@ -77,6 +77,7 @@ class ServiceParams:
     ros_sensors: RosSensorTopics = field(default_factory=RosSensorTopics)  # ROS sensor topics taken ([ros])
     T_body_cam: np.ndarray | None = None  # the camera's mounting for ROS images (None: the simulator's)
     depth: DepthPointsConfig = field(default_factory=DepthPointsConfig)  # a depth image's points ([perception.depth])
+    place: PlaceConfig = field(default_factory=PlaceConfig)  # place recognition in the saved map ([perception.place])
 
 
 class LocalizationService:
@@ -97,7 +98,7 @@ class LocalizationService:
         self.store = store
         self.params = params
         self.pipeline = pipeline or NullPipeline()
-        self.places = KeyframePlaces(backend.restored, keep_views=True)  # place recognition on stereo frames
+        self.places = KeyframePlaces(backend.restored, keep_views=True, config=params.place)  # on stereo frames
         self.keys = Keys(params.vehicle)
         self.drops = DropCounter()
         self.queue = WorkQueue(params.queue_size)

@@ -104,7 +104,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                            drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep, geo=geo,
                            limits=limits_from_config(cfg.inputs, model), ros_sensors=ros_sensor_topics(cfg),
                            T_body_cam=None if cfg.camera.T_body_cam is None else np.array(cfg.camera.T_body_cam, float),
-                           depth=cfg.perception.to_params().depth)
+                           depth=cfg.perception.to_params().depth, place=cfg.perception.to_params().place)
     vehicle_out, ros_inputs = make_vehicle_io(cfg, session, geo.T_enu_cad() if geo and geo.north_given else None)
     return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), vehicle_out, ros_inputs,
                                notifier)

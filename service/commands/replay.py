@@ -130,7 +130,7 @@ def register(app: typer.Typer) -> None:
                 surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
         from macroloc.service.places import KeyframePlaces
 
-        places = KeyframePlaces(stored, keep_views=save_map is not None)
+        places = KeyframePlaces(stored, keep_views=save_map is not None, config=cfg.perception.to_params().place)
         recorder = None
         with contextlib.ExitStack() as stack:
             if out is not None:

@@ -166,7 +166,7 @@ class VisualOdometry:
         self._T_odom_cam0: np.ndarray | None = None
         self._last_imu_ns: int | None = None
         self._gravity = GravityEstimator(p.gravity)
-        self._inertial = InertialDeadReckoning()
+        self._inertial = InertialDeadReckoning(p.inertial)
         self._depth = StereoDepth.configured(p.depth, self._disparity)
         self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
         self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame

@@ -69,7 +69,8 @@ def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_ch
     cfg = load_config(None, perception={"stereo": {"num_disparities": 64}, "lines": {"margin": 0.2},
                                         "plausibility": {"max_side_angle_deg": 9.0}, "wall_plane": {"iterations": 8},
                                         "odometry": {"tracker": "klt"}, "gravity": {"window_s": 2.0},
-                                        "depth": {"every": 2, "stride_px": 8, "max_range_m": 6.0}})
+                                        "depth": {"every": 2, "stride_px": 8, "max_range_m": 6.0},
+                                        "inertial": {"calibrate_s": 2.0}})
     params = cfg.perception.to_params()
     pipeline = make_perception_pipeline(params=params)
     assert pipeline is not None
@@ -80,3 +81,4 @@ def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_ch
     odometry = VisualOdometry(params=params)
     assert odometry._params.odometry.tracker == "klt" and odometry._gravity.params.window_s == 2.0
     assert odometry._depth.every == 2 and odometry._depth.stride_px == 8
+    assert odometry._inertial.params.calibrate_s == 2.0

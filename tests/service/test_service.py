@@ -256,6 +256,21 @@ def test_a_storey_hint_that_is_not_in_the_building_is_refused_at_start(office_pa
     assert service.backend.localizer.registrar.storey_hint == "Level 2"  # type: ignore[attr-defined]
 
 
+def test_the_service_takes_the_configured_perception_parameters(office_path, tmp_path) -> None:
+    """[perception.*] reach the running service: its depth images' sampling, its place recognition, its gravity."""
+    from macroloc.service.serve import build_service
+
+    cfg = service_config(office_path, tmp_path, free_port())
+    perception = cfg.perception.model_validate({"place": {"min_inliers": 55}, "depth": {"depth_image_stride_px": 12},
+                                               "gravity": {"window_s": 1.5}})
+    cfg = cfg.model_copy(update={"perception": perception})
+    with zenoh.open(session_config(loopback())) as session:
+        service = build_service(cfg, session)
+    assert service.params.place.min_inliers == 55 and service.places.config == service.params.place
+    assert service.params.depth.depth_image_stride_px == 12
+    assert service.backend._gravity.params.window_s == 1.5
+
+
 def test_maps_accumulate_across_restarts(office_path, office_model, start_pose, tmp_path) -> None:
     """A restart that flies elsewhere keeps the earlier flight's landmarks in its saved map (merged, no duplicate)."""
     flight = FakeFlight(office_model, yaw_T(0.4, np.array([2.0, -3.0, 0.0])))
