@@ -57,8 +57,8 @@ VERSION = "0.1.0"
 
 @dataclass
 class ServiceParams:
-    """The running service's settings, from the config's [service] and [planning] (service.serve.build_service):
-    no defaults here, the config's are the only ones."""
+    """The running service's settings, from the config (service.serve.build_service): [service]'s and
+    [planning]'s have no defaults here, the config's are the only ones; `depth` and `place` are [perception]'s."""
 
     vehicle: str
     building: str
@@ -72,12 +72,12 @@ class ServiceParams:
     stall_after_s: float  # a handler busy this long is a stall: liveliness withdrawn, watchdog not fed
     drain_timeout_s: float  # at stop, the queued events get this long; then the map is saved and we exit
     lockstep: bool  # inputs handled in the order sent (one FIFO intake, nothing dropped), replans first
+    depth: DepthPointsConfig  # a depth image's points ([perception.depth])
+    place: PlaceConfig  # place recognition in the saved map ([perception.place])
     geo: GeoReference | None = None  # the model's geo-reference: poses also in ENU and WGS84
     limits: InputLimits = field(default_factory=InputLimits)  # what the input keys take (service.inputs)
     ros_sensors: RosSensorTopics = field(default_factory=RosSensorTopics)  # ROS sensor topics taken ([ros])
     T_body_cam: np.ndarray | None = None  # the camera's mounting for ROS images (None: the simulator's)
-    depth: DepthPointsConfig = field(default_factory=DepthPointsConfig)  # a depth image's points ([perception.depth])
-    place: PlaceConfig = field(default_factory=PlaceConfig)  # place recognition in the saved map ([perception.place])
 
 
 class LocalizationService:

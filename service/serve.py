@@ -96,7 +96,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg, prepared.surfaces)  # the replay's session
     planner = prepared.planner
     log.info("%s: ready", building.name)
-    s = cfg.service
+    s, perception = cfg.service, cfg.perception.to_params()
     params = ServiceParams(vehicle=s.vehicle, building=building.name, building_sha256=model.sha256,
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
                            status_period_s=s.status_period_s, save_period_s=s.save_period_s,
@@ -104,7 +104,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                            drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep, geo=geo,
                            limits=limits_from_config(cfg.inputs, model), ros_sensors=ros_sensor_topics(cfg),
                            T_body_cam=None if cfg.camera.T_body_cam is None else np.array(cfg.camera.T_body_cam, float),
-                           depth=cfg.perception.to_params().depth, place=cfg.perception.to_params().place)
+                           depth=perception.depth, place=perception.place)
     vehicle_out, ros_inputs = make_vehicle_io(cfg, session, geo.T_enu_cad() if geo and geo.north_given else None)
     return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), vehicle_out, ros_inputs,
                                notifier)

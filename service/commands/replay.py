@@ -116,11 +116,11 @@ def register(app: typer.Typer) -> None:
         with step(f"reading {building.name} (its first time: a minute or more, cached after)"):
             model = load_building(building)
         stored = StoredMap.load(stored_map, model) if stored_map is not None else None
+        perception = cfg.perception.to_params()
         source: ObservationSource = (TruthSource(seed=seed) if observations == "truth" else
-                                     TruthFeaturesWithVisualOdometry(seed=seed, params=cfg.perception.to_params())
+                                     TruthFeaturesWithVisualOdometry(seed=seed, params=perception)
                                      if observations == "truth-vo"
-                                     else PerceptionSource(cfg.perception.detect_every, detector,
-                                                           cfg.perception.to_params()))
+                                     else PerceptionSource(cfg.perception.detect_every, detector, perception))
         storey = model.checked_storey(storey if storey is not None else cfg.graph.storey_hint)
         surfaces = None
         if cfg.graph.surface_check:
@@ -130,7 +130,7 @@ def register(app: typer.Typer) -> None:
                 surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
         from macroloc.service.places import KeyframePlaces
 
-        places = KeyframePlaces(stored, keep_views=save_map is not None, config=cfg.perception.to_params().place)
+        places = KeyframePlaces(stored, keep_views=save_map is not None, config=perception.place)
         recorder = None
         with contextlib.ExitStack() as stack:
             if out is not None:
