@@ -175,6 +175,9 @@ class IsamSettings:
     # localizer's `surface_window_keyframes` (60), the oldest keyframe whose estimate it reads back.
     window_keyframes: int = 100
     marginalise_every: int = 100  # with a window: keyframes are marginalised this many at a time (graph.posegraph)
+    # With a window: a landmark no live keyframe sees is marginalised with the keyframes and re-enters when seen
+    # again (graph.posegraph), so the live graph holds the doors in view, not every door mapped.
+    marginalise_landmarks: bool = True
 
 
 @dataclass(frozen=True)

@@ -31,11 +31,19 @@ anchor, whose linearisation points gtsam then fixes), once per K keyframes, not 
 smoother, the anchor and the newest keyframe are eliminated last, at the root, in every update: the covariance of
 T_cad_body (the service's, each keyframe) stays the root clique's (0.2 ms, 11 ms with the smoother at 700
 keyframes). A marginalised keyframe's last estimate is kept and read by `T_map_body(i)` as before; a factor on one
-raises. Landmarks and the anchor are never marginalised: a door seen again after any time still closes the loop on
-the doors, the anchor and the window, and the stored map (landmarks, links, T_cad_map) is the live estimate.
-The window rule is the localizer's, not the building's: it adds factors to the newest keyframe only and reads
-back the keyframes of its depth and far-sighting windows (`surface_window_keyframes`, 60), so W >= 60 keeps all
-it reads live; the cost then depends on the doors mapped (the building's area), not on the flight's length.
+raises. The anchor is never marginalised. A landmark is marginalised with the keyframes once no live keyframe
+sees it (`IsamSettings.marginalise_landmarks`): otherwise the marginalised keyframes' prior joins every door they
+saw into one clique with the anchor, which each sighting re-eliminates, and the cost grows with the doors mapped
+(the building's area). Its CAD links are removed from iSAM2 first, so the anchor keeps no linear prior from doors
+out of sight (a prior on the anchor would fix its linearisation point for the rest of the mission, and the links
+come back below); the information lost is that of the door's own links while it is out of sight, never counted
+twice. Its last estimate and marginal covariance are kept: `T_map_rect(j)` reads them, so the stored map and
+registration still see every door. Seen again (or linked again), it re-enters as a variable at that estimate with
+its links; a door never linked re-enters with a prior of that covariance instead, which treats it as independent
+of the window (the approximation of a localization map's landmarks). The window rule is the localizer's, not the
+building's: it adds factors to the newest keyframe only and reads back the keyframes of its depth and
+far-sighting windows (`surface_window_keyframes`, 60), so W >= 60 keeps all it reads live; the cost then
+depends on the doors in view, not on the flight's length or the building's size.
 """
 
 from __future__ import annotations
@@ -55,7 +63,8 @@ X = gtsam.symbol_shorthand.X
 L = gtsam.symbol_shorthand.L
 A = gtsam.symbol_shorthand.A
 ANCHOR = A(0)
-_X_CHR, _INDEX_MASK = ord("x"), (1 << 56) - 1  # a gtsam.Symbol key: its character in the top byte, its index below
+_X_CHR, _L_CHR = ord("x"), ord("l")  # a gtsam.Symbol key: its character in the top byte, ...
+_INDEX_MASK = (1 << 56) - 1  # ... its index below
 
 # Pose3 sigmas are in GTSAM's tangent order [rot (rad) x3; trans (m) x3].
 # The first keyframe fixes the map frame's yaw and origin; its roll and pitch are the odometry's first guess (one
@@ -95,6 +104,7 @@ class PoseGraph:
         params.relinearizeSkip = settings.relinearize_skip
         self.window = max(0, int(settings.window_keyframes))
         self.chunk = max(1, int(settings.marginalise_every))
+        self.marginalise_landmarks = bool(settings.marginalise_landmarks)
         self._isam = gtsam.ISAM2(params)
         self._marginalised: dict[int, np.ndarray] = {}  # keyframe -> its last estimate T_map_body, once marginalised
         self.live_from = 0  # the oldest keyframe still a variable (all older ones are in `_marginalised`)
@@ -104,7 +114,12 @@ class PoseGraph:
         self._all_factors = gtsam.NonlinearFactorGraph()
         self._all_values = gtsam.Values()
         self.n_keyframes = 0
-        self.landmarks: set[int] = set()
+        self.landmarks: set[int] = set()  # every landmark ever added, live or marginalised
+        self._last_seen: dict[int, int] = {}  # landmark -> the newest keyframe with a factor on it (or added at)
+        # A marginalised landmark -> its last T_map_rect, 6x6 marginal covariance and CAD-link factors (removed)
+        self._out: dict[int, tuple[np.ndarray, np.ndarray, list[gtsam.NonlinearFactor]]] = {}
+        self._links: dict[int, list[tuple[int, gtsam.NonlinearFactor]]] = {}  # landmark -> (iSAM2 index, link)
+        self._pending_links: list[tuple[int, int]] = []  # (position in the new factors, landmark) until the update
         self.has_anchor = False
         self.last_update_ms = 0.0
         self.last_update_cpu_ms = 0.0  # process CPU time of the update: immune to a busy machine's scheduling
@@ -150,10 +165,28 @@ class PoseGraph:
     def add_landmark(self, j: int, T_map_rect_guess: np.ndarray) -> None:
         self._insert(L(j), T_map_rect_guess)
         self.landmarks.add(j)
+        self._last_seen[j] = self.n_keyframes - 1
 
     def add_sighting(self, i: int, j: int, T_body_rect: np.ndarray, sigmas: np.ndarray = SIGHTING_SIGMAS) -> None:
         """Landmark j seen from keyframe i as T_body_rect (4x4)."""
+        self._enter(j)
         self._add(gtsam.BetweenFactorPose3(self._live(i), L(j), pose3(T_body_rect), diagonal(sigmas)))
+        self._last_seen[j] = max(self._last_seen[j], i)
+
+    def _enter(self, j: int) -> None:
+        """Landmark j a variable again, if it was marginalised: at its last estimate, with a prior of its last
+        marginal covariance (iSAM2's alone: the batch graph holds all its factors already)."""
+        if j not in self._out:
+            return
+        T, covariance, links = self._out.pop(j)
+        self._new_values.insert(L(j), pose3(T))
+        if not links:
+            self._new_factors.add(gtsam.PriorFactorPose3(L(j), pose3(T),
+                                                         gtsam.noiseModel.Gaussian.Covariance(covariance)))
+        for link in links:
+            self._pending_links.append((int(self._new_factors.size()), j))
+            self._new_factors.add(link)
+        self._last_seen[j] = self.n_keyframes - 1
 
     def add_anchor(self, T_map_cad_guess: np.ndarray) -> None:
         """The CAD anchor variable A(0) = T_map_cad, initialised from a registration, levelled (see
@@ -172,6 +205,8 @@ class PoseGraph:
 
     def add_cad_link(self, j: int, T_cad_rect: np.ndarray, sigmas: np.ndarray = CAD_LINK_SIGMAS) -> None:
         """Landmark j is the CAD feature with frame T_cad_rect (robust: a wrong match loses its weight)."""
+        self._enter(j)
+        self._pending_links.append((int(self._new_factors.size()), j))
         self._add(gtsam.BetweenFactorPose3(ANCHOR, L(j), pose3(T_cad_rect), robust(sigmas)))
 
     # --- solving ----------------------------------------------------------------------------------------------
@@ -181,6 +216,10 @@ class PoseGraph:
         start, start_cpu = time.perf_counter(), time.process_time()
         leaving = self._leaving()
         result = self._marginalise(leaving) if leaving else self._update_rooted()
+        indices = result.getNewFactorsIndices()
+        for position, j in self._pending_links:
+            self._links.setdefault(j, []).append((int(indices[position]), self._new_factors.at(position)))
+        self._pending_links = []
         self.last_reeliminated = result.getVariablesReeliminated()
         for _ in range(extra_iterations):
             self.last_reeliminated += self._isam.update().getVariablesReeliminated()
@@ -223,20 +262,34 @@ class PoseGraph:
         orders them anywhere, made it 11 ms instead of 0.3 at 700 keyframes). Once per chunk, not per keyframe."""
         for i in leaving:
             self._marginalised[i] = self._value(X(i))
-        old = {X(i) for i in leaving}
+        linking = {j for _, j in self._pending_links}
+        unseen = sorted(j for j, seen in self._last_seen.items()
+                        if seen < leaving.stop and j not in self._out and j not in linking) \
+            if self.marginalise_landmarks else []
+        removed = [index for j in unseen for index, _ in self._links.get(j, [])]
+        old = {X(i) for i in leaving} | {L(j) for j in unseen}
         last = {ANCHOR, X(self.n_keyframes - 1)}
         groups, everything = gtsam.KeyGroupMap(), gtsam.KeyList()
         for key in [*self._isam.getLinearizationPoint().keys(), *self._new_values.keys()]:
             groups.insert2(key, 0 if key in old else 2 if key in last else 1)
             everything.push_back(key)
-        result = self._isam.update(self._new_factors, self._new_values, constrainedKeys=groups,
-                                   extraReelimKeys=everything)
+        result = self._isam.update(self._new_factors, self._new_values, removeFactorIndices=removed,
+                                   constrainedKeys=groups, extraReelimKeys=everything)
+        for j in unseen:
+            self._out[j] = (self._isam.calculateEstimatePose3(L(j)).matrix(),
+                            np.asarray(self._isam.marginalCovariance(L(j))),
+                            [link for _, link in self._links.pop(j, [])])
         leaves = gtsam.KeyList()
         for key in sorted(old):
             leaves.push_back(key)
         self._isam.marginalizeLeaves(leaves)
         self.live_from = leaving.stop
         return result
+
+    @property
+    def marginalised_landmarks(self) -> set[int]:
+        """The landmarks out of the window now (read at their last estimate; each re-enters when seen again)."""
+        return set(self._out)
 
     @property
     def isam(self) -> gtsam.ISAM2:
@@ -269,13 +322,18 @@ class PoseGraph:
             return self._new_values.atPose3(key).matrix()
         if key >> 56 == _X_CHR and key & _INDEX_MASK < self.live_from:
             return self._marginalised[key & _INDEX_MASK]
+        if key >> 56 == _L_CHR and key & _INDEX_MASK in self._out:
+            return self._out[key & _INDEX_MASK][0].copy()
         return self._isam.calculateEstimatePose3(key).matrix()
 
     def estimate(self) -> gtsam.Values:
-        """All variables' current estimates, marginalised keyframes' their last (for tests and reports; O(n))."""
+        """All variables' current estimates, marginalised keyframes' and landmarks' their last (for tests and
+        reports; O(n))."""
         values = self._isam.calculateEstimate()
         for i, T in self._marginalised.items():
             values.insert(X(i), pose3(T))
+        for j, (T, _, _) in self._out.items():
+            values.insert(L(j), pose3(T))
         return values
 
     def covariance_cad_body(self, i: int) -> np.ndarray:

@@ -858,6 +858,11 @@ class IsamConfig(_Params):
     marginalise_every: int = Field(
         _ISAM.marginalise_every, ge=1,
         description="with a window: keyframes are marginalised this many at a time (one re-factorisation each time)")
+    marginalise_landmarks: bool = Field(
+        _ISAM.marginalise_landmarks,
+        description="with a window: a door or window no live keyframe sees leaves the graph with them, its CAD links "
+        "set aside, and re-enters when seen again, at its last estimate with its links (unlinked: with a prior of its "
+        "last covariance); the cost then follows the doors in view (false: every door mapped stays a variable)")
 
 
 # The [graph] keys before its tables (issue 36), still read: each moves to its table, with a warning.
