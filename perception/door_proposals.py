@@ -18,28 +18,11 @@ import numpy as np
 
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.evaluate import iou_xyxy
-from macroloc.perception.lines import LineConfig, Sides, detect_segments
-from macroloc.perception.params import JOIN_GAP_PX
+from macroloc.perception.lines import Sides, detect_segments
+from macroloc.perception.params import ProposalConfig
 from macroloc.perception.reconstruct import WallPlaneConfig, wall_plane
 from macroloc.perception.size_check import OpeningSizes, SizeTolerance, fitting
 from macroloc.perception.stereo import back_project, to_gray
-
-
-@dataclass(frozen=True)
-class ProposalConfig:
-    """Limits of the door proposals; every one is derived from elsewhere (see the notes)."""
-
-    scale: float = 0.5  # LSD on the image at this scale: a door side a proposal needs is >= 2 x min_side_px long
-    max_tilt_deg: float = LineConfig.max_tilt_deg  # from vertical: the drone rolls up to ~20 deg (perception.lines)
-    join_offset_px: float = LineConfig.join_offset_px  # collinear pieces of one side (perception.lines) ...
-    join_gap_px: float = JOIN_GAP_PX  # ... whose ends lie within the paper's joining distance
-    min_side_px: float = 40.0  # px: a 1.52 m door at 18 m, f = 480: past the 12 m range (1.52 m: a short door,
-    # docs/measurements.md, "Door proposals' shortest side")
-    strip_px: tuple[float, float] = (6.0, 24.0)  # the wall's depth from this far outside a side (WallPlaneConfig)
-    depth_tol_m: tuple[float, float] = (0.03, 0.0125)  # stereo's noise, a + b z^2 (WallPlaneConfig.threshold_m)
-    border_fraction: float = 40 / 480  # a side's end this near the border runs on past it (pipeline's margin)
-    max_proposals: int = 4  # per frame, best fit first: each costs an LSD refine and a 3D fit (~3 ms)
-    wall: WallPlaneConfig | None = WallPlaneConfig()  # the sides must stand in one wall (None: not checked)
 
 
 @dataclass(frozen=True)
@@ -179,12 +162,13 @@ def _top_edge_support(horizontal: np.ndarray, u_i: np.ndarray, u_j: np.ndarray, 
 
 def propose_doors(image: np.ndarray, depth_m: np.ndarray, rig: StereoRig, sizes: OpeningSizes,
                   tol: SizeTolerance | None = None, cfg: ProposalConfig | None = None,
-                  gravity_cam: np.ndarray | None = None) -> list[DoorProposal]:
+                  gravity_cam: np.ndarray | None = None, wall: WallPlaneConfig | None = None) -> list[DoorProposal]:
     """Door candidates (best fit first, at most cfg.max_proposals, overlapping ones suppressed) in the left image
     from its LSD lines, its depth (m, NaN unknown) and the model's door sizes. A door stands on the floor the
     vehicle flies above: where its bottom is in view it lies below the camera (along `gravity_cam`, a unit vector
-    in the camera frame, where known; else the camera's y axis: a level camera)."""
-    cfg, tol = cfg or ProposalConfig(), tol or SizeTolerance()
+    in the camera frame, where known; else the camera's y axis: a level camera). The sides must stand in one wall
+    by `wall` (the chain's; None: its defaults) unless `cfg.check_wall` is off."""
+    cfg, tol, wall = cfg or ProposalConfig(), tol or SizeTolerance(), wall or WallPlaneConfig()
     doors = sizes.wh_m("door")
     gray = to_gray(image)
     vertical, horizontal = segments(gray, cfg)
@@ -225,7 +209,7 @@ def propose_doors(image: np.ndarray, depth_m: np.ndarray, rig: StereoRig, sizes:
     inside = np.full(len(i), np.nan)
     inside[keep] = _inside_depth_m(lines, i[keep], j[keep], depth_m)
     keep &= ~(inside < z - (cfg.depth_tol_m[0] + cfg.depth_tol_m[1] * z ** 2))  # nearer than the wall: in front
-    on_wall = _OnWall(depth_m, rig, gravity_cam, cfg.wall)
+    on_wall = _OnWall(depth_m, rig, gravity_cam, wall if cfg.check_wall else None)
     return _best(lines, i, j, width, height, z, cut, fits, tol_m, doors, keep, inside - z, on_wall, cfg)
 
 
@@ -282,6 +266,8 @@ def _best(lines: _Lines, i: np.ndarray, j: np.ndarray, width: np.ndarray, height
                                        np.where(cut[:, None], 0.0, np.abs(height[:, None] - doors[:, 1]))), np.inf)
     fit = 1.0 - misfit.min(axis=1) / tol_m
     for k in np.flatnonzero(keep)[np.argsort(-fit[keep])]:
+        if len(out) >= cfg.max_proposals:
+            break
         pts = np.vstack([lines.top[[i[k], j[k]]], lines.bottom[[i[k], j[k]]]])
         box = np.array([pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max()])
         if boxes and iou_xyxy(box[None], np.array(boxes))[0].max() >= 0.3:
@@ -293,8 +279,6 @@ def _best(lines: _Lines, i: np.ndarray, j: np.ndarray, width: np.ndarray, height
         out.append(DoorProposal((float(box[0]), float(box[1]), float(box[2]), float(box[3])), float(width[k]),
                                 float(height[k]), float(z[k]), bool(cut[k]), (float(w), float(h)), float(fit[k]),
                                 float(step[k])))
-        if len(out) == cfg.max_proposals:
-            break
     return out
 
 

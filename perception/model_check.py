@@ -81,7 +81,7 @@ class ModelCheckedPerception:
         if self.proposals is not None and self.sizes is not None:
             depth_m = depth_from_disparity(self.chain.matcher.disparity_px(pair.left, pair.right), pair.rig)
             proposals = propose_doors(pair.left, depth_m, pair.rig, self.sizes, self.tol, self.proposals,
-                                      pair.gravity_cam)
+                                      pair.gravity_cam, self.chain.wall)
         laps["propose"] = (time.perf_counter() - t) * 1e3
         source, extra = _sources(detections, proposals)
         result = self.chain.process_boxes(pair, detections + extra, depth_m=depth_m)

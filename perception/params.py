@@ -163,6 +163,41 @@ class InertialParams:
 
 
 @dataclass(frozen=True)
+class ProposalConfig:
+    """Limits of the door proposals; every one is derived from elsewhere (see the notes)."""
+
+    scale: float = 0.5  # LSD on the image at this scale: a door side a proposal needs is >= 2 x min_side_px long
+    max_tilt_deg: float = LineConfig.max_tilt_deg  # from vertical: the drone rolls up to ~20 deg (perception.lines)
+    join_offset_px: float = LineConfig.join_offset_px  # collinear pieces of one side (perception.lines) ...
+    join_gap_px: float = JOIN_GAP_PX  # ... whose ends lie within the paper's joining distance
+    min_side_px: float = 40.0  # px: a 1.52 m door at 18 m, f = 480: past the 12 m range (1.52 m: a short door,
+    # docs/measurements.md, "Door proposals' shortest side")
+    strip_px: tuple[float, float] = (6.0, 24.0)  # the wall's depth from this far outside a side (WallPlaneConfig)
+    depth_tol_m: tuple[float, float] = (0.03, 0.0125)  # stereo's noise, a + b z^2 (WallPlaneConfig.threshold_m)
+    border_fraction: float = 40 / 480  # a side's end this near the border runs on past it (pipeline's margin)
+    max_proposals: int = 4  # per frame, best fit first: each costs an LSD refine and a 3D fit (~3 ms)
+    check_wall: bool = True  # the sides must stand in one wall (the chain's WallPlaneConfig; False: not checked)
+
+
+@dataclass(frozen=True)
+class SizeTolerance:
+    """How far a reconstructed width or height may lie from the true one: `floor_m + per_m * depth_m`, from the
+    chain's error measured on rendered frames with known truth (`bench.bench_size_check --measure`, the detector's
+    boxes matched to the truth): it holds nearly all widths and heights not cut by the border (docs/measurements.md,
+    "The detector's kind and the size tolerance").
+    Stereo's depth error grows as depth squared, but a width or height is a difference of two corners at the
+    same depth, so its error grows with depth (the pixel error of a side times depth / f) plus a constant part
+    (the box and the LSD side missing the frame by a few centimetres)."""
+
+    floor_m: float = 0.10
+    per_m: float = 0.03
+
+    def at(self, depth_m: float) -> float:
+        return self.floor_m + self.per_m * max(depth_m, 0.0)
+
+
+
+@dataclass(frozen=True)
 class PerceptionParams:
     """The chain's parameters, one part per component: `stereo` is the frame's SGBM (shared by the depth points,
     the openings and the odometry's keyframes: 128 disparities, depth down to fx * baseline / 128)."""
@@ -176,3 +211,5 @@ class PerceptionParams:
     depth: DepthPointsConfig = field(default_factory=DepthPointsConfig)
     place: PlaceConfig = field(default_factory=PlaceConfig)
     inertial: InertialParams = field(default_factory=InertialParams)
+    proposals: ProposalConfig = field(default_factory=ProposalConfig)
+    size_check: SizeTolerance = field(default_factory=SizeTolerance)

@@ -21,6 +21,10 @@ from typing import Literal
 
 import numpy as np
 
+from macroloc.perception.params import SizeTolerance
+
+__all__ = ["KINDS", "OpeningSizes", "SizeStatus", "SizeTolerance"]  # SizeTolerance: perception.params
+
 SizeStatus = Literal["confirmed", "rejected", "unchecked"]
 KINDS = ("door", "window")
 
@@ -40,23 +44,6 @@ class OpeningSizes:
     def wh_m(self, kind: str) -> np.ndarray:
         """(N, 2) width, height of the model's openings of `kind`, metres."""
         return np.array([(w, h) for k, w, h in self.sizes if k == kind], float).reshape(-1, 2)
-
-
-@dataclass(frozen=True)
-class SizeTolerance:
-    """How far a reconstructed width or height may lie from the true one: `floor_m + per_m * depth_m`, from the
-    chain's error measured on rendered frames with known truth (`bench.bench_size_check --measure`, the detector's
-    boxes matched to the truth): it holds nearly all widths and heights not cut by the border (docs/measurements.md,
-    "The detector's kind and the size tolerance").
-    Stereo's depth error grows as depth squared, but a width or height is a difference of two corners at the
-    same depth, so its error grows with depth (the pixel error of a side times depth / f) plus a constant part
-    (the box and the LSD side missing the frame by a few centimetres)."""
-
-    floor_m: float = 0.10
-    per_m: float = 0.03
-
-    def at(self, depth_m: float) -> float:
-        return self.floor_m + self.per_m * max(depth_m, 0.0)
 
 
 @dataclass(frozen=True)

@@ -545,6 +545,44 @@ class InertialTable(_Params):
         description="a larger mean acceleration over the span is no flight's: no calibration, m/s^2")
 
 
+class ProposalsTable(_Params):
+    """Door candidates from geometry where the detector is blind; `macroloc perceive --building` only
+    (perception.params.ProposalConfig, perception.door_proposals)."""
+
+    scale: float = Field(_PERCEPTION.proposals.scale, gt=0, le=1,
+                         description="LSD runs on the image shrunk by this factor")
+    max_tilt_deg: float = Field(_PERCEPTION.proposals.max_tilt_deg, ge=0,
+                                description="a door's side at most this far from vertical, deg")
+    join_offset_px: float = Field(_PERCEPTION.proposals.join_offset_px, ge=0,
+                                  description="collinear pieces of one side lie within this of each other's line, "
+                                  "px ...")
+    join_gap_px: float = Field(_PERCEPTION.proposals.join_gap_px, ge=0,
+                               description="... and their ends within this, px")
+    min_side_px: float = Field(_PERCEPTION.proposals.min_side_px, gt=0,
+                               description="a side shorter than this is no door's, px")
+    strip_px: tuple[float, float] = Field(_PERCEPTION.proposals.strip_px,
+                                          description="the wall's depth is read between these distances outside a "
+                                          "side, px")
+    depth_tol_m: tuple[float, float] = Field(_PERCEPTION.proposals.depth_tol_m,
+                                             description="stereo's depth noise a + b * depth^2, [a m, b 1/m]: what "
+                                             "lies between the sides nearer than the wall by more stands in front")
+    border_fraction: float = Field(_PERCEPTION.proposals.border_fraction, ge=0, lt=0.5,
+                                   description="a side's end this near the border (share of the image height) runs "
+                                   "on past it")
+    max_proposals: int = Field(_PERCEPTION.proposals.max_proposals, ge=0,
+                               description="proposals kept per frame, best fit first")
+    check_wall: bool = Field(_PERCEPTION.proposals.check_wall,
+                             description="the two sides must stand in one wall ([perception.wall_plane])")
+
+
+class SizeCheckTable(_Params):
+    """How far a reconstructed opening's width or height may lie from a model size and still fit it:
+    floor_m + per_m * depth; `macroloc perceive --building` (perception.params.SizeTolerance)."""
+
+    floor_m: float = Field(_PERCEPTION.size_check.floor_m, ge=0, description="at any depth, m ...")
+    per_m: float = Field(_PERCEPTION.size_check.per_m, ge=0, description="... plus this per metre of depth")
+
+
 class PerceptionConfig(_Section):
     """The perception chain (perception/): which door/window detector, on which frames it runs, and one table per
     component, named as its part of perception.params.PerceptionParams (`[perception.lines]` is `LineConfig`)."""
@@ -572,6 +610,11 @@ class PerceptionConfig(_Section):
                               description="[perception.place]: keyframes placed in a stored map's views")
     inertial: InertialTable = Field(default_factory=lambda: InertialTable(),
                                     description="[perception.inertial]: the IMU's dead reckoning in a replay")
+    proposals: ProposalsTable = Field(default_factory=lambda: ProposalsTable(),
+                                      description="[perception.proposals]: doors proposed from geometry (perceive)")
+    size_check: SizeCheckTable = Field(default_factory=lambda: SizeCheckTable(),
+                                       description="[perception.size_check]: an opening's size against the "
+                                       "model's (perceive)")
 
     def to_params(self) -> PerceptionParams:
         """The chain's parameters: each table onto its part of `PerceptionParams` (the rest at their defaults)."""
@@ -580,7 +623,8 @@ class PerceptionConfig(_Section):
                                 self.plausibility.to_params(d.plausibility), self.wall_plane.to_params(d.wall_plane),
                                 self.odometry.to_params(d.odometry), self.gravity.to_params(d.gravity),
                                 self.depth.to_params(d.depth), self.place.to_params(d.place),
-                                self.inertial.to_params(d.inertial))
+                                self.inertial.to_params(d.inertial), self.proposals.to_params(d.proposals),
+                                self.size_check.to_params(d.size_check))
 
 
 class KeyframesConfig(_Params):

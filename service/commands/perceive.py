@@ -8,7 +8,9 @@ from typing import TYPE_CHECKING
 import typer
 
 if TYPE_CHECKING:
+    from macroloc.perception.model_check import ModelCheckedPerception
     from macroloc.perception.size_check import OpeningSizes
+    from macroloc.service.config import PerceptionConfig
 
 
 def register(app: typer.Typer) -> None:
@@ -21,10 +23,14 @@ def register(app: typer.Typer) -> None:
         json_out: bool = typer.Option(False, "--json", help="Print the contract's JSON document on stdout."),
         plot: Path | None = typer.Option(None, "--plot", help="Image file to write with features and sides drawn."),
         gravity: str | None = typer.Option(None, "--gravity", help="Gravity in the camera frame 'gx,gy,gz' if known."),
-        model: Path | None = typer.Option(None, "--model", help="ONNX detector (default: the shipped one)."),
+        model: Path | None = typer.Option(None, "--model", help="ONNX detector (default: the config's "
+                                          "[perception] detector_model, else the shipped one)."),
         building: Path | None = typer.Option(None, "--building", help="The building's model (IFC or mesh): its "
                                              "doors' and windows' sizes check every feature, and doors are proposed "
                                              "from geometry where the detector sees none."),
+        config: Path | None = typer.Option(None, "--config", "-c", help="Config file (JSON or TOML): its "
+                                           "detector_model and the [perception] tables lines, plausibility, "
+                                           "wall_plane, proposals and size_check; docs/configuration.md."),
     ) -> None:
         """Run the perception chain (detect, LSD sides, SGBM depth, 3D corners) on one rectified stereo pair.
 
@@ -45,8 +51,7 @@ def register(app: typer.Typer) -> None:
         from macroloc.perception.calib import read_stereo_rig
         from macroloc.perception.detector import DEFAULT_MODEL
         from macroloc.perception.draw import draw_features
-        from macroloc.perception.model_check import ModelCheckedPerception
-        from macroloc.perception.pipeline import Perception, StereoPair
+        from macroloc.perception.pipeline import StereoPair
         from macroloc.service.commands._io import existing_file, print_json, read_image
 
         rig = read_stereo_rig(calib_left, calib_right)
@@ -66,9 +71,13 @@ def register(app: typer.Typer) -> None:
             if g.shape != (3,) or not np.all(np.isfinite(g)) or np.linalg.norm(g) == 0:
                 raise UserInputError(f"--gravity must be three finite numbers, not all zero, got {gravity!r}")
             gravity_cam = g / np.linalg.norm(g)
-        chain = Perception.create(existing_file(model or DEFAULT_MODEL, "detector model"))
+        from macroloc.service.config import load_config
+
+        perception = load_config(config).perception
+        model = existing_file(model or perception.detector_model or DEFAULT_MODEL, "detector model")
         sizes = opening_sizes(building) if building is not None else None
-        result = ModelCheckedPerception(chain, sizes).process(StereoPair(images[0], images[1], rig, gravity_cam))
+        checked = model_checked_chain(perception, model, sizes)
+        result = checked.process(StereoPair(images[0], images[1], rig, gravity_cam))
         if plot is not None:
             plot.parent.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(plot), draw_features(images[0], [c.feature for c in result.features], result.rejected))
@@ -84,6 +93,18 @@ def register(app: typer.Typer) -> None:
                        f"{f.tilt_deg:.1f} deg, centre {np.round(f.centroid_cam, 2).tolist()} m, "
                        f"size {size.status}{fits}")
         typer.echo(f"{len(result.features)} features, {len(result.rejected)} detections rejected")
+
+
+def model_checked_chain(perception: PerceptionConfig, model: Path | None, sizes: OpeningSizes | None
+                        ) -> ModelCheckedPerception:
+    """`perceive`'s chain: the detector at `model` (None: the shipped one), the [perception] tables' sides, wall
+    plane and plausibility limits, and, with the building's `sizes`, its door proposals and size check."""
+    from macroloc.perception.model_check import ModelCheckedPerception
+    from macroloc.perception.pipeline import Perception
+
+    params = perception.to_params()
+    return ModelCheckedPerception(Perception.create(model, params=params), sizes, params.size_check,
+                                  params.proposals)
 
 
 def opening_sizes(building: Path) -> OpeningSizes:

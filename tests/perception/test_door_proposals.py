@@ -54,6 +54,26 @@ def test_a_rendered_close_up_door_is_found_without_the_detector(close_up):
     assert doors[0].size.matched_wh_m == (1.0, 2.1) and abs(doors[0].feature.width_m - 1.0) < 0.15
 
 
+def test_perceive_s_chain_takes_the_proposals_and_size_check_from_the_config(close_up):
+    """`macroloc perceive --config`: [perception.proposals] max_proposals = 0 leaves the close-up door the
+    detector does not see unfound; a size check with no tolerance cannot confirm it."""
+    from macroloc.perception.pipeline import StereoPair
+    from macroloc.service.commands.perceive import model_checked_chain
+    from macroloc.service.config import PerceptionConfig
+
+    left, right, rig, box = close_up
+    sizes = OpeningSizes.of([("door", 1.0, 2.1), ("window", 1.5, 1.2)])
+
+    def doors(table: dict) -> list:
+        chain = model_checked_chain(PerceptionConfig.model_validate(table), None, sizes)
+        result = chain.process_detections(StereoPair(left, right, rig), [])
+        return [f for f in result.features if iou_xyxy(np.array([f.feature.box_xyxy]), np.array([box]))[0, 0] >= 0.5]
+
+    assert [d.size.status for d in doors({})] == ["confirmed"]
+    assert doors({"proposals": {"max_proposals": 0}}) == []
+    assert all(d.size.status != "confirmed" for d in doors({"size_check": {"floor_m": 0.0, "per_m": 0.0}}))
+
+
 def _proposals(close_up, sizes: OpeningSizes) -> list:  # noqa: ANN001
     left, right, rig, _ = close_up
     return propose_doors(left, depth_from_disparity(SgbmMatcher().disparity_px(left, right), rig), rig, sizes)
