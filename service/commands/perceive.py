@@ -24,13 +24,14 @@ def register(app: typer.Typer) -> None:
         plot: Path | None = typer.Option(None, "--plot", help="Image file to write with features and sides drawn."),
         gravity: str | None = typer.Option(None, "--gravity", help="Gravity in the camera frame 'gx,gy,gz' if known."),
         model: Path | None = typer.Option(None, "--model", help="ONNX detector (default: the config's "
-                                          "[perception] detector_model, else the shipped one)."),
+                                          "perception.detector_model, else the shipped one)."),
         building: Path | None = typer.Option(None, "--building", help="The building's model (IFC or mesh): its "
                                              "doors' and windows' sizes check every feature, and doors are proposed "
                                              "from geometry where the detector sees none."),
         config: Path | None = typer.Option(None, "--config", "-c", help="Config file (JSON or TOML): its "
-                                           "detector_model and the [perception] tables lines, plausibility, "
-                                           "wall_plane, proposals and size_check; docs/configuration.md."),
+                                           "perception section's detector_model and its tables lines, "
+                                           "plausibility, wall_plane, proposals and size_check; "
+                                           "docs/configuration.md."),
     ) -> None:
         """Run the perception chain (detect, LSD sides, SGBM depth, 3D corners) on one rectified stereo pair.
 

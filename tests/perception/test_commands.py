@@ -73,7 +73,7 @@ def test_perceive_json_contract_on_the_real_pair(capsys, tmp_path: Path):
     assert (tmp_path / "p.png").exists()
 
 
-@pytest.mark.parametrize("problem", ["missing_calib", "bad_gravity", "size_mismatch", "bomb"])
+@pytest.mark.parametrize("problem", ["missing_calib", "bad_gravity", "size_mismatch", "bomb", "bad_config"])
 def test_perceive_bad_input_is_one_line_and_exit_2(capsys, tmp_path: Path, problem: str):
     folder = shared_data("stereo/rtabmap_stereo_rect")
     args = _pair_args(folder)
@@ -81,6 +81,9 @@ def test_perceive_bad_input_is_one_line_and_exit_2(capsys, tmp_path: Path, probl
         args[args.index("--calib-left") + 1] = str(tmp_path / "none.yaml")
     elif problem == "bad_gravity":
         args += ["--gravity", "0,nan,1"]
+    elif problem == "bad_config":
+        (tmp_path / "c.toml").write_text("[perception.proposals]\nmax_proposals = -1\n")
+        args += ["--config", str(tmp_path / "c.toml")]
     elif problem == "bomb":
         bomb = tmp_path / "bomb.png"
         bomb.write_bytes(png_bomb(20000, 20000))
