@@ -174,13 +174,15 @@ class PoseGraph:
         self._last_seen[j] = max(self._last_seen[j], i)
 
     def _enter(self, j: int) -> None:
-        """Landmark j a variable again, if it was marginalised: at its last estimate, with a prior of its last
-        marginal covariance (iSAM2's alone: the batch graph holds all its factors already)."""
+        """Landmark j a variable again, if it was marginalised: at its last estimate with its CAD links, or, never
+        linked, with a prior of its last marginal covariance (iSAM2's alone: the batch graph holds all its factors
+        already)."""
         if j not in self._out:
             return
         T, covariance, links = self._out.pop(j)
         self._new_values.insert(L(j), pose3(T))
         if not links:
+            covariance = (covariance + covariance.T) / 2.0 + 1e-12 * np.eye(6)  # symmetric, positive definite
             self._new_factors.add(gtsam.PriorFactorPose3(L(j), pose3(T),
                                                          gtsam.noiseModel.Gaussian.Covariance(covariance)))
         for link in links:
