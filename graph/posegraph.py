@@ -17,8 +17,8 @@ Factors (all built-in, so the real-time path never calls Python):
       (between(T_map_cad, T_map_rect) = T_cad_map T_map_rect = T_cad_rect, so the anchor is stored as
        T_map_cad and no inverse-direction trap arises)
 
-Every `update()` hands iSAM2 only the factors and values added since the previous one; `batch_graph()`
-returns everything ever added so a batch optimiser can be checked against iSAM2 (the oracle test).
+Every `update()` hands iSAM2 only the factors and values added since the previous one; with `record_batch`,
+`batch_graph()` returns everything ever added so a batch optimiser can be checked against iSAM2 (the oracle test).
 
 Bounded cost over a mission (`IsamSettings.window_keyframes`, issue 37). iSAM2 holding every keyframe walks all
 of them in each update: its relinearisation check and its back-substitution (the anchor and the doors sit at the
@@ -97,8 +97,12 @@ def robust(sigmas: np.ndarray, cauchy_k: float = CAD_LINK_CAUCHY_K) -> gtsam.noi
 class PoseGraph:
     """Incremental keyframe graph; a thin typed layer over iSAM2 that speaks 4x4 numpy transforms."""
 
-    def __init__(self, settings: IsamSettings | None = None) -> None:
-        settings = settings or IsamSettings()
+    def __init__(self, settings: IsamSettings | None = None, record_batch: bool = False) -> None:
+        """`record_batch`: keep every factor and initial guess ever added, for `batch_graph` (tests: the oracle
+        check against a batch optimiser). Off in the service: the record grows with the mission (28 MB over 8,000
+        keyframes of bench_posegraph's loop, 70 % of what the process grew by)."""
+        self.settings = settings = settings or IsamSettings()
+        self.record_batch = record_batch
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(settings.relinearize_threshold)
         params.relinearizeSkip = settings.relinearize_skip
@@ -136,11 +140,13 @@ class PoseGraph:
 
     def _add(self, factor: gtsam.NonlinearFactor) -> None:
         self._new_factors.add(factor)
-        self._all_factors.add(factor)
+        if self.record_batch:
+            self._all_factors.add(factor)
 
     def _insert(self, key: int, T: np.ndarray) -> None:
         self._new_values.insert(key, pose3(T))
-        self._all_values.insert(key, pose3(T))
+        if self.record_batch:
+            self._all_values.insert(key, pose3(T))
 
     def add_first_keyframe(self, T_map_body: np.ndarray) -> int:
         """Keyframe 0 defines the map frame: a tight prior at `T_map_body` (4x4)."""
@@ -303,7 +309,10 @@ class PoseGraph:
         return int(self._isam.getLinearizationPoint().size())
 
     def batch_graph(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-        """Every factor ever added, with the initial guesses: for a batch optimisation of the same problem."""
+        """Every factor ever added, with the initial guesses: for a batch optimisation of the same problem
+        (`record_batch` only)."""
+        if not self.record_batch:
+            raise ValueError("PoseGraph(record_batch=True) keeps every factor for a batch optimisation")
         return self._all_factors, self._all_values
 
     # --- reading the estimate ---------------------------------------------------------------------------------

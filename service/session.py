@@ -162,7 +162,10 @@ class LocalizationSession:
 
 
 def _fresh(old: Localizer) -> Localizer:
-    return Localizer(old.model, PoseGraph(), old.registrar, old.params, surfaces=old.surfaces)
+    """A new localizer like `old`: its model, registrar, parameters, iSAM2 settings, camera position and walls."""
+    T_body_cam = np.eye(4)
+    T_body_cam[:3, 3] = old.viewer_body
+    return Localizer(old.model, PoseGraph(old.graph.settings), old.registrar, old.params, T_body_cam, old.surfaces)
 
 
 def _finite(est: Estimate) -> bool:

@@ -34,7 +34,7 @@ def _anchored(frames: list[tuple[str, np.ndarray]], features: list[MacroFeature]
               ) -> tuple[CadLinks, PoseGraph, dict[int, Landmark]]:
     """A graph anchored with the map on the model (T_cad_map = I), one keyframe seeing the landmarks (type,
     T_map_rect), and their links (none yet)."""
-    graph = PoseGraph()
+    graph = PoseGraph(record_batch=True)
     graph.add_first_keyframe(np.eye(4))
     landmarks = {}
     for j, (kind, T_map_rect) in enumerate(frames):

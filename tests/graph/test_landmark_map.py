@@ -25,7 +25,7 @@ def _sighting(x: float, y: float = 0.0, normal_xy: tuple[float, float] = (-1.0, 
 
 
 def _map() -> tuple[LandmarkMap, PoseGraph]:
-    graph = PoseGraph()
+    graph = PoseGraph(record_batch=True)
     graph.add_first_keyframe(np.eye(4))
     return LandmarkMap(PARAMS, graph, VIEWER_BODY), graph
 

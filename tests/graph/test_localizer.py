@@ -323,7 +323,7 @@ def test_a_door_detected_twice_in_one_frame_is_one_sighting(corridor) -> None:
     target = next(f for f in corridor.features if f.type == "door")
     T_body_cad = np.linalg.inv(T_cad_body)
     corners = (T_body_cad[:3, :3] @ target.corners_cad.T).T + T_body_cad[:3, 3]
-    loc = Localizer(corridor, PoseGraph(), model_registrar(corridor, min_landmarks=99))
+    loc = Localizer(corridor, PoseGraph(record_batch=True), model_registrar(corridor, min_landmarks=99))
     twice = [Sighting("door", corners), Sighting("door", corners + [0.0, 0.05, 0.0])]
     loc.add_keyframe(0, T_cad_body, twice, UP)
     (lm,) = loc.landmarks.values()

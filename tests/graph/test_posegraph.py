@@ -29,7 +29,8 @@ def _incremental_and_batch(graph: PoseGraph) -> tuple[gtsam.Values, gtsam.Values
 
 def test_incremental_isam2_equals_batch_optimisation(corridor) -> None:
     poses = straight_flight(50)
-    exact = PoseGraph(IsamSettings(relinearize_threshold=1e-5))  # relinearize every change: no approximation
+    # relinearize every change: no approximation
+    exact = PoseGraph(IsamSettings(relinearize_threshold=1e-5), record_batch=True)
     loc = fly(corridor, poses, drifting_odometry(poses, 0.003, 1.01), seed=1, sigma_m=0.02, graph=exact)
     incremental, batch = _incremental_and_batch(loc.graph)
     for i in range(loc.graph.n_keyframes):
@@ -81,7 +82,7 @@ def test_a_windowed_graph_equals_batch_on_its_live_keyframes_and_keeps_the_old_o
     after the doors around it settled."""
     poses = straight_flight(50)
     windowed = PoseGraph(IsamSettings(relinearize_threshold=1e-5, window_keyframes=20, marginalise_every=10,
-                                      marginalise_landmarks=False))
+                                      marginalise_landmarks=False), record_batch=True)
     loc = fly(corridor, poses, drifting_odometry(poses, 0.003, 1.01), seed=1, sigma_m=0.02, graph=windowed)
     incremental, batch = _incremental_and_batch(loc.graph)
     assert loc.graph.live_from == 20  # keyframes 0-19 marginalised (the newest, 49, is in the chunk of 40)

@@ -8,6 +8,7 @@ from macroloc.graph.localizer import Localizer
 from macroloc.service.backend import LocalizerBackend
 from macroloc.service.inputs import OdometryIn
 from macroloc.service.session import FrameIn, make_session
+from tests.graph.corridor_flight import model_registrar
 from tests.graph.scenes import corridor_model, make_T
 
 
@@ -45,3 +46,19 @@ def test_dead_reckoned_seconds_add_up_until_the_next_keyframe(monkeypatch) -> No
     for k in range(14):  # 0.1 s apart, not moving: a keyframe every 0.34 s (4 frames)
         session.frame(FrameIn(k * 100_000_000, _T(0.0), dead_reckoned_s=0.1 if k >= 2 else 0.0))
     assert np.allclose(given, [0.0, 0.3, 0.4, 0.4])  # frames 0, 4, 8, 12
+
+
+def test_a_fresh_graph_keeps_the_old_one_s_settings_and_camera() -> None:
+    """Where the pose graph fails the session starts a new localizer: with the failed one's iSAM2 settings (its
+    window, not the defaults) and camera position, whether the session was made by the factory or directly."""
+    from macroloc.graph.posegraph import IsamSettings, PoseGraph
+    from macroloc.service.session import LocalizationSession
+
+    model = corridor_model()
+    T_body_cam = np.eye(4)
+    T_body_cam[:3, 3] = (0.1, 0.05, 0.02)
+    settings = IsamSettings(window_keyframes=300, marginalise_landmarks=False)
+    old = Localizer(model, PoseGraph(settings), model_registrar(model), T_body_cam=T_body_cam)  # the tests' registrar
+    new = LocalizationSession(old).fresh(old)
+    assert new is not old and new.graph.settings == settings
+    assert np.allclose(new.viewer_body, old.viewer_body) and new.registrar is old.registrar
