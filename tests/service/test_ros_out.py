@@ -192,14 +192,16 @@ def test_reset_counter_counts_anchor_jumps_not_refinements() -> None:
 @pytest.mark.slow
 def test_the_demo_can_be_watched_live_through_listen(tmp_path) -> None:
     """`macroloc demo --listen ENDPOINT --ros`: a session connected to that endpoint (as zenoh-bridge-ros2dds would
-    be) receives the demo's ROS poses in `map` while it flies; the goal's latitude/longitude come back."""
+    be) receives the demo's ROS poses in `map` while it flies; the goal's latitude/longitude come back. In real
+    time: at 3x and 4x the simulated clock (with the ROS outputs) the vehicle circled its waypoints and gave up
+    (2026-12-03), the localization itself on track."""
     from macroloc.sim.demo import DemoParams, run_demo
 
     port = free_port()
     poses: list[Any] = []
     result: dict[str, Any] = {}
     demo = threading.Thread(target=lambda: result.setdefault("r", run_demo(params=DemoParams(
-        seed=0, speedup=4.0, vehicle="drone1", listen=(f"tcp/127.0.0.1:{port}",), ros=True))), daemon=True)
+        seed=0, speedup=1.0, vehicle="drone1", listen=(f"tcp/127.0.0.1:{port}",), ros=True))), daemon=True)
     demo.start()
     from tests.service.helpers import loopback
 
