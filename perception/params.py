@@ -196,7 +196,6 @@ class SizeTolerance:
         return self.floor_m + self.per_m * max(depth_m, 0.0)
 
 
-
 @dataclass(frozen=True)
 class PerceptionParams:
     """The chain's parameters, one part per component: `stereo` is the frame's SGBM (shared by the depth points,
