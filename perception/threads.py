@@ -9,8 +9,11 @@ to split, SGBM's rows in stripes), onnxruntime one thread (`onnxruntime`: the de
 split: its CPU time a frame is the same with 1 intra-op thread and with 2; perception.detector also turns its
 pool's spinning off). OpenCV's CPU time is the same with 1 or 2 threads; 2 lets a long call finish in about half
 the time where the other core is free. The choice is made on CPU time: on a loaded machine wall times say nothing
-(docs/measurements.md, "Thread pools on two cores"). Call `set_threads` once, at the composition root (the
-service's pipeline, the replay's perception source, benchmarks); library code never changes them.
+(docs/measurements.md, "Thread pools on two cores"). In the service the other core is not free: it answers each
+frame on arrival and takes the vehicle's streams on other threads, and the vehicle's own processes may share the
+machine; OpenCV there gets one thread (`SERVICE_THREADS`), which leaves a core to them (docs/measurements.md,
+"Frames answered on arrival"). Call `set_threads` once, at the composition root (the service's pipeline, the
+replay's perception source, benchmarks); library code never changes them.
 """
 
 from __future__ import annotations
@@ -29,7 +32,8 @@ class ThreadPlan:
         return f"OpenCV {cv2.getNumThreads()} (plan {self.opencv}), onnxruntime intra-op {self.onnxruntime}"
 
 
-THREADS = ThreadPlan()
+THREADS = ThreadPlan()  # the chain alone on the cores: a replay, a benchmark
+SERVICE_THREADS = ThreadPlan(opencv=1)  # the service: a core kept for the answers and the vehicle's streams
 
 
 def set_threads(plan: ThreadPlan = THREADS) -> ThreadPlan:

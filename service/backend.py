@@ -244,13 +244,6 @@ class LocalizerBackend:
             return None
         return self.session.frame(FrameIn(stamp_ns, T_odom_body, to_body(T_odom_body), self._up_body))
 
-    def latest(self) -> Estimate | None:
-        """The pose at the newest odometry sample (after a late keyframe changed the map), or None."""
-        if not self._odometry:
-            return None
-        stamp_ns = next(reversed(self._odometry))
-        return self.session.pose_at(stamp_ns, self._odometry[stamp_ns])
-
     def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
         """The buffered odometry pose nearest in time to stamp_ns (within 60 ms), else None."""
         if stamp_ns in self._odometry:

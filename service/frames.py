@@ -122,15 +122,15 @@ class PerceptionPipeline:
 def make_perception_pipeline(threads: int | None = None, detector_model: Path | None = None,
                              params: PerceptionParams | None = None) -> PerceptionPipeline | None:
     """The perception chain with the given detector (default: the shipped one), or None when it cannot load
-    (logged). The libraries' threads follow perception.threads.THREADS (OpenCV's set here, process-wide);
+    (logged). The libraries' threads follow perception.threads.SERVICE_THREADS (OpenCV's set here, process-wide);
     `threads`: the detector's, instead of the plan's; `params`: the chain's ([perception.*]: the frame's SGBM,
     the sides, the plausibility limits, the wall plane)."""
     try:
         from macroloc.perception.pipeline import Perception
         from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
-        from macroloc.perception.threads import set_threads
+        from macroloc.perception.threads import SERVICE_THREADS, set_threads
 
-        plan = set_threads()
+        plan = set_threads(SERVICE_THREADS)
         log.info("threads: %s", plan.describe())
         p = params or PerceptionParams()
         chain = Perception.create(detector_model, threads=threads or plan.onnxruntime,

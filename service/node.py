@@ -1,10 +1,13 @@
 """The long-running localization service on Zenoh: sensor streams in, pose and waypoints out.
 
 Threads: one intake thread per input key reads its subscriber's ring channel, parses and checks the payload
-(`service.inputs`) and hands a typed event to the worker through `WorkQueue` (bounded: stereo frames, the
-heavy work, beyond `queue_size` push out the oldest frame); the worker is the only thread that touches the
-localizer; a queryable thread answers map and plan queries; the caller's thread publishes status and
-diagnostics and saves the map periodically. `run()` returns after `stop` is set: intake stops, the worker
+(`service.inputs`) and hands a typed event to the worker through `WorkQueue` (bounded: stereo frames beyond
+`queue_size` push out the oldest frame); the worker is the only thread that touches the localizer: it perceives
+the stereo frames and adds them to the pose graph. Each stereo frame is answered with its pose at once by its
+intake thread, from the newest keyframe's estimate and the odometry (`service.frame_answers`), so that a frame's
+answer never waits for perception or a registration (in lock-step the worker answers each frame after perceiving
+it); a queryable thread answers map and plan queries; the caller's thread publishes status and diagnostics and
+saves the map periodically. `run()` returns after `stop` is set: intake stops, the worker
 drains what was queued, the map is saved, and every publisher, subscriber, queryable and the liveliness
 token is undeclared before the caller closes the session.
 """
@@ -26,6 +29,7 @@ from macroloc.graph.geo import GeoReference
 from macroloc.graph.localizer import Estimate
 from macroloc.perception.params import DepthPointsConfig, PlaceConfig
 from macroloc.service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
+from macroloc.service.frame_answers import OdometryBuffer
 from macroloc.service.frames import FramePipeline, NullPipeline
 from macroloc.service.health import DropCounter, LatencyWindow, RateMeter
 from macroloc.service.inputs import (
@@ -102,12 +106,15 @@ class LocalizationService:
         self.keys = Keys(params.vehicle)
         self.drops = DropCounter()
         self.queue = WorkQueue(params.queue_size)
-        self.parser = InputParser(params.cameras, self.drops, params.limits,
-                                  on_clock_reset=lambda key, stamp_ns: self.queue.put(ClockReset(key, stamp_ns), False))
+        self.parser = InputParser(params.cameras, self.drops, params.limits, on_clock_reset=self._clock_reset_seen)
         self.ros_sensors = RosSensorInputs(params.ros_sensors, self.parser, self.drops, params.cameras[0],
                                            params.T_body_cam, params.limits.max_image_pixels, time.monotonic_ns)
         self.rates = {name: RateMeter() for name in ("stereo", "imu", "odometry", "observations", "goal", "pose")}
-        self.latency = {name: LatencyWindow() for name in ("frame_to_pose", "odometry_to_pose", "keyframe")}
+        # frame_perceived: a stereo frame's arrival -> perceived and in the pose graph (the worker's delay)
+        self.latency = {name: LatencyWindow() for name in ("frame_to_pose", "odometry_to_pose", "keyframe",
+                                                           "frame_perceived")}
+        self._odometry = OdometryBuffer()  # for answering frames on their intake thread
+        self._publish_lock = threading.Lock()  # poses go out from the worker and the stereo intake
         self.ready = threading.Event()  # everything declared: inputs are being taken
         self._lock = threading.Lock()  # the backend and planner are used by the worker and the queryables
         self._goal: GoalIn | None = None
@@ -226,9 +233,28 @@ class LocalizationService:
             log.exception("parsing %s failed", name)
             self.drops.drop(f"{name}/parse_error")
             return
-        if event is not None:
-            self.rates[name].tick()
-            self.queue.put(event, heavy)
+        if event is None:
+            return
+        self.rates[name].tick()
+        if isinstance(event, OdometryIn):
+            self._odometry.add(event.stamp_ns, event.T_map_body)
+        if isinstance(event, StereoIn) and not self.params.lockstep:
+            self._answer_frame(event)  # before queueing: the worker, woken, would hold the GIL meanwhile
+        self.queue.put(event, heavy)
+
+    def _clock_reset_seen(self, key: str, stamp_ns: int) -> None:
+        """A key's stamps went back (the parser saw it on an intake thread): the odometry kept for answering
+        frames is forgotten, and the worker is told in order."""
+        self._odometry.clear()
+        self.queue.put(ClockReset(key, stamp_ns), False)
+
+    def _answer_frame(self, ev: StereoIn) -> None:
+        """The frame's pose at once, on its intake thread (service.frame_answers); the worker perceives it later."""
+        snapshot, T_odom_body = self.backend.session.snapshot, self._odometry.at(ev.stamp_ns)
+        est = snapshot.at(ev.stamp_ns, T_odom_body) if snapshot is not None and T_odom_body is not None else \
+            Estimate(ev.stamp_ns, self.backend.status, np.eye(4))
+        self._publish_pose(est)
+        self.latency["frame_to_pose"].add_ms((time.monotonic_ns() - ev.received_ns) * 1e-6)
 
     def _work(self, stop: threading.Event) -> None:
         """Handle events until stopped and the queue is empty (the drain)."""
@@ -271,7 +297,7 @@ class LocalizationService:
         start = time.perf_counter()
         with self._lock:
             est = self.backend.odometry(ev)
-        self._publish(est)
+        self._publish_worker(est)
         self.latency["odometry_to_pose"].add_ms((time.perf_counter() - start) * 1e3)
 
     def _on_observations(self, ev: ObservationsIn) -> None:
@@ -281,14 +307,12 @@ class LocalizationService:
         if est is None:
             return  # waiting for the odometry of its stamp (or counted as unmatched by the backend)
         self.latency["keyframe"].add_ms((time.perf_counter() - start) * 1e3)
-        if est.stamp_ns < self._last_pose_ns:  # a late keyframe: publish what it changed at the newest odometry
-            with self._lock:
-                est = self.backend.latest() or est
-        self._publish(est)
+        self._publish_worker(est)
 
     def _on_stereo(self, ev: StereoIn) -> None:
         """Perceive the frame; its sightings become a keyframe at the odometry pose of its stamp (kept pending
-        until that odometry arrives); the frame's pose goes out at once, from the latest odometry."""
+        until that odometry arrives). In lock-step its pose goes out now; otherwise it went out on arrival, and
+        what the frame changed goes out at the last answer's stamp (`_publish_worker`)."""
         sightings = self.pipeline(ev.frame)
         points_body = self.pipeline.points_body  # the pipeline's own stereo depth, when it measured some
         with self._lock:
@@ -304,8 +328,12 @@ class LocalizationService:
             est = self.backend.stereo(ev.stamp_ns, sightings, points_body, placed)
         if est is None:
             est = Estimate(ev.stamp_ns, self.backend.status, np.eye(4))
-        self._publish_pose(est)
-        self.latency["frame_to_pose"].add_ms((time.monotonic_ns() - ev.received_ns) * 1e-6)
+        self.latency["frame_perceived"].add_ms((time.monotonic_ns() - ev.received_ns) * 1e-6)
+        if self.params.lockstep:
+            self._publish_pose(est)
+            self.latency["frame_to_pose"].add_ms((time.monotonic_ns() - ev.received_ns) * 1e-6)
+        else:
+            self._publish_worker(est)
         if est.T_cad_body is not None and ev.frame.HasField("depth"):
             self._add_obstacles(ev.frame, est.T_cad_body)
 
@@ -358,17 +386,31 @@ class LocalizationService:
             self._publish_pose(est)
             self._maybe_replan(est)
 
+    def _publish_worker(self, est: Estimate) -> None:
+        """An estimate of the worker. Where a newer pose already went out (frames are answered on arrival; a
+        keyframe's sightings come late), a keyframe's change goes out again at that pose's stamp: the newest
+        keyframe's estimate moved by the odometry there (not at a newer stamp: a frame still being answered would
+        then be older than the last pose, and withheld)."""
+        if est.stamp_ns >= self._last_pose_ns:
+            self._publish(est)
+            return
+        stamp_ns, snapshot = self._last_pose_ns, self.backend.session.snapshot
+        T_odom_body = self._odometry.at(stamp_ns)
+        if self.backend.session.keyframe and snapshot is not None and T_odom_body is not None:
+            self._publish(snapshot.at(stamp_ns, T_odom_body))
+
     def _publish_pose(self, est: Estimate) -> None:
         """Publish the estimate unless a newer one already went out (keys arrive through separate channels)."""
-        if est.stamp_ns < self._last_pose_ns:
-            return
-        est = self._plausible(est)
-        self._last_pose_ns = est.stamp_ns
-        msg = pose_message(est, geo=self.params.geo)
-        msg.header.seq = self.rates["pose"].total
-        self._pubs["pose"].put(msg.SerializeToString())
-        self.vehicle_out.pose(est)
-        self.rates["pose"].tick()
+        with self._publish_lock:
+            if est.stamp_ns < self._last_pose_ns:
+                return
+            est = self._plausible(est)
+            self._last_pose_ns = est.stamp_ns
+            msg = pose_message(est, geo=self.params.geo)
+            msg.header.seq = self.rates["pose"].total
+            self._pubs["pose"].put(msg.SerializeToString())
+            self.vehicle_out.pose(est)
+            self.rates["pose"].tick()
 
     def _plausible(self, est: Estimate) -> Estimate:
         """The estimate, or LOST without a pose where it is implausible (`backend.plausible`): no garbage pose

@@ -54,6 +54,22 @@ class FrameIn:
 
 
 @dataclass(frozen=True)
+class PoseSnapshot:
+    """The newest keyframe's estimate and odometry pose, replaced whole after each keyframe: `at` gives what
+    `LocalizationSession.frame` gives a frame between keyframes, from any thread, without the localizer."""
+
+    estimate: Estimate  # the localizer's track() at the keyframe itself
+    T_odom_kf: np.ndarray  # the keyframe's odometry pose
+    covariance: np.ndarray | None  # the keyframe's (what a tracked pose carries)
+
+    def at(self, stamp_ns: int, T_odom_body: np.ndarray) -> Estimate:
+        e = self.estimate
+        T_map_body = e.T_map_body @ np.linalg.inv(self.T_odom_kf) @ T_odom_body
+        return Estimate(stamp_ns, e.status, T_map_body, None if e.T_cad_map is None else e.T_cad_map @ T_map_body,
+                        e.T_cad_map, self.covariance, e.inliers, e.keyframe, matches=e.matches)
+
+
+@dataclass(frozen=True)
 class SessionSettings:
     """Typed arguments of a session's components, read from the config by `settings_from_config`."""
 
@@ -82,6 +98,7 @@ class LocalizationSession:
         self._stamp_kf_ns: int | None = None
         self._dead_reckoned_s = 0.0  # since the last keyframe
         self._kf_covariance: np.ndarray | None = None  # 6x6 [rot; trans], body tangent (graph.posegraph)
+        self.snapshot: PoseSnapshot | None = None  # after each keyframe (None before the first, after a restart)
 
     @property
     def status(self) -> str:
@@ -134,6 +151,7 @@ class LocalizationSession:
         if not _finite(est):
             return self._restart(f.stamp_ns, "the estimate is not finite")
         self._kf_covariance = est.covariance
+        self.snapshot = PoseSnapshot(self.localizer.track(f.stamp_ns, f.T_odom_body), f.T_odom_body, est.covariance)
         return self._remember(est)
 
     def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
@@ -152,6 +170,7 @@ class LocalizationSession:
         log.error("pose graph restarted (%d so far): %s", self.restarts, why)
         self.localizer = self.fresh(self.localizer)
         self._T_kf, self._stamp_kf_ns, self._kf_covariance, self._dead_reckoned_s = None, None, None, 0.0
+        self.snapshot = None
         self.last = Estimate(stamp_ns, "lost", np.eye(4))
         return self.last
 

@@ -41,7 +41,8 @@ def register(app: typer.Typer) -> None:
                                            "and result.json into this folder."),
         storey: str | None = typer.Option(None, "--storey", help="Register against this storey's doors and "
                                           "windows only (default: graph.storey_hint of the config)."),
-        seed: int = typer.Option(0, "--seed", help="Seed of the noise added to truth observations."),
+        seed: int = typer.Option(0, "--seed", help="Seed of the noise added to truth observations (and to the "
+                                 "simulated odometry sent with --over-zenoh --observations perception)."),
         config: Path | None = typer.Option(None, "--config", help="macroloc config file (JSON/TOML); its "
                                            "graph section sets keyframes, association and status thresholds, its "
                                            "perception section the detector (perception.detector_model)."),
@@ -102,7 +103,7 @@ def register(app: typer.Typer) -> None:
                 raise UserInputError("--out records an in-process replay; with --over-zenoh, record the service")
 
             doc = replay_command(frames, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
-                                 vehicle, speed)
+                                 vehicle, speed, seed)
             if json_out:
                 print_json(doc)
             else:

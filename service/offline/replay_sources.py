@@ -105,6 +105,14 @@ class TruthSource:
         points_cam = back_project(uv, z, rig)
         return apply(T_body_cam, points_cam)
 
+    def odometry(self, frame: FlightFrame) -> np.ndarray:
+        """The frame's odometry pose alone (4x4, odometry frame), as a vehicle's VIO would publish it: the
+        ground truth with the drift of `TruthNoise` (the sightings' noise is not drawn)."""
+        gt = frame.ground_truth
+        if gt is None:
+            raise UserInputError("simulated odometry needs a simulated recording with ground truth")
+        return self._odometry(matrix_from_pose(gt.T_cad_body), frame.stamp_ns)
+
     def _odometry(self, T_cad_body: np.ndarray, stamp_ns: int) -> np.ndarray:
         n = self.noise
         if self._T_true_prev is None or self._T_odom is None:

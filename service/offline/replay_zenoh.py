@@ -21,7 +21,7 @@ import zenoh
 
 from macroloc.graph.errors import UserInputError
 from macroloc.service.config import ZenohConfig
-from macroloc.service.offline.replay_sources import ObservationSource
+from macroloc.service.offline.replay_sources import ObservationSource, TruthSource
 from macroloc.service.recording import FlightFrame, matrix_from_pose, pose_from_matrix, read_flight, vector3
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.service.zenoh_io import Keys, declare_publisher, session_config
@@ -38,9 +38,11 @@ class ZenohReplayResult:
     time_to_localize_s: float | None = None  # recording time of the first LOCALIZED pose
     ape_rmse_m: float | None = None  # localized poses vs ground truth, CAD frame, no alignment
     latency_ms: dict[str, float] = field(default_factory=dict)  # frame published -> its pose received
+    odometry: str = "none"  # what the vehicle's odometry was: source, recorded, simulated or none
 
     def to_json(self) -> dict:
         return {"frames": self.frames, "poses": self.poses, "duration_s": round(self.duration_s, 3),
+                "odometry": self.odometry,
                 "localized": self.localized, "time_to_localize_s": self.time_to_localize_s,
                 "ape_rmse_m": self.ape_rmse_m, "latency_ms": {k: round(v, 3) for k, v in self.latency_ms.items()}}
 
@@ -63,6 +65,34 @@ class PoseCollector:
             return stamp_ns in self.poses
 
 
+class ServiceIdle:
+    """The service's diagnostics: whether one sent after a given moment found its queue empty and its worker idle
+    (frames are answered on arrival; what they change comes as the worker gets through them)."""
+
+    IDLE_BUSY_MS = 150.0  # an idle worker looks for work every 100 ms
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self._idle_ns: list[int] = []  # wall-clock stamps of the diagnostics that found the service idle
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(key, self._on_diagnostics)
+
+    def _on_diagnostics(self, sample: zenoh.Sample) -> None:
+        msg = pb.Diagnostics.FromString(sample.payload.to_bytes())
+        if msg.counts.get("queued", 1) == 0 and msg.latencies_ms.get("worker_busy", np.inf) < self.IDLE_BUSY_MS:
+            with self._lock:
+                self._idle_ns.append(msg.header.stamp_ns)
+
+    def wait(self, after_ns: int, timeout_s: float) -> bool:
+        """Block until a diagnostics message stamped after `after_ns` (time.time_ns()) found the service idle."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                if any(t > after_ns for t in self._idle_ns):
+                    return True
+            time.sleep(0.02)
+        return False
+
+
 def wait_for_service(session: zenoh.Session, keys: Keys, timeout_s: float) -> None:
     """Block until the service's liveliness token is visible, or raise UserInputError."""
     deadline = time.monotonic() + timeout_s
@@ -83,11 +113,14 @@ def _observations(stamp_ns: int, sightings: list) -> pb.ObservedFeatures:  # noq
 
 
 def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConfig, vehicle: str,
-                      source: ObservationSource | None, speed: float = 1.0, wait_s: float = 30.0) -> ZenohReplayResult:
+                      source: ObservationSource | None, speed: float = 1.0, wait_s: float = 30.0,
+                      seed: int = 0) -> ZenohReplayResult:
     """Publish the recording (a macroloc MCAP, or its frames from any reader:
-    service.offline.ros_bag.open_flight) to the service of `vehicle` and score what it sends back (see module doc)."""
+    service.offline.ros_bag.open_flight) to the service of `vehicle` and score what it sends back (see module doc).
+    `seed`: of the simulated odometry's drift, where the vehicle's odometry is simulated."""
     keys = Keys(vehicle)
-    result = ZenohReplayResult()
+    result = ZenohReplayResult(odometry="source" if source is not None else "none")
+    simulated = TruthSource(seed=seed)  # the vehicle's VIO, for a simulated recording without odometry
     sent_at: dict[int, float] = {}
     truth: dict[int, np.ndarray] = {}
     with zenoh.open(session_config(zenoh_cfg)) as session:
@@ -95,6 +128,7 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
         pubs = {name: declare_publisher(session, getattr(keys, name), express=True)
                 for name in ("stereo", "imu", "odometry", "observations")}
         poses = PoseCollector(session, keys.pose)
+        idle = ServiceIdle(session, keys.diagnostics)
         start_wall, first_stamp = time.perf_counter(), None
         frame: FlightFrame
         for frame in (read_flight(flight) if isinstance(flight, Path) else flight):
@@ -111,6 +145,15 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
                 odo.header.stamp_ns, odo.header.frame_id = frame.stamp_ns, "map"
                 pubs["odometry"].put(odo.SerializeToString())
                 pubs["observations"].put(_observations(frame.stamp_ns, inputs.sightings).SerializeToString())
+            elif frame.odometry:
+                for odo in frame.odometry:
+                    pubs["odometry"].put(odo.SerializeToString())
+                result.odometry = "recorded"
+            elif frame.ground_truth is not None and result.odometry != "recorded":
+                odo = pb.Odometry(T_map_body=pose_from_matrix(simulated.odometry(frame)))
+                odo.header.stamp_ns, odo.header.frame_id = frame.stamp_ns, "map"
+                pubs["odometry"].put(odo.SerializeToString())
+                result.odometry = "simulated"
             sent_at[frame.stamp_ns] = time.perf_counter()
             pubs["stereo"].put(frame.stereo.SerializeToString())
             if frame.ground_truth is not None:
@@ -120,6 +163,8 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
         deadline = time.monotonic() + 10.0
         while last is not None and not poses.has(last) and time.monotonic() < deadline:
             time.sleep(0.01)  # the last frame's pose, or give up after 10 s
+        if idle.wait(time.time_ns(), timeout_s=max(deadline - time.monotonic(), 0.0)):
+            time.sleep(0.1)  # the poses of its last events, on their way
         result.duration_s = time.perf_counter() - start_wall
         for pub in pubs.values():
             pub.undeclare()
@@ -145,10 +190,10 @@ def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, fl
 
 
 def replay_command(flight: Path | Iterable[FlightFrame], source: ObservationSource | None, connect: list[str],
-                   vehicle: str, speed: float) -> dict:
+                   vehicle: str, speed: float, seed: int = 0) -> dict:
     """The CLI's `--over-zenoh` branch: a client-less peer connecting to the service's endpoint(s); the result's
     JSON document (the CLI prints it)."""
     if speed < 0:
         raise UserInputError("--speed must be >= 0")
     cfg = ZenohConfig(mode="peer", connect=connect or ["tcp/127.0.0.1:7447"], listen=[])
-    return replay_over_zenoh(flight, cfg, vehicle, source, speed).to_json()
+    return replay_over_zenoh(flight, cfg, vehicle, source, speed, seed=seed).to_json()

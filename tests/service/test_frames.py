@@ -74,6 +74,9 @@ def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_ch
     params = cfg.perception.to_params()
     pipeline = make_perception_pipeline(params=params)
     assert pipeline is not None
+    import cv2
+
+    assert cv2.getNumThreads() == 1  # the service keeps a core for its answers (perception.threads.SERVICE_THREADS)
     assert pipeline.depth.every == 2 and pipeline.depth.stride_px == 8 and pipeline.depth.range_m == (0.3, 6.0)
     for chain in (pipeline.perception, PerceptionSource(params=params).perception):
         assert chain.matcher.config.num_disparities == 64 and chain.lines.margin == 0.2

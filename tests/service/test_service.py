@@ -242,6 +242,33 @@ def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, st
         assert not layer.occupied()[grid.cell_of(T[:3, 3])], "nothing seen where the vehicle is"
 
 
+def test_a_stereo_frame_is_answered_while_the_worker_is_busy(office_path, office_model, start_pose, tmp_path) -> None:
+    """A frame's pose goes out on its arrival, from the newest keyframe's estimate moved by the odometry at its
+    stamp, while the worker cannot touch the localizer (here: its lock held, as by a long registration)."""
+    port = free_port()
+    with running_service(service_config(office_path, tmp_path, port)) as service, client(port) as s:
+        poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        flight = FakeFlight(office_model, np.eye(4))
+        T = fly(s, flight, start_pose, 40)
+        wait_for(lambda: _localized_at(poses, T), what="localized")
+        image = pb.Image(width=64, height=48, encoding=pb.Image.RAW_MONO8, data=bytes(64 * 48))
+        frame = pb.StereoFrame(camera_id="front", left=image, right=image,
+                               info=pb.CameraInfo(width=64, height=48, fx=48, fy=48, cx=31.5, cy=23.5, baseline_m=0.12))
+        stamp = 45 * 33_000_000
+        T_moved = T @ yaw_T(0.0, np.array([0.3, 0.0, 0.0]))
+        with service._lock:  # type: ignore[attr-defined]
+            s.put("macroloc/t1/odometry", flight.odometry(stamp, T_moved).SerializeToString())
+            # its own intake thread: else the frame may come first and take the newest odometry before it
+            wait_for(lambda: stamp in service._odometry, what="the odometry taken")  # type: ignore[attr-defined]
+            frame.header.stamp_ns = stamp
+            s.put("macroloc/t1/stereo", frame.SerializeToString())
+            wait_for(lambda: any(p.header.stamp_ns == stamp for p in poses.items), what="the frame's pose")
+        p = next(p for p in poses.items if p.header.stamp_ns == stamp)
+        assert p.status == pb.PoseEstimate.LOCALIZED
+        xyz = np.array([p.T_cad_body.position.x, p.T_cad_body.position.y, p.T_cad_body.position.z])
+        assert np.linalg.norm(xyz - T_moved[:3, 3]) < 0.1  # the odometry's 0.3 m since the last keyframe
+
+
 def test_a_storey_hint_that_is_not_in_the_building_is_refused_at_start(office_path, tmp_path) -> None:
     from macroloc.graph.errors import UserInputError
     from macroloc.service.serve import build_service

@@ -62,3 +62,31 @@ def test_a_fresh_graph_keeps_the_old_one_s_settings_and_camera() -> None:
     new = LocalizationSession(old).fresh(old)
     assert new is not old and new.graph.settings == settings
     assert np.allclose(new.viewer_body, old.viewer_body) and new.registrar is old.registrar
+
+
+def test_the_snapshot_gives_a_frame_between_keyframes_the_session_s_own_pose() -> None:
+    """What the service answers a stereo frame with on its arrival (`PoseSnapshot.at`, from the newest keyframe,
+    without the localizer) is what the session itself gives that frame between keyframes: pose, CAD pose, status."""
+    from macroloc.graph.posegraph import PoseGraph
+    from macroloc.service.session import LocalizationSession
+    from tests.graph.scenes import drifting_odometry, sightings_from, straight_flight
+
+    model = corridor_model()
+    session = LocalizationSession(Localizer(model, PoseGraph(), model_registrar(model)))
+    truth = straight_flight(60, step_m=0.1)
+    odometry = drifting_odometry(truth)
+    compared = 0
+    for k, (T_true, T_odom) in enumerate(zip(truth, odometry, strict=True)):
+        stamp_ns = k * 33_000_000
+        snapshot = session.snapshot
+        est = session.frame(FrameIn(stamp_ns, T_odom, sightings_from(model, T_true) if k % 3 == 0 else []))
+        if session.keyframe or snapshot is None:
+            continue
+        answer = snapshot.at(stamp_ns, T_odom)
+        assert answer.status == est.status
+        np.testing.assert_allclose(answer.T_map_body, est.T_map_body, atol=1e-9)
+        assert (answer.T_cad_body is None) == (est.T_cad_body is None)
+        if est.T_cad_body is not None:
+            np.testing.assert_allclose(answer.T_cad_body, est.T_cad_body, atol=1e-9)
+            compared += 1
+    assert compared >= 10 and session.status == "localized"
