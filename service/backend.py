@@ -18,7 +18,6 @@ the previous run linked to the model (`StoredMapRegistrar`), then to the whole m
 from __future__ import annotations
 
 import logging
-from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -34,6 +33,7 @@ from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.perception.gravity import GravityEstimator, GravityParams
+from macroloc.service.frame_answers import ODOMETRY_MATCH_NS, OdometryBuffer
 from macroloc.service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn
 from macroloc.service.places import Placed
 from macroloc.service.recording import matrix_from_pose, pose_from_matrix, vector3
@@ -50,7 +50,6 @@ STATUS_TO_WIRE = {"exploring": pb.PoseEstimate.EXPLORING, "localized": pb.PoseEs
                   "ambiguous": pb.PoseEstimate.AMBIGUOUS, "degraded": pb.PoseEstimate.DEGRADED,
                   "lost": pb.PoseEstimate.LOST}
 WIRE_TO_STATUS = {v: k for k, v in STATUS_TO_WIRE.items()}
-ODOMETRY_MATCH_NS = 60_000_000  # sightings use the odometry sample within 60 ms of their stamp
 
 
 class RestoredRegistrar:
@@ -119,7 +118,7 @@ class LocalizerBackend:
         self.model = model
         self.session = session
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
-        self._odometry: OrderedDict[int, np.ndarray] = OrderedDict()  # stamp_ns -> T_odom_body
+        self._odometry = OdometryBuffer()  # stamp_ns -> T_odom_body
         self._pending: list[_Pending] = []  # sightings that arrived before the odometry of their stamp
         self.unmatched = 0  # sightings dropped: no odometry near their stamp
         self._up_body: np.ndarray | None = None
@@ -180,9 +179,7 @@ class LocalizerBackend:
             up = self._gravity.update(ev.stamp_ns, ev.T_map_body, np.array(self._accel_body))
             self._up_body = up if up is not None else self._up_body
             self._accel_body = []
-        self._odometry[ev.stamp_ns] = ev.T_map_body
-        while len(self._odometry) > 512:
-            self._odometry.popitem(last=False)
+        self._odometry.add(ev.stamp_ns, ev.T_map_body)
         if self._pending:  # sightings waiting for this odometry (keys arrive through separate channels)
             pending, self._pending = self._pending, []
             for p in pending:
@@ -245,14 +242,9 @@ class LocalizerBackend:
         return self.session.frame(FrameIn(stamp_ns, T_odom_body, to_body(T_odom_body), self._up_body))
 
     def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
-        """The buffered odometry pose nearest in time to stamp_ns (within 60 ms), else None."""
-        if stamp_ns in self._odometry:
-            return self._odometry[stamp_ns]
-        if not self._odometry or stamp_ns > next(reversed(self._odometry)):
-            return None  # newer than all odometry: wait for it
-        stamps = np.fromiter(self._odometry.keys(), np.int64)
-        k = int(np.argmin(np.abs(stamps - stamp_ns)))
-        return self._odometry[int(stamps[k])] if abs(int(stamps[k]) - stamp_ns) <= ODOMETRY_MATCH_NS else None
+        """The buffered odometry pose nearest in time to stamp_ns (within 60 ms), else None (also where stamp_ns is
+        newer than all: wait for it)."""
+        return self._odometry.at(stamp_ns)
 
     def _to_body(self, obs: Observation, frame_id: str, T_odom_body: np.ndarray) -> Sighting:
         assert obs.corners is not None

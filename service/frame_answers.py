@@ -1,4 +1,5 @@
-"""Stereo frames answered on arrival: the odometry kept by stamp for the intake threads.
+"""The vehicle's odometry kept by stamp (the worker's, for sightings; the intake's, for stereo frames answered on
+arrival).
 
 A frame's pose goes out as soon as the frame arrives, from its intake thread: the odometry at its stamp
 (`OdometryBuffer`) moved by the newest keyframe's estimate (`service.session.PoseSnapshot`): what the session
@@ -14,11 +15,13 @@ from collections import OrderedDict
 
 import numpy as np
 
+ODOMETRY_MATCH_NS = 60_000_000  # a stamp takes the odometry sample within 60 ms of it
+
 
 class OdometryBuffer:
-    """The newest odometry poses by stamp, for the intake threads (the worker's backend keeps its own)."""
+    """The newest odometry poses by stamp; thread-safe (the worker's backend keeps one, the intake threads another)."""
 
-    def __init__(self, size: int = 512, match_ns: int = 60_000_000) -> None:
+    def __init__(self, size: int = 512, match_ns: int = ODOMETRY_MATCH_NS) -> None:
         self._poses: OrderedDict[int, np.ndarray] = OrderedDict()
         self._lock = threading.Lock()
         self.size, self.match_ns = size, match_ns
@@ -37,9 +40,9 @@ class OdometryBuffer:
         with self._lock:
             self._poses.clear()
 
-    def at(self, stamp_ns: int) -> np.ndarray | None:
-        """The pose nearest in time to stamp_ns within `match_ns`; the newest where stamp_ns is newer than all (its
-        odometry is on its way); None without any."""
+    def at(self, stamp_ns: int, newest_if_later: bool = False) -> np.ndarray | None:
+        """The pose nearest in time to stamp_ns within `match_ns`; where stamp_ns is newer than all (its odometry is
+        on its way), the newest if `newest_if_later`, else None; None without any."""
         with self._lock:
             if not self._poses:
                 return None
@@ -47,7 +50,7 @@ class OdometryBuffer:
                 return self._poses[stamp_ns]
             newest = next(reversed(self._poses))
             if stamp_ns > newest:
-                return self._poses[newest]
+                return self._poses[newest] if newest_if_later else None
             stamps = np.fromiter(self._poses.keys(), np.int64)
             k = int(np.argmin(np.abs(stamps - stamp_ns)))
             return self._poses[int(stamps[k])] if abs(int(stamps[k]) - stamp_ns) <= self.match_ns else None

@@ -250,7 +250,7 @@ class LocalizationService:
 
     def _answer_frame(self, ev: StereoIn) -> None:
         """The frame's pose at once, on its intake thread (service.frame_answers); the worker perceives it later."""
-        snapshot, T_odom_body = self.backend.session.snapshot, self._odometry.at(ev.stamp_ns)
+        snapshot, T_odom_body = self.backend.session.snapshot, self._odometry.at(ev.stamp_ns, newest_if_later=True)
         est = snapshot.at(ev.stamp_ns, T_odom_body) if snapshot is not None and T_odom_body is not None else \
             Estimate(ev.stamp_ns, self.backend.status, np.eye(4))
         self._publish_pose(est)
@@ -395,7 +395,7 @@ class LocalizationService:
             self._publish(est)
             return
         stamp_ns, snapshot = self._last_pose_ns, self.backend.session.snapshot
-        T_odom_body = self._odometry.at(stamp_ns)
+        T_odom_body = self._odometry.at(stamp_ns, newest_if_later=True)
         if self.backend.session.keyframe and snapshot is not None and T_odom_body is not None:
             self._publish(snapshot.at(stamp_ns, T_odom_body))
 

@@ -21,7 +21,8 @@ def test_a_frame_takes_the_odometry_nearest_its_stamp_or_the_newest_where_its_ow
     assert 3 * 33_000_000 in buffer and 3 * 33_000_000 + 1 not in buffer
     assert buffer.at(3 * 33_000_000)[0, 3] == 3.0  # its own stamp
     assert buffer.at(3 * 33_000_000 + 10_000_000)[0, 3] == 3.0  # the nearest
-    assert buffer.at(9 * 33_000_000)[0, 3] == 5.0  # newer than all: the newest
+    assert buffer.at(9 * 33_000_000, newest_if_later=True)[0, 3] == 5.0  # newer than all: the newest ...
+    assert buffer.at(9 * 33_000_000) is None  # ... or none: the worker's sightings wait for theirs
     assert buffer.at(0) is None  # older than the four kept (66 ms and on), beyond 60 ms of any
     buffer.clear()
     assert buffer.at(5 * 33_000_000) is None
