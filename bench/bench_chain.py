@@ -2,7 +2,7 @@
 the same run: visual odometry, depth points, detector, stereo, line refinement, reconstruction, stage by stage
 in CPU ms (the process's, all threads) and wall ms, beside the 30 frames/s target.
 
-    python -m bench.bench_chain [--frames 60] [--sgbm-scale 1.0] [--vo klt] [--json]
+    python -m bench.bench_chain [--frames 60] [--sgbm-scale 1.0] [--vo klt] [--schedule] [--json]
 
 Frames: bench.chain_frames (Office_A seed 1, 60 consecutive frames, rendered once and cached). The detector runs
 on every frame and is timed, but the boxes reconstructed are the true ones (the shipped detector finds few
@@ -14,6 +14,12 @@ NEW: the chain as it is (the odometry's default: optical flow between keyframes,
 Old and new run frame by frame in turn, so both see the same load. Accuracy: each opening's corners, old against
 new and both against the truth; the odometry's drift against the true path. A benchmark: it prints figures,
 asserts nothing.
+
+`--schedule`: both chains run as the service and the replay schedule them, not the whole chain on every frame:
+the detector and what follows it on every third frame ([perception] detect_every), the odometry on every frame;
+the old chain's depth points every third frame, the new chain's on the frames that become keyframes (the
+session's keyframe rule on the odometry's poses: [perception.depth] at_keyframes). A stage's mean is over all
+frames, skipped ones counting 0.
 """
 
 from __future__ import annotations
@@ -61,7 +67,8 @@ class Chain:
         return out
 
 
-def make_chains(rig, sgbm_scale: float = 1.0, vo: str | None = None) -> tuple[Chain, Chain]:  # type: ignore[no-untyped-def]
+def make_chains(rig, sgbm_scale: float = 1.0, vo: str | None = None,  # type: ignore[no-untyped-def]
+                at_keyframes: bool = False) -> tuple[Chain, Chain]:
     from bench.chain_old import OLD_ODOMETRY, join_segments_python
     from macroloc.perception.odometry import OdometryConfig, StereoOdometry
     from macroloc.perception.pipeline import Perception
@@ -73,12 +80,34 @@ def make_chains(rig, sgbm_scale: float = 1.0, vo: str | None = None) -> tuple[Ch
                 join_segments_python)
     shared = FrameDisparity(SgbmMatcher(SgbmConfig(num_disparities=128, scale=sgbm_scale)))
     config = OdometryConfig() if vo is None else OdometryConfig(tracker=vo)
-    new = Chain("new", StereoOdometry(rig, config, disparity=shared), StereoDepth(disparity=shared),
+    new = Chain("new", StereoOdometry(rig, config, disparity=shared),
+                StereoDepth(disparity=shared, at_keyframes=at_keyframes),
                 Perception.create(threads=THREADS.onnxruntime, disparity=shared), None)
     return old, new
 
 
-def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_prev_cur) -> None:  # type: ignore[no-untyped-def]
+@dataclass
+class Schedule:
+    """`--schedule`: the detector every `detect_every`-th frame; depth points where the keyframe rule makes a
+    keyframe of the odometry's pose (new chain) or every third frame (old chain)."""
+
+    detect_every: int = 3
+    frame_s: float = 1.0 / 30.0
+    _T_kf: np.ndarray | None = None
+    _since_kf_s: float = 0.0
+
+    def keyframe(self, T_odom_cam: np.ndarray) -> bool:
+        from macroloc.graph.keyframes import KeyframeRule
+
+        due = KeyframeRule().is_keyframe(self._T_kf, T_odom_cam, self._since_kf_s, False, False)
+        self._since_kf_s += self.frame_s
+        if due:
+            self._T_kf, self._since_kf_s = T_odom_cam, self.frame_s
+        return due
+
+
+def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_prev_cur,  # type: ignore[no-untyped-def]
+              schedule: Schedule | None = None, i: int = 0) -> None:
     from bench.chain_old import band_depth_m, old_reconstruction
     from macroloc.perception.detector import Detection
     from macroloc.perception.lines import refine_box
@@ -89,7 +118,16 @@ def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_p
     pair = StereoPair(left, right, rig)
     result = chain.lap("vo", lambda: chain.odometry.track(left, right, R_prev_cur))
     chain.poses.append(result.T_odom_cam)
-    chain.lap("depth", lambda: chain.depth(left, right, rig, np.eye(4)))
+    if schedule is not None and chain.depth.at_keyframes:
+        due = schedule.keyframe(result.T_odom_cam)  # the rule on the camera's poses: the body's up to its lever arm
+        chain.lap("depth", lambda: chain.depth.measure(left, right, rig, np.eye(4)) if due else None)
+    else:
+        chain.lap("depth", lambda: chain.depth(left, right, rig, np.eye(4)))
+    if schedule is not None and i % schedule.detect_every:
+        for stage in STAGES[2:]:
+            chain.lap(stage, lambda: None)
+        chain.features.append([None] * len(boxes))
+        return
     chain.lap("detect", lambda: p.detector.detect(left))
     dets = [Detection(t, 1.0, b) for t, b in boxes]
     kw: dict[str, Any] = {} if chain.join is None else {"join": chain.join}
@@ -139,6 +177,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--boxes", type=int, default=0, help="keep the N largest openings a frame (0: all)")
     ap.add_argument("--vo", choices=("orb", "klt"), default=None,
                     help="the new chain's odometry tracker (default: OdometryConfig's)")
+    ap.add_argument("--schedule", action="store_true",
+                    help="the detector every third frame, the new chain's depth points at keyframes (see above)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     from bench.chain_frames import load, render
@@ -149,7 +189,8 @@ def main(argv: list[str] | None = None) -> None:
     fr = load(render(ROOT / "data" / "buildings" / "office_a.ifc", 1, 60, 30.0))
     fx, fy, cx, cy, baseline_m, w, h = fr.rig
     rig = StereoRig(fx, fy, cx, cy, baseline_m, int(w), int(h))
-    old, new = make_chains(rig, args.sgbm_scale, args.vo)
+    old, new = make_chains(rig, args.sgbm_scale, args.vo, at_keyframes=args.schedule)
+    schedules = {old.name: Schedule(), new.name: Schedule()} if args.schedule else {}
     n = min(args.frames, len(fr.left))
     boxes, truth = fr.boxes, fr.corners_cam
     if args.boxes:  # the N largest openings of each frame (--boxes 1: the issue's "one door in view")
@@ -163,10 +204,10 @@ def main(argv: list[str] | None = None) -> None:
     for i in range(n):  # interleaved, frame by frame: both see the same load on the machine
         R = None if i == 0 else fr.T_cad_cam[i - 1][:3, :3].T @ fr.T_cad_cam[i][:3, :3]  # previous cam <- this
         for chain in (old, new):
-            run_frame(chain, fr.left[i], fr.right[i], rig, boxes[i], R)
+            run_frame(chain, fr.left[i], fr.right[i], rig, boxes[i], R, schedules.get(chain.name), i)
     out: dict[str, Any] = {"frames": n, "openings": sum(len(b) for b in boxes[:n]),
                               "threads": THREADS.describe(), "budget_ms": round(BUDGET_MS, 1),
-                          "sgbm_scale_new": args.sgbm_scale}
+                          "sgbm_scale_new": args.sgbm_scale, "schedule": args.schedule}
     for c in (old, new):
         cpu = {k: round(float(np.mean(v)), 2) for k, v in c.cpu_ms.items()}
         wall = {k: round(float(np.mean(v)), 2) for k, v in c.wall_ms.items()}
@@ -181,7 +222,9 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(out))
         return
     print(f"chain at 640x480, {n} rendered frames (Office_A seed 1), {out['openings']} openings in view; "
-          f"threads: {out['threads']}; new SGBM scale {args.sgbm_scale}")
+          f"threads: {out['threads']}; new SGBM scale {args.sgbm_scale}; "
+          + ("as scheduled in the service (detector every 3rd frame; depth: old every 3rd, new at keyframes)"
+             if args.schedule else "the whole chain on every frame"))
     print(f"{'stage':<12} {'old CPU':>8} {'new CPU':>8} {'old wall':>9} {'new wall':>9}  (ms a frame, mean)")
     o, w = out["old"], out["new"]
     for stage in STAGES:

@@ -3,14 +3,15 @@ localizing and wrong localizations per building, flight seed and noise seed, bes
 
     python -m bench.bench_flights [--buildings office_a,jasmin] [--seeds 1-5] [--noise 0,1,2]
                                   [--observations truth] [--jobs 2] [--cache /tmp/macroloc-flights]
-                                  [--out RESULTS.json] [--compare BEFORE.json]
+                                  [--out RESULTS.json] [--compare BEFORE.json] [--config FILE.toml]
 
 Each flight is rendered once (`macroloc simulate BUILDING --seed S --duration 60`, cached in `--cache`, ~1 GB
 and ~75 s each) and replayed through the command line as an outside tool would (`macroloc replay --json`),
 `--jobs` at a time. `--compare` reads an earlier `--out` and lists every run whose time, APE or wrong count
 differs: a change that should not move the figures is checked to the digit. Perception on Office_A takes the
 detector adapted to it that ships in data/buildings/office_a_detector; elsewhere it takes `--detector
-BUILDING=ONNX` (made by `macroloc adapt-detector`) or the shipped generic one.
+BUILDING=ONNX` (made by `macroloc adapt-detector`) or the shipped generic one. `--config`: a macroloc config
+(TOML) every replay takes, e.g. to fly a setting against its default in two runs.
 """
 
 from __future__ import annotations
@@ -97,27 +98,34 @@ def _flight(cache: Path, building: str, seed: int) -> Path:
     return path
 
 
-def _replay(run: Run, flight: Path, configs: dict[str, Path]) -> dict:
+def _replay(run: Run, flight: Path, configs: dict[str, Path], base: Path | None = None) -> dict:
     cmd = [_macroloc(), "replay", str(flight), "--building", str(BUILDINGS[run.building]), "--json",
            "--observations", run.observations, "--seed", str(run.noise)]
     if run.observations == "perception" and run.building in configs:
         cmd += ["--config", str(configs[run.building])]
+    elif base is not None:
+        cmd += ["--config", str(base)]
     done = subprocess.run(cmd, capture_output=True, text=True)
     if done.returncode != 0:
         return {"error": done.stderr.strip().splitlines()[-1] if done.stderr.strip() else f"exit {done.returncode}"}
     return json.loads(done.stdout)
 
 
-def _detector_configs(pairs: list[str], folder: Path) -> dict[str, Path]:
+def _detector_configs(pairs: list[str], folder: Path, base: Path | None = None) -> dict[str, Path]:
+    """Per building, a config naming its detector, on top of `base` (TOML) where given."""
     detectors = dict(DETECTORS)
     for pair in pairs:
         name, _, path = pair.partition("=")
         detectors[name] = Path(path)
+    lines = [] if base is None else base.read_text().splitlines()
     configs = {}
     for name, onnx in detectors.items():
         if onnx.exists():
+            key = f'detector_model = "{onnx.resolve()}"'
+            at = next((i + 1 for i, line in enumerate(lines) if line.strip() == "[perception]"), None)
+            text = lines[:at] + [key] + lines[at:] if at is not None else [*lines, "[perception]", key]
             configs[name] = folder / f"{name}.toml"
-            configs[name].write_text(f'[perception]\ndetector_model = "{onnx.resolve()}"\n')
+            configs[name].write_text("\n".join(text) + "\n")
     return configs
 
 
@@ -132,6 +140,7 @@ def main() -> int:
     parser.add_argument("--detector", action="append", default=[], help="BUILDING=ONNX for perception")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--compare", type=Path)
+    parser.add_argument("--config", type=Path, help="a macroloc config (TOML) for every replay")
     args = parser.parse_args()
     buildings = args.buildings.split(",")
     unknown = [b for b in buildings if b not in BUILDINGS or not BUILDINGS[b].exists()]
@@ -144,8 +153,9 @@ def main() -> int:
             for kind in args.observations.split(",") for n in (noise[:1] if kind == "perception" else noise)]
     flights = {(b, s): _flight(args.cache, b, s) for b, s in sorted({(r.building, r.seed) for r in runs})}
     with tempfile.TemporaryDirectory() as tmp, ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        configs = _detector_configs(args.detector, Path(tmp))
-        futures = {r.key: pool.submit(_replay, r, flights[(r.building, r.seed)], configs) for r in runs}
+        configs = _detector_configs(args.detector, Path(tmp), args.config)
+        futures = {r.key: pool.submit(_replay, r, flights[(r.building, r.seed)], configs, args.config)
+                   for r in runs}
         results = {}
         for key, future in futures.items():
             results[key] = future.result()

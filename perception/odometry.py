@@ -10,8 +10,9 @@ does not come back to within `flow_round_trip_px` when followed back, or nears t
 points gives the camera's motion since that keyframe, and only PnP's inliers are followed on. ORB is detected and
 described only for a new keyframe, and on a frame where the flow fails (too few points, PnP failing, or a pose no
 drone could reach): that frame is matched as with "orb", and the flow goes on from the matches PnP kept. With
-"orb" (the default), every frame: ORB on the left image, matched to the reference keyframe's descriptors. The
-figures, ORB against flow: docs/measurements.md, "Visual odometry by optical flow (issue 37, item 1)".
+"orb" (the default), every frame: ORB on the left image, matched to the reference keyframe's descriptors
+(Lowe's ratio test, in faiss' exact binary index: perception.binary_match). The figures, ORB against flow:
+docs/measurements.md, "Visual odometry by optical flow (issue 37, item 1)".
 
 A frame becomes the reference when tracking thins out or the camera has moved far from it; only then is the
 stereo pair matched: OpenCV SGBM's sub-pixel disparity at each keypoint gives its 3D point by eq. 2
@@ -44,6 +45,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from macroloc.common.geometry import rotation_angle_rad
+from macroloc.perception.binary_match import BinaryIndex
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.params import OdometryConfig
 from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher, keypoint_points, to_gray
@@ -65,6 +67,7 @@ class _Keyframe:
     points_cam: np.ndarray  # (N, 3) metres, in this keyframe's camera frame
     uv: np.ndarray  # (N, 2) pixels: where the points are in this keyframe's left image
     response: np.ndarray  # (N,) their ORB keypoints' corner response
+    index: BinaryIndex  # of the descriptors, for the frames' matches
 
 
 @dataclass
@@ -87,7 +90,6 @@ class StereoOdometry:
         self.config = config or OdometryConfig()
         self.orb = cv2.ORB_create(  # type: ignore[attr-defined]
             nfeatures=self.config.detect_features, fastThreshold=self.config.fast_threshold)
-        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self.sgbm = disparity or SgbmMatcher(SgbmConfig(num_disparities=self.config.num_disparities))
         if self.config.tracker not in ("klt", "orb") or self.config.flow_from not in ("last", "keyframe"):
             raise ValueError(f"OdometryConfig.tracker {self.config.tracker!r}: 'klt' or 'orb'; flow_from "
@@ -229,12 +231,12 @@ class StereoOdometry:
     def _spread(self, keypoints: tuple, shape: tuple[int, ...]) -> list:  # type: ignore[type-arg]
         """At most `n_features` keypoints spread over the image: each grid cell keeps its strongest, as many as
         an equal share, and what cells with fewer leave goes to the strongest of the rest. Matching cost grows
-        with the count squared (2000 a frame: 24 ms of brute-force matching here), and features bunched on one
+        with the count squared (2000 a frame: 24 ms of OpenCV's brute-force matching here), and features bunched on one
         textured patch constrain the pose less than the same number spread."""
         if len(keypoints) <= self.config.n_features:
             return list(keypoints)
-        keep = self._spread_index(np.array([k.pt for k in keypoints]), np.array([k.response for k in keypoints]),
-                                  self.config.n_features, shape)
+        uv = cv2.KeyPoint_convert(keypoints).astype(np.float64)  # type: ignore[attr-defined]
+        keep = self._spread_index(uv, np.array([k.response for k in keypoints]), self.config.n_features, shape)
         return [keypoints[i] for i in keep]
 
     def _spread_index(self, uv: np.ndarray, response: np.ndarray, n: int, shape: tuple[int, ...]) -> np.ndarray:
@@ -284,7 +286,7 @@ class StereoOdometry:
         valid = points[:, 2] > 0
         uv = np.array([k.pt for k in kp], np.float64).reshape(-1, 2)
         response = np.array([k.response for k in kp], np.float64)
-        return _Keyframe(T_odom_cam, desc[valid], points[valid], uv[valid], response[valid])
+        return _Keyframe(T_odom_cam, desc[valid], points[valid], uv[valid], response[valid], BinaryIndex(desc[valid]))
 
     def _plausible(self, T: np.ndarray, inliers: int) -> bool:
         """Is the motion since the last frame one a drone can make? Few inliers (a textureless view) also have
@@ -314,15 +316,14 @@ class StereoOdometry:
         assert ref is not None
         if len(desc) < 2 or len(ref.descriptors) < 2:
             return None, 0
-        pairs = [m for m, n in (p for p in self.matcher.knnMatch(desc, ref.descriptors, k=2) if len(p) == 2)
-                 if m.distance < self.config.ratio * n.distance]
-        if len(pairs) < self.config.min_inliers:
-            return None, len(pairs)
-        obj = np.array([ref.points_cam[m.trainIdx] for m in pairs], np.float64)
-        img = np.array([kp[m.queryIdx].pt for m in pairs], np.float64)
+        query, train = ref.index.ratio_matches(desc, self.config.ratio)
+        if len(query) < self.config.min_inliers:
+            return None, len(query)
+        obj = ref.points_cam[train].astype(np.float64)
+        img = cv2.KeyPoint_convert([kp[i] for i in query]).astype(np.float64)  # type: ignore[attr-defined]
         T_ref_cam, inliers = self._solve(obj, img)
         if T_ref_cam is not None:
-            self._inlier_index = np.array([m.trainIdx for m in pairs], np.int64)[self._inlier_rows]
+            self._inlier_index = train.astype(np.int64)[self._inlier_rows]
         return T_ref_cam, inliers
 
     def _solve(self, obj: np.ndarray, img: np.ndarray) -> tuple[np.ndarray | None, int]:

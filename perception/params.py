@@ -125,6 +125,8 @@ class DepthPointsConfig:
     a depth image the vehicle sends."""
 
     every: int = 3  # every this many stereo frames (the localizer keeps the newest before each keyframe); 0: none
+    at_keyframes: bool = True  # measured only on the frames that become keyframes (what the localizer uses: a
+    #                            keyframe takes the newest before it), not on every `every`-th frame
     stride_px: int = 16  # every this many pixels of the disparity image ...
     min_range_m: float = 0.3  # ... at this range ...
     max_range_m: float = 8.0  # ... to this one

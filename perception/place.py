@@ -22,10 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
-import faiss
 import numpy as np
 
 from macroloc.common.views import KeyframeView
+from macroloc.perception.binary_match import BinaryIndex
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.params import PlaceConfig
 from macroloc.perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
@@ -46,10 +46,9 @@ class PlaceRecognizer:
         self.T_body_cam = np.asarray(T_body_cam, float)
         self.config = c = config or PlaceConfig()
         self._orb = cv2.ORB_create(nfeatures=c.n_features, fastThreshold=c.fast_threshold)  # type: ignore[attr-defined]
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self._sgbm: SgbmMatcher | None = None
         self._views: list[tuple[np.ndarray, KeyframeView]] = []
-        self._database = _BinaryIndex(np.zeros((0, 32), np.uint8))  # every stored view's voting descriptors
+        self._database = BinaryIndex(np.zeros((0, 32), np.uint8))  # every stored view's voting descriptors
         self._owner = np.zeros(0, np.int64)  # the view of each of its rows
 
     # --- storing ----------------------------------------------------------------------------------------------
@@ -75,7 +74,7 @@ class PlaceRecognizer:
         """The stored views to place new keyframes among: (T_map_body, view) each (StoredMap.placed_views)."""
         self._views = [(np.asarray(T, float), v) for T, v in views if len(v.descriptors)]
         n = self.config.vote_per_view
-        self._database = _BinaryIndex(np.vstack([v.descriptors[:n] for _, v in self._views]) if self._views
+        self._database = BinaryIndex(np.vstack([v.descriptors[:n] for _, v in self._views]) if self._views
                                       else np.zeros((0, 32), np.uint8))
         self._owner = np.repeat(np.arange(len(self._views)), [len(v.descriptors[:n]) for _, v in self._views])
 
@@ -100,11 +99,10 @@ class PlaceRecognizer:
         obj, img, of_view = [], [], []
         for v in top:
             T_map_body, view = self._views[v]
-            pairs = [m for m, n in (p for p in self._matcher.knnMatch(desc, view.descriptors, k=2) if len(p) == 2)
-                     if m.distance < c.ratio * n.distance]
-            obj += [T_map_body[:3, :3] @ view.points_body[m.trainIdx] + T_map_body[:3, 3] for m in pairs]
-            img += [uv[m.queryIdx] for m in pairs]
-            of_view += [v] * len(pairs)
+            query, train = BinaryIndex(view.descriptors).ratio_matches(desc, c.ratio)
+            obj += list(view.points_body[train] @ T_map_body[:3, :3].T + T_map_body[:3, 3])
+            img += list(uv[query])
+            of_view += [v] * len(query)
         if len(obj) < c.min_inliers:
             return None
         obj_a, img_a = np.array(obj, np.float64), np.array(img, np.float64)
@@ -149,28 +147,6 @@ class PlaceRecognizer:
             return False
         other = self._body_pose(*found[:2])
         return bool(np.linalg.norm(other[:3, 3] - T_map_body[:3, 3]) > c.rival_apart_m)
-
-
-class _BinaryIndex:
-    """Exact k-nearest binary descriptors by Hamming distance: faiss' flat binary index, one thread (as
-    graph.descriptor's: OpenMP's spinning workers cost more than they give on two shared cores). The same answer
-    as OpenCV's BFMatcher.knnMatch, 4-6x faster: 300 queries against 100 stored views (15,000 rows) in 3 ms
-    against 12-23 ms (`bench.bench_place`)."""
-
-    def __init__(self, descriptors: np.ndarray) -> None:
-        faiss.omp_set_num_threads(1)
-        self.n = len(descriptors)
-        self._index = faiss.IndexBinaryFlat(descriptors.shape[1] * 8)
-        if self.n:
-            self._index.add(np.ascontiguousarray(descriptors, np.uint8))
-
-    def nearest(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """(distances, rows), each (Nq, min(k, n)), nearest first."""
-        k = min(k, self.n)
-        if k == 0 or len(queries) == 0:
-            return np.zeros((len(queries), k), np.int32), np.zeros((len(queries), k), np.int64)
-        distance, row = self._index.search(np.ascontiguousarray(queries, np.uint8), k)
-        return distance, row
 
 
 def _tilt_deg(T_map_body: np.ndarray, up_body: np.ndarray) -> float:

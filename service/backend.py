@@ -218,9 +218,11 @@ class LocalizerBackend:
         return self._sightings_frame(ev.stamp_ns, to_body)
 
     def stereo(self, stamp_ns: int, sightings: list[Sighting], points_body: np.ndarray | None = None,
-               placed: Placed | None = None) -> Estimate | None:
+               placed: Placed | None = None,
+               measure_depth: Callable[[], np.ndarray] | None = None) -> Estimate | None:
         """A stereo frame the service perceived: sightings (body frame), depth points (N, 3, body frame), its
-        place-recognition result (service.places): a frame at the odometry pose of its stamp. Without that pose,
+        place-recognition result (service.places), its depth measured on demand (`measure_depth`, called where it
+        becomes a keyframe): a frame at the odometry pose of its stamp. Without that pose,
         its sightings wait for it (its depth and place are dropped) and the answer is the pose tracked at the
         last estimate's (None before any)."""
         T_odom_body = self.odometry_at(stamp_ns)
@@ -229,7 +231,7 @@ class LocalizerBackend:
                 self._sightings_frame(stamp_ns, lambda _: sightings)
             return None if self.last is None else self.session.pose_at(stamp_ns, self.last.T_map_body)
         return self.session.frame(FrameIn(stamp_ns, T_odom_body, sightings, self._up_body, points_body,
-                                          placed=placed))
+                                          placed=placed, measure_depth=measure_depth))
 
     def _sightings_frame(self, stamp_ns: int, to_body: Callable[[np.ndarray], list[Sighting]]) -> Estimate | None:
         T_odom_body = self.odometry_at(stamp_ns)

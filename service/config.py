@@ -488,6 +488,9 @@ class DepthTable(_Params):
 
     every: int = Field(_PERCEPTION.depth.every, ge=0, description="depth points on every this many stereo frames (the "
                        "localizer keeps the newest before each keyframe); 0: none")
+    at_keyframes: bool = Field(_PERCEPTION.depth.at_keyframes, description="measure them only on the frames that "
+                               "become keyframes (a keyframe takes the newest before it, the others are never used); "
+                               "false: on every `every`-th frame")
     stride_px: int = Field(_PERCEPTION.depth.stride_px, ge=1, description="every this many pixels of the disparity, px")
     min_range_m: float = Field(_PERCEPTION.depth.min_range_m, ge=0, description="points nearer are dropped, m")
     max_range_m: float = Field(_PERCEPTION.depth.max_range_m, gt=0, description="points farther are dropped, m")

@@ -10,6 +10,7 @@ the decode-only pipeline otherwise (logged).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
 
@@ -27,9 +28,11 @@ log = logging.getLogger(__name__)
 
 class FramePipeline(Protocol):
     """Stereo frame -> sightings (doors/windows, corners in the body frame). Perception plugs in here.
-    `points_body`: the last frame's stereo depth points (body frame, metres) when it measured them, else None."""
+    `points_body`: the last frame's stereo depth points (body frame, metres) when it measured them, else None;
+    `measure_depth`: the last frame's, measured when called (for a keyframe: StereoDepth.deferred), or None."""
 
     points_body: np.ndarray | None
+    measure_depth: Callable[[], np.ndarray] | None
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]: ...
 
@@ -39,15 +42,20 @@ class NullPipeline:
     and sightings come on the observations key (e.g. from the vehicle's own detector)."""
 
     points_body: np.ndarray | None = None
+    measure_depth: Callable[[], np.ndarray] | None = None
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
         return []
 
 
 class StereoDepth:
-    """Depth points for the surface check and fit (graph.surfaces): every `every`-th frame, SGBM over the whole
-    rectified pair, every `stride_px`-th pixel at 0.3-8 m, back-projected (eq. 2) into the body frame; None on the
-    other frames. The service's pipeline and the replay's sources measure depth alike through it.
+    """Depth points for the surface check and fit (graph.surfaces): SGBM over the whole rectified pair, every
+    `stride_px`-th pixel at 0.3-8 m, back-projected (eq. 2) into the body frame. The service's pipeline and the
+    replay's sources measure depth alike through it, on one of two schedules: `at_keyframes` (the default of
+    [perception.depth]), only on the frames that become keyframes, when the session asks (`deferred`: a keyframe
+    takes the newest depth points before it and no other frame's are ever used, so measuring every third frame
+    threw away two SGBMs of three: docs/measurements.md, "Depth points measured for keyframes only"); else every
+    `every`-th frame (`__call__`).
 
     Its SGBM searches `num_disparities` (128: down to fx * baseline / 128, 0.45 m with the simulated rig), not the
     perception chain's 64 (0.9 m): a wall nearer than the search reaches is matched at a wrong disparity and lands
@@ -57,29 +65,45 @@ class StereoDepth:
     change")."""
 
     def __init__(self, every: int = 3, stride_px: int = 16, num_disparities: int = 128,
-                 disparity=None, range_m: tuple[float, float] = (0.3, 8.0)) -> None:  # noqa: ANN001 - FrameDisparity
+                 disparity=None, range_m: tuple[float, float] = (0.3, 8.0),  # noqa: ANN001 - FrameDisparity
+                 at_keyframes: bool = False) -> None:
         """`disparity`: the frame's shared SGBM (perception.stereo.FrameDisparity) where the perception chain or
-        the odometry match the same frames; None: its own, with `num_disparities`. `range_m`: the points kept."""
+        the odometry match the same frames; None: its own, with `num_disparities`. `range_m`: the points kept.
+        `every` 0: no depth points on either schedule."""
         from macroloc.perception.stereo import SgbmConfig, SgbmMatcher
 
         self.matcher = disparity or SgbmMatcher(SgbmConfig(num_disparities=num_disparities))
         self.every = every
         self.stride_px = stride_px
         self.range_m = range_m
+        self.at_keyframes = at_keyframes
         self._n = 0
 
     @classmethod
     def configured(cls, params: DepthPointsConfig, disparity=None) -> StereoDepth:  # noqa: ANN001 - FrameDisparity
         """As [perception.depth] says, on the frame's shared SGBM (`disparity`) where given."""
         return cls(params.every, params.stride_px, disparity=disparity,
-                   range_m=(params.min_range_m, params.max_range_m))
+                   range_m=(params.min_range_m, params.max_range_m), at_keyframes=params.at_keyframes)
 
     def __call__(self, left: np.ndarray, right: np.ndarray, rig, T_body_cam: np.ndarray) -> np.ndarray | None:  # noqa: ANN001 - StereoRig
+        """Every `every`-th frame's points (None on the others, and on every frame `at_keyframes`)."""
+        n, self._n = self._n, self._n + 1
+        if self.at_keyframes or not self.every or n % self.every:
+            return None
+        return self.measure(left, right, rig, T_body_cam)
+
+    def deferred(self, left: np.ndarray, right: np.ndarray, rig,  # noqa: ANN001 - StereoRig
+                 T_body_cam: np.ndarray) -> Callable[[], np.ndarray] | None:
+        """`at_keyframes`: this frame's points, measured when called (service.session calls it for a keyframe);
+        else None. The images must not change until then."""
+        if not self.at_keyframes or not self.every:
+            return None
+        return lambda: self.measure(left, right, rig, T_body_cam)
+
+    def measure(self, left: np.ndarray, right: np.ndarray, rig, T_body_cam: np.ndarray) -> np.ndarray:  # noqa: ANN001 - StereoRig
+        """The pair's depth points (N, 3), body frame, metres."""
         from macroloc.perception.stereo import back_project, depth_from_disparity, depth_grid
 
-        n, self._n = self._n, self._n + 1
-        if not self.every or n % self.every:
-            return None
         depth_m = depth_from_disparity(self.matcher.disparity_px(left, right), rig)
         return apply(T_body_cam, back_project(*depth_grid(depth_m, self.stride_px, *self.range_m), rig))
 
@@ -89,9 +113,10 @@ class PerceptionPipeline:
 
     def __init__(self, perception, default_T_body_cam: np.ndarray,  # noqa: ANN001 - perception.Perception
                  depth: DepthPointsConfig | None = None) -> None:
-        """Frames also give stereo depth points (`points_body`, SGBM over the whole frame) for the walls' checks,
-        as `depth` says (every third frame, every 16th pixel by default; [perception.depth]). Where the chain's
-        matcher is a shared FrameDisparity, the depth points take the frame's disparity from it (one SGBM)."""
+        """Frames also give stereo depth points (SGBM over the whole frame) for the walls' checks, as `depth` says
+        ([perception.depth]: by default `measure_depth`, for the session to call where the frame becomes a
+        keyframe; every 16th pixel). Where the chain's matcher is a shared FrameDisparity, the depth points take
+        the frame's disparity from it (one SGBM)."""
         from macroloc.perception.stereo import FrameDisparity
 
         self.perception = perception
@@ -99,6 +124,7 @@ class PerceptionPipeline:
         shared = perception.matcher if isinstance(perception.matcher, FrameDisparity) else None
         self.depth = StereoDepth.configured(depth or DepthPointsConfig(), shared)
         self.points_body: np.ndarray | None = None  # the last frame's depth points, when it measured them
+        self.measure_depth: Callable[[], np.ndarray] | None = None  # the last frame's, measured when called
 
     def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
         """Frames come checked (service.inputs: sizes from the headers, equal left and right and camera info);
@@ -108,12 +134,13 @@ class PerceptionPipeline:
 
         info = frame.info
         if not frame.HasField("info") or info.fx <= 0 or info.baseline_m <= 0:
-            self.points_body = None
+            self.points_body, self.measure_depth = None, None
             return []
         left, right = decode_image(frame.left), decode_image(frame.right)
         rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam
         self.points_body = self.depth(left, right, rig, T_body_cam)  # first: the chain's band reuses its SGBM
+        self.measure_depth = self.depth.deferred(left, right, rig, T_body_cam)
         result = self.perception.process(StereoPair(left, right, rig, stamp_ns=frame.header.stamp_ns))
         return [Sighting(f.type, apply(T_body_cam, f.corners_cam), truncated=f.truncated)
                 for f in result.features]

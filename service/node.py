@@ -314,7 +314,8 @@ class LocalizationService:
         until that odometry arrives). In lock-step its pose goes out now; otherwise it went out on arrival, and
         what the frame changed goes out at the last answer's stamp (`_publish_worker`)."""
         sightings = self.pipeline(ev.frame)
-        points_body = self.pipeline.points_body  # the pipeline's own stereo depth, when it measured some
+        points_body = self.pipeline.points_body  # the pipeline's own stereo depth, when it measured some ...
+        measure_depth = self.pipeline.measure_depth  # ... or will for a keyframe
         with self._lock:
             T_odom_body, status, up_body = self.backend.odometry_at(ev.stamp_ns), self.backend.status, \
                 self.backend.up_body
@@ -324,8 +325,9 @@ class LocalizationService:
 
             d = self.params.depth
             points_body = depth_points_body(ev.frame, d.depth_image_stride_px, d.max_range_m)  # the vehicle's depth
+            measure_depth = None
         with self._lock:
-            est = self.backend.stereo(ev.stamp_ns, sightings, points_body, placed)
+            est = self.backend.stereo(ev.stamp_ns, sightings, points_body, placed, measure_depth)
         if est is None:
             est = Estimate(ev.stamp_ns, self.backend.status, np.eye(4))
         self.latency["frame_perceived"].add_ms((time.monotonic_ns() - ev.received_ns) * 1e-6)

@@ -42,7 +42,8 @@ class FrameIn:
     """One frame's inputs. T_odom_body: 4x4 odometry pose at `stamp_ns`; sightings: corners in the body frame;
     points_body: (N, 3) depth points, body frame, measured at this frame; up_body: gravity's up, body frame;
     dead_reckoned_s: seconds since the previous frame the odometry only extrapolated; placed: the frame's pose in
-    a stored map and/or its view to keep (service.places)."""
+    a stored map and/or its view to keep (service.places); measure_depth: this frame's depth points (N, 3, body
+    frame), measured when called: called only where the frame becomes a keyframe."""
 
     stamp_ns: int
     T_odom_body: np.ndarray
@@ -51,6 +52,7 @@ class FrameIn:
     points_body: np.ndarray | None = None
     dead_reckoned_s: float = 0.0
     placed: Placed | None = None
+    measure_depth: Callable[[], np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -111,6 +113,8 @@ class LocalizationSession:
             self.localizer.add_depth(f.T_odom_body, f.points_body)  # given with the next keyframe
         self._dead_reckoned_s += f.dead_reckoned_s
         if self.keyframe_due(f.stamp_ns, f.T_odom_body, bool(f.sightings), f.placed):
+            if f.measure_depth is not None:  # only now: a keyframe takes the newest depth, no other frame's is used
+                self.add_depth(f.T_odom_body, f.measure_depth())
             return self._keyframe(f)
         return self._track(f.stamp_ns, f.T_odom_body, f.sightings)
 

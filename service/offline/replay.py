@@ -149,7 +149,7 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
         placed = places.at_frame(frame.stereo, inputs.stamp_ns, inputs.T_odom_body, inputs.T_body_cam,
                                  inputs.up_body, session.status)
         est = session.frame(FrameIn(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body,
-                                    inputs.points_body, inputs.dead_reckoned_s, placed))
+                                    inputs.points_body, inputs.dead_reckoned_s, placed, inputs.measure_depth))
         busy_s += time.perf_counter() - start
         if busy_at_localized is None and est.status == "localized":
             busy_at_localized = busy_s

@@ -11,6 +11,7 @@ on the recorded images (or takes the vehicle's own odometry, where the recording
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
@@ -43,6 +44,7 @@ class FrameInput:
     T_body_cam: np.ndarray
     points_body: np.ndarray | None = None  # (N, 3) stereo depth points, body frame, when this frame measured them
     dead_reckoned_s: float = 0.0  # seconds since the previous frame the odometry only extrapolated (it lost track)
+    measure_depth: Callable[[], np.ndarray] | None = None  # this frame's depth points when called (for a keyframe)
 
 
 class ObservationSource(Protocol):
@@ -155,8 +157,8 @@ class VisualOdometry:
     IMU's gyroscope (integrated over the frame's samples), and where it loses track its position dead-reckoned
     on the accelerometer (perception.inertial); the odometry frame is the first body frame levelled by the IMU's
     gravity. After each frame, `up_body` is gravity's direction with the odometry's acceleration taken out of the
-    specific force (perception.gravity), and `points_body` the stereo depth points the service would measure on
-    that frame (service.frames.StereoDepth: every third frame), or None."""
+    specific force (perception.gravity), and `points_body` / `measure_depth` the stereo depth points as the service
+    measures them on that frame (service.frames.StereoDepth: on demand for a keyframe, by default)."""
 
     def __init__(self, disparity: FrameDisparity | None = None, params: PerceptionParams | None = None) -> None:
         """`disparity`: the frame's one SGBM, shared by the odometry's keyframes, the depth points and (given to
@@ -177,6 +179,7 @@ class VisualOdometry:
         self._inertial = InertialDeadReckoning(p.inertial)
         self._depth = StereoDepth.configured(p.depth, self._disparity)
         self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
+        self.measure_depth: Callable[[], np.ndarray] | None = None  # the last frame's, measured when called
         self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
         self.dead_reckoned_s = 0.0  # the last frame's seconds of dead reckoning (tracking lost)
         self._last_stamp_ns: int | None = None
@@ -220,6 +223,7 @@ class VisualOdometry:
             (frame.stamp_ns - self._last_stamp_ns) * 1e-9
         self._last_stamp_ns = frame.stamp_ns
         self.points_body = self._depth(left, right, self._odometry.rig, T_body_cam)
+        self.measure_depth = self._depth.deferred(left, right, self._odometry.rig, T_body_cam)
         T_odom_body = T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
         self._inertial.update(frame.stamp_ns * 1e-9, T_odom_body[:3, 3], f_body @ T_odom_body[:3, :3].T,
                               result.tracked)
@@ -242,6 +246,7 @@ class VehicleOdometry:
         self._depth = StereoDepth.configured(p.depth, disparity)
         self._T_odom_body: np.ndarray | None = None
         self.points_body: np.ndarray | None = None
+        self.measure_depth: Callable[[], np.ndarray] | None = None
         self.up_body: np.ndarray | None = None
         self.dead_reckoned_s = 0.0  # the vehicle's odometry says nothing of its own losses
 
@@ -255,6 +260,7 @@ class VehicleOdometry:
         info = frame.stereo.info
         rig = _rig(info)
         self.points_body = self._depth(left, right, rig, matrix_from_pose(info.T_body_cam))
+        self.measure_depth = self._depth.deferred(left, right, rig, matrix_from_pose(info.T_body_cam))
         self.up_body = self._gravity.update(frame.stamp_ns, self._T_odom_body, _specific_forces(frame))
         return self._T_odom_body
 
@@ -274,7 +280,7 @@ class TruthFeaturesWithVisualOdometry:
         inputs = self.truth(frame)
         T_odom_body = self.odometry(frame, decode_image(frame.stereo.left), decode_image(frame.stereo.right))
         return FrameInput(inputs.stamp_ns, T_odom_body, inputs.sightings, self.odometry.up_body, inputs.T_body_cam,
-                          self.odometry.points_body, self.odometry.dead_reckoned_s)
+                          self.odometry.points_body, self.odometry.dead_reckoned_s, self.odometry.measure_depth)
 
 
 class PerceptionSource:
@@ -333,7 +339,7 @@ class PerceptionSource:
                                           truncated=f.truncated))
         self._n += 1
         return FrameInput(frame.stamp_ns, T_odom_body, sightings, up_body, T_body_cam, self.odometry.points_body,
-                          self.odometry.dead_reckoned_s)
+                          self.odometry.dead_reckoned_s, self.odometry.measure_depth)
 
 
 def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:

@@ -4,11 +4,8 @@ tilted from gravity refused."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from macroloc.graph.mapstore import KeyframeView
 from macroloc.graph.rigid import rotation_angle_deg
@@ -129,28 +126,3 @@ def test_twin_places_that_look_alike_are_not_guessed(room) -> None:  # noqa: ANN
     recognizer = PlaceRecognizer(RIG, T_body_cam)
     recognizer.use(stored + twins)
     assert recognizer.place(left, UP) is None
-
-
-@settings(max_examples=25, deadline=None)
-@given(n_rows=st.integers(0, 300), n_queries=st.integers(1, 40), seed=st.integers(0, 2**31 - 1))
-def test_the_vote_index_finds_the_nearest_descriptors_as_the_brute_force_matcher(n_rows: int, n_queries: int,
-                                                                                 seed: int) -> None:
-    """The vote's index (faiss, exact) gives OpenCV's brute-force Hamming distances to the two nearest rows; near
-    copies of stored rows (a few bits flipped) are found at their own row."""
-    from macroloc.perception.place import _BinaryIndex
-
-    rng = np.random.default_rng(seed)
-    rows = rng.integers(0, 256, (n_rows, 32), dtype=np.uint8)
-    queries = rng.integers(0, 256, (n_queries, 32), dtype=np.uint8)
-    copied = min(n_rows, n_queries)
-    queries[:copied] = rows[:copied] ^ (rng.random((copied, 32)) < 0.01).astype(np.uint8)  # ~2 bits flipped
-    distance, row = _BinaryIndex(rows).nearest(queries, k=2)
-    assert distance.shape == row.shape == (n_queries, min(2, n_rows))
-    if n_rows == 0:
-        return
-    brute = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(queries, rows, k=2)
-    np.testing.assert_array_equal(distance, [[m.distance for m in pair] for pair in brute])
-    np.testing.assert_array_equal(distance, np.take_along_axis(
-        np.unpackbits(queries[:, None] ^ rows[None], axis=2).sum(axis=2), row, axis=1))
-    near = distance[:copied, 0] < 20  # the copy, unless a random row lies as near (all but impossible)
-    assert near.all() and (row[:copied, 0] == np.arange(copied)).all()

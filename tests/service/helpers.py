@@ -39,6 +39,16 @@ def wait_for(condition: Callable[[], object], timeout_s: float = 20.0, what: str
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
 
 
+def wait_subscribed(session: zenoh.Session, key: str, timeout_s: float = 20.0) -> None:
+    """Wait until a subscriber (the service's) matches `key` as seen from `session`: a put sent before the
+    service's declarations reach a newly connected session is dropped on the way."""
+    publisher = session.declare_publisher(key)
+    try:
+        wait_for(lambda: publisher.matching_status.matching, timeout_s, f"a subscriber on {key}")
+    finally:
+        publisher.undeclare()
+
+
 def yaw_T(yaw: float, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     c, s = np.cos(yaw), np.sin(yaw)

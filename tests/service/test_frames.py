@@ -19,13 +19,48 @@ def textured_pair(disparity_px: int, seed: int = 0) -> tuple[np.ndarray, np.ndar
     return left, right
 
 
-def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
+def _plane_frame() -> pb.StereoFrame:
+    from macroloc.common.geometry import forward_stereo_T_body_cam
+
+    left, right = textured_pair(24)
+    info = pb.CameraInfo(width=640, height=480, fx=480.0, fy=480.0, cx=319.5, cy=239.5, baseline_m=0.12,
+                         T_body_cam=pose_from_matrix(forward_stereo_T_body_cam()))
+    return pb.StereoFrame(left=encode_image(left), right=encode_image(right), info=info)
+
+
+def test_by_default_a_frame_s_depth_points_are_measured_only_when_asked_for() -> None:
+    """[perception.depth] at_keyframes (the default): no frame measures depth points as it is perceived; each
+    leaves `measure_depth`, which the session calls where the frame becomes a keyframe, and which measures that
+    frame's (not a later one's: the images are the frame's own)."""
     pytest.importorskip("onnxruntime")
     from macroloc.common.geometry import forward_stereo_T_body_cam
     from macroloc.perception.pipeline import Perception
     from macroloc.service.frames import PerceptionPipeline
 
     pipeline = PerceptionPipeline(Perception.create(None), forward_stereo_T_body_cam())
+    pipeline(_plane_frame())
+    first = pipeline.measure_depth
+    far_left, far_right = textured_pair(12, seed=1)  # the plane twice as far
+    far = _plane_frame()
+    far.left.CopyFrom(encode_image(far_left))
+    far.right.CopyFrom(encode_image(far_right))
+    pipeline(far)
+    assert pipeline.points_body is None and first is not None and pipeline.measure_depth is not None
+    near_points, far_points = first(), pipeline.measure_depth()
+    assert len(near_points) > 500 and len(far_points) > 500
+    assert np.median(near_points[:, 0]) == pytest.approx(2.5, abs=0.05)  # 2.4 m + the camera's 0.10 m
+    assert np.median(far_points[:, 0]) == pytest.approx(4.9, abs=0.1)
+
+
+def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
+    pytest.importorskip("onnxruntime")
+    from macroloc.common.geometry import forward_stereo_T_body_cam
+    from macroloc.perception.params import DepthPointsConfig
+    from macroloc.perception.pipeline import Perception
+    from macroloc.service.frames import PerceptionPipeline
+
+    pipeline = PerceptionPipeline(Perception.create(None), forward_stereo_T_body_cam(),
+                                  depth=DepthPointsConfig(at_keyframes=False))
     left, right = textured_pair(24)
     info = pb.CameraInfo(width=640, height=480, fx=480.0, fy=480.0, cx=319.5, cy=239.5, baseline_m=0.12,
                          T_body_cam=pose_from_matrix(forward_stereo_T_body_cam()))
@@ -34,6 +69,7 @@ def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
     for _ in range(4):
         pipeline(frame)
         measured.append(pipeline.points_body)
+        assert pipeline.measure_depth is None
     assert measured[1] is None and measured[2] is None and measured[3] is not None
     points = measured[0]
     assert points is not None and len(points) > 500
@@ -69,7 +105,8 @@ def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_ch
     cfg = load_config(None, perception={"stereo": {"num_disparities": 64}, "lines": {"margin": 0.2},
                                         "plausibility": {"max_side_angle_deg": 9.0}, "wall_plane": {"iterations": 8},
                                         "odometry": {"tracker": "klt"}, "gravity": {"window_s": 2.0},
-                                        "depth": {"every": 2, "stride_px": 8, "max_range_m": 6.0},
+                                        "depth": {"every": 2, "stride_px": 8, "max_range_m": 6.0,
+                                                  "at_keyframes": False},
                                         "inertial": {"calibrate_s": 2.0}})
     params = cfg.perception.to_params()
     pipeline = make_perception_pipeline(params=params)
@@ -78,10 +115,11 @@ def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_ch
 
     assert cv2.getNumThreads() == 1  # the service keeps a core for its answers (perception.threads.SERVICE_THREADS)
     assert pipeline.depth.every == 2 and pipeline.depth.stride_px == 8 and pipeline.depth.range_m == (0.3, 6.0)
+    assert not pipeline.depth.at_keyframes
     for chain in (pipeline.perception, PerceptionSource(params=params).perception):
         assert chain.matcher.config.num_disparities == 64 and chain.lines.margin == 0.2
         assert chain.plausibility.max_side_angle_deg == 9.0 and chain.wall is not None and chain.wall.iterations == 8
     odometry = VisualOdometry(params=params)
     assert odometry._params.odometry.tracker == "klt" and odometry._gravity.params.window_s == 2.0
-    assert odometry._depth.every == 2 and odometry._depth.stride_px == 8
+    assert odometry._depth.every == 2 and odometry._depth.stride_px == 8 and not odometry._depth.at_keyframes
     assert odometry._inertial.params.calibrate_s == 2.0

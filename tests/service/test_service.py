@@ -20,6 +20,7 @@ from tests.service.helpers import (
     running_service,
     service_config,
     wait_for,
+    wait_subscribed,
     yaw_T,
 )
 
@@ -43,7 +44,9 @@ class Collector:
 
 def fly(session: zenoh.Session, flight: FakeFlight, T_cad_body: np.ndarray, steps: int, first_stamp_ns: int = 0,
         vehicle: str = "t1", observe_every: int = 5) -> np.ndarray:
-    """Publish odometry (and sightings every few steps) along a straight line; returns the final T_cad_body."""
+    """Publish odometry (and sightings every few steps) along a straight line, once the service subscribes;
+    returns the final T_cad_body."""
+    wait_subscribed(session, f"macroloc/{vehicle}/observations")
     T = T_cad_body.copy()
     for k in range(steps):
         stamp = first_stamp_ns + (k + 1) * 33_000_000

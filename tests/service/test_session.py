@@ -48,6 +48,28 @@ def test_dead_reckoned_seconds_add_up_until_the_next_keyframe(monkeypatch) -> No
     assert np.allclose(given, [0.0, 0.3, 0.4, 0.4])  # frames 0, 4, 8, 12
 
 
+def test_a_frame_s_depth_is_measured_only_where_it_becomes_a_keyframe(monkeypatch) -> None:  # noqa: ANN001
+    """`FrameIn.measure_depth` is called for the keyframes (every 0.28 m here, as above) and no other frame, and
+    the keyframe takes what it measured."""
+    session = make_session(corridor_model())
+    measured: list[int] = []
+    taken: list[np.ndarray] = []
+    depth_at = Localizer._depth_at
+
+    def spy(self, T_odom_body, points_body):  # noqa: ANN001, ANN202
+        out = depth_at(self, T_odom_body, points_body)
+        taken.append(out)
+        return out
+
+    monkeypatch.setattr(Localizer, "_depth_at", spy)
+    for k in range(22):
+        points = np.array([[2.0 + k, 0.0, 0.0]])
+        session.frame(FrameIn(k * 33_000_000, _T(0.04 * k),
+                              measure_depth=lambda k=k, p=points: measured.append(k) or p))
+    assert measured == [0, 7, 14, 21]
+    assert [float(t[0, 0]) for t in taken] == [2.0, 9.0, 16.0, 23.0]
+
+
 def test_a_fresh_graph_keeps_the_old_one_s_settings_and_camera() -> None:
     """Where the pose graph fails the session starts a new localizer: with the failed one's iSAM2 settings (its
     window, not the defaults) and camera position, whether the session was made by the factory or directly."""
