@@ -18,8 +18,9 @@ asserts nothing.
 `--schedule`: both chains run as the service and the replay schedule them, not the whole chain on every frame:
 the detector and what follows it on every third frame ([perception] detect_every), the odometry on every frame;
 the old chain's depth points every third frame, the new chain's on the frames that become keyframes (the
-session's keyframe rule on the odometry's poses: [perception.depth] at_keyframes). A stage's mean is over all
-frames, skipped ones counting 0.
+session's keyframe rule on the odometry's poses: [perception.depth] at_keyframes), where the new chain's odometry
+also re-keys ([perception.odometry] rekey_at_session_keyframes; its cost counted in "depth"). A stage's mean is
+over all frames, skipped ones counting 0.
 """
 
 from __future__ import annotations
@@ -106,6 +107,14 @@ class Schedule:
         return due
 
 
+def _keyframe_depth(chain: Chain, left: np.ndarray, right: np.ndarray, rig) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """A session keyframe's depth points, the odometry re-keyed on the same SGBM first where it is set to
+    (replay_sources.VisualOdometry does the same)."""
+    if chain.odometry.config.rekey_at_session_keyframes:
+        chain.odometry.rekey()
+    return chain.depth.measure(left, right, rig, np.eye(4))
+
+
 def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_prev_cur,  # type: ignore[no-untyped-def]
               schedule: Schedule | None = None, i: int = 0) -> None:
     from bench.chain_old import band_depth_m, old_reconstruction
@@ -120,7 +129,7 @@ def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_p
     chain.poses.append(result.T_odom_cam)
     if schedule is not None and chain.depth.at_keyframes:
         due = schedule.keyframe(result.T_odom_cam)  # the rule on the camera's poses: the body's up to its lever arm
-        chain.lap("depth", lambda: chain.depth.measure(left, right, rig, np.eye(4)) if due else None)
+        chain.lap("depth", lambda: _keyframe_depth(chain, left, right, rig) if due else None)
     else:
         chain.lap("depth", lambda: chain.depth(left, right, rig, np.eye(4)))
     if schedule is not None and i % schedule.detect_every:

@@ -14,8 +14,9 @@ drone could reach): that frame is matched as with "orb", and the flow goes on fr
 (Lowe's ratio test, in faiss' exact binary index: perception.binary_match). The figures, ORB against flow:
 docs/measurements.md, "Visual odometry by optical flow (issue 37, item 1)".
 
-A frame becomes the reference when tracking thins out or the camera has moved far from it; only then is the
-stereo pair matched: OpenCV SGBM's sub-pixel disparity at each keypoint gives its 3D point by eq. 2
+A frame becomes the reference when tracking thins out or the camera has moved far from it, or where the caller
+makes it one (`rekey`: a session keyframe, whose depth points match the pair anyway); only then is the stereo
+pair matched: OpenCV SGBM's sub-pixel disparity at each keypoint gives its 3D point by eq. 2
 (z = fx * baseline / disparity), kept where the disparity is consistent over the 3 x 3 pixels around it (not
 on a depth edge); 128 disparities reach down to 0.45 m, for a wall close by. With a gyroscope, a PnP rotation
 more than 2 deg from the gyro's since the keyframe is replaced by the gyro's and the translation refitted: a wall
@@ -103,6 +104,8 @@ class StereoOdometry:
         self._inliers: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3)), np.zeros((0, 2)))  # of the last PnP
         self._inlier_rows: np.ndarray = np.zeros(0, np.int64)  # their rows in its input
         self._inlier_index: np.ndarray = np.zeros(0, np.int64)  # their keyframe points (ORB's matches)
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list | None, np.ndarray] | None = None  # type: ignore[type-arg]
+        self._ref_left: np.ndarray | None = None  # the reference keyframe's left image (the same array)
 
     def track(self, left: np.ndarray, right: np.ndarray, R_prev_cur: np.ndarray | None = None,
               lost_position: Callable[[np.ndarray], np.ndarray | None] | None = None) -> OdometryResult:
@@ -118,6 +121,7 @@ class StereoOdometry:
         klt = self.config.tracker == "klt"
         if self._ref is None:
             first = self._new_keyframe(np.eye(4), left, right, *self._features(gray), gray)
+            self._last = None
             return OdometryResult(np.eye(4), len(first.points_cam), True)
         ref = self._ref
         R_ref_cam_gyro = None if R_prev_cur is None else ref.T_odom_cam[:3, :3].T @ self._T_last[:3, :3] @ R_prev_cur
@@ -149,6 +153,7 @@ class StereoOdometry:
             self._advance(T)
             assert kp is not None
             self._new_keyframe(T, left, right, kp, desc, gray)
+            self._last = None
             return OdometryResult(T, inliers, False)
         T = ref.T_odom_cam @ T_ref_cam
         self._advance(T)
@@ -156,7 +161,22 @@ class StereoOdometry:
             if kp is None:
                 kp, desc = self._features(gray)
             self._new_keyframe(T, left, right, kp, desc, gray)
+        self._last = (T, left, right, gray, kp, desc)
         return OdometryResult(T, inliers, True)
+
+    def rekey(self) -> None:
+        """Make the last frame tracked the reference keyframe, where it is not already and its tracking held.
+        Called where the session makes it a keyframe, whose whole-frame SGBM the depth points measure anyway
+        (a shared FrameDisparity): the odometry's own re-keying rule then rarely needs an SGBM of its own."""
+        if self._last is None:
+            return
+        T, left, right, gray, kp, desc = self._last
+        self._last = None
+        if left is self._ref_left:
+            return
+        if kp is None:
+            kp, desc = self._features(gray)
+        self._new_keyframe(T, left, right, kp, desc, gray)
 
     def _features(self, gray: np.ndarray) -> tuple[list, np.ndarray]:  # type: ignore[type-arg]
         """ORB keypoints, spread (`_spread`), and their descriptors."""
@@ -176,6 +196,7 @@ class StereoOdometry:
     def _new_keyframe(self, T_odom_cam: np.ndarray, left: np.ndarray, right: np.ndarray, kp: list,  # type: ignore[type-arg]
                       desc: np.ndarray, gray: np.ndarray) -> _Keyframe:
         self._ref = self._keyframe(T_odom_cam, left, right, kp, desc)
+        self._ref_left = left
         if self.config.tracker == "klt":
             keep = self._spread_index(self._ref.uv, self._ref.response, self.config.flow_points, gray.shape)
             self._tracks = _Tracks(keep, self._ref.uv[keep].astype(np.float32), gray)

@@ -425,6 +425,10 @@ class VisualOdometryTable(_Params):
     rekey_translation_m: float = Field(
         _PERCEPTION.odometry.rekey_translation_m, gt=0, description="... or after this much motion, m")
     rekey_rotation_rad: float = Field(_PERCEPTION.odometry.rekey_rotation_rad, gt=0, description="... or rotation, rad")
+    rekey_at_session_keyframes: bool = Field(
+        _PERCEPTION.odometry.rekey_at_session_keyframes,
+        description="the session's keyframes become the odometry's reference too, sharing their whole-frame SGBM "
+        "(with [perception.depth] at_keyframes)")
     max_step_m: float = Field(
         _PERCEPTION.odometry.max_step_m, gt=0,
         description="a frame-to-frame jump beyond this is a wrong PnP solution, m")

@@ -224,6 +224,8 @@ class VisualOdometry:
         self._last_stamp_ns = frame.stamp_ns
         self.points_body = self._depth(left, right, self._odometry.rig, T_body_cam)
         self.measure_depth = self._depth.deferred(left, right, self._odometry.rig, T_body_cam)
+        if self.measure_depth is not None and self._params.odometry.rekey_at_session_keyframes:
+            self.measure_depth = _rekeying(self._odometry, self.measure_depth)
         T_odom_body = T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
         self._inertial.update(frame.stamp_ns * 1e-9, T_odom_body[:3, 3], f_body @ T_odom_body[:3, :3].T,
                               result.tracked)
@@ -340,6 +342,15 @@ class PerceptionSource:
         self._n += 1
         return FrameInput(frame.stamp_ns, T_odom_body, sightings, up_body, T_body_cam, self.odometry.points_body,
                           self.odometry.dead_reckoned_s, self.odometry.measure_depth)
+
+
+def _rekeying(odometry: StereoOdometry, measure: Callable[[], np.ndarray]) -> Callable[[], np.ndarray]:
+    """The depth measurement of a session keyframe that first makes the frame the odometry's reference keyframe
+    (StereoOdometry.rekey): both take the frame's one whole-frame SGBM."""
+    def rekey_and_measure() -> np.ndarray:
+        odometry.rekey()
+        return measure()
+    return rekey_and_measure
 
 
 def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:

@@ -183,3 +183,28 @@ def test_a_frame_the_flow_loses_falls_back_to_orb_and_tracks_on(monkeypatch: pyt
     assert all(r.tracked for r in results)
     assert results[lose].T_odom_cam[0, 3] == pytest.approx(xs[lose], abs=0.01)
     assert results[-1].T_odom_cam[0, 3] == pytest.approx(xs[-1], abs=0.02)
+
+
+@pytest.mark.parametrize("tracker", TRACKERS)
+def test_rekey_makes_the_last_frame_the_reference_once_and_tracking_goes_on(tracker: str) -> None:
+    """`rekey` (a session keyframe) makes the last frame tracked the reference, on the disparity already matched
+    for it (one SGBM for both), once however often it is called; tracking goes on from it as accurately."""
+    from macroloc.perception.stereo import FrameDisparity
+
+    texture = wall_texture()
+    disparity = FrameDisparity()
+    vo = StereoOdometry(RIG, OdometryConfig(tracker=tracker), disparity=disparity)
+    counts = counted(vo)
+    xs = np.arange(0, 13) * 0.02  # 0.24 m: short of the odometry's own 0.3 m re-key distance
+    for i, x in enumerate(xs):
+        left, right = view(texture, x)
+        result = vo.track(left, right)
+        if i in (4, 8):
+            disparity.disparity_px(left, right)  # the depth points' SGBM on the session's keyframe
+            matched = disparity.computed
+            vo.rekey()
+            vo.rekey()  # twice: still one keyframe
+            assert disparity.computed == matched  # the keyframe took the frame's SGBM, not one of its own
+            assert vo._ref is not None and vo._ref_left is left
+    assert result.tracked and abs(result.T_odom_cam[0, 3] - xs[-1]) < 0.05
+    assert counts["keyframes"] == 3  # the first frame's and the two asked for

@@ -368,3 +368,36 @@ def test_the_visual_odometry_dead_reckons_the_height_on_the_imu_while_it_has_los
     assert odometry.dead_reckoned_s > 0.0
     assert abs(heights[n_hover - 1]) < 0.01
     assert heights[-1] - heights[n_hover - 1] == pytest.approx(0.5 * 1.0 * (n_lost * frame_ns * 1e-9) ** 2, abs=0.05)
+
+
+@pytest.mark.parametrize("rekey", [True, False])
+def test_a_session_keyframe_s_depth_points_re_key_the_visual_odometry_on_their_sgbm(rekey: bool) -> None:
+    """Measuring a session keyframe's depth points (`measure_depth`) makes that frame the odometry's reference
+    keyframe too, on the same whole-frame SGBM ([perception.odometry] rekey_at_session_keyframes); off, the
+    odometry keeps its own reference and the depth points cost an SGBM of their own."""
+    from dataclasses import replace
+
+    from macroloc.perception.params import PerceptionParams
+    from macroloc.service.offline.replay_sources import VisualOdometry
+    from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from tests.perception.helpers import RIG, fronto_parallel_pair
+
+    left, right = fronto_parallel_pair(2.0)
+    info = pb.CameraInfo(width=RIG.width_px, height=RIG.height_px, fx=RIG.fx_px, fy=RIG.fy_px, cx=RIG.cx_px,
+                         cy=RIG.cy_px, baseline_m=RIG.baseline_m, T_body_cam=pose_from_matrix(np.eye(4)))
+    params = PerceptionParams()
+    params = replace(params, odometry=replace(params.odometry, rekey_at_session_keyframes=rekey))
+    odometry = VisualOdometry(params=params)
+    pairs = [(left.copy(), right.copy()) for _ in range(3)]  # distinct arrays: one SGBM per frame at most
+    for k, (l_img, r_img) in enumerate(pairs):
+        stereo = pb.StereoFrame(header=pb.Header(stamp_ns=k * 33_000_000), left=encode_image(l_img, "raw"),
+                                right=encode_image(r_img, "raw"), info=info)
+        odometry(FlightFrame(k * 33_000_000, stereo), l_img, r_img)
+    assert odometry.measure_depth is not None
+    vo = odometry._odometry
+    assert vo is not None and vo._ref_left is pairs[0][0]  # the first frame's keyframe
+    matched = odometry._disparity.computed
+    points = odometry.measure_depth()
+    assert len(points) > 0 and odometry._disparity.computed == matched + 1  # one SGBM for the frame
+    assert (vo._ref_left is pairs[2][0]) == rekey
