@@ -89,8 +89,10 @@ class OdometryConfig:
     rekey_inliers: int = 80  # fewer: the current frame becomes the reference keyframe
     rekey_translation_m: float = 0.3
     rekey_rotation_rad: float = 0.35
-    rekey_at_session_keyframes: bool = True  # the session's keyframes become the odometry's too, sharing their SGBM
-    #                                           (where the depth points are measured at keyframes: StereoOdometry.rekey)
+    rekey_at_session_keyframes: bool = False  # the session's keyframes become the odometry's too, sharing their
+    #   SGBM (where the depth points are measured at keyframes: StereoOdometry.rekey); 12 % less replay CPU, but
+    #   off: APE worse on held-out Office_A flights (docs/measurements.md, "The odometry re-keyed on the session's
+    #   keyframes")
     max_step_m: float = 0.15  # a frame-to-frame jump beyond this (4.5 m/s at 30 Hz) is a wrong PnP solution
     max_step_rad: float = 0.25
     max_step_change_m: float = 0.03  # a pose from fewer than rekey_inliers this far off the last step's velocity

@@ -428,7 +428,7 @@ class VisualOdometryTable(_Params):
     rekey_at_session_keyframes: bool = Field(
         _PERCEPTION.odometry.rekey_at_session_keyframes,
         description="the session's keyframes become the odometry's reference too, sharing their whole-frame SGBM "
-        "(with [perception.depth] at_keyframes)")
+        "(with [perception.depth] at_keyframes; less CPU, but off: held-out APE worse, docs/measurements.md)")
     max_step_m: float = Field(
         _PERCEPTION.odometry.max_step_m, gt=0,
         description="a frame-to-frame jump beyond this is a wrong PnP solution, m")
