@@ -344,7 +344,7 @@ class StereoOdometry:
         img = cv2.KeyPoint_convert([kp[i] for i in query]).astype(np.float64)  # type: ignore[attr-defined]
         T_ref_cam, inliers = self._solve(obj, img)
         if T_ref_cam is not None:
-            self._inlier_index = train.astype(np.int64)[self._inlier_rows]
+            self._inlier_index = train[self._inlier_rows]
         return T_ref_cam, inliers
 
     def _solve(self, obj: np.ndarray, img: np.ndarray) -> tuple[np.ndarray | None, int]:

@@ -109,8 +109,8 @@ class LocalizationSession:
     def frame(self, f: FrameIn) -> Estimate:
         """The frame's estimate: a keyframe where the rule says so (or the frame was placed, or keeps a view),
         else the last keyframe's estimate moved by the odometry (its sightings and depth wait for the next)."""
-        if f.points_body is not None and len(f.points_body):
-            self.localizer.add_depth(f.T_odom_body, f.points_body)  # given with the next keyframe
+        if f.points_body is not None:
+            self.add_depth(f.T_odom_body, f.points_body)  # given with the next keyframe
         self._dead_reckoned_s += f.dead_reckoned_s
         if self.keyframe_due(f.stamp_ns, f.T_odom_body, bool(f.sightings), f.placed):
             if f.measure_depth is not None:  # only now: a keyframe takes the newest depth, no other frame's is used

@@ -261,8 +261,9 @@ class VehicleOdometry:
                                  "odometry at or before it")
         info = frame.stereo.info
         rig = _rig(info)
-        self.points_body = self._depth(left, right, rig, matrix_from_pose(info.T_body_cam))
-        self.measure_depth = self._depth.deferred(left, right, rig, matrix_from_pose(info.T_body_cam))
+        T_body_cam = matrix_from_pose(info.T_body_cam)
+        self.points_body = self._depth(left, right, rig, T_body_cam)
+        self.measure_depth = self._depth.deferred(left, right, rig, T_body_cam)
         self.up_body = self._gravity.update(frame.stamp_ns, self._T_odom_body, _specific_forces(frame))
         return self._T_odom_body
 
