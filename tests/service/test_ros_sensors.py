@@ -9,7 +9,7 @@ from macroloc.service.offline.ros_bag_write import _Messages
 from macroloc.service.recording import encode_image
 from macroloc.service.ros_types import to_cdr, typestore
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
-from tests.service.helpers import client, free_port, running_service, service_config, wait_for
+from tests.service.helpers import client, free_port, running_service, service_config, wait_for, wait_subscribed
 from tests.service.test_service import Collector
 
 TOPICS = {"left_image": "/cam0/image_raw", "right_image": "/cam1/image_raw", "left_info": "/cam0/camera_info",
@@ -32,6 +32,8 @@ def test_ros_images_camera_info_and_imu_enter_as_the_services_own_inputs(duplex_
     rng = np.random.default_rng(0)
     with running_service(cfg) as service, client(port) as s:
         poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
+        for topic in TOPICS.values():  # a put sent before the service's subscription reaches us is dropped
+            wait_subscribed(s, topic.lstrip("/"))
         for side, topic in (("cam0", "cam0/camera_info"), ("cam1", "cam1/camera_info")):
             s.put(topic, to_cdr(m.camera_info(info, 0, side, np.zeros(5), 0.12), "sensor_msgs/msg/CameraInfo"))
         stamps = [(k + 1) * 100_000_000 for k in range(5)]

@@ -13,7 +13,16 @@ import pytest
 
 from macroloc.service.recording import encode_image
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
-from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for, yaw_T
+from tests.service.helpers import (
+    FakeFlight,
+    client,
+    free_port,
+    running_service,
+    service_config,
+    wait_for,
+    wait_subscribed,
+    yaw_T,
+)
 
 SOAK_S = float(os.environ.get("MACROLOC_SOAK_S", "600"))  # the 10 minutes (slow tier)
 
@@ -39,6 +48,7 @@ def test_soak_at_30_hz_keeps_memory_flat(office_path: Path, office_model, tmp_pa
     cfg.service.perception = False  # the transport and the graph are soaked here, not the detector
     samples: list[tuple[float, float]] = []
     with running_service(cfg) as service, client(port) as s:
+        wait_subscribed(s, "macroloc/t1/imu")
         start = time.monotonic()
         k = 0
         while time.monotonic() - start < SOAK_S:

@@ -11,7 +11,15 @@ import numpy as np
 
 from macroloc.service.systemd import NullNotifier, SystemdNotifier, notifier_from_environment
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
-from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for
+from tests.service.helpers import (
+    FakeFlight,
+    client,
+    free_port,
+    running_service,
+    service_config,
+    wait_for,
+    wait_subscribed,
+)
 from tests.service.test_service import Collector
 
 
@@ -67,6 +75,7 @@ def test_a_stalled_worker_withdraws_liveliness_and_starves_the_watchdog(duplex_p
         wait_for(lambda: "READY=1" in listener.drain() and "WATCHDOG=1" in listener.messages, what="ready, fed")
         assert alive()
         flight = FakeFlight(duplex_model, np.eye(4))
+        wait_subscribed(s, "macroloc/t1/imu")
         with service._lock:  # the worker blocks in its next event's handler: a stall
             s.put("macroloc/t1/imu", flight.imu(1, np.eye(4)).SerializeToString())
             wait_for(lambda: not alive(), 15.0, "liveliness withdrawn")
@@ -109,6 +118,7 @@ def test_stop_mid_stall_exits_within_the_units_stop_timeout(duplex_path, tmp_pat
     held = threading.Thread(target=lambda: service._lock.acquire() and release.wait(120.0), daemon=True)
     held.start()
     with client(port) as s:
+        wait_subscribed(s, "macroloc/t1/imu")
         s.put("macroloc/t1/imu", FakeFlight(None, np.eye(4)).imu(1, np.eye(4)).SerializeToString())
         wait_for(lambda: time.monotonic() - service._worker_beat_s > 1.0, 15.0, "the worker stuck")
     t0 = time.monotonic()

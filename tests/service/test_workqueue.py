@@ -49,11 +49,20 @@ def test_a_flood_is_taken_or_counted_never_lost_silently(duplex_path, duplex_mod
     import numpy as np
     import zenoh
 
-    from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for
+    from tests.service.helpers import (
+        FakeFlight,
+        client,
+        free_port,
+        running_service,
+        service_config,
+        wait_for,
+        wait_subscribed,
+    )
 
     port = free_port()
     flight = FakeFlight(duplex_model, np.eye(4))
     with running_service(service_config(duplex_path, tmp_path, port)) as service, client(port) as s:
+        wait_subscribed(s, "macroloc/t1/imu")
         for k in range(2000):
             s.put("macroloc/t1/imu", flight.imu((k + 1) * 1_000_000, np.eye(4)).SerializeToString(),
                   congestion_control=zenoh.CongestionControl.BLOCK)  # the transport loses none: the ring may
