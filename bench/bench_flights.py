@@ -4,6 +4,7 @@ localizing and wrong localizations per building, flight seed and noise seed, bes
     python -m bench.bench_flights [--buildings office_a,jasmin] [--seeds 1-5] [--noise 0,1,2]
                                   [--observations truth] [--jobs 2] [--cache /tmp/macroloc-flights]
                                   [--out RESULTS.json] [--compare BEFORE.json] [--config FILE.toml]
+                                  [--one-thread]
 
 Each flight is rendered once (`macroloc simulate BUILDING --seed S --duration 60`, cached in `--cache`, ~1 GB
 and ~75 s each) and replayed through the command line as an outside tool would (`macroloc replay --json`),
@@ -11,7 +12,8 @@ and ~75 s each) and replayed through the command line as an outside tool would (
 differs: a change that should not move the figures is checked to the digit. Perception on Office_A takes the
 detector adapted to it that ships in data/buildings/office_a_detector; elsewhere it takes `--detector
 BUILDING=ONNX` (made by `macroloc adapt-detector`) or the shipped generic one. `--config`: a macroloc config
-(TOML) every replay takes, e.g. to fly a setting against its default in two runs.
+(TOML) every replay takes, e.g. to fly a setting against its default in two runs. `--one-thread`: each replay
+on one thread (`macroloc replay --one-thread`), against the default's reading and odometry thread.
 """
 
 from __future__ import annotations
@@ -76,11 +78,12 @@ def differences(before: dict[str, dict], after: dict[str, dict]) -> list[str]:
 
 
 def _numbers(text: str) -> list[int]:
-    """'1-5' or '0,2,4' -> the integers."""
-    if "-" in text:
-        lo, hi = (int(x) for x in text.split("-"))
-        return list(range(lo, hi + 1))
-    return [int(x) for x in text.split(",")]
+    """'1-5', '0,2,4' or '1-5,91-93' -> the integers."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    return out
 
 
 def _macroloc() -> str:
@@ -98,9 +101,10 @@ def _flight(cache: Path, building: str, seed: int) -> Path:
     return path
 
 
-def _replay(run: Run, flight: Path, configs: dict[str, Path], base: Path | None = None) -> dict:
+def _replay(run: Run, flight: Path, configs: dict[str, Path], base: Path | None = None,
+            one_thread: bool = False) -> dict:
     cmd = [_macroloc(), "replay", str(flight), "--building", str(BUILDINGS[run.building]), "--json",
-           "--observations", run.observations, "--seed", str(run.noise)]
+           "--observations", run.observations, "--seed", str(run.noise)] + (["--one-thread"] if one_thread else [])
     if run.observations == "perception" and run.building in configs:
         cmd += ["--config", str(configs[run.building])]
     elif base is not None:
@@ -141,6 +145,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path)
     parser.add_argument("--compare", type=Path)
     parser.add_argument("--config", type=Path, help="a macroloc config (TOML) for every replay")
+    parser.add_argument("--one-thread", action="store_true", help="each replay on one thread")
     args = parser.parse_args()
     buildings = args.buildings.split(",")
     unknown = [b for b in buildings if b not in BUILDINGS or not BUILDINGS[b].exists()]
@@ -154,7 +159,8 @@ def main() -> int:
     flights = {(b, s): _flight(args.cache, b, s) for b, s in sorted({(r.building, r.seed) for r in runs})}
     with tempfile.TemporaryDirectory() as tmp, ThreadPoolExecutor(max(1, args.jobs)) as pool:
         configs = _detector_configs(args.detector, Path(tmp), args.config)
-        futures = {r.key: pool.submit(_replay, r, flights[(r.building, r.seed)], configs, args.config)
+        futures = {r.key: pool.submit(_replay, r, flights[(r.building, r.seed)], configs, args.config,
+                                          args.one_thread)
                    for r in runs}
         results = {}
         for key, future in futures.items():

@@ -7,6 +7,8 @@ Frames: pixels (u right, v down) of the rectified left image; points in the left
 from __future__ import annotations
 
 import logging
+import threading
+from collections import OrderedDict
 
 import cv2
 import numpy as np
@@ -43,13 +45,21 @@ class SgbmMatcher:
         c = config or SgbmConfig()
         self.config = c
         self._disparities = max(16, int(round(c.num_disparities * c.scale / 16)) * 16)  # at the matched size
-        block = c.block_size if c.scale >= 1.0 else max(3, int(round(c.block_size * c.scale)) | 1)
-        self._sgbm = cv2.StereoSGBM.create(
-            minDisparity=0, numDisparities=self._disparities, blockSize=block,
-            P1=8 * block**2, P2=32 * block**2, disp12MaxDiff=1,
-            uniquenessRatio=c.uniqueness_ratio, speckleWindowSize=c.speckle_window, speckleRange=c.speckle_range,
-            mode=cv2.StereoSGBM_MODE_SGBM_3WAY if c.three_way else cv2.StereoSGBM_MODE_SGBM,
-        )
+        self._local = threading.local()  # OpenCV's matcher keeps its buffers: one per thread that matches
+
+    @property
+    def _sgbm(self) -> cv2.StereoSGBM:
+        sgbm = getattr(self._local, "sgbm", None)
+        if sgbm is None:
+            c = self.config
+            block = c.block_size if c.scale >= 1.0 else max(3, int(round(c.block_size * c.scale)) | 1)
+            sgbm = self._local.sgbm = cv2.StereoSGBM.create(
+                minDisparity=0, numDisparities=self._disparities, blockSize=block,
+                P1=8 * block**2, P2=32 * block**2, disp12MaxDiff=1,
+                uniquenessRatio=c.uniqueness_ratio, speckleWindowSize=c.speckle_window, speckleRange=c.speckle_range,
+                mode=cv2.StereoSGBM_MODE_SGBM_3WAY if c.three_way else cv2.StereoSGBM_MODE_SGBM,
+            )
+        return sgbm
 
     def disparity_px(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         """Raises ValueError on images of different sizes or larger than MAX_PIXELS: OpenCV's matcher is never
@@ -103,30 +113,48 @@ class FrameDisparity:
     at 128: ~40 + 2 x 63 ms CPU at 640 x 480). The matcher's disparities serve all: 128 by default (down to
     0.45 m with the simulated rig, see StereoDepth). A window asked for before anything needed the whole frame
     is matched alone (cheaper), so the consumers of the whole frame go first in a frame. Frames must not
-    be overwritten in place between calls."""
+    be overwritten in place between calls.
 
-    def __init__(self, matcher: SgbmMatcher | None = None) -> None:
+    It keeps the whole-frame disparity of the last `keep` pairs matched: 1 where one thread takes the frames in
+    turn; more where the odometry runs some frames ahead of the chain on another thread (the replay's pipeline,
+    service.offline.replay), so that a frame's match is still there when the chain comes to it. Calls from
+    different threads are safe (each thread matches with its own OpenCV matcher)."""
+
+    def __init__(self, matcher: SgbmMatcher | None = None, keep: int = 1) -> None:
         self.matcher = matcher or SgbmMatcher(SgbmConfig(num_disparities=128))
         self.config = self.matcher.config
-        self._pair: tuple[np.ndarray, np.ndarray] | None = None
-        self._disparity_px = np.zeros((0, 0), np.float32)
+        self.keep = max(1, keep)
+        self._matched: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()  # id(left)
+        self._lock = threading.Lock()
         self.computed = 0  # frames matched so far (for benchmarks and tests)
+
+    def _whole(self, left: np.ndarray, right: np.ndarray) -> np.ndarray | None:
+        with self._lock:
+            hit = self._matched.get(id(left))
+        return hit[2] if hit is not None and hit[0] is left and hit[1] is right else None
 
     def disparity_px(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         """The whole frame's disparity (px, float32, NaN unknown); matched once per pair. Read only."""
-        if self._pair is None or self._pair[0] is not left or self._pair[1] is not right:
-            self._disparity_px = self.matcher.disparity_px(left, right)
-            self._disparity_px.flags.writeable = False
-            self._pair = (left, right)
-            self.computed += 1
-        return self._disparity_px
+        disparity = self._whole(left, right)
+        if disparity is None:
+            disparity = self.matcher.disparity_px(left, right)
+            disparity.flags.writeable = False
+            with self._lock:
+                self._matched[id(left)] = (left, right, disparity)  # the arrays held: their ids stay theirs
+                self._matched.move_to_end(id(left))
+                while len(self._matched) > self.keep:
+                    self._matched.popitem(last=False)
+                self.computed += 1
+        return disparity
 
     def window_px(self, left: np.ndarray, right: np.ndarray, v0: int, v1: int, u0: int, u1: int) -> np.ndarray:
         """The window [v0:v1, u0:u1] of the whole frame's disparity where this pair has been matched, else that
         window alone (SgbmMatcher.window_px)."""
-        if self._pair is not None and self._pair[0] is left and self._pair[1] is right:
-            return self._disparity_px[v0:v1, u0:u1]
-        self.computed += 1
+        disparity = self._whole(left, right)
+        if disparity is not None:
+            return disparity[v0:v1, u0:u1]
+        with self._lock:
+            self.computed += 1
         return self.matcher.window_px(left, right, v0, v1, u0, u1)
 
 

@@ -254,6 +254,14 @@ class FlightFrame:
     odometry: list[pb.Odometry] = field(default_factory=list)
     ground_truth: pb.GroundTruth | None = None
     instances: pb.Image | None = None
+    _images: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
+
+    def images(self) -> tuple[np.ndarray, np.ndarray]:
+        """The left and right images decoded, once: later calls return the same arrays (which the frame's one SGBM,
+        perception.stereo.FrameDisparity, knows the frame by)."""
+        if self._images is None:
+            self._images = (decode_image(self.stereo.left), decode_image(self.stereo.right))
+        return self._images
 
 
 def _open_reader(path: str | Path):  # noqa: ANN202 - mcap's reader type

@@ -10,11 +10,13 @@ the CAD frame against ground truth without alignment (evo's APE/RPE, translation
 from __future__ import annotations
 
 import logging
+import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from queue import Full, Queue
+from typing import Protocol, TypeVar
 
 import numpy as np
 
@@ -24,12 +26,14 @@ from macroloc.graph.mapstore import StoredMap
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
-from macroloc.service.offline.replay_sources import FrameInput, ObservationSource, TruthSource
+from macroloc.service.offline.replay_sources import AHEAD_FRAMES, FrameInput, ObservationSource, TruthSource
 from macroloc.service.places import KeyframePlaces
 from macroloc.service.recording import FlightFrame
 from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, make_session
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
+U = TypeVar("U")
 
 WRONG_TRANS_M = 1.0  # a localization whose pose is further off than this (or WRONG_ROT_DEG) is wrong
 WRONG_ROT_DEG = 10.0
@@ -118,13 +122,21 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
            stored: StoredMap | None = None, sink: FrameSink = null_sink, surfaces: SurfaceIndex | None = None,
            places: KeyframePlaces | None = None, recorder: FrameRecorder | None = None,
            settings: SessionSettings | None = None,
-           make: Callable[[np.ndarray], LocalizationSession] | None = None) -> ReplayResult:
+           make: Callable[[np.ndarray], LocalizationSession] | None = None,
+           one_thread: bool = False) -> ReplayResult:
     """Run `flight` (a macroloc MCAP recording, or its frames from any reader: service.offline.ros_bag.open_flight)
     through a new localization session (service.session) in `model`; see module doc. `make`: the session for the
     flight's camera (T_body_cam, 4x4), as the CLI and the benchmarks build it (`service.session.session_from_config`);
     else one from `settings` (the defaults without), with `stored` and `surfaces` where given. `places`: place
     recognition on the frames (service.places: views kept for the saved map, frames placed in the stored map's
-    views). `recorder`: keeps every frame (e.g. for Foxglove: service.offline.foxglove_out.ReplayRecorder)."""
+    views). `recorder`: keeps every frame (e.g. for Foxglove: service.offline.foxglove_out.ReplayRecorder).
+
+    Three threads, as a SLAM system runs its tracking beside its mapping: one reads the recording and decodes the
+    images, one runs the source's `ahead` (the visual odometry), each up to AHEAD_FRAMES frames ahead of the next;
+    this one runs the rest (the perception chain, the session) in frame order. The results are those of one
+    thread: each part sees the frames in order, and nothing ahead depends on the session. `one_thread`, or a
+    source that must not run ahead (`runs_ahead` False), does it all here, in turn. `processing_fps` counts the
+    wall time from the first frame asked for to the last estimate, reading included."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
     from macroloc.service.recording import matrix_from_pose, read_flight
@@ -138,11 +150,12 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
     trace = ReplayTrace()
     session: LocalizationSession | None = None
     t0 = None
-    busy_s = 0.0
     busy_at_localized: float | None = None
-    for frame in (read_flight(flight) if isinstance(flight, Path) else flight):
-        start = time.perf_counter()
-        inputs: FrameInput = source(frame)
+    frames = read_flight(flight) if isinstance(flight, Path) else flight
+    start = time.perf_counter()
+    ahead_frames = 0 if one_thread or not source.runs_ahead else AHEAD_FRAMES
+    for frame, ahead in _read_ahead(frames, source, ahead_frames):
+        inputs: FrameInput = source(frame, ahead)
         if session is None:
             session = make(inputs.T_body_cam)
         t0 = frame.stamp_ns if t0 is None else t0
@@ -150,9 +163,8 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
                                  inputs.up_body, session.status)
         est = session.frame(FrameIn(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body,
                                     inputs.points_body, inputs.dead_reckoned_s, placed, inputs.measure_depth))
-        busy_s += time.perf_counter() - start
         if busy_at_localized is None and est.status == "localized":
-            busy_at_localized = busy_s
+            busy_at_localized = time.perf_counter() - start
         sink(est)
         recorder.frame(frame, inputs, est)
         trace.stamp_ns.append(frame.stamp_ns)
@@ -163,8 +175,81 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
         from macroloc.graph.errors import UserInputError
 
         raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
+    busy_s = time.perf_counter() - start
     recorder.finish(session.localizer)
     return _score(trace, session.localizer, busy_s, busy_at_localized)
+
+
+def _read_ahead(frames: Iterable[FlightFrame], source: ObservationSource,
+                ahead_frames: int) -> Iterator[tuple[FlightFrame, object]]:
+    """(frame, source.ahead(frame)) in frame order. `ahead_frames` > 0: two threads of their own, each at most that
+    many frames ahead of the next: one reads the recording and decodes the images (where the source uses them),
+    one runs `ahead`. 0: here, in turn. An error there is raised here, in its frame's turn; the caller stopping
+    early stops the threads."""
+    if ahead_frames <= 0:
+        for frame in frames:
+            yield frame, source.ahead(frame)
+        return
+
+    def decoded(frame: FlightFrame) -> FlightFrame:
+        if source.uses_images:
+            frame.images()
+        return frame
+
+    read = _in_thread(_mapped(iter(frames), decoded), ahead_frames, "replay-read")
+    yield from _in_thread(_mapped(read, lambda frame: (frame, source.ahead(frame))), ahead_frames, "replay-ahead")
+
+
+def _mapped(items: Iterator[T], fn: Callable[[T], U]) -> Iterator[U]:
+    """fn of each item; closing it closes `items` (a generator expression would not)."""
+    try:
+        for item in items:
+            yield fn(item)
+    finally:
+        close = getattr(items, "close", None)
+        if close is not None:
+            close()
+
+
+def _in_thread(items: Iterator[T], depth: int, name: str) -> Iterator[T]:
+    """`items`, taken on a thread of their own at most `depth` ahead of the caller; its error raised here in
+    turn; the caller closing this (or stopping with an error) stops the thread and closes `items`."""
+    done = object()
+    queue: Queue[object] = Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def put(item: object) -> bool:
+        while not stop.is_set():
+            try:
+                queue.put(item, timeout=0.1)
+                return True
+            except Full:
+                continue
+        return False
+
+    def run() -> None:
+        try:
+            for item in items:
+                if not put(item):
+                    return
+            put(done)
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread, raised there
+            put(exc)
+        finally:
+            close = getattr(items, "close", None)
+            if close is not None:
+                close()
+
+    thread = threading.Thread(target=run, name=name, daemon=True)
+    thread.start()
+    try:
+        while (item := queue.get()) is not done:
+            if isinstance(item, BaseException):
+                raise item
+            yield item  # type: ignore[misc]
+    finally:
+        stop.set()
+        thread.join()
 
 
 def _record(trace: ReplayTrace, t_s: float, est: Estimate, T_true: np.ndarray | None, is_kf: bool,

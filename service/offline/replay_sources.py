@@ -31,6 +31,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+AHEAD_FRAMES = 4  # frames the replay's reading thread may run `ahead` of the session (their images held meanwhile)
+KEPT_MATCHES = AHEAD_FRAMES + 4  # whole-frame SGBMs a source's FrameDisparity keeps: between the odometry's match
+#   of a frame and the chain's use of it, at most one more from each thread per frame in flight (one thread: 1)
+
 
 @dataclass(frozen=True)
 class FrameInput:
@@ -48,7 +52,38 @@ class FrameInput:
 
 
 class ObservationSource(Protocol):
-    def __call__(self, frame: FlightFrame) -> FrameInput: ...
+    """A frame's inputs in two parts. `ahead(frame)`: what depends only on the recording and the frames before it,
+    never on the session (the images decoded, the visual odometry): where `runs_ahead` says so, the replay calls
+    it on a thread of its own, a few frames ahead of the session (service.offline.replay). `__call__(frame, ahead)`:
+    the rest, in frame order on the session's thread (`ahead`: what `ahead(frame)` gave; None: computed there)."""
+
+    runs_ahead: bool
+    uses_images: bool  # the replay's reading thread decodes them (FlightFrame.images) where it does
+
+    def ahead(self, frame: FlightFrame) -> object: ...
+
+    def __call__(self, frame: FlightFrame, ahead: object = None) -> FrameInput: ...
+
+
+@dataclass(frozen=True)
+class OdometryStep:
+    """What an odometry gives for one frame (VisualOdometry, VehicleOdometry), with the frame's images."""
+
+    left: np.ndarray
+    right: np.ndarray
+    T_odom_body: np.ndarray
+    up_body: np.ndarray | None
+    points_body: np.ndarray | None
+    measure_depth: Callable[[], np.ndarray] | None
+    dead_reckoned_s: float
+
+    @staticmethod
+    def of(odometry: VisualOdometry | VehicleOdometry, frame: FlightFrame) -> OdometryStep:
+        """Run the odometry on the frame's images (decoded here unless they were already)."""
+        left, right = frame.images()
+        T_odom_body = odometry(frame, left, right)
+        return OdometryStep(left, right, T_odom_body, odometry.up_body, odometry.points_body, odometry.measure_depth,
+                            odometry.dead_reckoned_s)
 
 
 @dataclass(frozen=True)
@@ -71,6 +106,9 @@ class TruthNoise:
 class TruthSource:
     """Ground truth with realistic errors (see module doc); deterministic for a seed."""
 
+    runs_ahead = True  # nothing ahead: reading the recording
+    uses_images = False
+
     def __init__(self, noise: TruthNoise | None = None, seed: int = 0) -> None:
         self.noise = noise or TruthNoise()
         self.rng = np.random.default_rng(seed)
@@ -80,7 +118,10 @@ class TruthSource:
         self._T_odom: np.ndarray | None = None
         self._stamp_prev = 0
 
-    def __call__(self, frame: FlightFrame) -> FrameInput:
+    def ahead(self, frame: FlightFrame) -> None:
+        return None
+
+    def __call__(self, frame: FlightFrame, ahead: object = None) -> FrameInput:
         gt = frame.ground_truth
         if gt is None:
             raise UserInputError("--observations truth needs a simulated recording with ground truth")
@@ -274,16 +315,23 @@ class TruthFeaturesWithVisualOdometry:
 
     def __init__(self, noise: TruthNoise | None = None, seed: int = 0, params: PerceptionParams | None = None
                  ) -> None:
+        from macroloc.perception.params import PerceptionParams
+        from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
+
+        p = params or PerceptionParams()
         self.truth = TruthSource(noise, seed)
-        self.odometry = VisualOdometry(params=params)
+        self.odometry = VisualOdometry(FrameDisparity(SgbmMatcher(p.stereo), keep=KEPT_MATCHES), p)
+        self.runs_ahead = not p.odometry.rekey_at_session_keyframes  # re-keyed by the session: in its turn
+        self.uses_images = True
 
-    def __call__(self, frame: FlightFrame) -> FrameInput:
-        from macroloc.service.recording import decode_image
+    def ahead(self, frame: FlightFrame) -> OdometryStep:
+        return OdometryStep.of(self.odometry, frame)
 
+    def __call__(self, frame: FlightFrame, ahead: object = None) -> FrameInput:
+        step = ahead if isinstance(ahead, OdometryStep) else self.ahead(frame)
         inputs = self.truth(frame)
-        T_odom_body = self.odometry(frame, decode_image(frame.stereo.left), decode_image(frame.stereo.right))
-        return FrameInput(inputs.stamp_ns, T_odom_body, inputs.sightings, self.odometry.up_body, inputs.T_body_cam,
-                          self.odometry.points_body, self.odometry.dead_reckoned_s, self.odometry.measure_depth)
+        return FrameInput(inputs.stamp_ns, step.T_odom_body, inputs.sightings, step.up_body, inputs.T_body_cam,
+                          step.points_body, step.dead_reckoned_s, step.measure_depth)
 
 
 class PerceptionSource:
@@ -310,26 +358,31 @@ class PerceptionSource:
 
         plan = set_threads()  # the libraries' threads (OpenCV's process-wide), as in the service
         self.params = p = params or PerceptionParams()
-        self.disparity = FrameDisparity(SgbmMatcher(p.stereo))  # one SGBM a frame: odometry, depth points, chain
+        self.disparity = FrameDisparity(SgbmMatcher(p.stereo), keep=KEPT_MATCHES)  # one SGBM a
+        #                                                                   frame: odometry, depth points, chain
         self.perception = Perception.create(detector_model, threads=plan.onnxruntime, disparity=self.disparity,
                                             params=p)
         self.detect_every = detect_every
         self.odometry: VisualOdometry | VehicleOdometry | None = None
+        self.runs_ahead = not p.odometry.rekey_at_session_keyframes  # re-keyed by the session: in its turn
+        self.uses_images = True
         self._n = 0
 
-    def __call__(self, frame: FlightFrame) -> FrameInput:
-        from macroloc.perception.pipeline import StereoPair
-        from macroloc.service.recording import decode_image
-
-        info = frame.stereo.info
-        T_body_cam = matrix_from_pose(info.T_body_cam)
-        left, right = decode_image(frame.stereo.left), decode_image(frame.stereo.right)
+    def ahead(self, frame: FlightFrame) -> OdometryStep:
+        """The frame's images and odometry (the odometry sees the frames in order, wherever it runs)."""
         if self.odometry is None:
             self.odometry = VehicleOdometry(self.disparity, self.params) if frame.odometry else \
                 VisualOdometry(self.disparity, self.params)
             log.info("odometry: %s", "the vehicle's, recorded" if frame.odometry else "stereo visual odometry")
-        T_odom_body = self.odometry(frame, left, right)
-        up_body = self.odometry.up_body
+        return OdometryStep.of(self.odometry, frame)
+
+    def __call__(self, frame: FlightFrame, ahead: object = None) -> FrameInput:
+        from macroloc.perception.pipeline import StereoPair
+
+        step = ahead if isinstance(ahead, OdometryStep) else self.ahead(frame)
+        info = frame.stereo.info
+        T_body_cam = matrix_from_pose(info.T_body_cam)
+        left, right, up_body = step.left, step.right, step.up_body
         sightings: list[Sighting] = []
         if self._n % self.detect_every == 0:
             rig = _rig(info)
@@ -341,8 +394,8 @@ class PerceptionSource:
                 sightings.append(Sighting(f.type, corners_body, truth_id=_nearest_id(f.centroid_cam, truth),
                                           truncated=f.truncated))
         self._n += 1
-        return FrameInput(frame.stamp_ns, T_odom_body, sightings, up_body, T_body_cam, self.odometry.points_body,
-                          self.odometry.dead_reckoned_s, self.odometry.measure_depth)
+        return FrameInput(frame.stamp_ns, step.T_odom_body, sightings, up_body, T_body_cam, step.points_body,
+                          step.dead_reckoned_s, step.measure_depth)
 
 
 def _rekeying(odometry: StereoOdometry, measure: Callable[[], np.ndarray]) -> Callable[[], np.ndarray]:

@@ -108,3 +108,30 @@ def test_a_frame_is_matched_once_for_all_who_ask() -> None:
     assert shared.computed == 1
     shared.disparity_px(left.copy(), right)  # another pair (another array)
     assert shared.computed == 2
+
+
+def test_the_last_pairs_matched_are_kept_for_a_thread_that_comes_later() -> None:
+    """keep=3: a frame matched by one thread (the replay's odometry, ahead) is found by another (the chain) up to
+    two frames later; the oldest is dropped. Two threads matching at once get what one thread gets."""
+    import threading
+
+    pairs = [fronto_parallel_pair(d) for d in (2.0, 2.5, 3.0, 3.5)]
+    alone = [SgbmMatcher(SgbmConfig(num_disparities=64)).disparity_px(*p) for p in pairs]
+    shared = FrameDisparity(SgbmMatcher(SgbmConfig(num_disparities=64)), keep=3)
+    got: dict[int, np.ndarray] = {}
+
+    def match(k: int) -> None:
+        got[k] = shared.disparity_px(*pairs[k])
+
+    threads = [threading.Thread(target=match, args=(k,)) for k in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    match(2)
+    assert shared.computed == 3
+    assert all(np.array_equal(got[k], alone[k], equal_nan=True) for k in (0, 1, 2))
+    assert shared.disparity_px(*pairs[0]) is got[0] and shared.computed == 3  # still kept
+    match(3)  # a fourth: the first matched (pair 0) goes
+    assert shared.disparity_px(*pairs[1]) is got[1] and shared.computed == 4
+    assert shared.disparity_px(*pairs[0]) is not got[0] and shared.computed == 5

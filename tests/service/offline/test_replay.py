@@ -401,3 +401,108 @@ def test_a_session_keyframe_s_depth_points_re_key_the_visual_odometry_on_their_s
     points = odometry.measure_depth()
     assert len(points) > 0 and odometry._disparity.computed == matched + 1  # one SGBM for the frame
     assert (vo._ref_left is pairs[2][0]) == rekey
+
+
+class _Counting:
+    """A source whose `ahead` records the thread it ran on and fails at frame `fail_at`."""
+
+    runs_ahead = True
+    uses_images = False
+
+    def __init__(self, fail_at: int | None = None) -> None:
+        self.fail_at = fail_at
+        self.threads: set[str] = set()
+
+    def ahead(self, frame: int) -> int:
+        import threading
+
+        self.threads.add(threading.current_thread().name)
+        if frame == self.fail_at:
+            raise ValueError(f"frame {frame}")
+        return frame * 10
+
+
+def test_the_frames_read_ahead_come_in_order_and_an_error_in_its_turn() -> None:
+    from macroloc.service.offline.replay import _read_ahead
+
+    source = _Counting(fail_at=7)
+    got = []
+    with pytest.raises(ValueError, match="frame 7"):
+        for frame, ahead in _read_ahead(iter(range(20)), source, 3):  # type: ignore[arg-type]
+            got.append((frame, ahead))
+    assert got == [(k, 10 * k) for k in range(7)]
+    assert source.threads == {"replay-ahead"}
+    alone = _Counting()
+    assert list(_read_ahead(iter(range(5)), alone, 0)) == [(k, 10 * k) for k in range(5)]  # type: ignore[arg-type]
+    assert alone.threads == {"MainThread"}
+
+
+def test_a_caller_that_stops_early_stops_the_reading_thread() -> None:
+    import threading
+
+    from macroloc.service.offline.replay import _read_ahead
+
+    read = []
+
+    def frames():  # noqa: ANN202
+        for k in range(10_000):
+            read.append(k)
+            yield k
+
+    reader = _read_ahead(frames(), _Counting(), 2)
+    assert next(reader) == (0, 0)
+    reader.close()  # the caller's loop left: the thread is joined
+    assert not any(t.name in ("replay-read", "replay-ahead") for t in threading.enumerate())
+    assert len(read) < 10
+
+
+def test_perception_replayed_on_two_threads_gives_what_one_thread_gives(rendered_office_flight: Path,
+                                                                         office_model) -> None:  # noqa: ANN001
+    """The odometry run ahead on the reading thread: every frame's estimate, the keyframes and the SGBMs
+    computed (one a frame, shared by the odometry, the chain and the depth points) are those of one thread."""
+    from macroloc.service.offline.replay import replay
+    from macroloc.service.offline.replay_sources import PerceptionSource
+
+    runs = {}
+    for one_thread in (True, False):
+        source = PerceptionSource()
+        runs[one_thread] = (replay(rendered_office_flight, office_model, source, one_thread=one_thread),
+                            source.disparity.computed)
+    (one, sgbm_one), (two, sgbm_two) = runs[True], runs[False]
+    assert sgbm_one == sgbm_two > 0
+    assert one.trace.keyframe == two.trace.keyframe and sum(one.trace.keyframe) > 5
+    assert one.trace.n_sightings == two.trace.n_sightings and sum(one.trace.n_sightings) > 0
+    assert one.trace.status == two.trace.status
+    for a, b in zip(one.trace.T_est, two.trace.T_est, strict=True):
+        assert (a is None and b is None) or np.array_equal(a, b)
+
+
+def test_a_frame_s_match_made_ahead_is_found_when_its_turn_comes(rendered_office_flight: Path) -> None:
+    """The odometry re-keyed on every frame (a whole-frame SGBM each): run AHEAD_FRAMES frames ahead of the
+    session, the first frame's depth points still take that frame's match instead of matching it again."""
+    import itertools
+    from dataclasses import replace
+
+    from macroloc.perception.params import PerceptionParams
+    from macroloc.service.offline.replay_sources import AHEAD_FRAMES, PerceptionSource
+    from macroloc.service.recording import read_flight
+
+    params = PerceptionParams()
+    source = PerceptionSource(params=replace(params, odometry=replace(params.odometry, rekey_translation_m=0.0)))
+    frames = list(itertools.islice(read_flight(rendered_office_flight), AHEAD_FRAMES + 1))
+    steps = [source.ahead(frame) for frame in frames]
+    matched = source.disparity.computed
+    assert matched == AHEAD_FRAMES + 1 and steps[0].measure_depth is not None
+    steps[0].measure_depth()
+    assert source.disparity.computed == matched
+
+
+def test_one_thread_replays_the_same_flight_to_the_same_figures(flight: Path, fzk_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    figures = []
+    for tail in ([], ["--one-thread"]):
+        rc, doc, err = run(["replay", str(flight), "--building", str(fzk_path), "--json", *tail], capsys)
+        assert rc == 0 and doc is not None, err
+        figures.append({k: v for k, v in doc.items() if k not in ("processing_fps", "processing_to_localize_s",
+                                                                     "isam_update_ms_mean")})
+    assert figures[0] == figures[1] and figures[0]["localized"]
