@@ -112,7 +112,8 @@ def test_a_frame_is_matched_once_for_all_who_ask() -> None:
 
 def test_the_last_pairs_matched_are_kept_for_a_thread_that_comes_later() -> None:
     """keep=3: a frame matched by one thread (the replay's odometry, ahead) is found by another (the chain) up to
-    two frames later; the oldest is dropped. Two threads matching at once get what one thread gets."""
+    two frames later; the first matched is dropped by a fourth. Two threads matching at once get what one
+    thread gets."""
     import threading
 
     pairs = [fronto_parallel_pair(d) for d in (2.0, 2.5, 3.0, 3.5)]
@@ -131,7 +132,10 @@ def test_the_last_pairs_matched_are_kept_for_a_thread_that_comes_later() -> None
     match(2)
     assert shared.computed == 3
     assert all(np.array_equal(got[k], alone[k], equal_nan=True) for k in (0, 1, 2))
-    assert shared.disparity_px(*pairs[0]) is got[0] and shared.computed == 3  # still kept
-    match(3)  # a fourth: the first matched (pair 0) goes
-    assert shared.disparity_px(*pairs[1]) is got[1] and shared.computed == 4
-    assert shared.disparity_px(*pairs[0]) is not got[0] and shared.computed == 5
+    assert all(shared.disparity_px(*pairs[k]) is got[k] for k in (0, 1, 2)) and shared.computed == 3  # all kept
+
+    in_turn = FrameDisparity(SgbmMatcher(SgbmConfig(num_disparities=64)), keep=3)
+    first = [in_turn.disparity_px(*p) for p in pairs]  # the fourth drops the first matched
+    assert in_turn.computed == 4
+    assert in_turn.disparity_px(*pairs[1]) is first[1] and in_turn.computed == 4
+    assert in_turn.disparity_px(*pairs[0]) is not first[0] and in_turn.computed == 5
