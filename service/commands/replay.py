@@ -55,9 +55,9 @@ def register(app: typer.Typer) -> None:
         speed: float = typer.Option(1.0, "--speed", help="With --over-zenoh: 1 = real time, 2 = twice as fast, "
                                     "0 = as fast as possible."),
         one_thread: bool = typer.Option(False, "--one-thread", help="Everything on one thread, in turn. By "
-                                        "default a second thread reads the recording and runs the visual "
-                                        "odometry a few frames ahead of the localizer (the results are the "
-                                        "same; processing_fps is higher with two cores free)."),
+                                        "default one thread reads and decodes the recording and another runs "
+                                        "the visual odometry, a few frames ahead of the localizer (the results "
+                                        "are the same; processing_fps is higher with two cores free)."),
     ) -> None:
         """Replay a recorded flight through the localizer and score it against ground truth.
 
