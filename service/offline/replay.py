@@ -206,9 +206,14 @@ def _mapped(items: Iterator[T], fn: Callable[[T], U]) -> Iterator[U]:
         for item in items:
             yield fn(item)
     finally:
-        close = getattr(items, "close", None)
-        if close is not None:
-            close()
+        _close(items)
+
+
+def _close(items: Iterator[object]) -> None:
+    """End a generator where it stands (its own `finally` runs); other iterators need nothing."""
+    close = getattr(items, "close", None)
+    if close is not None:
+        close()
 
 
 def _in_thread(items: Iterator[T], depth: int, name: str) -> Iterator[T]:
@@ -236,9 +241,7 @@ def _in_thread(items: Iterator[T], depth: int, name: str) -> Iterator[T]:
         except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread, raised there
             put(exc)
         finally:
-            close = getattr(items, "close", None)
-            if close is not None:
-                close()
+            _close(items)
 
     thread = threading.Thread(target=run, name=name, daemon=True)
     thread.start()

@@ -67,10 +67,8 @@ class ObservationSource(Protocol):
 
 @dataclass(frozen=True)
 class OdometryStep:
-    """What an odometry gives for one frame (VisualOdometry, VehicleOdometry), with the frame's images."""
+    """What an odometry gives for one frame (VisualOdometry, VehicleOdometry)."""
 
-    left: np.ndarray
-    right: np.ndarray
     T_odom_body: np.ndarray
     up_body: np.ndarray | None
     points_body: np.ndarray | None
@@ -82,7 +80,7 @@ class OdometryStep:
         """Run the odometry on the frame's images (decoded here unless they were already)."""
         left, right = frame.images()
         T_odom_body = odometry(frame, left, right)
-        return OdometryStep(left, right, T_odom_body, odometry.up_body, odometry.points_body, odometry.measure_depth,
+        return OdometryStep(T_odom_body, odometry.up_body, odometry.points_body, odometry.measure_depth,
                             odometry.dead_reckoned_s)
 
 
@@ -382,7 +380,8 @@ class PerceptionSource:
         step = ahead if isinstance(ahead, OdometryStep) else self.ahead(frame)
         info = frame.stereo.info
         T_body_cam = matrix_from_pose(info.T_body_cam)
-        left, right, up_body = step.left, step.right, step.up_body
+        left, right = frame.images()  # the arrays the odometry had: the frame's SGBM knows them
+        up_body = step.up_body
         sightings: list[Sighting] = []
         if self._n % self.detect_every == 0:
             rig = _rig(info)
