@@ -63,6 +63,49 @@ class GravityEstimator:
         return R.T @ up_odom / norm if norm > 1e-6 else None
 
 
+class ImuGravity:
+    """Gravity's up from the IMU and the odometry as they arrive: `imu` adds specific forces, `odometry` takes those
+    that came since the previous pose, with the pose, into the `GravityEstimator`. The rule for what `up_body` holds
+    after a pose (the service and a replay alike, through service.session.LocalizationSession):
+    - samples came, and the estimator gives up: that up;
+    - samples came, and it gives none (each sample a knock or a free fall, or the odometry jumped): None, up unknown
+      (the localizer then adds no roll/pitch prior) until a later pose gives one;
+    - no sample came since the previous pose: the previous up (nothing new was measured).
+    At most `max_samples` samples wait for a pose (the newest)."""
+
+    def __init__(self, params: GravityParams | None = None, max_samples: int = 256) -> None:
+        self.params = params or GravityParams()
+        self.max_samples = max_samples
+        self._estimator = GravityEstimator(self.params)
+        self._accel_body: list[np.ndarray] = []  # (K, 3) blocks of specific forces since the last pose
+        self._n_waiting = 0
+        self.up_body: np.ndarray | None = None  # unit, body frame, at the newest pose
+
+    def imu(self, accel_body_mps2: np.ndarray) -> None:
+        """Specific forces (3,) or (K, 3), body frame, m/s^2, measured since the last pose."""
+        f = np.asarray(accel_body_mps2, float).reshape(-1, 3)
+        if len(f):
+            self._accel_body.append(f)
+            self._n_waiting += len(f)
+        if self._n_waiting > self.max_samples:
+            f_all = np.concatenate(self._accel_body)[-self.max_samples:]
+            self._accel_body, self._n_waiting = [f_all], len(f_all)
+
+    def odometry(self, stamp_ns: int, T_odom_body: np.ndarray) -> np.ndarray | None:
+        """An odometry pose (4x4): up in the body frame at it, by the rule above."""
+        if self._accel_body:
+            f = np.concatenate(self._accel_body)
+            self._accel_body, self._n_waiting = [], 0
+            self.up_body = self._estimator.update(stamp_ns, T_odom_body, f)
+        return self.up_body
+
+    def new_time_base(self) -> None:
+        """The clock was reset: the history (positions differentiated over stamps) starts again; up stays until
+        the next pose gives one."""
+        self._estimator = GravityEstimator(self.params)
+        self._accel_body, self._n_waiting = [], 0
+
+
 def end_velocities(t_s: np.ndarray, p: np.ndarray, end_s: float) -> tuple[float, np.ndarray, float, np.ndarray] | None:
     """(t1, v1, t2, v2): the velocities of lines fitted to the positions p (N, 3) at times t_s (N,) within `end_s`
     of the first and of the last, at those parts' mean times; None where either part has fewer than two."""

@@ -3,8 +3,9 @@
 `LocalizerBackend` feeds the localization session (service.session, the one `replay` runs too, with its keyframe
 rule): odometry poses are buffered by stamp; a set of sightings (ObservedFeatures in the body, left-camera or
 odometry frame, or sightings made by the perception pipeline from a stereo frame) becomes a frame at the odometry
-pose of its stamp; every odometry sample is a frame without sightings. The IMU's specific force, less the
-odometry's own acceleration, gives "up" in the body frame (perception.gravity).
+pose of its stamp; every odometry sample is a frame without sightings. The IMU's samples and each odometry pose go
+to the session, whose gravity's up (the specific force less the odometry's own acceleration: perception.gravity)
+the perception chain and place recognition read.
 
 Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cam_left, cad. Metres.
 
@@ -32,7 +33,6 @@ from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
 from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
 from macroloc.graph.surfaces import SurfaceIndex
-from macroloc.perception.gravity import GravityEstimator, GravityParams
 from macroloc.service.frame_answers import ODOMETRY_MATCH_NS, OdometryBuffer
 from macroloc.service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn
 from macroloc.service.places import Placed
@@ -108,23 +108,19 @@ class _Pending:
 
 class LocalizerBackend:
     """Turns the service's input events into frames of its `LocalizationSession` (service.session, the one the
-    replay runs too): odometry by stamp, IMU gravity, sightings waiting for the odometry of their stamp. One
-    thread only (the service's worker)."""
+    replay runs too): odometry by stamp, sightings waiting for the odometry of their stamp; the IMU and each
+    odometry sample go to the session as they come (it estimates gravity's up). One thread only (the service's
+    worker)."""
 
     def __init__(self, model: BuildingModel, session: LocalizationSession,
-                 T_body_cam: np.ndarray | None = None, gravity: GravityParams | None = None) -> None:
-        """`T_body_cam`: the left camera in the body frame, for sightings sent in the cam_left frame; `gravity`:
-        the IMU's up estimate's ([perception.gravity])."""
+                 T_body_cam: np.ndarray | None = None) -> None:
+        """`T_body_cam`: the left camera in the body frame, for sightings sent in the cam_left frame."""
         self.model = model
         self.session = session
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
         self._odometry = OdometryBuffer()  # stamp_ns -> T_odom_body
         self._pending: list[_Pending] = []  # sightings that arrived before the odometry of their stamp
         self.unmatched = 0  # sightings dropped: no odometry near their stamp
-        self._up_body: np.ndarray | None = None
-        self._gravity_params = gravity or GravityParams()
-        self._gravity = GravityEstimator(self._gravity_params)
-        self._accel_body: list[np.ndarray] = []  # specific forces since the last odometry sample
         self.restored: StoredMap | None = None  # a saved map's keyframe views and T_cad_map, for place recognition
         self.restored_localized = False  # restarted from a saved map that was localized (see `supersedes_saved`)
         self.carried: list[CarriedLandmark] = []  # a saved map's landmarks, CAD frame, kept in the next saved map
@@ -136,12 +132,11 @@ class LocalizerBackend:
         """The backend on a session from the config (service.session.session_from_config; the defaults without
         one), with covariance; `surfaces`: the model's walls, to check registrations against the frames' depth
         (graph.surfaces)."""
-        from macroloc.service.config import GraphConfig, MacrolocConfig
+        from macroloc.service.config import GraphConfig
 
-        gravity = cfg.perception.to_params().gravity if isinstance(cfg, MacrolocConfig) else None
         cfg = cfg or GraphConfig()
         if snapshot is None:
-            return cls(model, session_from_config(cfg, model, surfaces=surfaces, covariance=True), gravity=gravity)
+            return cls(model, session_from_config(cfg, model, surfaces=surfaces, covariance=True))
         features = {f.id: f for f in model.features}
         linked = [KnownRect(lm.id, features[lm.id].type, feature_frame_cad(features[lm.id]))
                   for lm in snapshot.landmarks_map if lm.id in features and features[lm.id].orientation == "vertical"]
@@ -154,8 +149,7 @@ class LocalizerBackend:
             return RestoredRegistrar(model, saved_T, linked, fallback, params=s.localizer,
                                      with_surfaces=surfaces is not None)
 
-        backend = cls(model, session_from_config(cfg, model, surfaces=surfaces, registrar=restored, covariance=True),
-                      gravity=gravity)
+        backend = cls(model, session_from_config(cfg, model, surfaces=surfaces, registrar=restored, covariance=True))
         backend.restored_localized = saved_T is not None
         if saved_T is not None and snapshot.views:  # views with their poses, as a map carries an earlier one's
             backend.restored = StoredMap(model.sha256, saved_T, carried=[view_from_wire(v) for v in snapshot.views])
@@ -168,38 +162,32 @@ class LocalizerBackend:
     # --- inputs -------------------------------------------------------------------------------------------------
 
     def imu(self, ev: ImuIn) -> None:
-        """A specific force sample: with the next odometry sample, it gives up in the body frame
-        (perception.gravity: the odometry's own acceleration is taken out)."""
-        self._accel_body.append(np.asarray(ev.accel_mps2, float))  # GravityEstimator leaves out a knock, a free fall
-        del self._accel_body[:-256]
+        """A specific force sample, to the session: with the next odometry sample it gives up in the body frame."""
+        self.session.imu(np.asarray(ev.accel_mps2, float))
 
     def odometry(self, ev: OdometryIn) -> Estimate:
-        """An odometry sample: the sightings that waited for it, then its own frame (no sightings)."""
-        if self._accel_body:
-            up = self._gravity.update(ev.stamp_ns, ev.T_map_body, np.array(self._accel_body))
-            self._up_body = up if up is not None else self._up_body
-            self._accel_body = []
+        """An odometry sample: to the session (gravity's up), then the sightings that waited for it, then its own
+        frame (no sightings)."""
+        self.session.odometry(ev.stamp_ns, ev.T_map_body)
         self._odometry.add(ev.stamp_ns, ev.T_map_body)
         if self._pending:  # sightings waiting for this odometry (keys arrive through separate channels)
             pending, self._pending = self._pending, []
             for p in pending:
                 T_odom_body = self.odometry_at(p.stamp_ns)
                 if T_odom_body is not None:
-                    self.session.frame(FrameIn(p.stamp_ns, T_odom_body, p.to_body(T_odom_body), self._up_body))
+                    self.session.frame(FrameIn(p.stamp_ns, T_odom_body, p.to_body(T_odom_body)))
                 elif p.stamp_ns < ev.stamp_ns - ODOMETRY_MATCH_NS:
                     self.unmatched += 1
                 else:
                     self._pending.append(p)
-        return self.session.frame(FrameIn(ev.stamp_ns, ev.T_map_body, [], self._up_body))
+        return self.session.frame(FrameIn(ev.stamp_ns, ev.T_map_body, []))
 
     def new_time_base(self) -> None:
         """The vehicle's clock was reset: forget what is kept by stamp (the odometry buffer, sightings waiting
         for their odometry, the keyframe timer); the graph, its landmarks and T_cad_map stay."""
         self._odometry.clear()
         self._pending.clear()
-        self._accel_body = []
-        self._gravity = GravityEstimator(self._gravity_params)  # it differentiates the odometry over stamps
-        self.session.new_time_base()
+        self.session.new_time_base()  # with gravity's history: it differentiates the odometry over stamps
 
     def depth(self, stamp_ns: int, points_body: np.ndarray) -> None:
         """Depth points (N, 3, body frame) measured at stamp_ns: given to the next keyframe, for the surface check
@@ -230,7 +218,7 @@ class LocalizerBackend:
             if sightings:
                 self._sightings_frame(stamp_ns, lambda _: sightings)
             return None if self.last is None else self.session.pose_at(stamp_ns, self.last.T_map_body)
-        return self.session.frame(FrameIn(stamp_ns, T_odom_body, sightings, self._up_body, points_body,
+        return self.session.frame(FrameIn(stamp_ns, T_odom_body, sightings, points_body=points_body,
                                           placed=placed, measure_depth=measure_depth))
 
     def _sightings_frame(self, stamp_ns: int, to_body: Callable[[np.ndarray], list[Sighting]]) -> Estimate | None:
@@ -241,7 +229,7 @@ class LocalizerBackend:
                 self._pending.pop(0)
                 self.unmatched += 1
             return None
-        return self.session.frame(FrameIn(stamp_ns, T_odom_body, to_body(T_odom_body), self._up_body))
+        return self.session.frame(FrameIn(stamp_ns, T_odom_body, to_body(T_odom_body)))
 
     def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
         """The buffered odometry pose nearest in time to stamp_ns (within 60 ms), else None (also where stamp_ns is
@@ -276,8 +264,8 @@ class LocalizerBackend:
 
     @property
     def up_body(self) -> np.ndarray | None:
-        """Gravity's up in the body frame at the newest odometry sample (perception.gravity), when known."""
-        return self._up_body
+        """Gravity's up in the body frame at the newest odometry sample (the session's), when known."""
+        return self.session.up_body
 
     def snapshot(self, building: str, sha256: str) -> pb.MapSnapshot:
         """The map as saved and served: landmarks (odom frame) with their CAD links, T_cad_map, last pose (the

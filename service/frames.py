@@ -27,14 +27,21 @@ log = logging.getLogger(__name__)
 
 
 class FramePipeline(Protocol):
-    """Stereo frame -> sightings (doors/windows, corners in the body frame). Perception plugs in here.
-    `points_body`: the last frame's stereo depth points (body frame, metres) when it measured them, else None;
-    `measure_depth`: the last frame's, measured when called (for a keyframe: StereoDepth.deferred), or None."""
+    """Stereo frame (and gravity's up at it, body frame, when known) -> sightings (doors/windows, corners in the
+    body frame). Perception plugs in here. `points_body`: the last frame's stereo depth points (body frame, metres)
+    when it measured them, else None; `measure_depth`: the last frame's, measured when called (for a keyframe:
+    StereoDepth.deferred), or None."""
 
     points_body: np.ndarray | None
     measure_depth: Callable[[], np.ndarray] | None
 
-    def __call__(self, frame: pb.StereoFrame) -> list[Sighting]: ...
+    def __call__(self, frame: pb.StereoFrame, up_body: np.ndarray | None = None) -> list[Sighting]: ...
+
+
+def gravity_cam(up_body: np.ndarray | None, T_body_cam: np.ndarray) -> np.ndarray | None:
+    """Gravity's direction (down) in the camera frame, for the perception chain (perception.pipeline.StereoPair),
+    from up in the body frame; None where up is unknown."""
+    return None if up_body is None else -(T_body_cam[:3, :3].T @ up_body)
 
 
 class NullPipeline:
@@ -44,7 +51,7 @@ class NullPipeline:
     points_body: np.ndarray | None = None
     measure_depth: Callable[[], np.ndarray] | None = None
 
-    def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
+    def __call__(self, frame: pb.StereoFrame, up_body: np.ndarray | None = None) -> list[Sighting]:
         return []
 
 
@@ -126,9 +133,10 @@ class PerceptionPipeline:
         self.points_body: np.ndarray | None = None  # the last frame's depth points, when it measured them
         self.measure_depth: Callable[[], np.ndarray] | None = None  # the last frame's, measured when called
 
-    def __call__(self, frame: pb.StereoFrame) -> list[Sighting]:
+    def __call__(self, frame: pb.StereoFrame, up_body: np.ndarray | None = None) -> list[Sighting]:
         """Frames come checked (service.inputs: sizes from the headers, equal left and right and camera info);
-        a frame without camera info cannot be perceived and gives no sightings."""
+        a frame without camera info cannot be perceived and gives no sightings. `up_body`: gravity's up (the
+        session's), which tells the chain which way is down, as in a replay."""
         from macroloc.perception.calib import StereoRig
         from macroloc.perception.pipeline import StereoPair
 
@@ -141,7 +149,8 @@ class PerceptionPipeline:
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam
         self.points_body = self.depth(left, right, rig, T_body_cam)  # first: the chain's band reuses its SGBM
         self.measure_depth = self.depth.deferred(left, right, rig, T_body_cam)
-        result = self.perception.process(StereoPair(left, right, rig, stamp_ns=frame.header.stamp_ns))
+        result = self.perception.process(StereoPair(left, right, rig, gravity_cam(up_body, T_body_cam),
+                                                    frame.header.stamp_ns))
         return [Sighting(f.type, apply(T_body_cam, f.corners_cam), truncated=f.truncated)
                 for f in result.features]
 

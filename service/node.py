@@ -313,12 +313,13 @@ class LocalizationService:
         """Perceive the frame; its sightings become a keyframe at the odometry pose of its stamp (kept pending
         until that odometry arrives). In lock-step its pose goes out now; otherwise it went out on arrival, and
         what the frame changed goes out at the last answer's stamp (`_publish_worker`)."""
-        sightings = self.pipeline(ev.frame)
+        with self._lock:
+            up_body = self.backend.up_body  # the session's, from the IMU: which way is down for the chain
+        sightings = self.pipeline(ev.frame, up_body)
         points_body = self.pipeline.points_body  # the pipeline's own stereo depth, when it measured some ...
         measure_depth = self.pipeline.measure_depth  # ... or will for a keyframe
         with self._lock:
-            T_odom_body, status, up_body = self.backend.odometry_at(ev.stamp_ns), self.backend.status, \
-                self.backend.up_body
+            T_odom_body, status = self.backend.odometry_at(ev.stamp_ns), self.backend.status
         placed = self._place(ev, T_odom_body, up_body, status)
         if ev.frame.HasField("depth") and self.backend.localizer.surfaces is not None:
             from macroloc.service.frames import depth_points_body

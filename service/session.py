@@ -1,14 +1,16 @@
 """One localization session: the per-frame loop around `graph.localizer.Localizer` that `serve`, `replay`, `demo`
 and the benchmarks all run, and the one factory that builds it from the config.
 
-`LocalizationSession.frame(FrameIn)` takes one frame (odometry pose, sightings, depth points, gravity's up,
-seconds dead-reckoned, a place-recognition result) and returns the `Estimate`. It owns what makes the figures:
-the keyframe rule (`graph.keyframes.KeyframeRule`), the depth hand-over to the next keyframe, the dead-reckoned
-seconds summed until a keyframe takes them, the hand-off of a frame placed in a stored map (or whose view is
-kept: always a keyframe), and a fresh graph where an update fails. The drivers only assemble frames: the replay
-from a recording (service.offline.replay), the service from its wire events (service.backend: odometry by stamp, IMU
-gravity, sightings waiting for their odometry). Both run place recognition on every stereo frame
-(service.places.KeyframePlaces.at_frame decides when it works) and hand its result in with the frame.
+Its inputs, in the order they come: `imu(accel)` (the IMU's specific forces), `odometry(stamp, T_odom_body)` (each
+odometry pose: with the IMU samples since the previous one it gives gravity's up, `up_body`, by one rule:
+perception.gravity.ImuGravity) and `frame(FrameIn)` (one frame: odometry pose, sightings, depth points,
+seconds dead-reckoned, a place-recognition result), which returns the `Estimate`. It owns what makes the figures:
+gravity's up, the keyframe rule (`graph.keyframes.KeyframeRule`), the depth hand-over to the next keyframe, the
+dead-reckoned seconds summed until a keyframe takes them, the hand-off of a frame placed in a stored map (or whose
+view is kept: always a keyframe), and a fresh graph where an update fails. The drivers only assemble frames: the
+replay from a recording (service.offline.replay), the service from its wire events (service.backend: odometry by
+stamp, sightings waiting for their odometry). Both read `up_body` for the perception chain and place recognition,
+which run before the frame is handed in (service.places.KeyframePlaces.at_frame decides when that works).
 
 Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cad. Metres, nanoseconds.
 """
@@ -29,6 +31,8 @@ from macroloc.graph.mapstore import StoredMap
 from macroloc.graph.posegraph import IsamSettings, PoseGraph
 from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.surfaces import SurfaceIndex
+from macroloc.perception.gravity import ImuGravity
+from macroloc.perception.params import GravityParams
 from macroloc.service.places import Placed
 
 if TYPE_CHECKING:
@@ -40,10 +44,12 @@ log = logging.getLogger(__name__)
 @dataclass
 class FrameIn:
     """One frame's inputs. T_odom_body: 4x4 odometry pose at `stamp_ns`; sightings: corners in the body frame;
-    points_body: (N, 3) depth points, body frame, measured at this frame; up_body: gravity's up, body frame;
-    dead_reckoned_s: seconds since the previous frame the odometry only extrapolated; placed: the frame's pose in
-    a stored map and/or its view to keep (service.places); measure_depth: this frame's depth points (N, 3, body
-    frame), measured when called: called only where the frame becomes a keyframe."""
+    points_body: (N, 3) depth points, body frame, measured at this frame; up_body: gravity's up, body frame, where
+    the driver knows it otherwise than from the IMU (the simulator's truth), else None: the session's own
+    (`LocalizationSession.up_body`); dead_reckoned_s: seconds since the previous frame the odometry only
+    extrapolated; placed: the frame's pose in a stored map and/or its view to keep (service.places); measure_depth:
+    this frame's depth points (N, 3, body frame), measured when called: called only where the frame becomes a
+    keyframe."""
 
     stamp_ns: int
     T_odom_body: np.ndarray
@@ -81,15 +87,18 @@ class SessionSettings:
     storey_hint: str | None = None  # register against this storey's doors and windows only
     method: str = "robust"  # the registration's search (graph.registration)
     covariance: bool = False  # each keyframe's marginal covariance (iSAM2), carried by the poses until the next
+    gravity: GravityParams = field(default_factory=GravityParams)  # gravity's up from the IMU ([perception.gravity])
 
 
 class LocalizationSession:
     """See module doc. One thread only."""
 
     def __init__(self, localizer: Localizer, rule: KeyframeRule | None = None, covariance: bool = False,
-                 fresh: Callable[[Localizer], Localizer] | None = None) -> None:
-        """`fresh`: a new localizer like the failed one given (its registrar kept), where the graph fails."""
+                 fresh: Callable[[Localizer], Localizer] | None = None, gravity: GravityParams | None = None) -> None:
+        """`fresh`: a new localizer like the failed one given (its registrar kept), where the graph fails;
+        `gravity`: the IMU's up estimate's parameters."""
         self.localizer = localizer
+        self.gravity = ImuGravity(gravity)
         self.fresh = fresh or _fresh
         self.rule = rule or KeyframeRule()
         self.covariance = covariance
@@ -105,6 +114,20 @@ class LocalizationSession:
     @property
     def status(self) -> str:
         return self.localizer.status
+
+    @property
+    def up_body(self) -> np.ndarray | None:
+        """Gravity's up (unit, body frame) at the newest odometry pose, from the IMU; None where unknown."""
+        return self.gravity.up_body
+
+    def imu(self, accel_body_mps2: np.ndarray) -> None:
+        """IMU specific forces ((3,) or (K, 3), body frame, m/s^2) measured since the last odometry pose."""
+        self.gravity.imu(accel_body_mps2)
+
+    def odometry(self, stamp_ns: int, T_odom_body: np.ndarray) -> np.ndarray | None:
+        """An odometry pose (4x4, odometry frame), before the frames at it: with the IMU samples since the previous
+        one it gives gravity's up (perception.gravity.ImuGravity's rule), returned."""
+        return self.gravity.odometry(stamp_ns, T_odom_body)
 
     def frame(self, f: FrameIn) -> Estimate:
         """The frame's estimate: a keyframe where the rule says so (or the frame was placed, or keeps a view),
@@ -138,8 +161,10 @@ class LocalizationSession:
             self.localizer.add_depth(T_odom_body, points_body)
 
     def new_time_base(self) -> None:
-        """The clock was reset: the keyframe timer starts again (the graph and its poses stay)."""
+        """The clock was reset: the keyframe timer and gravity's history start again (the graph and its poses
+        stay)."""
         self._stamp_kf_ns = None
+        self.gravity.new_time_base()
 
     def _keyframe(self, f: FrameIn) -> Estimate:
         self.keyframe = True
@@ -147,7 +172,8 @@ class LocalizationSession:
         dead_reckoned_s, self._dead_reckoned_s = self._dead_reckoned_s, 0.0
         placed = f.placed or Placed(None, None)
         try:
-            est = self.localizer.add_keyframe(f.stamp_ns, f.T_odom_body, f.sightings, f.up_body,
+            up_body = f.up_body if f.up_body is not None else self.up_body
+            est = self.localizer.add_keyframe(f.stamp_ns, f.T_odom_body, f.sightings, up_body,
                                               with_covariance=self.covariance, T_cad_body_placed=placed.T_cad_body,
                                               view=placed.view, dead_reckoned_s=dead_reckoned_s)
         except RuntimeError as exc:  # GTSAM's IndeterminantLinearSystemException and its kin
@@ -239,7 +265,7 @@ def make_session(model: BuildingModel, settings: SessionSettings | None = None, 
     def fresh(old: Localizer) -> Localizer:
         return Localizer(model, PoseGraph(s.isam), old.registrar, s.localizer, T_body_cam, surfaces)
 
-    return LocalizationSession(localizer, s.rule, s.covariance, fresh)
+    return LocalizationSession(localizer, s.rule, s.covariance, fresh, s.gravity)
 
 
 def session_from_config(cfg: MacrolocConfig | GraphConfig, model: BuildingModel, *,
@@ -253,12 +279,15 @@ def session_from_config(cfg: MacrolocConfig | GraphConfig, model: BuildingModel,
     surface check; `T_body_cam`: the left camera in the body frame; `registrar`: makes the registrar from the
     settings instead of the model's (service.backend's after a restart); `storey_hint`: instead of
     graph.storey_hint (checked against the model: UserInputError where it has no such storey); `method`: the
-    registration's search (default: the config's localize.method where the whole config is given)."""
+    registration's search (default: the config's localize.method where the whole config is given). Gravity's up
+    from the IMU takes [perception.gravity] where the whole config is given (its defaults with [graph] alone)."""
     from macroloc.service.config import MacrolocConfig
 
     graph = cfg.graph if isinstance(cfg, MacrolocConfig) else cfg
     method = method or (cfg.localize.method if isinstance(cfg, MacrolocConfig) else "robust")
     storey = model.checked_storey(storey_hint or graph.storey_hint)
     settings = settings_from_config(graph, storey_hint=storey, method=method, covariance=covariance)
+    if isinstance(cfg, MacrolocConfig):  # [perception.gravity]: gravity's up from the IMU
+        settings = replace(settings, gravity=cfg.perception.gravity.to_params(GravityParams()))
     return make_session(model, settings, stored=stored, surfaces=surfaces, T_body_cam=T_body_cam,
                         registrar=None if registrar is None else registrar(settings))

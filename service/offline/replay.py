@@ -26,7 +26,7 @@ from macroloc.graph.mapstore import StoredMap
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
-from macroloc.service.offline.replay_sources import AHEAD_FRAMES, FrameInput, ObservationSource, TruthSource
+from macroloc.service.offline.replay_sources import AHEAD_FRAMES, FrameInput, ObservationSource, TruthSource, gravity_at
 from macroloc.service.places import KeyframePlaces
 from macroloc.service.recording import FlightFrame
 from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, make_session
@@ -155,9 +155,9 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
     start = time.perf_counter()
     ahead_frames = 0 if one_thread or not source.runs_ahead else AHEAD_FRAMES
     for frame, ahead in _read_ahead(frames, source, ahead_frames):
-        inputs: FrameInput = source(frame, ahead)
         if session is None:
-            session = make(inputs.T_body_cam)
+            session = make(source.T_body_cam(frame))
+        inputs: FrameInput = source(frame, ahead, gravity_at(session, frame, ahead))
         t0 = frame.stamp_ns if t0 is None else t0
         placed = places.at_frame(frame.stereo, inputs.stamp_ns, inputs.T_odom_body, inputs.T_body_cam,
                                  inputs.up_body, session.status)

@@ -1,4 +1,5 @@
-"""Where the replay's per-frame inputs come from: odometry, gravity and door/window sightings.
+"""Where the replay's per-frame inputs come from: odometry and door/window sightings (gravity's up is the session's,
+from the frame's IMU samples and the odometry: `gravity_at`).
 
 `TruthSource` (`--observations truth`) turns a simulated flight's ground truth into what a good front end
 would deliver, with realistic errors: odometry that drifts (a scale error, a yaw bias, noise growing with
@@ -39,7 +40,7 @@ KEPT_MATCHES = AHEAD_FRAMES + 4  # whole-frame SGBMs a source's FrameDisparity k
 @dataclass(frozen=True)
 class FrameInput:
     """One frame's inputs to the localizer. T_odom_body: 4x4 odometry pose (odometry frame z up);
-    up_body: unit up direction in the body frame (from the IMU), or None."""
+    up_body: unit up direction in the body frame (the session's from the IMU, or the simulator's truth), or None."""
 
     stamp_ns: int
     T_odom_body: np.ndarray
@@ -53,16 +54,38 @@ class FrameInput:
 
 class ObservationSource(Protocol):
     """A frame's inputs in two parts. `ahead(frame)`: what depends only on the recording and the frames before it,
-    never on the session (the images decoded, the visual odometry): where `runs_ahead` says so, the replay calls
-    it on a thread of its own, a few frames ahead of the session (service.offline.replay). `__call__(frame, ahead)`:
-    the rest, in frame order on the session's thread (`ahead`: what `ahead(frame)` gave; None: computed there)."""
+    never on the session (the images decoded, the visual odometry: an `OdometryStep`): where `runs_ahead` says so,
+    the replay calls it on a thread of its own, a few frames ahead of the session (service.offline.replay).
+    `__call__(frame, ahead, up_body)`: the rest, in frame order on the session's thread (`ahead`: what
+    `ahead(frame)` gave, None: computed there; `up_body`: gravity's up at the frame, `gravity_at`, for the
+    perception chain). `T_body_cam(frame)`: the left camera in the body frame (4x4)."""
 
     runs_ahead: bool
     uses_images: bool  # the replay's reading thread decodes them (FlightFrame.images) where it does
 
     def ahead(self, frame: FlightFrame) -> object: ...
 
-    def __call__(self, frame: FlightFrame, ahead: object = None) -> FrameInput: ...
+    def __call__(self, frame: FlightFrame, ahead: object = None, up_body: np.ndarray | None = None
+                 ) -> FrameInput: ...
+
+    def T_body_cam(self, frame: FlightFrame) -> np.ndarray: ...
+
+
+class ImuInput(Protocol):
+    """Where gravity's up comes from: service.session.LocalizationSession, or perception.gravity.ImuGravity."""
+
+    def imu(self, accel_body_mps2: np.ndarray) -> None: ...
+
+    def odometry(self, stamp_ns: int, T_odom_body: np.ndarray) -> np.ndarray | None: ...
+
+
+def gravity_at(gravity: ImuInput, frame: FlightFrame, ahead: object) -> np.ndarray | None:
+    """Gravity's up at the frame: the frame's IMU samples and the odometry's pose (where `ahead` is an
+    `OdometryStep`) to `gravity` (the session), in the order the service takes them; None without an odometry."""
+    if not isinstance(ahead, OdometryStep):
+        return None
+    gravity.imu(_specific_forces(frame))
+    return gravity.odometry(frame.stamp_ns, ahead.T_odom_body)
 
 
 @dataclass(frozen=True)
@@ -70,7 +93,6 @@ class OdometryStep:
     """What an odometry gives for one frame (VisualOdometry, VehicleOdometry)."""
 
     T_odom_body: np.ndarray
-    up_body: np.ndarray | None
     points_body: np.ndarray | None
     measure_depth: Callable[[], np.ndarray] | None
     dead_reckoned_s: float
@@ -80,8 +102,7 @@ class OdometryStep:
         """Run the odometry on the frame's images (decoded here unless they were already)."""
         left, right = frame.images()
         T_odom_body = odometry(frame, left, right)
-        return OdometryStep(T_odom_body, odometry.up_body, odometry.points_body, odometry.measure_depth,
-                            odometry.dead_reckoned_s)
+        return OdometryStep(T_odom_body, odometry.points_body, odometry.measure_depth, odometry.dead_reckoned_s)
 
 
 @dataclass(frozen=True)
@@ -119,10 +140,18 @@ class TruthSource:
     def ahead(self, frame: FlightFrame) -> None:
         return None
 
-    def __call__(self, frame: FlightFrame, ahead: object = None) -> FrameInput:
-        gt = frame.ground_truth
-        if gt is None:
+    def T_body_cam(self, frame: FlightFrame) -> np.ndarray:
+        return matrix_from_pose(self._truth(frame).T_body_cam)
+
+    @staticmethod
+    def _truth(frame: FlightFrame):  # noqa: ANN205 - pb.GroundTruth
+        if frame.ground_truth is None:
             raise UserInputError("--observations truth needs a simulated recording with ground truth")
+        return frame.ground_truth
+
+    def __call__(self, frame: FlightFrame, ahead: object = None, up_body: np.ndarray | None = None) -> FrameInput:
+        """`up_body` is not used: gravity's up is the truth's, with `TruthNoise.gravity_sigma_rad`."""
+        gt = self._truth(frame)
         T_cad_body = matrix_from_pose(gt.T_cad_body)
         T_body_cam = matrix_from_pose(gt.T_body_cam)
         T_odom_body = self._odometry(T_cad_body, frame.stamp_ns)
@@ -195,15 +224,13 @@ class VisualOdometry:
     """T_odom_body from the stereo visual odometry on the recorded images, its rotation checked against the
     IMU's gyroscope (integrated over the frame's samples), and where it loses track its position dead-reckoned
     on the accelerometer (perception.inertial); the odometry frame is the first body frame levelled by the IMU's
-    gravity. After each frame, `up_body` is gravity's direction with the odometry's acceleration taken out of the
-    specific force (perception.gravity), and `points_body` / `measure_depth` the stereo depth points as the service
-    measures them on that frame (service.frames.StereoDepth: on demand for a keyframe, by default)."""
+    gravity. After each frame, `points_body` / `measure_depth` are the stereo depth points as the service measures
+    them on that frame (service.frames.StereoDepth: on demand for a keyframe, by default)."""
 
     def __init__(self, disparity: FrameDisparity | None = None, params: PerceptionParams | None = None) -> None:
         """`disparity`: the frame's one SGBM, shared by the odometry's keyframes, the depth points and (given to
         it too) the perception chain; None: a new one (`params.stereo`) for the odometry and the depth points.
-        `params`: the odometry's and gravity's (their defaults without)."""
-        from macroloc.perception.gravity import GravityEstimator
+        `params`: the odometry's and the dead reckoning's (their defaults without)."""
         from macroloc.perception.inertial import InertialDeadReckoning
         from macroloc.perception.params import PerceptionParams
         from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
@@ -214,12 +241,10 @@ class VisualOdometry:
         self._odometry: StereoOdometry | None = None
         self._T_odom_cam0: np.ndarray | None = None
         self._last_imu_ns: int | None = None
-        self._gravity = GravityEstimator(p.gravity)
         self._inertial = InertialDeadReckoning(p.inertial)
         self._depth = StereoDepth.configured(p.depth, self._disparity)
         self.points_body: np.ndarray | None = None  # the last frame's stereo depth points, when it measured some
         self.measure_depth: Callable[[], np.ndarray] | None = None  # the last frame's, measured when called
-        self.up_body: np.ndarray | None = None  # unit, body frame, at the last frame
         self.dead_reckoned_s = 0.0  # the last frame's seconds of dead reckoning (tracking lost)
         self._last_stamp_ns: int | None = None
 
@@ -268,27 +293,23 @@ class VisualOdometry:
         T_odom_body = T_odom_cam0 @ result.T_odom_cam @ np.linalg.inv(T_body_cam)
         self._inertial.update(frame.stamp_ns * 1e-9, T_odom_body[:3, 3], f_body @ T_odom_body[:3, :3].T,
                               result.tracked)
-        self.up_body = self._gravity.update(frame.stamp_ns, T_odom_body, f_body)
         return T_odom_body
 
 
 class VehicleOdometry:
     """T_odom_body from the vehicle's own odometry recorded with the flight ("/odometry", e.g. a demo's flight or
     a drone's VIO), as the service takes it from the vehicle's odometry key: the sample at the frame's stamp (else
-    the newest before it). `up_body` and `points_body` as `VisualOdometry` gives them."""
+    the newest before it). `points_body` and `measure_depth` as `VisualOdometry` gives them."""
 
     def __init__(self, disparity: FrameDisparity | None = None, params: PerceptionParams | None = None) -> None:
-        from macroloc.perception.gravity import GravityEstimator
         from macroloc.perception.params import PerceptionParams
         from macroloc.service.frames import StereoDepth
 
         p = params or PerceptionParams()
-        self._gravity = GravityEstimator(p.gravity)
         self._depth = StereoDepth.configured(p.depth, disparity)
         self._T_odom_body: np.ndarray | None = None
         self.points_body: np.ndarray | None = None
         self.measure_depth: Callable[[], np.ndarray] | None = None
-        self.up_body: np.ndarray | None = None
         self.dead_reckoned_s = 0.0  # the vehicle's odometry says nothing of its own losses
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
@@ -303,7 +324,6 @@ class VehicleOdometry:
         T_body_cam = matrix_from_pose(info.T_body_cam)
         self.points_body = self._depth(left, right, rig, T_body_cam)
         self.measure_depth = self._depth.deferred(left, right, rig, T_body_cam)
-        self.up_body = self._gravity.update(frame.stamp_ns, self._T_odom_body, _specific_forces(frame))
         return self._T_odom_body
 
 
@@ -325,10 +345,13 @@ class TruthFeaturesWithVisualOdometry:
     def ahead(self, frame: FlightFrame) -> OdometryStep:
         return OdometryStep.of(self.odometry, frame)
 
-    def __call__(self, frame: FlightFrame, ahead: object = None) -> FrameInput:
+    def T_body_cam(self, frame: FlightFrame) -> np.ndarray:
+        return self.truth.T_body_cam(frame)
+
+    def __call__(self, frame: FlightFrame, ahead: object = None, up_body: np.ndarray | None = None) -> FrameInput:
         step = ahead if isinstance(ahead, OdometryStep) else self.ahead(frame)
         inputs = self.truth(frame)
-        return FrameInput(inputs.stamp_ns, step.T_odom_body, inputs.sightings, step.up_body, inputs.T_body_cam,
+        return FrameInput(inputs.stamp_ns, step.T_odom_body, inputs.sightings, up_body, inputs.T_body_cam,
                           step.points_body, step.dead_reckoned_s, step.measure_depth)
 
 
@@ -337,10 +360,10 @@ class PerceptionSource:
     vehicle's own odometry where the recording carries it (`VehicleOdometry`; the service, too, takes the
     vehicle's odometry when it sends one).
 
-    Gravity comes from the IMU's specific force less the odometry's acceleration (VisualOdometry.up_body);
-    the odometry frame is the first body frame levelled by the first frame's specific force. The chain runs on
-    every `detect_every`-th frame; sightings get the id of the nearest ground-truth feature (within 0.5 m) for
-    scoring only.
+    Gravity's up (`up_body`, the session's: the IMU's specific force less the odometry's acceleration) tells the
+    chain which way is down; the odometry frame is the first body frame levelled by the first frame's specific
+    force. The chain runs on every `detect_every`-th frame; sightings get the id of the nearest ground-truth
+    feature (within 0.5 m) for scoring only.
     """
 
     def __init__(self, detect_every: int = 3, detector_model: Path | None = None,
@@ -374,19 +397,22 @@ class PerceptionSource:
             log.info("odometry: %s", "the vehicle's, recorded" if frame.odometry else "stereo visual odometry")
         return OdometryStep.of(self.odometry, frame)
 
-    def __call__(self, frame: FlightFrame, ahead: object = None) -> FrameInput:
+    def T_body_cam(self, frame: FlightFrame) -> np.ndarray:
+        return matrix_from_pose(frame.stereo.info.T_body_cam)
+
+    def __call__(self, frame: FlightFrame, ahead: object = None, up_body: np.ndarray | None = None) -> FrameInput:
         from macroloc.perception.pipeline import StereoPair
+        from macroloc.service.frames import gravity_cam
 
         step = ahead if isinstance(ahead, OdometryStep) else self.ahead(frame)
         info = frame.stereo.info
         T_body_cam = matrix_from_pose(info.T_body_cam)
         left, right = frame.images()  # the arrays the odometry had: the frame's SGBM knows them
-        up_body = step.up_body
         sightings: list[Sighting] = []
         if self._n % self.detect_every == 0:
             rig = _rig(info)
-            gravity_cam = None if up_body is None else -(T_body_cam[:3, :3].T @ up_body)
-            result = self.perception.process(StereoPair(left, right, rig, gravity_cam, frame.stamp_ns))
+            down_cam = gravity_cam(up_body, T_body_cam)
+            result = self.perception.process(StereoPair(left, right, rig, down_cam, frame.stamp_ns))
             truth = _truth_centroids_cam(frame)
             for f in result.features:
                 corners_body = (T_body_cam[:3, :3] @ f.corners_cam.T).T + T_body_cam[:3, 3]

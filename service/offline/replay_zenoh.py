@@ -20,8 +20,9 @@ import numpy as np
 import zenoh
 
 from macroloc.graph.errors import UserInputError
+from macroloc.perception.gravity import ImuGravity
 from macroloc.service.config import ZenohConfig
-from macroloc.service.offline.replay_sources import ObservationSource, TruthSource
+from macroloc.service.offline.replay_sources import ObservationSource, TruthSource, gravity_at
 from macroloc.service.recording import FlightFrame, matrix_from_pose, pose_from_matrix, read_flight, vector3
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.service.zenoh_io import Keys, declare_publisher, session_config
@@ -121,6 +122,8 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
     keys = Keys(vehicle)
     result = ZenohReplayResult(odometry="source" if source is not None else "none")
     simulated = TruthSource(seed=seed)  # the vehicle's VIO, for a simulated recording without odometry
+    perception = getattr(source, "params", None)  # PerceptionSource's [perception] (the defaults otherwise)
+    gravity = ImuGravity(None if perception is None else perception.gravity)
     sent_at: dict[int, float] = {}
     truth: dict[int, np.ndarray] = {}
     with zenoh.open(session_config(zenoh_cfg)) as session:
@@ -139,8 +142,9 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
                     time.sleep(delay)  # the recording's pace
             for imu in frame.imu:
                 pubs["imu"].put(imu.SerializeToString())
-            if source is not None:
-                inputs = source(frame)
+            if source is not None:  # the vehicle's own chain: gravity's up from the IMU as the session would have it
+                ahead = source.ahead(frame)
+                inputs = source(frame, ahead, gravity_at(gravity, frame, ahead))
                 odo = pb.Odometry(T_map_body=pose_from_matrix(inputs.T_odom_body))
                 odo.header.stamp_ns, odo.header.frame_id = frame.stamp_ns, "map"
                 pubs["odometry"].put(odo.SerializeToString())

@@ -84,3 +84,35 @@ def test_a_knock_or_a_free_fall_is_left_out() -> None:
     up = est.update(int(30 * 1e9 / RATE_HZ), np.eye(4), knock)
     assert up is not None and np.allclose(up, [0.0, 0.0, 1.0], atol=1e-6)
     assert est.update(int(31 * 1e9 / RATE_HZ), np.eye(4), np.array([[0.0, 0.0, 0.5]])) is None  # falling
+
+
+def test_imu_gravity_holds_up_without_samples_and_forgets_it_after_samples_that_give_none() -> None:
+    """ImuGravity's rule: samples then a pose give that pose's estimate; a pose with no sample since the last
+    keeps the last up (nothing new was measured); a pose whose samples are all knocks gives None (unknown)."""
+    from macroloc.perception.gravity import ImuGravity
+
+    R = Rotation.from_euler("x", 10, degrees=True).as_matrix()  # body rolled 10 degrees, hovering
+    T = np.eye(4)
+    T[:3, :3] = R
+    true_up_body = R.T @ [0.0, 0.0, 1.0]
+    gravity = ImuGravity()
+    assert gravity.odometry(0, T) is None  # nothing measured yet
+    gravity.imu(np.tile(true_up_body * G_MPS2, (IMU_PER_FRAME, 1)))
+    up = gravity.odometry(33_000_000, T)
+    assert up is not None and _angle_deg(up, true_up_body) < 1e-6
+    assert gravity.odometry(66_000_000, T) is up  # no sample since: the last up
+    gravity.imu(true_up_body * 30.0)  # a knock (above max_specific_force_mps2): left out, none left
+    assert gravity.odometry(99_000_000, T) is None and gravity.up_body is None
+
+
+def test_imu_gravity_keeps_the_newest_samples_and_its_up_across_a_new_time_base() -> None:
+    from macroloc.perception.gravity import ImuGravity
+
+    gravity = ImuGravity(max_samples=4)
+    for k in range(10):
+        gravity.imu([0.0, 0.0, 9.0 + 0.1 * k])
+    assert gravity._n_waiting == 4 and np.allclose(np.concatenate(gravity._accel_body)[:, 2], [9.6, 9.7, 9.8, 9.9])
+    up = gravity.odometry(0, np.eye(4))
+    assert up is not None and np.allclose(up, [0.0, 0.0, 1.0])
+    gravity.new_time_base()
+    assert gravity.up_body is up and gravity._estimator._history == type(gravity._estimator._history)()

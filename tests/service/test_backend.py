@@ -28,11 +28,12 @@ def test_an_absurd_odometry_restarts_the_graph_and_poses_stay_finite(duplex_mode
 
 
 def test_the_configured_gravity_estimate_is_the_backend_s_also_after_a_new_time_base(duplex_model) -> None:
-    """[perception.gravity] reaches the service's up estimate, and a clock reset keeps it."""
+    """[perception.gravity] reaches the service's up estimate (its session's), and a clock reset keeps it."""
     from macroloc.service.config import load_config
 
     cfg = load_config(None, perception={"gravity": {"window_s": 2.0, "max_specific_force_mps2": 12.0}})
     backend = LocalizerBackend.fresh_or_restored(duplex_model, None, cfg)
-    assert backend._gravity.params.window_s == 2.0 and backend._gravity.params.max_specific_force_mps2 == 12.0
+    gravity = backend.session.gravity
+    assert gravity.params.window_s == 2.0 and gravity.params.max_specific_force_mps2 == 12.0
     backend.new_time_base()
-    assert backend._gravity.params.window_s == 2.0
+    assert backend.session.gravity._estimator.params.window_s == 2.0

@@ -96,7 +96,8 @@ def test_depth_points_reach_a_wall_nearer_than_the_chains_search() -> None:
 
 def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_chains() -> None:
     """[perception.*] reach the components that use them: the frame's SGBM, the sides, the plausibility limits
-    and the wall plane in the service's chain and the replay's, the odometry and gravity in the replay's."""
+    and the wall plane in the service's chain and the replay's, the odometry in the replay's (gravity is the
+    session's: test_session)."""
     pytest.importorskip("onnxruntime")
     from macroloc.service.config import load_config
     from macroloc.service.frames import make_perception_pipeline
@@ -120,6 +121,25 @@ def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_ch
         assert chain.matcher.config.num_disparities == 64 and chain.lines.margin == 0.2
         assert chain.plausibility.max_side_angle_deg == 9.0 and chain.wall is not None and chain.wall.iterations == 8
     odometry = VisualOdometry(params=params)
-    assert odometry._params.odometry.tracker == "klt" and odometry._gravity.params.window_s == 2.0
+    assert odometry._params.odometry.tracker == "klt"
     assert odometry._depth.every == 2 and odometry._depth.stride_px == 8 and not odometry._depth.at_keyframes
     assert odometry._inertial.params.calibrate_s == 2.0
+
+
+def test_the_service_s_chain_is_told_which_way_is_down_by_the_session_s_up() -> None:
+    """The service's pipeline hands the chain gravity in the camera frame from the up it is given (the session's,
+    from the IMU), as a replay's chain has it; without one, none."""
+    pytest.importorskip("onnxruntime")
+    from macroloc.common.geometry import forward_stereo_T_body_cam
+    from macroloc.perception.pipeline import Perception
+    from macroloc.service.frames import PerceptionPipeline
+
+    chain = Perception.create(None)
+    given = []
+    process = chain.process
+    chain.process = lambda pair: given.append(pair.gravity_cam) or process(pair)  # type: ignore[method-assign]
+    pipeline = PerceptionPipeline(chain, forward_stereo_T_body_cam())
+    pipeline(_plane_frame(), np.array([0.0, 0.0, 1.0]))
+    pipeline(_plane_frame())
+    assert given[0] is not None and np.allclose(given[0], [0.0, 1.0, 0.0])  # the optical frame's y points down
+    assert given[1] is None

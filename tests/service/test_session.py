@@ -112,3 +112,81 @@ def test_the_snapshot_gives_a_frame_between_keyframes_the_session_s_own_pose() -
             np.testing.assert_allclose(answer.T_cad_body, est.T_cad_body, atol=1e-9)
             compared += 1
     assert compared >= 10 and session.status == "localized"
+
+
+def test_the_service_and_the_replay_give_the_keyframes_the_same_gravity(monkeypatch) -> None:  # noqa: ANN001
+    """The IMU is the session's input in both drivers: the service's IMU and odometry events (service.backend)
+    and the replay's frames with their IMU samples (service.offline.replay_sources.gravity_at) give every
+    keyframe the same up, the specific force less the odometry's acceleration (here a vehicle accelerating
+    along x at 1 m/s^2, rolled 5 degrees: the specific force alone leans 5.8 degrees off up)."""
+    from scipy.spatial.transform import Rotation
+
+    from macroloc.service.inputs import ImuIn
+    from macroloc.service.offline.replay_sources import OdometryStep, gravity_at
+    from macroloc.service.recording import FlightFrame, vector3
+    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+
+    given: list[tuple[Localizer, np.ndarray | None]] = []
+    add_keyframe = Localizer.add_keyframe
+
+    def spy(self, stamp_ns, T_map_body, sightings, up_body=None, **kwargs):  # noqa: ANN001, ANN003, ANN202
+        given.append((self, None if up_body is None else np.array(up_body)))
+        return add_keyframe(self, stamp_ns, T_map_body, sightings, up_body, **kwargs)
+
+    monkeypatch.setattr(Localizer, "add_keyframe", spy)
+    R = Rotation.from_euler("x", 5, degrees=True).as_matrix()
+    accel_odom = np.array([1.0, 0.0, 0.0])
+
+    def T_at(t_s: float) -> np.ndarray:
+        T = _T(0.5 * t_s * t_s)
+        T[:3, :3] = R
+        return T
+
+    model = corridor_model()
+    backend = LocalizerBackend.fresh_or_restored(model, None)
+    session = make_session(model)
+    for k in range(45):
+        stamp_ns = k * 33_000_000
+        imu_ns = [stamp_ns - 33_000_000 + 5_000_000 * (j + 1) for j in range(6)] if k else [stamp_ns]
+        f_body = R.T @ (accel_odom + [0.0, 0.0, 9.81])
+        for s in imu_ns:
+            backend.imu(ImuIn(s, tuple(f_body), (0.0, 0.0, 0.0)))
+        backend.odometry(OdometryIn(stamp_ns, T_at(stamp_ns * 1e-9)))
+        frame = FlightFrame(stamp_ns, pb.StereoFrame(), imu=[pb.Imu(header=pb.Header(stamp_ns=s),
+                                                                    accel_mps2=vector3(f_body)) for s in imu_ns])
+        up = gravity_at(session, frame, OdometryStep(T_at(stamp_ns * 1e-9), None, None, 0.0))
+        session.frame(FrameIn(stamp_ns, T_at(stamp_ns * 1e-9)))
+        assert up is session.up_body
+    service = [up for loc, up in given if loc is backend.localizer]
+    replay = [up for loc, up in given if loc is session.localizer]
+    assert len(service) == len(replay) >= 4 and len(service) + len(replay) == len(given)
+    for a, b in zip(service, replay, strict=True):
+        assert (a is None and b is None) or np.allclose(a, b)
+    true_up = R.T @ [0.0, 0.0, 1.0]
+    last = replay[-1]
+    assert last is not None and np.degrees(np.arccos(np.clip(last @ true_up, -1, 1))) < 0.5
+
+
+def test_a_frame_s_own_up_is_used_instead_of_the_session_s() -> None:
+    """A driver that knows up otherwise (the simulator's truth) hands it with the frame; the session's from the
+    IMU is used only where the frame brings none."""
+    from unittest import mock
+
+    session = make_session(corridor_model())
+    session.imu(np.array([[0.0, 0.0, 9.81]]))
+    session.odometry(0, _T(0.0))
+    own = np.array([0.0, 0.1, 1.0]) / np.linalg.norm([0.0, 0.1, 1.0])
+    with mock.patch.object(Localizer, "add_keyframe", autospec=True, side_effect=Localizer.add_keyframe) as spy:
+        session.frame(FrameIn(0, _T(0.0), up_body=own))
+        session.frame(FrameIn(400_000_000, _T(0.0)))
+    assert np.allclose(spy.call_args_list[0].args[4], own)
+    assert np.allclose(spy.call_args_list[1].args[4], [0.0, 0.0, 1.0])
+
+
+def test_the_configured_gravity_reaches_the_session() -> None:
+    from macroloc.service.config import load_config
+    from macroloc.service.session import session_from_config
+
+    cfg = load_config(None, perception={"gravity": {"window_s": 2.0}})
+    assert session_from_config(cfg, corridor_model()).gravity.params.window_s == 2.0
+    assert session_from_config(cfg.graph, corridor_model()).gravity.params.window_s == 1.0  # [graph] alone

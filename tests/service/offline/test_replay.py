@@ -280,7 +280,8 @@ def test_the_vehicles_recorded_odometry_places_each_frame() -> None:
     a first frame with none before it is the user's error, in one line."""
     from macroloc.graph.errors import UserInputError
     from macroloc.graph.rigid import rot_z
-    from macroloc.service.offline.replay_sources import VehicleOdometry
+    from macroloc.perception.gravity import ImuGravity
+    from macroloc.service.offline.replay_sources import OdometryStep, VehicleOdometry, gravity_at
     from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
     from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
@@ -305,8 +306,11 @@ def test_the_vehicles_recorded_odometry_places_each_frame() -> None:
     with pytest.raises(UserInputError, match="no vehicle odometry"):
         VehicleOdometry()(frame(100, [110]), image, image)  # only a sample after the frame's stamp
     source = VehicleOdometry()
-    assert np.allclose(source(frame(100, [50, 100]), image, image), T_map_body(100))
-    assert source.up_body is not None and np.allclose(source.up_body, T_map_body(100)[:3, :3].T @ [0, 0, 1.0])
+    first = frame(100, [50, 100])
+    T_odom_body = source(first, image, image)
+    assert np.allclose(T_odom_body, T_map_body(100))
+    up_body = gravity_at(ImuGravity(), first, OdometryStep(T_odom_body, None, None, 0.0))  # as the session takes it
+    assert up_body is not None and np.allclose(up_body, T_map_body(100)[:3, :3].T @ [0, 0, 1.0])
     assert np.allclose(source(frame(200, []), image, image), T_map_body(100))  # none since: the last one
     assert np.allclose(source(frame(300, [250, 290, 310]), image, image), T_map_body(290))  # 310: after it
 
