@@ -48,7 +48,7 @@ class DemoParams:
     timeout_s: float = 150.0  # simulated
     min_goal_distance_m: float = 10.0
     max_goal_distance_m: float = 25.0
-    observations: str = "truth"  # truth: noisy ground truth; perception: rendered frames -> perception chain
+    observations: str = "perception"  # perception: rendered frames -> the service's chain; truth: noisy ground truth
     camera_rate_hz: float = 5.0  # perception mode: frames per simulated second (the loop waits for each pose)
     detector_model: Path | None = None  # perception mode: None = the building's bundled adapted one, if any
     record: Path | None = None  # perception mode: write the flight (service.recording) for `macroloc replay`

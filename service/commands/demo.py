@@ -15,9 +15,11 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("macroloc-demo.png"), "--out", help="Picture of the flight (PNG); with several "
                                  "seeds, one per seed (NAME-seedN.png)."),
         speedup: float = typer.Option(1.0, "--speedup", help="Simulated seconds per wall-clock second."),
-        observations: str = typer.Option("truth", "--observations", help="truth: the doors and windows in view "
-                                         "from the model's ground truth with noise; perception: rendered stereo "
-                                         "frames through the service's perception chain (slow on a CPU)."),
+        observations: str = typer.Option("perception", "--observations", help="perception: the simulated "
+                                         "vehicle renders its stereo camera and the service's perception chain "
+                                         "finds the doors and windows (about a minute a flight on 2 cores); "
+                                         "truth: no camera, the doors and windows in view from the model's "
+                                         "ground truth with noise and drop-outs (faster; labelled in the output)."),
         detector: Path | None = typer.Option(None, "--detector", help="With --observations perception: the "
                                              "detector (ONNX beside its JSON sidecar). Default: the one adapted to "
                                              "the building and shipped beside it (data/buildings/NAME_detector/), "
@@ -49,9 +51,10 @@ def register(app: typer.Typer) -> None:
         Table 2 row: localization time, error at the goal, and that error as % of the path length.
 
         The macroloc service and the vehicle agent run on separate Zenoh sessions over loopback TCP; the
-        vehicle flies on the service's pose estimates. By default the doors and windows in view come from the
-        model's ground truth with noise and drop-outs (labelled in the output); --observations perception renders
-        the stereo camera and runs the perception chain in the service instead.
+        vehicle flies on the service's pose estimates. By default the vehicle renders its stereo camera and the
+        service's perception chain finds the doors and windows in the frames, as with a real camera;
+        --observations truth feeds the model's ground truth with noise and drop-outs instead (labelled in the
+        output).
         """
         import sys
 

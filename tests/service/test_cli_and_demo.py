@@ -49,11 +49,12 @@ def test_the_demo_runs_with_a_config_file_under_its_own_settings(tmp_path: Path)
     cfg = tmp_path / "c.toml"
     cfg.write_text('[service]\nvehicle = "from-file"\nperception = true\n\n[graph]\nstorey_hint = "Level 9"\n\n'
                    '[graph.judge]\nsurface_margin = 0.2\n\n[perception]\ndetector_model = "/x/d.onnx"\n')
-    got = demo_config(DEFAULT_BUILDING, DemoParams(vehicle="demo", config=cfg), 7447)
+    got = demo_config(DEFAULT_BUILDING, DemoParams(vehicle="demo", config=cfg, observations="truth"), 7447)
     assert got.graph.judge.surface_margin == 0.2 and got.graph.storey_hint == "Level 9"
     assert got.service.vehicle == "demo" and got.service.perception is False  # truth observations: no chain
     assert got.service.building == DEFAULT_BUILDING and str(got.perception.detector_model) == "/x/d.onnx"
-    plain = demo_config(DEFAULT_BUILDING, DemoParams(observations="perception"), 7447)
+    plain = demo_config(DEFAULT_BUILDING, DemoParams(), 7447)  # the default: through the perception chain
+    assert plain.service.perception is True
     assert plain.graph.judge.surface_margin == 0.3 and plain.graph.storey_hint  # the take-off storey
     assert plain.perception.detector_model is not None  # the building's own detector
     bad = tmp_path / "bad.toml"
@@ -98,7 +99,7 @@ def test_demo_localizes_and_reaches_the_goal(seed: int, tmp_path: Path) -> None:
     from macroloc.service.planning import Planner
     from macroloc.sim.demo import DemoParams, plot_flight, run_demo
 
-    result = run_demo(params=DemoParams(seed=seed, speedup=3.0))
+    result = run_demo(params=DemoParams(seed=seed, speedup=3.0, observations="truth"))
     assert result.localized and result.reached
     assert result.goal_error_m < 0.3 and result.path_length_m > 5.0
     planner = Planner.for_building(Path(__file__).resolve().parents[2] / "data/buildings/office_a.ifc", 0.2, 0.35, 1.4)
@@ -184,7 +185,7 @@ def test_lockstep_flies_the_same_flight_on_an_idle_and_a_loaded_machine() -> Non
     flight to the digit, once as it is and once with a busy thread beside it."""
     from macroloc.sim.demo import DemoParams, run_demo
 
-    params = DemoParams(seed=1, timeout_s=4.0, lockstep=True)
+    params = DemoParams(seed=1, timeout_s=4.0, lockstep=True, observations="truth")
     first = run_demo(params=params)
     stop = threading.Event()
     load = threading.Thread(target=_busy, args=(stop,), daemon=True)
@@ -201,13 +202,14 @@ def test_lockstep_flies_the_same_flight_on_an_idle_and_a_loaded_machine() -> Non
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_lockstep_demo_repeats_to_the_digit(seed: int) -> None:
+@pytest.mark.parametrize(("observations", "seed"), [("truth", 0), ("truth", 1), ("truth", 2), ("perception", 0)])
+def test_lockstep_demo_repeats_to_the_digit(observations: str, seed: int) -> None:
     from dataclasses import asdict
 
     from macroloc.sim.demo import DemoParams, run_demo
 
-    runs = [asdict(run_demo(params=DemoParams(seed=seed, lockstep=True))) for _ in range(2)]
+    runs = [asdict(run_demo(params=DemoParams(seed=seed, lockstep=True, observations=observations)))
+            for _ in range(2)]
     for run in runs:
         run.pop("wall_time_s")
     assert runs[0] == runs[1]

@@ -206,7 +206,8 @@ def test_the_demo_can_be_watched_live_through_listen(tmp_path) -> None:
     poses: list[Any] = []
     result: dict[str, Any] = {}
     demo = threading.Thread(target=lambda: result.setdefault("r", run_demo(params=DemoParams(
-        seed=0, speedup=1.0, vehicle="drone1", listen=(f"tcp/127.0.0.1:{port}",), ros=True))), daemon=True)
+        seed=0, speedup=1.0, vehicle="drone1", listen=(f"tcp/127.0.0.1:{port}",), ros=True, observations="truth"))),
+        daemon=True)
     demo.start()
     from tests.service.helpers import loopback
 
