@@ -298,7 +298,7 @@ def test_the_service_takes_the_configured_perception_parameters(office_path, tmp
         service = build_service(cfg, session)
     assert service.params.place.min_inliers == 55 and service.places.config == service.params.place
     assert service.params.depth.depth_image_stride_px == 12
-    assert service.backend._gravity.params.window_s == 1.5
+    assert service.backend.session.gravity.params.window_s == 1.5
 
 
 def test_maps_accumulate_across_restarts(office_path, office_model, start_pose, tmp_path) -> None:
