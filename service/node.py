@@ -467,9 +467,9 @@ class LocalizationService:
         if goal is None:
             msg = pb.Waypoints(error="the query's payload must be a macroloc.v1.Goal")
         else:
-            start = goal.start_cad
-            if start is None and self.backend.last is not None and self.backend.last.T_cad_body is not None:
-                start = self.backend.last.T_cad_body[:3, 3]
+            start, last = goal.start_cad, self.backend.last  # read once: the worker replaces it meanwhile
+            if start is None and last is not None and last.T_cad_body is not None:
+                start = last.T_cad_body[:3, 3]
             msg = self._plan(goal.goal, start) if start is not None else \
                 pb.Waypoints(error="not localized yet: give Goal.start_cad")
         query.reply(query.key_expr, msg.SerializeToString(), encoding=PROTOBUF)

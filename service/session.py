@@ -102,7 +102,8 @@ class LocalizationSession:
         self.fresh = fresh or _fresh
         self.rule = rule or KeyframeRule()
         self.covariance = covariance
-        self.last: Estimate | None = None  # the newest estimate (a late keyframe does not replace a newer pose)
+        self.last: Estimate | None = None  # the newest estimate by stamp (a late keyframe moves it: `_remember`)
+        self._T_odom_last: np.ndarray | None = None  # its odometry pose
         self.keyframe = False  # whether the last frame became a keyframe
         self.restarts = 0  # times the pose graph failed (indeterminate, non-finite) and started afresh
         self._T_kf: np.ndarray | None = None  # the last keyframe's odometry pose
@@ -182,7 +183,7 @@ class LocalizationSession:
             return self._restart(f.stamp_ns, "the estimate is not finite")
         self._kf_covariance = est.covariance
         self.snapshot = PoseSnapshot(self.localizer.track(f.stamp_ns, f.T_odom_body), f.T_odom_body, est.covariance)
-        return self._remember(est)
+        return self._remember(est, f.T_odom_body, graph_changed=True)
 
     def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
         self.keyframe = False
@@ -191,7 +192,7 @@ class LocalizationSession:
             return self._restart(stamp_ns, "the tracked pose is not finite")
         if est.covariance is None:  # the last keyframe's: the odometry since adds little over a keyframe interval
             est.covariance = self._kf_covariance
-        return self._remember(est)
+        return self._remember(est, T_odom_body)
 
     def _restart(self, stamp_ns: int, why: str) -> Estimate:
         """The pose graph cannot go on: a fresh one (this flight's landmarks are lost; a stored map's place
@@ -201,12 +202,21 @@ class LocalizationSession:
         self.localizer = self.fresh(self.localizer)
         self._T_kf, self._stamp_kf_ns, self._kf_covariance, self._dead_reckoned_s = None, None, None, 0.0
         self.snapshot = None
-        self.last = Estimate(stamp_ns, "lost", np.eye(4))
+        self.last, self._T_odom_last = Estimate(stamp_ns, "lost", np.eye(4)), None
         return self.last
 
-    def _remember(self, est: Estimate) -> Estimate:
+    def _remember(self, est: Estimate, T_odom_body: np.ndarray, graph_changed: bool = False) -> Estimate:
+        """`last` is the newest estimate by stamp. A keyframe older than it (a stereo frame perceived after newer
+        odometry came) does not replace it, but moves it: the newest pose is tracked again on the graph the
+        keyframe changed, so that what is read of `last` (the plan's start, the saved map's pose) is localized as
+        soon as the graph is."""
         if self.last is None or est.stamp_ns >= self.last.stamp_ns:
-            self.last = est
+            self.last, self._T_odom_last = est, T_odom_body
+        elif graph_changed and self._T_odom_last is not None:
+            newest = self.localizer.track(self.last.stamp_ns, self._T_odom_last)
+            if _finite(newest):
+                newest.covariance = newest.covariance if newest.covariance is not None else self._kf_covariance
+                self.last = newest
         return est
 
 

@@ -190,3 +190,28 @@ def test_the_configured_gravity_reaches_the_session() -> None:
     cfg = load_config(None, perception={"gravity": {"window_s": 2.0}})
     assert session_from_config(cfg, corridor_model()).gravity.params.window_s == 2.0
     assert session_from_config(cfg.graph, corridor_model()).gravity.params.window_s == 1.0  # [graph] alone
+
+
+def test_a_keyframe_older_than_the_newest_pose_moves_it() -> None:
+    """In the service a stereo frame is perceived after newer odometry samples were handled: its keyframe (the
+    older stamp) may localize the graph, and the newest pose (`last`: the plan's start, the saved map's pose) is
+    then tracked again on that graph instead of staying as it was computed before."""
+    from tests.graph.scenes import sightings_from, straight_flight
+
+    model = corridor_model()
+    session = make_session(model, registrar=model_registrar(model))
+    poses = straight_flight(30)
+    localized_at = None
+    for k, T in enumerate(poses):
+        T_next = poses[min(k + 1, len(poses) - 1)]
+        session.frame(FrameIn(k * 100_000_000 + 50_000_000, T_next))  # the newer odometry, handled first
+        est = session.frame(FrameIn(k * 100_000_000, T, sightings_from(model, T)))  # the older frame's sightings
+        if est.status == "localized":
+            localized_at = k
+            break
+    assert localized_at is not None and session.keyframe
+    last = session.last
+    assert last is not None and last.stamp_ns == localized_at * 100_000_000 + 50_000_000
+    assert last.status == "localized" and last.T_cad_body is not None
+    expected = est.T_cad_body @ np.linalg.inv(poses[localized_at]) @ poses[min(localized_at + 1, len(poses) - 1)]
+    assert np.allclose(last.T_cad_body, expected, atol=1e-6)  # moved on by the odometry since the keyframe
