@@ -187,12 +187,18 @@ class LocalizationSession:
 
     def _track(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
         self.keyframe = False
-        est = self.localizer.track(stamp_ns, T_odom_body, sightings)
+        est = self._tracked(stamp_ns, T_odom_body, sightings)
         if not _finite(est):
             return self._restart(stamp_ns, "the tracked pose is not finite")
-        if est.covariance is None:  # the last keyframe's: the odometry since adds little over a keyframe interval
-            est.covariance = self._kf_covariance
         return self._remember(est, T_odom_body)
+
+    def _tracked(self, stamp_ns: int, T_odom_body: np.ndarray, sightings: list[Sighting]) -> Estimate:
+        """The last keyframe's estimate moved by the odometry to T_odom_body, with the keyframe's covariance where
+        the localizer gives none (the odometry since adds little over a keyframe interval)."""
+        est = self.localizer.track(stamp_ns, T_odom_body, sightings)
+        if est.covariance is None:
+            est.covariance = self._kf_covariance
+        return est
 
     def _restart(self, stamp_ns: int, why: str) -> Estimate:
         """The pose graph cannot go on: a fresh one (this flight's landmarks are lost; a stored map's place
@@ -213,9 +219,8 @@ class LocalizationSession:
         if self.last is None or est.stamp_ns >= self.last.stamp_ns:
             self.last, self._T_odom_last = est, T_odom_body
         elif graph_changed and self._T_odom_last is not None:
-            newest = self.localizer.track(self.last.stamp_ns, self._T_odom_last)
+            newest = self._tracked(self.last.stamp_ns, self._T_odom_last, [])
             if _finite(newest):
-                newest.covariance = newest.covariance if newest.covariance is not None else self._kf_covariance
                 self.last = newest
         return est
 

@@ -336,7 +336,7 @@ class TruthFeaturesWithVisualOdometry:
         from macroloc.perception.params import PerceptionParams
         from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
 
-        p = params or PerceptionParams()
+        self.params = p = params or PerceptionParams()
         self.truth = TruthSource(noise, seed)
         self.odometry = VisualOdometry(FrameDisparity(SgbmMatcher(p.stereo), keep=KEPT_MATCHES), p)
         self.runs_ahead = not p.odometry.rekey_at_session_keyframes  # re-keyed by the session: in its turn

@@ -122,7 +122,7 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
     keys = Keys(vehicle)
     result = ZenohReplayResult(odometry="source" if source is not None else "none")
     simulated = TruthSource(seed=seed)  # the vehicle's VIO, for a simulated recording without odometry
-    perception = getattr(source, "params", None)  # PerceptionSource's [perception] (the defaults otherwise)
+    perception = getattr(source, "params", None)  # the source's [perception] (truth: the defaults)
     gravity = ImuGravity(None if perception is None else perception.gravity)
     sent_at: dict[int, float] = {}
     truth: dict[int, np.ndarray] = {}
