@@ -19,7 +19,7 @@ import numpy as np
 from macroloc.graph.building_assets import BuildingSolids, Space
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.features import BuildingModel
-from macroloc.service.planning_grid import ObstacleLayer, OccupancyGrid, inflate, section_grid
+from macroloc.service.planning_grid import ObstacleLayer, OccupancyGrid, inflate, outside_cells, section_grid
 
 log = logging.getLogger(__name__)
 
@@ -188,6 +188,7 @@ class Planner:
         self.flight_height_m = flight_height_m
         self.goals = GoalResolver(model, solids.spaces)
         self._grids: dict[float, tuple[OccupancyGrid, ObstacleLayer]] = {}
+        self._outside: dict[float, np.ndarray] = {}  # per storey: its grid's cells outside the building
         v = solids.vertices_cad
         self._box_cad = (v.min(axis=0), v.max(axis=0)) if len(v) else None  # the solids' box, CAD frame, m
 
@@ -217,16 +218,25 @@ class Planner:
         if floor not in self._grids:
             grid = section_grid(self.solids, floor + self.flight_height_m, self.cell_m)
             self._grids[floor] = (grid, ObstacleLayer(grid.shape))
+            self._outside[floor] = outside_cells(grid, [f.corners_cad for f in self.model.features])
         return self._grids[floor]
+
+    def outside(self, z_cad: float) -> np.ndarray:
+        """(H, W) bool: the cells of the storey's grid (at height z_cad) outside the building (`outside_cells`)."""
+        self.grid(z_cad)
+        return self._outside[self.floor_z(z_cad)]
 
     def add_obstacle_points(self, points_cad: np.ndarray, z_cad: float) -> int:
         """Depth points (N, 3) in the CAD frame seen from height z_cad: obstacles the model may lack."""
         grid, layer = self.grid(z_cad)
         return layer.add_points(grid, points_cad)
 
-    def free_cells(self, z_cad: float) -> tuple[OccupancyGrid, np.ndarray]:
+    def free_cells(self, z_cad: float, outdoors: bool = False) -> tuple[OccupancyGrid, np.ndarray]:
+        """The storey's grid and its free cells (the vehicle's radius kept from every obstacle): inside the
+        building only, unless `outdoors`."""
         grid, layer = self.grid(z_cad)
-        return grid, inflate(grid.occupied | layer.occupied(), self.vehicle_radius_m, self.cell_m)
+        blocked = grid.occupied | layer.occupied() | (False if outdoors else self.outside(z_cad))
+        return grid, inflate(blocked, self.vehicle_radius_m, self.cell_m)
 
     def resolve(self, goal: GoalSpec, start_cad: np.ndarray) -> tuple[np.ndarray, str]:
         """The goal's CAD point and a description of it."""
@@ -247,6 +257,8 @@ class Planner:
         if not self.inside(target_cad):
             raise PlanningError(f"goal {np.round(target_cad, 1).tolist()} lies outside the building model")
         grid, free = self.free_cells(start_cad[2])
+        if self.outside(start_cad[2])[grid.cell_of(start_cad)]:  # a start outside: the way in may lead outside
+            grid, free = self.free_cells(start_cad[2], outdoors=True)
         if not grid.contains(target_cad):
             raise PlanningError(f"goal {np.round(target_cad, 1).tolist()} lies outside this storey's plan")
         start_rc = nearest_free(free, grid.cell_of(start_cad))

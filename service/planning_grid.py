@@ -6,6 +6,9 @@ of the CAD frame (metres, z up); its centre is `cell_centre_cad`. Everything her
 The static layer comes from the building's solids (walls, slabs, stairs, railings, furniture, …) cut by the
 horizontal plane z = storey elevation + flight height. Doors, windows, openings and spaces are left out, and
 ifcopenshell subtracts the openings from the walls, so doorways are gaps in the section: a drone passes.
+Outside the building is not planned through (`outside_cells`): an exterior door is a way in, not a short cut
+along the façade, where the model knows no floor and the vehicle would be localized by the ground's depth
+(docs/measurements.md, "The planner keeps the vehicle inside the building").
 The dynamic layer counts depth points (CAD frame) inside a height band around the flight height: a 2D
 projection of a voxel grid, which is all a 2D planner consumes: 0.9 ms per frame of 18,500 depth points
 against 11 ms for an OctoMap with ray casting (pyoctomap, 13x; `python -m bench.bench_obstacles`). It does not
@@ -79,6 +82,29 @@ def section_grid(solids: BuildingSolids, z_cad: float, cell_m: float, margin_m: 
         for a, b in pts:
             cv2.line(occupied, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), 1, 1, cv2.LINE_8, 4)
     return OccupancyGrid(occupied.astype(bool), lo, cell_m, z_cad)
+
+
+def outside_cells(grid: OccupancyGrid, openings_cad: list[np.ndarray]) -> np.ndarray:
+    """(H, W) bool: the grid's cells outside the building, those reachable from the grid's border (4-connected)
+    without crossing the section's walls or a door's or window's opening. `openings_cad`: each opening's corners
+    (K, 3), CAD frame; those whose height spans the grid's are closed by a line across them (two cells thick: the
+    section's wall faces and the opening's plane need not meet on one cell)."""
+    import cv2
+    from scipy import ndimage
+
+    closed = grid.occupied.astype(np.uint8)
+    for corners in openings_cad:
+        c = np.asarray(corners, float).reshape(-1, 3)
+        if not c[:, 2].min() <= grid.z_cad <= c[:, 2].max():
+            continue
+        xy = c[:, :2]
+        far = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+        a, b = np.unravel_index(int(np.argmax(far)), far.shape)  # the opening's two ends along its wall
+        ends = np.round((xy[[a, b]] - grid.origin_xy_cad) / grid.cell_m * 16 - 8).astype(np.int32)
+        cv2.line(closed, (int(ends[0, 0]), int(ends[0, 1])), (int(ends[1, 0]), int(ends[1, 1])), 1, 2, cv2.LINE_8, 4)
+    labels, _ = ndimage.label(closed == 0)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    return np.isin(labels, border[border > 0])
 
 
 class ObstacleLayer:

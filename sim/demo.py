@@ -122,16 +122,19 @@ def choose_route(planner: Planner, seed: int, params: DemoParams) -> tuple[str, 
 
 def exploration_route(planner: Planner, start_xyz: np.ndarray, seed: int, length_m: float = 40.0) -> np.ndarray:
     """(N, 3) CAD points of a seeded collision-free route from the take-off point through the storey's free
-    space: legs of 6-15 m to random free cells, planned by the service's own A* planner."""
+    space: legs of 6-15 m to random free cells inside the building, planned by the service's own A* planner (the
+    cells are drawn from the grid's free cells outdoors too, those outside skipped: a seed explores as it did
+    before the planner kept inside)."""
     from macroloc.service.planning import GoalSpec, PlanningError
 
     rng = np.random.default_rng([seed, 0xE4])
-    grid, free = planner.free_cells(start_xyz[2])
+    grid, free = planner.free_cells(start_xyz[2], outdoors=True)
+    outside = planner.outside(start_xyz[2])
     cells = np.argwhere(free)
     route, here, total = [np.asarray(start_xyz, float)[None]], np.asarray(start_xyz, float), 0.0
     for _ in range(40):
         target = grid.centre_cad(cells[rng.integers(len(cells))][None])[0]
-        if not 6.0 <= float(np.linalg.norm((target - here)[:2])) <= 15.0:
+        if outside[grid.cell_of(target)] or not 6.0 <= float(np.linalg.norm((target - here)[:2])) <= 15.0:
             continue
         try:
             leg = planner.plan(here, GoalSpec(position_cad=target))

@@ -106,22 +106,39 @@ def test_goals_and_starts_outside_the_model_are_refused(planner: Planner) -> Non
     assert len(planner.plan(start, GoalSpec(position_cad=start + [0.5, 0.0, 0.0])).points_cad) >= 2
 
 
+def _block_leg(planner: Planner, plan, leg: int, z_cad: float) -> np.ndarray:  # noqa: ANN001 - Plan
+    """A wall of points 3 m wide across the plan's leg, at flight height (an obstacle the model lacks): its middle."""
+    a, b = plan.points_cad[leg], plan.points_cad[leg + 1]
+    mid = a + 0.5 * (b - a)
+    normal = np.array([-(b - a)[1], (b - a)[0], 0.0]) / np.linalg.norm((b - a)[:2])
+    wall = mid + np.linspace(-1.5, 1.5, 200)[:, None] * normal
+    assert planner.add_obstacle_points(np.repeat(wall, 5, axis=0), z_cad) == 1000
+    return mid
+
+
 def test_seen_obstacles_change_the_plan(office_path) -> None:
     planner = Planner.for_building(office_path, cell_m=0.2, vehicle_radius_m=0.35, flight_height_m=1.4)
     start = _start(planner, "121")
     goal = GoalSpec(space_name="MENS RR")
     before = planner.plan(start, goal)
-    # a wall of points across the first leg of the path, at flight height (an obstacle the model lacks)
-    a, b = before.points_cad[0], before.points_cad[1]
-    mid = a + 0.5 * (b - a)
-    normal = np.array([-(b - a)[1], (b - a)[0], 0.0]) / np.linalg.norm((b - a)[:2])
-    wall = mid + np.linspace(-1.5, 1.5, 200)[:, None] * normal
-    assert planner.add_obstacle_points(np.repeat(wall, 5, axis=0), start[2]) == 1000
+    mid = _block_leg(planner, before, 1, start[2])  # the corridor's leg: a way round inside is longer
     grid, free = planner.free_cells(start[2])
     assert not free[grid.cell_of(mid)]
     after = planner.plan(start, goal)
+    assert after.length_m > before.length_m + 1.0
     cells = [grid.cell_of(p) for p in after.points_cad]
     assert all(line_of_sight(free, p, q) for p, q in zip(cells, cells[1:], strict=False))
+
+
+def test_a_room_whose_door_is_blocked_has_no_way_out_through_a_window(office_path) -> None:
+    """Room 121's first leg blocked: the only way round leaves the building (a window or an exterior door); the
+    plan is refused rather than flown outside."""
+    planner = Planner.for_building(office_path, cell_m=0.2, vehicle_radius_m=0.35, flight_height_m=1.4)
+    start = _start(planner, "121")
+    goal = GoalSpec(space_name="MENS RR")
+    _block_leg(planner, planner.plan(start, goal), 0, start[2])
+    with pytest.raises(PlanningError, match="no free path"):
+        planner.plan(start, goal)
 
 
 def test_lines_of_sight_pass_doorways_not_the_walls_beside_them(fzk_path) -> None:
@@ -186,3 +203,44 @@ def test_the_model_s_triangles_come_in_the_elements_order(fzk_path) -> None:
     assert len(ids) > 10 and ids == sorted(ids) == [element_id for element_id, _, _ in again]
     assert all(np.array_equal(v1, v2) and np.array_equal(f1, f2)
                for (_, v1, f1), (_, v2, f2) in zip(first, again, strict=True))
+
+
+def test_outside_is_what_the_border_reaches_without_passing_a_wall_or_an_opening() -> None:
+    """A room of walls with a door gap in its south wall: without the door given, the outside leaks in through
+    the gap; with it, the room is inside and only the ring around it is outside."""
+    from macroloc.service.planning_grid import OccupancyGrid, outside_cells
+
+    occupied = np.zeros((30, 30), bool)
+    occupied[5, 5:25] = occupied[24, 5:25] = occupied[5:25, 5] = occupied[5:25, 24] = True
+    occupied[5, 12:16] = False  # the door: x 1.2-1.6 m (cells 12-15) in the wall at y = 0.5 m
+    grid = OccupancyGrid(occupied, np.zeros(2), 0.1, 1.4)
+    door = np.array([[1.2, 0.55, 0.0], [1.6, 0.55, 0.0], [1.6, 0.55, 2.1], [1.2, 0.55, 2.1]])
+    leaked = outside_cells(grid, [])
+    assert leaked[15, 15]  # the room's middle, reached through the door gap
+    outside = outside_cells(grid, [door])
+    assert not outside[6:24, 6:24].any() and outside[0, 0] and outside[29, 29] and outside[2, 14]
+    assert outside_cells(grid, [door + [0.0, 0.0, 3.0]])[15, 15]  # an opening above the cut closes nothing
+
+
+def test_plans_stay_inside_the_building(planner: Planner) -> None:
+    """From Office_A's south-east corner to the CHAPLAIN room (the demo's seed 5 flew it): the shortest way leaves
+    through an exterior door and runs along the south façade, where the model knows no floor; the plan keeps
+    inside. Outdoors allowed, the path goes outside (so the test would see a plan that leaves)."""
+    start = np.array([48.5, -34.5, 1.4])
+    grid = planner.grid(start[2])[0]
+    outside = planner.outside(start[2])
+
+    def cells_along(points: np.ndarray) -> list[tuple[int, int]]:
+        out = []
+        for a, b in zip(points, points[1:], strict=False):
+            for t in np.linspace(0.0, 1.0, max(2, int(np.linalg.norm(b - a) / 0.05))):
+                out.append(grid.cell_of(a + t * (b - a)))
+        return out
+
+    plan = planner.plan(start, GoalSpec(space_name="129"))
+    assert not any(outside[c] for c in cells_along(plan.points_cad))
+    grid_o, free_o = planner.free_cells(start[2], outdoors=True)
+    from macroloc.service.planning import astar
+
+    path = astar(free_o, grid_o.cell_of(start), grid_o.cell_of(planner.goals.space("129", start[:2])))
+    assert any(outside[c] for c in path)
