@@ -4,14 +4,14 @@ Per keyframe: predict the pose from odometry, level it with gravity, add the sig
 as landmark factors (re-observations or new landmarks), update iSAM2 with the new factors only, register the
 map to the building model while exploring, link newly seen landmarks to their CAD features once localized and fit
 the keyframe's depth to the walls and the floor while the pose is held to the model (or, where it is not, find it
-again by the walls), and return the pose in the CAD frame with its status.
+again by the walls or the doors), and return the pose in the CAD frame with its status.
 
 Its components: the landmark map (graph.landmark_map: sightings into landmarks), the anchoring (graph.anchoring:
 registration attempts through the registrar, graph.registrar, and keyframes placed in a stored map), the
 landmarks' links to the model (graph.cad_links), the keyframes' fits to the walls (graph.surface_fit), the recent
-keyframes' depth points (graph.depth_window), the walls' recovery of a pose no longer held (graph.recovery) and
-far sightings (graph.far_window: bearings of doors beyond the
-sighting range, and the resection from them), and the judge (graph.judge; a null one without the model's
+keyframes' depth points (graph.depth_window), the walls' and the doors' recovery of a pose no longer held
+(graph.recovery) and far sightings (graph.far_window: bearings of doors beyond the sighting range, and the
+resection from them), and the judge (graph.judge; a null one without the model's
 surfaces), which weighs the registrar's candidate poses against the model's walls and the lines of sight through
 them (graph.surfaces).
 
@@ -36,7 +36,7 @@ from macroloc.graph.landmark_map import LandmarkMap
 from macroloc.graph.mapstore import KeyframeView, StoredLandmark, StoredMap
 from macroloc.graph.params import LocalizerParams, RegistrationParams
 from macroloc.graph.posegraph import PoseGraph
-from macroloc.graph.recovery import NullRecovery, WallRecovery
+from macroloc.graph.recovery import DoorRecovery, NullRecovery, WallRecovery
 from macroloc.graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
 from macroloc.graph.relocalize import KnownRect
 from macroloc.graph.rigid import apply, levelled
@@ -98,6 +98,8 @@ class Localizer:
                                    self.depth, self.far, self.map, self.cad_links, self.fitter)
         self.recovery: WallRecovery | NullRecovery = NullRecovery() if surfaces is None or judge is None else \
             WallRecovery(p.recovery, graph, surfaces, judge, self.depth)
+        self.door_recovery = DoorRecovery(p.recovery, graph, self.map, self.cad_links.links, self.features,
+                                          p.anchor.cad_link_m, p.registration.min_sightings_to_register)
         self.keyframe_stamps_ns: list[int] = []
         self.views: dict[int, KeyframeView] = {}  # keyframe -> what place recognition keeps of it, where given
         self._T_odom_prev: np.ndarray | None = None
@@ -133,11 +135,12 @@ class Localizer:
         elif self.graph.has_anchor:
             held = self.anchoring.held()
             self.recovery.keyframe(i, dead_reckoned_s, held)
+            self.door_recovery.keyframe(i, dead_reckoned_s, held)
             if held:  # local associations only where the pose is known within their reach
                 self.cad_links.link_new(self.map.landmarks, stamp_ns)
                 self.fitter.fit_newest()
-            else:
-                self.recovery.attempt(stamp_ns, self.params.registration.surface_retry_s)
+            elif not self.recovery.attempt(stamp_ns, self.params.registration.surface_retry_s):
+                self.door_recovery.attempt(stamp_ns, self.params.registration.surface_retry_s)
         self.anchoring.update_status(stamp_ns)
         return self._estimate(stamp_ns, i, with_covariance)
 

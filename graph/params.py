@@ -152,7 +152,7 @@ class StatusParams:
 
 @dataclass(frozen=True)
 class RecoveryParams:
-    """A pose no longer held to the model found again by the walls (graph.recovery)."""
+    """A pose no longer held to the model found again by the walls or the doors (graph.recovery)."""
 
     recovery: bool = True
     recovery_step_m: float = 0.5  # candidate shifts on a grid this fine, within 3 sigma of the pose: the walls' fit
@@ -160,7 +160,10 @@ class RecoveryParams:
     #                               nearest grid point (at most 0.35 m away)
     recovery_max_m: float = 4.0  # ... and within this
     recovery_candidates: int = 8  # the shifts that put most points on the walls, at least recovery_apart_m apart, are
-    recovery_apart_m: float = 1.0  # fitted and judged (JudgeParams.surface_screen_top, the judge's own cut)
+    recovery_apart_m: float = 1.0  # fitted and judged (JudgeParams.surface_screen_top, the judge's own cut); the
+    #                                doors' shift is refused where one this far from it puts as many on the model
+    recovery_min_doors: int = 2  # the doors' shift puts this many landmarks on the model's features, or is not
+    #                              taken: one is the false door by a model door that holding keeps out
     recovery_sigma_m: float = 0.15  # the pose found: its sigmas in the CAD frame (a placement's, AnchorParams)
     recovery_sigma_deg: float = 2.0
 

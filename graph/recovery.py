@@ -9,6 +9,14 @@ where it fits them and every other, distinct candidate scores `surface_margin` l
 along it fit alike and none is taken. The pose taken enters the graph as a measured T_cad_body of the newest
 keyframe; its sigma is then the measurement's, the pose is held again, and fits and links resume.
 
+The doors find it too (`DoorRecovery`), where the walls do not (no depth, or walls that cannot single it out): the
+landmarks first mapped since the pose was last held and seen at least twice are moved by one horizontal shift of the
+pose, within 3 sigma of it; a shift is taken where it puts two of them or more (`recovery_min_doors`) each within
+`cad_link_m` of a same-type model feature (each feature once), and no shift `recovery_apart_m` away from it puts as
+many. One landmark alone moves nothing: a false detection near a model door is what holding the pose keeps out
+(graph.anchoring, `held`), and two such that agree on one shift are far rarer. Doors alike at equal spacing (a
+corridor's row) fit several shifts alike, and none is taken.
+
 Frames: map (the flight's odometry frame, z up), body, cad (the model's). Metres.
 """
 
@@ -19,7 +27,9 @@ import logging
 import numpy as np
 
 from macroloc.graph.depth_window import DepthWindow
+from macroloc.graph.features import MacroFeature
 from macroloc.graph.judge import SurfaceJudge
+from macroloc.graph.landmark_map import LandmarkMap
 from macroloc.graph.params import RecoveryParams
 from macroloc.graph.posegraph import PoseGraph
 from macroloc.graph.relocalize import Alignment
@@ -27,6 +37,13 @@ from macroloc.graph.rigid import apply, make_T
 from macroloc.graph.surfaces import SurfaceIndex
 
 log = logging.getLogger(__name__)
+
+
+def place_found(graph: PoseGraph, params: RecoveryParams, i: int, T_cad_body: np.ndarray) -> None:
+    """The pose found enters the graph as a measured T_cad_body of keyframe i (`recovery_sigma_m`, `_deg`)."""
+    sigmas = np.r_[np.full(3, np.radians(params.recovery_sigma_deg)), np.full(3, params.recovery_sigma_m)]  # rot; trans
+    graph.add_cad_pose(i, T_cad_body, np.diag(sigmas**-2.0))
+    graph.update(extra_iterations=2)
 
 
 class WallRecovery:
@@ -79,10 +96,7 @@ class WallRecovery:
         moved_m = float(np.linalg.norm((choice.T_cad_map @ T_map_body)[:2, 3] - (T_cad_map @ T_map_body)[:2, 3]))
         log.info("the walls found the pose again: moved %.2f m (%d points since keyframe %d)", moved_m,
                  len(points_map), self._consistent_from)
-        p = self.params
-        sigmas = np.r_[np.full(3, np.radians(p.recovery_sigma_deg)), np.full(3, p.recovery_sigma_m)]  # [rot; trans]
-        self.graph.add_cad_pose(i, choice.T_cad_map @ T_map_body, np.diag(sigmas**-2.0))
-        self.graph.update(extra_iterations=2)
+        place_found(self.graph, self.params, i, choice.T_cad_map @ T_map_body)
         self.recoveries.append((stamp_ns, moved_m))
         return True
 
@@ -118,3 +132,100 @@ class NullRecovery:
 
     def attempt(self, stamp_ns: int, retry_s: float) -> bool:
         return False
+
+
+class DoorRecovery:
+    """Finds a pose that is not held again by the doors mapped since (see module doc)."""
+
+    def __init__(self, params: RecoveryParams, graph: PoseGraph, landmarks: LandmarkMap, links: dict[int, str],
+                 features: dict[str, MacroFeature], link_m: float, min_sightings: int) -> None:
+        """`links`: landmark key -> the CAD feature it is linked to (graph.cad_links, read as it grows);
+        `link_m`: how near a landmark must come to a feature to count (`AnchorParams.cad_link_m`); `min_sightings`:
+        the sightings a landmark needs to take part (`RegistrationParams.min_sightings_to_register`)."""
+        self.params = params
+        self.graph = graph
+        self.landmarks = landmarks
+        self.links = links
+        self.link_m = link_m
+        self.min_sightings = min_sightings
+        self.recoveries: list[tuple[int, float]] = []  # (stamp_ns, how far the pose was moved, m)
+        self._features = [f for f in features.values() if f.orientation == "vertical"]
+        self._centroids_cad = np.array([f.centroid_cad for f in self._features]).reshape(-1, 3)
+        self._types = np.array([f.type for f in self._features])
+        self._mapped_when_held: set[int] = set()  # the landmarks there were when the pose was last held
+        self._tried: tuple[int, ...] = ()  # the landmarks of the last attempt
+
+    def keyframe(self, i: int, dead_reckoned_s: float, held: bool) -> None:
+        """Keyframe i came and the pose is `held` or not: the landmarks mapped while it is held are not taken."""
+        if held:
+            self._mapped_when_held = set(self.landmarks.landmarks)
+
+    def attempt(self, stamp_ns: int, retry_s: float) -> bool:
+        """Look for the pose among the shifts that put the newly mapped landmarks on model features, when they
+        changed since the last attempt; whether one was taken."""
+        if not self.params.recovery or not self.graph.has_anchor:
+            return False
+        keys = tuple(j for j in self.landmarks.confirmed(self.min_sightings)
+                     if j not in self._mapped_when_held and j not in self.links)
+        if len(keys) < self.params.recovery_min_doors or keys == self._tried:
+            return False
+        self._tried = keys
+        i = self.graph.n_keyframes - 1
+        T_cad_map = self.graph.T_cad_map()
+        assert T_cad_map is not None
+        radius_m = min(3.0 * self.graph.horizontal_sigma_m(i), self.params.recovery_max_m)
+        xyz_cad = np.array([(T_cad_map @ self.graph.T_map_rect(j))[:3, 3] for j in keys])
+        kinds = [self.landmarks.landmarks[j].type for j in keys]
+        shift, support, rival = self._best_shift(xyz_cad, kinds, radius_m)
+        if shift is None or support < self.params.recovery_min_doors or rival >= support:
+            log.info("the doors do not find the pose again: of %d mapped since it was held, the best shift within "
+                     "%.1f m puts %d on the model's, another at least %.1f m from it %d", len(keys), radius_m,
+                     support, self.params.recovery_apart_m, rival)
+            return False
+        T_map_body = self.graph.T_map_body(i)
+        T_cad_body = make_T(np.eye(3), np.r_[shift, 0.0]) @ T_cad_map @ T_map_body
+        moved_m = float(np.linalg.norm(shift))
+        log.info("the doors found the pose again: moved %.2f m (%d of %d landmarks mapped since it was held)",
+                 moved_m, support, len(keys))
+        place_found(self.graph, self.params, i, T_cad_body)
+        self.recoveries.append((stamp_ns, moved_m))
+        return True
+
+    def _best_shift(self, xyz_cad: np.ndarray, kinds: list[str], radius_m: float
+                    ) -> tuple[np.ndarray | None, int, int]:
+        """(the horizontal shift (2,) that puts most landmarks on a same-type feature, refined as their mean
+        offset; how many it puts there; the most any shift at least `recovery_apart_m` from it puts there).
+        Candidate shifts: each landmark onto each same-type feature within reach, and no shift at all."""
+        offsets = self._centroids_cad[None, :, :] - xyz_cad[:, None, :]  # (landmarks, features, 3)
+        same = self._types[None, :] == np.array(kinds)[:, None]
+        reach = same & (np.abs(offsets[..., 2]) <= self.link_m) & \
+            (np.linalg.norm(offsets[..., :2], axis=2) <= radius_m + self.link_m)
+        shifts = np.vstack([np.zeros((1, 2)), offsets[reach][:, :2]])
+        shifts = shifts[np.linalg.norm(shifts, axis=1) <= radius_m + 1e-9]
+        scored = [(self._put(offsets, same, shift), shift) for shift in shifts]
+        if not scored:
+            return None, 0, 0
+        (_, pairs), best = max(scored, key=lambda s: (len(s[0][1]), -float(np.linalg.norm(s[1]))))
+        apart_m = self.params.recovery_apart_m
+        rival = max((len(q) for (_, q), shift in scored if np.linalg.norm(shift - best) >= apart_m), default=0)
+        if not pairs:
+            return None, 0, rival
+        refined = np.mean([offsets[a, f, :2] for a, f in pairs], axis=0)
+        return refined, len(pairs), rival
+
+    def _put(self, offsets: np.ndarray, same: np.ndarray, shift: np.ndarray) -> tuple[int, list[tuple[int, int]]]:
+        """The landmarks the shift puts within `link_m` of a same-type feature, each feature taken once (the
+        nearest pairs first): (count, [(landmark, feature)])."""
+        d = np.linalg.norm(offsets - np.r_[shift, 0.0], axis=2)
+        d[~same] = np.inf
+        pairs: list[tuple[int, int]] = []
+        used_l: set[int] = set()
+        used_f: set[int] = set()
+        for a, f in zip(*np.unravel_index(np.argsort(d, axis=None), d.shape), strict=True):
+            if d[a, f] > self.link_m:
+                break
+            if a not in used_l and f not in used_f:
+                pairs.append((int(a), int(f)))
+                used_l.add(int(a))
+                used_f.add(int(f))
+        return len(pairs), pairs

@@ -872,16 +872,18 @@ class StatusConfig(_Params):
         _STATUS.held_sigma_m, gt=0,
         description="the pose is held to the model while its horizontal sigma (the pose graph's) is within this: "
         "only then is it localized, fitted to the walls and are new doors linked by proximity. Beyond (the "
-        "odometry lost track and extrapolated), the walls look for it again ([graph.recovery])")
+        "odometry lost track and extrapolated), the walls and the doors look for it again ([graph.recovery])")
 
 
 class RecoveryConfig(_Params):
-    """A pose no longer held to the model found again by the walls (graph.params.RecoveryParams)."""
+    """A pose no longer held to the model found again by the walls or the doors (graph.params.RecoveryParams)."""
 
     recovery: bool = Field(
         _RECOVERY.recovery,
         description="look for a pose that is no longer held among shifts of it within 3 sigma, by the walls seen "
-        "since the odometry tracks again; taken only where no other shift fits them as well ([graph.judge])")
+        "since the odometry tracks again (taken only where no other shift fits them as well: [graph.judge]), else "
+        "by the doors and windows mapped since it was held (taken where it puts two or more on the model's, and "
+        "no shift recovery_apart_m from it as many)")
     recovery_step_m: float = Field(_RECOVERY.recovery_step_m, gt=0, description="the shifts' grid spacing")
     recovery_max_m: float = Field(_RECOVERY.recovery_max_m, gt=0, description="the largest shift")
     recovery_candidates: int = Field(
@@ -889,6 +891,9 @@ class RecoveryConfig(_Params):
         "many ...")
     recovery_apart_m: float = Field(
         _RECOVERY.recovery_apart_m, ge=0, description="... at least this far apart, are fitted and judged, m")
+    recovery_min_doors: int = Field(
+        _RECOVERY.recovery_min_doors, ge=2, description="the doors' shift is taken where it puts this many doors and "
+        "windows mapped since the pose was held on the model's (one alone may be a false detection by a model door)")
     recovery_sigma_m: float = Field(_RECOVERY.recovery_sigma_m, gt=0,
                                     description="the position sigma of a pose found again")
     recovery_sigma_deg: float = Field(_RECOVERY.recovery_sigma_deg, gt=0,
@@ -977,7 +982,8 @@ class GraphConfig(_Section):
     status: StatusConfig = Field(default_factory=lambda: StatusConfig(),
                                  description="[graph.status]: the localized status decaying")
     recovery: RecoveryConfig = Field(default_factory=lambda: RecoveryConfig(),
-                                     description="[graph.recovery]: a pose no longer held found again by the walls")
+                                     description="[graph.recovery]: a pose no longer held found again by the walls or "
+                                     "the doors")
     isam: IsamConfig = Field(default_factory=lambda: IsamConfig(), description="[graph.isam]: the pose graph's iSAM2")
 
     @model_validator(mode="after")

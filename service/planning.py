@@ -1,9 +1,10 @@
 """Path planning to a goal in the building model (paper §3.3): occupancy grid, A*, waypoints in the CAD frame.
 
 `Planner.plan(start_cad, goal)` picks the storey under the start, cuts the model at flight height
-(`planning_grid`), adds the obstacles seen in depth, inflates by the vehicle's radius, runs A* on the
-8-connected grid and returns waypoints at cell centres, simplified where the line of sight is free, ending
-exactly at the goal. Goals are CAD coordinates, a door/window GlobalId, or an IfcSpace's name.
+(`planning_grid`), adds the obstacles seen in depth, blocks the cells outside the building (unless the start is
+outside), inflates by the vehicle's radius, runs A* on the 8-connected grid and returns waypoints at cell
+centres, simplified where the line of sight is free, ending exactly at the goal. Goals are CAD coordinates, a
+door/window GlobalId, or an IfcSpace's name.
 """
 
 from __future__ import annotations

@@ -268,7 +268,9 @@ class VehicleAgent:
                  lockstep_timeout_s: float = 0.0, exploration_odom: np.ndarray | None = None,
                  explore_after_s: float = 10.0, recorder: FlightWriter | None = None, lockstep: bool = False) -> None:
         """`exploration_odom`: (N, 3) the vehicle's own exploration route in its odometry frame, flown on its
-        odometry while the service is not localized, after `explore_after_s` of turning on the spot.
+        odometry while the service is not localized yet, after `explore_after_s` of turning on the spot. Once
+        localized, the route is dropped: a vehicle the service loses later turns on the spot where it is (the
+        route was drawn from the take-off point, and this simulator does not stop a vehicle at a wall).
         `recorder`: also write what the vehicle sends (IMU, odometry, stereo frames) and the sensor's ground truth
         to this recording (service.recording), a flight `macroloc replay` can run again.
         `lockstep`: the vehicle's clock waits for the service (with `ServiceParams.lockstep`): after each tick
@@ -341,6 +343,8 @@ class VehicleAgent:
     def tick(self, dt_s: float) -> None:
         """Control from the estimate, move the true vehicle, publish IMU, odometry and (periodically) sightings."""
         T_est = self.localized_pose()
+        if T_est is not None and len(self.explorer.waypoints_cad):
+            self.explorer.set_waypoints(np.zeros((0, 3)))  # localized once: the take-off's exploration is over
         if T_est is not None and self._goal is not None and len(self.follower.waypoints_cad):
             self._watch_progress(T_est)
         with self._lock:
@@ -393,7 +397,7 @@ class VehicleAgent:
                         self.progress.replans)
 
     def _explore(self) -> tuple[np.ndarray, float]:
-        """Not localized: turn on the spot, then fly the exploration route on odometry (if any), then turn."""
+        """Not localized: turn on the spot, then fly the exploration route on odometry (if any is left), then turn."""
         route = self.explorer.waypoints_cad  # in the odometry frame here
         if self.stamp_ns * 1e-9 < self.explore_after_s or not len(route) or \
                 np.linalg.norm((route[-1] - self._T_odom_body[:3, 3])[:2]) < self.explorer.params.reach_m:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from macroloc.graph.landmarks import feature_frame_cad
-from macroloc.graph.localizer import Localizer
+from macroloc.graph.localizer import Localizer, LocalizerParams
 from macroloc.graph.posegraph import PoseGraph
 from macroloc.graph.registrar import StoredMapRegistrar
 from macroloc.graph.relocalize import KnownRect
@@ -22,9 +22,9 @@ def model_registrar(model, min_landmarks: int = 3) -> StoredMapRegistrar:
 
 
 def fly(model, poses, odometry, registrar=None, seed: int = 0, sigma_m: float = 0.0,
-        graph: PoseGraph | None = None) -> Localizer:
+        graph: PoseGraph | None = None, params: LocalizerParams | None = None) -> Localizer:
     rng = np.random.default_rng(seed)
-    loc = Localizer(model, graph or PoseGraph(), registrar or model_registrar(model))
+    loc = Localizer(model, graph or PoseGraph(), registrar or model_registrar(model), params)
     for k, (T_true, T_odom) in enumerate(zip(poses, odometry, strict=True)):
         loc.add_keyframe(k * 100_000_000, T_odom, sightings_from(model, T_true, rng=rng, sigma_m=sigma_m), UP)
     return loc

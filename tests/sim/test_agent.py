@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 import zenoh
 
 from macroloc.service.planning import Planner, line_of_sight
+from macroloc.service.recording import pose_from_matrix
+from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.service.zenoh_io import session_config
 from macroloc.sim.agent import VehicleAgent
 from macroloc.sim.demo import exploration_route
@@ -53,6 +57,37 @@ def test_unlocalized_the_vehicle_turns_then_flies_its_exploration_route_on_odome
         agent.close()
     assert np.linalg.norm(track[-1][:2] - route_cad[-1, :2]) < 0.3  # flew the route to its end ...
     assert max(_distance_to_polyline(p, route_cad) for p in track) < 0.5  # ... along it
+
+
+def test_a_vehicle_lost_after_localizing_turns_where_it_is() -> None:
+    """The exploration route was drawn from the take-off point: a vehicle the service loses later (its status
+    `lost`) turns on the spot where it is instead of flying the rest of that route, through whatever walls lie
+    between (this simulator does not stop a vehicle at one)."""
+    T0 = level_pose(np.array([2.0, 1.0, 1.4]), 0.4)
+    route_cad = np.array([[2.0, 1.0, 1.4], [6.0, 1.0, 1.4], [6.0, 5.0, 1.4]])
+    odometry = DriftingOdometry(np.eye(4), T0, seed=0, drift_per_m=0.0, yaw_drift_rad_per_m=0.0)
+    with zenoh.open(session_config(loopback())) as session:
+        agent = VehicleAgent(session, "lost-test", KinematicDrone(T0), odometry, Blind(), exploration_odom=route_cad,
+                             explore_after_s=0.0)
+
+        def hear(status: int) -> None:
+            msg = pb.PoseEstimate(status=status, T_cad_body=pose_from_matrix(agent.drone.T_cad_body))
+            session.put(agent.keys.pose, msg.SerializeToString())
+            deadline = time.monotonic() + 5.0
+            while (agent.pose is None or agent.pose.status != status) and time.monotonic() < deadline:
+                time.sleep(0.01)
+
+        hear(pb.PoseEstimate.LOCALIZED)
+        for _ in range(30):
+            agent.tick(1 / 30)
+        hear(pb.PoseEstimate.LOST)
+        here = agent.drone.T_cad_body[:3, 3].copy()
+        for _ in range(90):  # 3 s lost: with the route, 3 m along it
+            agent.tick(1 / 30)
+        agent.close()
+    assert agent.pose is not None and agent.pose.status == pb.PoseEstimate.LOST
+    assert np.linalg.norm(agent.drone.T_cad_body[:3, 3] - here) < 0.05
+    assert np.linalg.norm(agent.drone.T_cad_body[:3, 3] - T0[:3, 3]) < 0.05
 
 
 @pytest.fixture(scope="module")
