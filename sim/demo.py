@@ -34,6 +34,7 @@ from macroloc.service.recording import FlightWriter
 if TYPE_CHECKING:  # the service's planner, imported where used: sim/ imports only service's wire and config at its top
     from macroloc.graph.building_assets import Space
     from macroloc.service.planning import Planner
+    from macroloc.service.planning_grid import OccupancyGrid
 
 log = logging.getLogger(__name__)
 
@@ -78,10 +79,23 @@ class DemoResult:
     waypoints_xy: list[list[float]] = field(default_factory=list, repr=False)
     goal_xyz: list[float] = field(default_factory=list, repr=False)
     goal_wgs84: list[float] | None = None  # latitude, longitude (deg), altitude (m) of the goal; None: no geo-ref.
+    wall_contacts_xy: list[list[float]] = field(default_factory=list)  # where the true track hit the model's solids
 
     def table_row(self) -> dict[str, float]:
         return {"localization_time_s": self.localization_time_s, "goal_error_m": self.goal_error_m,
                 "path_length_m": self.path_length_m, "goal_error_pct": self.goal_error_pct}
+
+
+def wall_contacts(grid: OccupancyGrid, true_xy: np.ndarray) -> np.ndarray:
+    """(K, 2) CAD points where the vehicle's true track (N, 2: x, y at flight height, its control steps) entered a
+    cell the model's solids occupy at that height (the storey's section, not inflated by the vehicle's radius), one
+    per contact. A wall's face runs through each such cell, so the vehicle's centre came within a cell's diagonal
+    of the wall (0.28 m on the demo's 0.2 m grid), or crossed it: a vehicle of the planner's radius (0.35 m)
+    touched it. This simulator does not stop a vehicle at a wall; a real one would have hit it."""
+    xy = np.asarray(true_xy, float).reshape(-1, 2)
+    hit = np.array([grid.contains(p) and bool(grid.occupied[grid.cell_of(p)]) for p in xy], bool)
+    starts = hit & ~np.r_[False, hit[:-1]]
+    return xy[starts]
 
 
 def choose_route(planner: Planner, seed: int, params: DemoParams) -> tuple[str, Space, np.ndarray]:
@@ -227,6 +241,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
                                      lockstep_timeout_s=5.0 if perceive else 0.0, exploration_odom=route_odom,
                                      recorder=recorder, lockstep=params.lockstep)
                 result = _fly(agent, goal, params, pb)
+                result.wall_contacts_xy = wall_contacts(grid, np.array(result.true_xy)).tolist()
                 if recorder is not None:
                     recorder.metadata.duration_s = agent.stamp_ns * 1e-9
                     recorder.metadata.storey = cfg.graph.storey_hint or ""
@@ -236,6 +251,10 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
             stop.set()
             thread.join(timeout=30.0)
     result.seed, result.start, result.goal = params.seed, start, f"space {goal.name} ({goal.long_name})"
+    if result.wall_contacts_xy:
+        log.warning("the vehicle touched or crossed the model's walls %d times (first at x %.1f, y %.1f m): this "
+                    "simulator lets it through, a real vehicle would have hit", len(result.wall_contacts_xy),
+                    *result.wall_contacts_xy[0])
     geo = service.params.geo
     if geo is not None and result.goal_xyz:  # where the goal lies on the Earth (graph.geo)
         result.goal_wgs84 = [float(v) for v in geo.wgs84(np.asarray(result.goal_xyz))[0]]
@@ -304,6 +323,10 @@ def plot_flight(result: DemoResult, planner: Planner, path: Path) -> Path:
     ax.plot(*true_xy[0], "s", color="tab:blue", ms=8, label=f"take-off ({result.start})")
     if result.goal_xyz:
         ax.plot(result.goal_xyz[0], result.goal_xyz[1], "*", color="tab:red", ms=14, label=f"goal ({result.goal})")
+    contacts = np.array(result.wall_contacts_xy).reshape(-1, 2)
+    if len(contacts):
+        ax.plot(contacts[:, 0], contacts[:, 1], "X", color="crimson", ms=10,
+                label=f"touched or crossed a wall ({len(contacts)}): a real vehicle would have hit")
     pad = 4.0
     lo, hi = true_xy.min(axis=0) - pad, true_xy.max(axis=0) + pad
     ax.set_xlim(lo[0], hi[0])
@@ -326,6 +349,7 @@ def result_json(result: DemoResult) -> dict:
     doc = asdict(result)
     for key in ("true_xy", "estimated_xy", "waypoints_xy"):
         doc.pop(key)
+    doc["wall_contacts"] = len(doc.pop("wall_contacts_xy"))
     return doc
 
 

@@ -33,7 +33,9 @@ def register(app: typer.Typer) -> None:
                                       "service's answer to each message (no real-time pacing): one seed flies the "
                                       "same flight, to the digit, on an idle or a loaded machine."),
         json_out: bool = typer.Option(False, "--json", help="Print {localization_time_s, goal_error_m, "
-                                      "path_length_m, goal_error_pct} (a list with several seeds)."),
+                                      "path_length_m, goal_error_pct, reached, wall_contacts (the times the "
+                                      "vehicle touched or crossed the model's walls: this simulator lets it "
+                                      "through)} (a list with several seeds)."),
         listen: list[str] = typer.Option(None, "--listen", help="Zenoh endpoint the service also listens on, e.g. "
                                          "tcp/127.0.0.1:7447, for zenoh-bridge-ros2dds or any subscriber on this "
                                          "machine to watch the demo live (repeatable)."),
@@ -92,13 +94,15 @@ def register(app: typer.Typer) -> None:
                     f"error (% of {result.path_length_m:.1f} m path) |\n"
                     f"  | {result.localization_time_s:21.2f} | {result.goal_error_m:17.3f} | "
                     f"{result.goal_error_pct:27.2f} |\n"
-                    f"  reached: {result.reached}, wall time {result.wall_time_s:.1f} s, picture {picture}"
+                    f"  reached: {result.reached}, walls touched: {len(result.wall_contacts_xy)} times, wall time "
+                    f"{result.wall_time_s:.1f} s, picture {picture}"
                     + (f", recording {recording}" if recording is not None else "") + "\n"
                     + ("  goal: no geo-reference in the model\n" if result.goal_wgs84 is None else
                        "  goal at lat {:.7f}, lon {:.7f}, alt {:.2f} m (WGS84)\n".format(*result.goal_wgs84)))
         if json_out:
             docs = [dict(r.table_row(), seed=r.seed, observations=r.observations, reached=r.reached,
-                         goal_wgs84=r.goal_wgs84, picture=str(p)) for r, p in zip(rows, pictures, strict=True)]
+                         wall_contacts=len(r.wall_contacts_xy), goal_wgs84=r.goal_wgs84, picture=str(p))
+                    for r, p in zip(rows, pictures, strict=True)]
             print_json(docs[0] if len(docs) == 1 else docs)
         elif len(rows) > 1:
             sys.stdout.write(f"all seeds: {[result_json(r)['goal_error_m'] for r in rows]}\n")

@@ -213,4 +213,4 @@ def test_lockstep_demo_repeats_to_the_digit(observations: str, seed: int) -> Non
     for run in runs:
         run.pop("wall_time_s")
     assert runs[0] == runs[1]
-    assert runs[0]["localized"] and runs[0]["reached"]
+    assert runs[0]["localized"] and runs[0]["reached"] and not runs[0]["wall_contacts_xy"]

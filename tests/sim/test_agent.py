@@ -1,4 +1,5 @@
-"""The reference vehicle agent's exploration and the demo's exploration route (no service: nobody answers)."""
+"""The reference vehicle agent's exploration, the demo's exploration route and its check that the true track kept
+out of the walls (no service: nobody answers)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from macroloc.service.recording import pose_from_matrix
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.service.zenoh_io import session_config
 from macroloc.sim.agent import VehicleAgent
-from macroloc.sim.demo import exploration_route
+from macroloc.sim.demo import exploration_route, wall_contacts
 from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
 from tests.service.helpers import loopback
 
@@ -108,6 +109,34 @@ def test_the_demo_exploration_route_is_long_and_stays_in_free_space(planner: Pla
     cells = [grid.cell_of(p) for p in route[1:]]
     assert all(free[c] for c in cells)
     assert all(line_of_sight(free, a, b) for a, b in zip(cells[:-1], cells[1:], strict=True))
+
+
+def test_a_track_into_the_walls_is_counted_once_per_wall(planner: Planner) -> None:
+    """Two walls across a 10 m x 10 m grid: a track across both goes into the walls twice, one along the free
+    space never, one into a wall and back out on its side once. On Office_A at flight height the demo's
+    exploration route keeps out of the walls, and a straight 20 m line across the storey does not."""
+    from macroloc.service.planning_grid import OccupancyGrid
+
+    occupied = np.zeros((100, 100), bool)
+    occupied[30:32, :] = occupied[70:72, :] = True  # walls at y = 3.0-3.2 m and 7.0-7.2 m
+    grid = OccupancyGrid(occupied, np.zeros(2), 0.1, 1.4)
+    ys = np.linspace(0.5, 9.5, 400)
+    assert len(wall_contacts(grid, np.c_[np.full_like(ys, 5.0), ys])) == 2
+    assert len(wall_contacts(grid, np.c_[ys, np.full_like(ys, 5.0)])) == 0
+    into_and_back = np.r_[np.linspace(2.0, 3.1, 50), np.linspace(3.1, 2.0, 50)]
+    assert np.allclose(wall_contacts(grid, np.c_[np.full_like(into_and_back, 5.0), into_and_back]), [[5.0, 3.0]],
+                       atol=0.05)
+
+    door = next(f for f in planner.model.features if f.type == "door" and f.storey == "Level 1")
+    start = np.r_[door.centroid_cad[:2] + 1.2 * door.normal_cad[:2], 1.4]
+    office, free = planner.free_cells(start[2])
+    if not free[office.cell_of(start)]:
+        start = np.r_[door.centroid_cad[:2] - 1.2 * door.normal_cad[:2], 1.4]
+    route = exploration_route(planner, start, 0, length_m=30.0)
+    steps = np.vstack([a + np.linspace(0.0, 1.0, 60)[:, None] * (b - a)
+                       for a, b in zip(route, route[1:], strict=False)])
+    assert len(wall_contacts(office, steps[:, :2])) == 0
+    assert len(wall_contacts(office, start[:2] + np.linspace(0.0, 1.0, 2000)[:, None] * [0.0, 20.0])) >= 1
 
 
 def test_the_vehicles_imu_measures_its_acceleration_and_gravity_is_recovered() -> None:
