@@ -301,8 +301,25 @@ class VehicleAgent:
         self.recorder = recorder
         self._pubs = {name: declare_publisher(session, getattr(self.keys, name), block=lockstep)
                       for name in ("imu", "odometry", "observations", "stereo", "goal")}
-        self._subs = [session.declare_subscriber(self.keys.pose, self._on_pose),
-                      session.declare_subscriber(self.keys.waypoints, self._on_waypoints)]
+        self._subs: list[zenoh.Subscriber[Any]] = []
+        if lockstep:  # the service's answers in the order it sent them (a plan goes out before its pose)
+            answers = session.declare_subscriber(f"macroloc/{vehicle}/*", zenoh.handlers.FifoChannel(4096),
+                                                 allowed_origin=zenoh.Locality.REMOTE)
+            self._subs = [answers]
+            threading.Thread(target=self._ordered_answers, args=(answers,), name="answers", daemon=True).start()
+        else:
+            self._subs = [session.declare_subscriber(self.keys.pose, self._on_pose),
+                          session.declare_subscriber(self.keys.waypoints, self._on_waypoints)]
+
+    def _ordered_answers(self, answers: zenoh.Subscriber[Any]) -> None:
+        """Lock-step: poses and waypoints from one FIFO channel, handled in arrival order. On two subscribers
+        each has its own callback thread, and a vehicle that has its pose could tick once more on the plan
+        before the one planned from that pose."""
+        handlers = {self.keys.pose: self._on_pose, self.keys.waypoints: self._on_waypoints}
+        for sample in answers:
+            handler = handlers.get(str(sample.key_expr))
+            if handler is not None:
+                handler(sample)
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
         msg = pb.PoseEstimate.FromString(sample.payload.to_bytes())
