@@ -202,20 +202,18 @@ class DoorRecovery:
             (np.linalg.norm(offsets[..., :2], axis=2) <= radius_m + self.link_m)
         shifts = np.vstack([np.zeros((1, 2)), offsets[reach][:, :2]])
         shifts = shifts[np.linalg.norm(shifts, axis=1) <= radius_m + 1e-9]
-        scored = [(self._put(offsets, same, shift), shift) for shift in shifts]
-        if not scored:
-            return None, 0, 0
-        (_, pairs), best = max(scored, key=lambda s: (len(s[0][1]), -float(np.linalg.norm(s[1]))))
+        scored = [(self._put(offsets, same, shift), shift) for shift in shifts]  # the zero shift is always one
+        pairs, best = max(scored, key=lambda s: (len(s[0]), -float(np.linalg.norm(s[1]))))
         apart_m = self.params.recovery_apart_m
-        rival = max((len(q) for (_, q), shift in scored if np.linalg.norm(shift - best) >= apart_m), default=0)
+        rival = max((len(q) for q, shift in scored if np.linalg.norm(shift - best) >= apart_m), default=0)
         if not pairs:
             return None, 0, rival
         refined = np.mean([offsets[a, f, :2] for a, f in pairs], axis=0)
         return refined, len(pairs), rival
 
-    def _put(self, offsets: np.ndarray, same: np.ndarray, shift: np.ndarray) -> tuple[int, list[tuple[int, int]]]:
-        """The landmarks the shift puts within `link_m` of a same-type feature, each feature taken once (the
-        nearest pairs first): (count, [(landmark, feature)])."""
+    def _put(self, offsets: np.ndarray, same: np.ndarray, shift: np.ndarray) -> list[tuple[int, int]]:
+        """The (landmark, feature) pairs the shift puts within `link_m` of each other, same type, each landmark and
+        each feature once (the nearest pairs first)."""
         d = np.linalg.norm(offsets - np.r_[shift, 0.0], axis=2)
         d[~same] = np.inf
         pairs: list[tuple[int, int]] = []
@@ -228,4 +226,4 @@ class DoorRecovery:
                 pairs.append((int(a), int(f)))
                 used_l.add(int(a))
                 used_f.add(int(f))
-        return len(pairs), pairs
+        return pairs

@@ -257,9 +257,9 @@ class Planner:
         target_cad, description = self.resolve(goal, start_cad)
         if not self.inside(target_cad):
             raise PlanningError(f"goal {np.round(target_cad, 1).tolist()} lies outside the building model")
-        grid, free = self.free_cells(start_cad[2])
-        if self.outside(start_cad[2])[grid.cell_of(start_cad)]:  # a start outside: the way in may lead outside
-            grid, free = self.free_cells(start_cad[2], outdoors=True)
+        grid, _ = self.grid(start_cad[2])
+        outdoors = bool(self.outside(start_cad[2])[grid.cell_of(start_cad)])  # a start outside: the way in may too
+        grid, free = self.free_cells(start_cad[2], outdoors)
         if not grid.contains(target_cad):
             raise PlanningError(f"goal {np.round(target_cad, 1).tolist()} lies outside this storey's plan")
         start_rc = nearest_free(free, grid.cell_of(start_cad))

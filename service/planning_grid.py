@@ -64,7 +64,6 @@ class OccupancyGrid:
 
 def section_grid(solids: BuildingSolids, z_cad: float, cell_m: float, margin_m: float = 1.0) -> OccupancyGrid:
     """The cross-section of the solids by the plane z = z_cad, rasterised into cells of cell_m metres."""
-    import cv2
     import trimesh.intersections
 
     v = solids.vertices_cad
@@ -77,11 +76,19 @@ def section_grid(solids: BuildingSolids, z_cad: float, cell_m: float, margin_m: 
     if len(crossing):
         segments = trimesh.intersections.mesh_plane(
             trimesh.Trimesh(v, crossing, process=False), plane_normal=[0, 0, 1], plane_origin=[0, 0, z_cad])
-        # pixel coordinates with 4 fractional bits: x -> col, y -> row
-        pts = np.round((segments[:, :, :2] - lo) / cell_m * 16 - 8).astype(np.int32)
-        for a, b in pts:
-            cv2.line(occupied, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), 1, 1, cv2.LINE_8, 4)
+        draw_lines(occupied, segments[:, :, :2], lo, cell_m, thickness=1)
     return OccupancyGrid(occupied.astype(bool), lo, cell_m, z_cad)
+
+
+def draw_lines(image: np.ndarray, segments_xy: np.ndarray, origin_xy: np.ndarray, cell_m: float,
+               thickness: int) -> None:
+    """Set the cells of `image` (H, W) that the CAD segments (N, 2, 2: ends, x y) cross, on the grid with its
+    corner at `origin_xy` and cells of `cell_m` metres (x -> col, y -> row; sub-cell precision)."""
+    import cv2
+
+    pts = np.round((np.asarray(segments_xy, float) - origin_xy) / cell_m * 16 - 8).astype(np.int32)  # 4 fraction bits
+    for a, b in pts:
+        cv2.line(image, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), 1, thickness, cv2.LINE_8, 4)
 
 
 def outside_cells(grid: OccupancyGrid, openings_cad: list[np.ndarray]) -> np.ndarray:
@@ -89,7 +96,6 @@ def outside_cells(grid: OccupancyGrid, openings_cad: list[np.ndarray]) -> np.nda
     without crossing the section's walls or a door's or window's opening. `openings_cad`: each opening's corners
     (K, 3), CAD frame; those whose height spans the grid's are closed by a line across them (two cells thick: the
     section's wall faces and the opening's plane need not meet on one cell)."""
-    import cv2
     from scipy import ndimage
 
     closed = grid.occupied.astype(np.uint8)
@@ -100,8 +106,7 @@ def outside_cells(grid: OccupancyGrid, openings_cad: list[np.ndarray]) -> np.nda
         xy = c[:, :2]
         far = np.linalg.norm(xy[:, None] - xy[None], axis=2)
         a, b = np.unravel_index(int(np.argmax(far)), far.shape)  # the opening's two ends along its wall
-        ends = np.round((xy[[a, b]] - grid.origin_xy_cad) / grid.cell_m * 16 - 8).astype(np.int32)
-        cv2.line(closed, (int(ends[0, 0]), int(ends[0, 1])), (int(ends[1, 0]), int(ends[1, 1])), 1, 2, cv2.LINE_8, 4)
+        draw_lines(closed, xy[[a, b]][None], grid.origin_xy_cad, grid.cell_m, thickness=2)
     labels, _ = ndimage.label(closed == 0)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     return np.isin(labels, border[border > 0])

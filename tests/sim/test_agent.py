@@ -96,13 +96,18 @@ def planner(office_path) -> Planner:
     return Planner.for_building(office_path, cell_m=0.2, vehicle_radius_m=0.35, flight_height_m=1.4)
 
 
+def _in_front_of_a_door(planner: Planner) -> np.ndarray:
+    """1.2 m in front of Office_A's first door on Level 1, on its free side, at flight height."""
+    door = next(f for f in planner.model.features if f.type == "door" and f.storey == "Level 1")
+    grid, free = planner.free_cells(1.4)
+    start = np.r_[door.centroid_cad[:2] + 1.2 * door.normal_cad[:2], 1.4]
+    return start if free[grid.cell_of(start)] else np.r_[door.centroid_cad[:2] - 1.2 * door.normal_cad[:2], 1.4]
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_the_demo_exploration_route_is_long_and_stays_in_free_space(planner: Planner, seed: int) -> None:
-    door = next(f for f in planner.model.features if f.type == "door" and f.storey == "Level 1")
-    start = np.r_[door.centroid_cad[:2] + 1.2 * door.normal_cad[:2], 1.4]
+    start = _in_front_of_a_door(planner)
     grid, free = planner.free_cells(start[2])
-    if not free[grid.cell_of(start)]:
-        start = np.r_[door.centroid_cad[:2] - 1.2 * door.normal_cad[:2], 1.4]
     route = exploration_route(planner, start, seed, length_m=30.0)
     assert np.allclose(route[0], start)
     assert np.linalg.norm(np.diff(route, axis=0), axis=1).sum() >= 30.0
@@ -127,11 +132,8 @@ def test_a_track_into_the_walls_is_counted_once_per_wall(planner: Planner) -> No
     assert np.allclose(wall_contacts(grid, np.c_[np.full_like(into_and_back, 5.0), into_and_back]), [[5.0, 3.0]],
                        atol=0.05)
 
-    door = next(f for f in planner.model.features if f.type == "door" and f.storey == "Level 1")
-    start = np.r_[door.centroid_cad[:2] + 1.2 * door.normal_cad[:2], 1.4]
-    office, free = planner.free_cells(start[2])
-    if not free[office.cell_of(start)]:
-        start = np.r_[door.centroid_cad[:2] - 1.2 * door.normal_cad[:2], 1.4]
+    start = _in_front_of_a_door(planner)
+    office, _ = planner.grid(start[2])
     route = exploration_route(planner, start, 0, length_m=30.0)
     steps = np.vstack([a + np.linspace(0.0, 1.0, 60)[:, None] * (b - a)
                        for a, b in zip(route, route[1:], strict=False)])
