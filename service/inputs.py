@@ -312,10 +312,11 @@ class InputParser:
         return True
 
     def goal(self, payload: bytes) -> GoalIn | None:
-        """A goal (CAD frame) whose position and start lie within the model's bounds; no stamp order (goals may
-        come unstamped)."""
+        """A goal (CAD frame) whose position and start lie within the model's bounds and whose stamp is not ahead
+        of this machine's clock as every input's (`StampGate.not_ahead`); no stamp order (goals may come unstamped:
+        stamp 0)."""
         msg = self._decode("goal", pb.Goal, payload, {"cad"})
-        if msg is None:
+        if msg is None or not self.stamps.not_ahead("goal", msg.header.stamp_ns):
             return None
         target = msg.WhichOneof("target")
         if target is None:

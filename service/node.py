@@ -145,7 +145,7 @@ class LocalizationService:
             k.imu: (lambda s: self.parser.imu(s), "imu", False, 1024),
             k.observations: (lambda s: self.parser.observations(s), "observations", False, 64),
             k.goal: (lambda s: self.parser.goal(s), "goal", False, 8),
-            **self.ros_inputs.intakes(),
+            **self.ros_inputs.intakes(self.parser),
             **self.ros_sensors.intakes(),
         }
         subs: list[Any] = []  # every subscriber, undeclared at stop

@@ -25,10 +25,9 @@ import numpy as np
 import zenoh
 
 from macroloc.graph.localizer import Estimate
-from macroloc.service.inputs import GoalIn
+from macroloc.service.inputs import GoalIn, InputParser
 from macroloc.service.ned import cov_ros_from_gtsam, quat_wxyz_from_matrix
-from macroloc.service.planning import GoalSpec
-from macroloc.service.ros_types import from_cdr, header, msg, to_cdr
+from macroloc.service.ros_types import from_cdr, header, msg, stamp_ns_of, to_cdr
 from macroloc.service.vehicle_out import Motion, waypoints_arrays
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
@@ -202,31 +201,41 @@ class RosOutput:
             pub.undeclare()
 
 
-def goal_from_pose_stamped(payload: bytes, frames: RosFrames | None = None) -> GoalIn | None:
-    """A ROS goal (geometry_msgs/msg/PoseStamped in `map` = CAD) as the service's goal; None where it is not one
-    (wrong frame, not finite). Raises on a payload that is not CDR of that type."""
+def goal_from_pose_stamped(payload: bytes, frames: RosFrames | None = None) -> pb.Goal | None:
+    """A ROS goal (geometry_msgs/msg/PoseStamped in `map` = CAD) as the service's wire Goal (frame `cad`, the
+    header's stamp in ns), to be checked by `InputParser.goal` as a goal on the protobuf key is; None in another
+    frame. Raises on a payload that is not CDR of that type."""
     m = from_cdr(payload, POSE_STAMPED)
-    p = m.pose.position
-    position_cad = np.array([p.x, p.y, p.z], float)
-    if m.header.frame_id not in ("", (frames or RosFrames()).map) or not np.isfinite(position_cad).all():
+    if m.header.frame_id not in ("", (frames or RosFrames()).map):
         return None
-    return GoalIn(GoalSpec(position_cad=position_cad))
+    p = m.pose.position
+    goal = pb.Goal(position_cad=pb.Vector3(x=p.x, y=p.y, z=p.z))
+    goal.header.frame_id, goal.header.stamp_ns = "cad", stamp_ns_of(m.header.stamp)
+    return goal
 
 
 class RosInputs:
-    """The ROS topics the service takes: the goal now; ROS sensor inputs (Image, CameraInfo, Imu through
-    service.ros_in) are added to `intakes` here."""
+    """The ROS topics the service takes: the goal, checked by the service's `InputParser` like its protobuf twin
+    (ROS sensor inputs: service.ros_sensors)."""
 
     def __init__(self, keys: RosKeys, frames: RosFrames | None = None) -> None:
         self.keys = keys
         self.frames = frames or RosFrames()
 
-    def intakes(self) -> dict[str, tuple[Any, str, bool, int]]:
+    def intakes(self, parser: InputParser) -> dict[str, tuple[Any, str, bool, int]]:
         """key -> (parse(payload) -> event | None, rate name, heavy, ring size), as service.node's intakes."""
-        return {self.keys.topic("goal"): (lambda payload: goal_from_pose_stamped(payload, self.frames),
-                                          "goal", False, 8)}
+        return {self.keys.topic("goal"): (lambda payload: self.goal(parser, payload), "goal", False, 8)}
+
+    def goal(self, parser: InputParser, payload: bytes) -> GoalIn | None:
+        """The ROS goal through `parser.goal` (bounds, finite, stamp not ahead); another frame counts as
+        ros_goal/wrong_frame."""
+        goal = goal_from_pose_stamped(payload, self.frames)
+        if goal is None:
+            parser.drops.drop("ros_goal/wrong_frame")
+            return None
+        return parser.goal(goal.SerializeToString())
 
 
 class NullRosInputs:
-    def intakes(self) -> dict[str, tuple[Any, str, bool, int]]:
+    def intakes(self, parser: InputParser) -> dict[str, tuple[Any, str, bool, int]]:
         return {}

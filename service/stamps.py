@@ -1,10 +1,11 @@
 """Per-key ordering of the stamps of a vehicle's inputs, recovering from a vehicle clock reset.
 
-Per key, stamps must increase. A stamp further ahead of this machine's clock than `max_clock_ahead_ns`
-is refused. Stamps that go back by more than `clock_reset_ns` are refused until `CLOCK_CONFIRM` consecutive
-ones agree among themselves (each within `clock_reset_ns` after the previous): then they are a new time base
-(a vehicle clock reset, or the stamps after one absurd jump ahead), adopted, logged and reported through
-`on_clock_reset(key, stamp_ns)`, so one bad stamp cannot hold a key shut until restart.
+Per key, stamps must increase. A stamp further ahead of this machine's clock than `max_clock_ahead_ns` is
+refused (`not_ahead`: also for inputs that keep no order, such as goals, which may come unstamped). Stamps that
+go back by more than `clock_reset_ns` are refused until `CLOCK_CONFIRM` consecutive ones agree among themselves
+(each within `clock_reset_ns` after the previous): then they are a new time base (a vehicle clock reset, or the
+stamps after one absurd jump ahead), adopted, logged and reported through `on_clock_reset(key, stamp_ns)`, so one
+bad stamp cannot hold a key shut until restart.
 """
 
 from __future__ import annotations
@@ -34,9 +35,18 @@ class StampGate:
         self._last: dict[str, int] = {}
         self._candidate: dict[str, tuple[int, int]] = {}  # key -> (last stamp of the new base, how many)
 
-    def admit(self, key: str, stamp_ns: int) -> bool:
+    def not_ahead(self, key: str, stamp_ns: int) -> bool:
+        """False (counted as `<key>/future_stamp`) for a stamp more than `ahead_ns` ahead of this machine's clock
+        or beyond int64; no order is kept or checked."""
         if stamp_ns > min(MAX_STAMP_NS, self.now_ns() + self.ahead_ns):
             self.drops.drop(f"{key}/future_stamp", f"stamp {stamp_ns} ns is ahead of this machine's clock")
+            return False
+        return True
+
+    def admit(self, key: str, stamp_ns: int) -> bool:
+        """True where the stamp is not ahead (`not_ahead`) and orders after the key's last one, or starts a
+        confirmed new time base (module doc)."""
+        if not self.not_ahead(key, stamp_ns):
             return False
         last = self._last.get(key)
         if last is None or stamp_ns > last:

@@ -51,6 +51,12 @@ def _quaternion_odometry(stamp_ns: int, qw: float) -> bytes:
     return msg.SerializeToString()
 
 
+def _goal_stamped(stamp_ns: int) -> bytes:
+    msg = pb.Goal(space_name="MENS RR")  # a space Office_A has: only the stamp is wrong
+    msg.header.stamp_ns = stamp_ns
+    return msg.SerializeToString()
+
+
 def _three_corners() -> bytes:
     msg = pb.ObservedFeatures()
     msg.header.frame_id = "body"
@@ -94,6 +100,7 @@ def hostile() -> list[tuple[str, str, str, list[bytes]]]:
         ("imu payload of 2 MB", "imu", "imu/too_large", [bytes(2 * 2**20)]),
         ("goal at x = 1e300", "goal", "goal/out_of_bounds", [pb.Goal(position_cad=pb.Vector3(x=1e300))
                                                             .SerializeToString()]),
+        ("goal stamp 2^64-1", "goal", "goal/future_stamp", [_goal_stamped(2**64 - 1)]),
         ("imu bytes on the goal key", "goal", "goal/wrong_frame", [_imu(s, 9.81)]),
         ("moving imu bytes on the goal key", "goal", "goal/not_protobuf", [_imu(s, 9.81, gyro_x=0.3)]),
         ("300 features in one message", "observations", "observations/too_many", [_features(300)]),

@@ -155,6 +155,27 @@ def test_a_clock_reset_starts_a_new_time_base_and_a_future_stamp_blocks_nothing(
                               "odometry/clock_reset": 2}
 
 
+def test_a_goal_stamped_beyond_the_clock_is_refused_as_every_input_is() -> None:
+    """Issue 57 item 6: a goal stamped 2^64-1 (or a day and more ahead) is refused and counted as goal/future_stamp,
+    as odometry, IMU, observations and frames are; an unstamped goal and one an hour ahead are taken, in any order."""
+    now_ns = 1_800_000_000 * 10**9
+    drops = DropCounter()
+    parser = InputParser(["front"], drops, LIMITS)
+    parser.stamps.now_ns = lambda: now_ns
+
+    def goal(stamp_ns: int) -> bytes:
+        msg = pb.Goal(position_cad=pb.Vector3(x=25.0))
+        msg.header.stamp_ns = stamp_ns
+        return msg.SerializeToString()
+
+    assert parser.goal(goal(2**64 - 1)) is None
+    assert parser.goal(goal(now_ns + 86_400 * 10**9 + 1)) is None
+    assert parser.goal(goal(now_ns + 3600 * 10**9)) is not None
+    assert parser.goal(goal(0)) is not None  # unstamped
+    assert parser.goal(goal(now_ns)) is not None
+    assert drops.counts() == {"goal/future_stamp": 2}
+
+
 def test_replaying_a_recording_that_holds_a_bomb_is_one_line_and_exit_2(office_path, tmp_path, capsys) -> None:
     """The offline path: `macroloc replay` decodes recorded images (here through the visual odometry); a frame
     whose PNG decodes to 20000 x 20000 pixels ends the replay with one line, before it is decoded."""

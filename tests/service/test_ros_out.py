@@ -278,3 +278,37 @@ def test_reset_counter_increments_exactly_at_a_re_localization_in_a_flight(offic
     after = [c for _, c in counts[n:] if c >= 0]
     assert after and set(after) == {1}, counts[n:]
     assert all(c == 0 for _, c in counts[:n] if c >= 0)
+
+
+def test_a_ros_goal_is_checked_as_the_protobuf_goal_is() -> None:
+    """Issue 57 item 6: the ROS goal goes through InputParser.goal: a stamp a day and more ahead (here the largest a
+    builtin_interfaces/Time holds, 2038), a position outside the model or not finite is refused and counted; another
+    frame than `map` counts as ros_goal/wrong_frame; a goal in the model, stamped now or unstamped, is taken."""
+    from macroloc.service.health import DropCounter
+    from macroloc.service.inputs import InputLimits, InputParser
+    from macroloc.service.ros_out import RosInputs, RosKeys
+
+    drops = DropCounter()
+    parser = InputParser(["front"], drops, InputLimits(bounds_cad=(np.full(3, -10.0), np.full(3, 30.0))))
+    parser.stamps.now_ns = lambda: 1_800_000_000 * 10**9
+    inputs = RosInputs(RosKeys("t1"))
+    (key, (parse, name, _, _)), = inputs.intakes(parser).items()
+    assert (key, name) == ("t1/macroloc/goal", "goal")
+
+    def goal(x: float, sec: int, frame: str = "map") -> bytes:
+        m = msg("geometry_msgs/msg/PoseStamped")(
+            header=msg("std_msgs/msg/Header")(stamp=msg("builtin_interfaces/msg/Time")(sec=sec, nanosec=999_999_999),
+                                              frame_id=frame),
+            pose=msg("geometry_msgs/msg/Pose")(position=msg("geometry_msgs/msg/Point")(x=x, y=1.0, z=1.0),
+                                               orientation=msg("geometry_msgs/msg/Quaternion")(x=0, y=0, z=0, w=1)))
+        return to_cdr(m, "geometry_msgs/msg/PoseStamped")
+
+    assert parse(goal(5.0, 2**31 - 1)) is None
+    assert parse(goal(1e300, 0)) is None
+    assert parse(goal(float("nan"), 0)) is None
+    assert parse(goal(5.0, 0, "odom")) is None
+    taken = parse(goal(5.0, 1_800_000_000))
+    assert taken is not None and np.allclose(taken.goal.position_cad, [5.0, 1.0, 1.0])
+    assert parse(goal(5.0, 0)) is not None
+    assert drops.counts() == {"goal/future_stamp": 1, "goal/out_of_bounds": 1, "goal/nan": 1,
+                              "ros_goal/wrong_frame": 1}
