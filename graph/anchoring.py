@@ -52,6 +52,7 @@ class Anchoring:
         self.depth, self.far, self.landmarks, self.links, self.fitter = depth, far, landmarks, links, fitter
         self.status = "exploring"  # exploring | localized | ambiguous | degraded | lost
         self.inliers = 0
+        self.rivals: list[np.ndarray] = []  # T_cad_map of the poses the last 'ambiguous' registration left apart
         self.registrations: list[tuple[int, str]] = []  # (stamp_ns, status) of every registration attempt
         self.placed: list[int] = []  # keyframes placed in a stored map (place recognition) and taken
         self._registered_with = 0
@@ -108,9 +109,11 @@ class Anchoring:
             status = "exploring" if result.status == "not_localized" else "ambiguous"
             self.registrations.append((stamp_ns, status))
             self.status = status
+            self.rivals = rival_poses(result) if status == "ambiguous" else []
             log.info("registration of %d landmarks: %s (%d inliers)", len(keys), result.status, result.inliers)
             return
         self.registrations.append((stamp_ns, "localized"))
+        self.rivals = []
         log.info("localized with %d inliers of %d landmarks (%d matches)", result.inliers, len(keys),
                  len(result.matches))
         self.graph.add_anchor(np.linalg.inv(T_cad_map))
@@ -202,3 +205,12 @@ class Anchoring:
         p = self.status_params
         self.status = "lost" if silent_s > p.lost_after_s else \
             "degraded" if silent_s > p.degraded_after_s or not self.held() else "localized"
+
+
+def rival_poses(result: Alignment) -> list[np.ndarray]:
+    """The T_cad_map an 'ambiguous' registration could not tell apart: its candidates that explain as many
+    landmarks as the best (a symmetric building's images of the true pose), else its own best pose alone."""
+    if result.candidates:
+        most = max(n for _, n in result.candidates)
+        return [np.asarray(T, float) for T, n in result.candidates if n == most]
+    return [] if result.T_cad_map is None else [np.asarray(result.T_cad_map, float)]

@@ -172,6 +172,11 @@ class Localizer:
         return self.anchoring.inliers
 
     @property
+    def rivals(self) -> list[np.ndarray]:
+        """While 'ambiguous': the T_cad_map (4x4) of the poses the last registration could not tell apart."""
+        return self.anchoring.rivals
+
+    @property
     def registrations(self) -> list[tuple[int, str]]:
         """(stamp_ns, status) of every registration attempt."""
         return self.anchoring.registrations

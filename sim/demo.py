@@ -1,11 +1,13 @@
-"""`macroloc demo`: the service and a simulated vehicle in a bundled real building, the loop closed over Zenoh.
+"""`macroloc demo`: the service and a simulated vehicle in a real building, the loop closed over Zenoh.
 
 The service runs on one Zenoh session, the vehicle agent on another, connected over loopback TCP: the agent
-takes off at a seeded room of the ground floor, turns on the spot to look around and then, if the service
-has not said LOCALIZED yet, explores (a seeded route through the storey's free space, flown on its own
-odometry); once localized it sends a goal (an IfcSpace by name), follows the service's waypoints using the
-service's pose, and hovers at the goal. The operator tells the service the take-off storey
-(graph.storey_hint). Reported, as in the paper's Table 2: localization time (simulated seconds from take-off
+takes off at a seeded point of the storey where most can be seen (`sim.demo_route`: any building macroloc can
+read), turns on the spot to look around and then, if the service has not said LOCALIZED yet, explores (a seeded
+route through the storey's free space, flown on its own odometry); once localized it sends a goal (an IfcSpace by
+name, else a door, a window or a free cell of another room), follows the service's waypoints using the service's
+pose, and hovers at the goal. The operator tells the service the take-off storey (graph.storey_hint). A flight
+that ends 'ambiguous' (a symmetric building: two or more poses explain all that was seen) says so, with its rival
+poses. Reported, as in the paper's Table 2: localization time (simulated seconds from take-off
 to the first LOCALIZED pose), error at the goal (true position vs the goal point, m) and that error as a
 percentage of the flown path's length. A picture of the flight is written.
 """
@@ -26,13 +28,12 @@ import numpy as np
 
 from macroloc.graph.bim import load_building
 from macroloc.graph.errors import UserInputError
-from macroloc.graph.features import BuildingModel
 from macroloc.graph.rigid import apply
 from macroloc.service.config import MacrolocConfig, load_config
 from macroloc.service.recording import FlightWriter
+from macroloc.sim.demo_route import Route, choose_route, goal_distance_range_m, take_off_storey
 
 if TYPE_CHECKING:  # the service's planner, imported where used: sim/ imports only service's wire and config at its top
-    from macroloc.graph.building_assets import Space
     from macroloc.service.planning import Planner
     from macroloc.service.planning_grid import OccupancyGrid
 
@@ -59,6 +60,8 @@ class DemoParams:
     ros: bool = False  # also publish ROS 2 messages (service.ros_out)
     px4: bool = False  # also publish PX4's fmu/in/ topics (service.px4)
     config: Path | None = None  # the service's config file (JSON or TOML): the demo's own settings above win
+    storey: str | None = None  # the take-off storey; None: the config's graph.storey_hint, else chosen (demo_route)
+    goal: str | None = None  # an IfcSpace name, a door's or window's GlobalId or "x,y,z" (CAD, m); None: chosen
 
 
 @dataclass
@@ -80,6 +83,9 @@ class DemoResult:
     goal_xyz: list[float] = field(default_factory=list, repr=False)
     goal_wgs84: list[float] | None = None  # latitude, longitude (deg), altitude (m) of the goal; None: no geo-ref.
     wall_contacts_xy: list[list[float]] = field(default_factory=list)  # where the true track hit the model's solids
+    storey: str = ""  # the take-off storey
+    outcome: str = ""  # reached | not reached | ambiguous | not localized
+    rivals_xy: list[list[float]] = field(default_factory=list)  # ambiguous: where each rival pose puts the vehicle
 
     def table_row(self) -> dict[str, float]:
         return {"localization_time_s": self.localization_time_s, "goal_error_m": self.goal_error_m,
@@ -98,57 +104,26 @@ def wall_contacts(grid: OccupancyGrid, true_xy: np.ndarray) -> np.ndarray:
     return xy[starts]
 
 
-def choose_route(planner: Planner, seed: int, params: DemoParams) -> tuple[str, Space, np.ndarray]:
-    """A seeded take-off point in front of a door of the lowest storey, from where a turn on the spot shows
-    several doors and windows, and a goal room 10-25 m away that the planner connects to it."""
-    from macroloc.service.planning import GoalSpec, PlanningError
-    from macroloc.sim.agent import TruthSensor
-    from macroloc.sim.vehicle import level_pose
-
-    rng = np.random.default_rng(seed)
-    storey = take_off_storey(planner.model)
-    floor = planner.model.storey_elevations_m.get(storey, 0.0) if storey is not None else 0.0
-    z = floor + planner.flight_height_m
-    grid, free = planner.free_cells(z)
-    sensor = TruthSensor(planner.model, grid, seed, drop_fraction=0.0)
-    doors = [f for f in planner.model.features if f.type == "door" and abs(f.centroid_cad[2] - floor) < 2.5]
-    spaces = [s for s in planner.solids.spaces if abs(s.floor_z_cad - floor) < 0.5 and s.name]
-    for k in rng.permutation(len(doors))[:150]:
-        door = doors[k]
-        xyz = np.r_[door.centroid_cad[:2] + rng.choice([-1.2, 1.2]) * door.normal_cad[:2], z]
-        if not free[grid.cell_of(xyz)]:
-            continue
-        seen = set().union(*(sensor.visible(level_pose(xyz, yaw)) for yaw in np.linspace(-np.pi, np.pi, 12)))
-        if len(seen) < 5:
-            continue
-        for j in rng.permutation(len(spaces)):
-            goal = spaces[j]
-            d = float(np.hypot(*(np.subtract(goal.centroid_xy_cad, xyz[:2]))))
-            if not params.min_goal_distance_m <= d <= params.max_goal_distance_m:
-                continue
-            try:
-                planner.plan(xyz, GoalSpec(space_name=goal.name))
-            except PlanningError:
-                continue
-            return f"in front of door {door.id}", goal, xyz
-    raise UserInputError("no take-off point with a view and a connected goal room found in this building")
-
-
 def exploration_route(planner: Planner, start_xyz: np.ndarray, seed: int, length_m: float = 40.0) -> np.ndarray:
     """(N, 3) CAD points of a seeded collision-free route from the take-off point through the storey's free
-    space: legs of 6-15 m to random free cells inside the building, planned by the service's own A* planner (the
-    cells are drawn from the grid's free cells outdoors too, those outside skipped: a seed explores as it did
-    before the planner kept inside)."""
+    space: legs to random free cells inside the building, planned by the service's own A* planner (the cells are
+    drawn from the grid's free cells outdoors too, those outside skipped: a seed explores as it did before the
+    planner kept inside). A leg is 6-15 m, or a quarter to 60 % of the storey's extent where the storey is smaller
+    (`sim.demo_route.goal_distance_range_m`: a house's rooms lie 2-6 m apart, no cell lies 6 m from some)."""
     from macroloc.service.planning import GoalSpec, PlanningError
 
     rng = np.random.default_rng([seed, 0xE4])
     grid, free = planner.free_cells(start_xyz[2], outdoors=True)
+    lo_m, hi_m = goal_distance_range_m(grid, planner.free_cells(start_xyz[2])[1], 6.0, 15.0)
     outside = planner.outside(start_xyz[2])
-    cells = np.argwhere(free)
+    cells, inside = np.argwhere(free), np.argwhere(free & ~outside)
     route, here, total = [np.asarray(start_xyz, float)[None]], np.asarray(start_xyz, float), 0.0
-    for _ in range(40):
-        target = grid.centre_cad(cells[rng.integers(len(cells))][None])[0]
-        if outside[grid.cell_of(target)] or not 6.0 <= float(np.linalg.norm((target - here)[:2])) <= 15.0:
+    for k in range(80):  # then, short of length_m (a building small in its grid), 40 draws among the inside cells
+        pool = cells if k < 40 else inside
+        if not len(pool):
+            break
+        target = grid.centre_cad(pool[rng.integers(len(pool))][None])[0]
+        if outside[grid.cell_of(target)] or not lo_m <= float(np.linalg.norm((target - here)[:2])) <= hi_m:
             continue
         try:
             leg = planner.plan(here, GoalSpec(position_cad=target))
@@ -169,17 +144,10 @@ def bundled_detector(building: Path) -> Path | None:
     return path if path.is_file() else None
 
 
-def take_off_storey(model: BuildingModel) -> str | None:
-    """The storey the demo's vehicle takes off on (the lowest with doors or windows): its operator knows the
-    floor it stands on and tells the service (graph.storey_hint), as a real deployment's would."""
-    named = {f.storey for f in model.features if f.storey}
-    levels = sorted((z, name) for name, z in model.storey_elevations_m.items() if name in named)
-    return levels[0][1] if levels else None
-
-
-def demo_config(building: Path, params: DemoParams, port: int) -> MacrolocConfig:
+def demo_config(building: Path, params: DemoParams, port: int, storey: str | None = None) -> MacrolocConfig:
     """The service's configuration for a demo flight: `params.config`'s keys (or the defaults), under the demo's
-    own: its building, vehicle, endpoints and outputs; the take-off storey and the building's detector where the
+    own: its building, vehicle, endpoints and outputs; the take-off storey (`params.storey`, else the file's, else
+    `storey`: the route's, else the storey with the most doors and windows) and the building's detector where the
     file names none."""
     own = load_config(params.config)
     perceive = params.observations == "perception"
@@ -190,8 +158,22 @@ def demo_config(building: Path, params: DemoParams, port: int) -> MacrolocConfig
                                                "lockstep": params.lockstep},
                        zenoh={"listen": [f"tcp/127.0.0.1:{port}", *params.listen]},
                        ros={"enabled": params.ros}, px4={"enabled": params.px4},
-                       graph={"storey_hint": own.graph.storey_hint or take_off_storey(load_building(building))},
+                       graph={"storey_hint": params.storey or own.graph.storey_hint or storey
+                              or take_off_storey(load_building(building))},
                        perception={"detector_model": detector})
+
+
+def demo_route(building: Path, params: DemoParams, cfg: MacrolocConfig | None = None) -> Route:
+    """The flight's take-off and goal (`sim.demo_route.choose_route`) on a planner of the config's planning
+    settings (the service's own: the same grids); UserInputError, one line, where the building offers none."""
+    from macroloc.service.planning import Planner
+
+    own = cfg or load_config(params.config)
+    p = own.planning
+    planner = Planner.for_building(building, p.cell_m, p.vehicle_radius_m, p.flight_height_m)
+    return choose_route(planner, params.seed, params.min_goal_distance_m, params.max_goal_distance_m,
+                        storey=params.storey or own.graph.storey_hint, goal=params.goal,
+                        registration_min_landmarks=own.graph.registration.registration_min_landmarks)
 
 
 def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None,
@@ -210,14 +192,17 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     wall_start = time.monotonic()
     port = _free_port()
     perceive = params.observations == "perception"
-    cfg = cfg or demo_config(building, params, port)
     if params.record is not None and not perceive:
         raise UserInputError("--record needs --observations perception (a recording holds the stereo frames)")
+    route = demo_route(building, params, cfg)
+    start_xyz = route.start_xyz
+    log.info("route: take-off on %s %s (a turn shows %d doors and windows, %d asked), goal %s", route.storey,
+             route.start, route.view, route.wanted_view, route.goal.label)
+    cfg = cfg or demo_config(building, params, port, storey=route.storey)
     rng = np.random.default_rng([params.seed, 0xDE40])
     stop = threading.Event()
     with zenoh.open(session_config(cfg.zenoh)) as service_session, _recorder(building, params) as recorder:
         service = build_service(cfg, service_session, NullMapStore())
-        start, goal, start_xyz = choose_route(service.planner, params.seed, params)
         thread = threading.Thread(target=service.run, args=(stop,), name="service", daemon=True)
         thread.start()
         while not service.ready.wait(1.0) and thread.is_alive():
@@ -240,7 +225,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
                                      sensor_period_s=1.0 / params.camera_rate_hz if perceive else 0.1,
                                      lockstep_timeout_s=5.0 if perceive else 0.0, exploration_odom=route_odom,
                                      recorder=recorder, lockstep=params.lockstep)
-                result = _fly(agent, goal, params, pb)
+                result = _fly(agent, route.goal.message(pb), params)
                 result.wall_contacts_xy = wall_contacts(grid, np.array(result.true_xy)).tolist()
                 if recorder is not None:
                     recorder.metadata.duration_s = agent.stamp_ns * 1e-9
@@ -250,7 +235,8 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
         finally:
             stop.set()
             thread.join(timeout=30.0)
-    result.seed, result.start, result.goal = params.seed, start, f"space {goal.name} ({goal.long_name})"
+    result.seed, result.start, result.goal, result.storey = params.seed, route.start, route.goal.label, route.storey
+    result.outcome, result.rivals_xy = _outcome(result, service.backend)
     if result.wall_contacts_xy:
         log.warning("the vehicle touched or crossed the model's walls %d times (first at x %.1f, y %.1f m): this "
                     "simulator lets it through, a real vehicle would have hit", len(result.wall_contacts_xy),
@@ -264,7 +250,19 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     return result
 
 
-def _fly(agent, goal, params: DemoParams, pb) -> DemoResult:  # noqa: ANN001 - agent, Space, module
+def _outcome(result: DemoResult, backend) -> tuple[str, list[list[float]]]:  # noqa: ANN001 - LocalizerBackend
+    """reached | not reached | ambiguous | not localized, and (ambiguous) where each rival pose puts the vehicle
+    (x, y CAD, m): its newest keyframe's pose in the map frame carried into the CAD frame by each rival T_cad_map."""
+    if result.localized:
+        return ("reached" if result.reached else "not reached"), []
+    loc = backend.localizer
+    if loc.status != "ambiguous" or not loc.rivals:
+        return "not localized", []
+    T_map_body = loc.graph.T_map_body(loc.graph.n_keyframes - 1)
+    return "ambiguous", [(T @ T_map_body)[:2, 3].tolist() for T in loc.rivals]
+
+
+def _fly(agent, goal, params: DemoParams) -> DemoResult:  # noqa: ANN001 - VehicleAgent, pb.Goal
     dt = 1.0 / params.rate_hz
     t_sim, t_loc, goal_sent, settled = 0.0, None, False, 0
     true_xy, est_xy = [], []
@@ -280,7 +278,7 @@ def _fly(agent, goal, params: DemoParams, pb) -> DemoResult:  # noqa: ANN001 - a
                 t_loc = t_sim
                 log.info("localized after %.2f s", t_loc)
             if not goal_sent:
-                agent.send_goal(pb.Goal(space_name=goal.name))
+                agent.send_goal(goal)
                 goal_sent = True
             final = agent.follower.final_cad()
             near = final is not None and np.linalg.norm(final - T_est[:3, 3]) < 0.05 and \
@@ -323,12 +321,17 @@ def plot_flight(result: DemoResult, planner: Planner, path: Path) -> Path:
     ax.plot(*true_xy[0], "s", color="tab:blue", ms=8, label=f"take-off ({result.start})")
     if result.goal_xyz:
         ax.plot(result.goal_xyz[0], result.goal_xyz[1], "*", color="tab:red", ms=14, label=f"goal ({result.goal})")
+    rivals = np.array(result.rivals_xy).reshape(-1, 2)
+    if len(rivals):
+        ax.plot(rivals[:, 0], rivals[:, 1], "D", mfc="none", color="tab:purple", ms=11, mew=2,
+                label=f"ambiguous: the vehicle under each of the {len(rivals)} rival poses")
     contacts = np.array(result.wall_contacts_xy).reshape(-1, 2)
     if len(contacts):
         ax.plot(contacts[:, 0], contacts[:, 1], "X", color="crimson", ms=10,
                 label=f"touched or crossed a wall ({len(contacts)}): a real vehicle would have hit")
     pad = 4.0
-    lo, hi = true_xy.min(axis=0) - pad, true_xy.max(axis=0) + pad
+    shown = np.vstack([true_xy, rivals])
+    lo, hi = shown.min(axis=0) - pad, shown.max(axis=0) + pad
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
@@ -336,7 +339,8 @@ def plot_flight(result: DemoResult, planner: Planner, path: Path) -> Path:
     ax.set_ylabel("y (m, CAD)")
     ax.set_title(f"seed {result.seed}: localized after {result.localization_time_s:.2f} s, "
                  f"error at goal {result.goal_error_m:.3f} m ({result.goal_error_pct:.2f} % of "
-                 f"{result.path_length_m:.1f} m)")
+                 f"{result.path_length_m:.1f} m)" if result.localized else
+                 f"seed {result.seed}: {outcome_line(result)}", fontsize=10 if result.localized else 8)
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -345,11 +349,22 @@ def plot_flight(result: DemoResult, planner: Planner, path: Path) -> Path:
     return path
 
 
+def outcome_line(result: DemoResult) -> str:
+    """The flight's outcome in one line a user reads."""
+    if result.outcome == "ambiguous":
+        return (f"ambiguous: {len(result.rivals_xy)} poses explain all the vehicle saw equally well (a symmetric "
+                "building), so the service says so instead of guessing; they are drawn on the picture")
+    if result.outcome == "not localized":
+        return f"not localized after {result.path_length_m:.1f} m of flight"
+    return f"{result.outcome}: {result.goal_error_m:.3f} m from the goal"
+
+
 def result_json(result: DemoResult) -> dict:
     doc = asdict(result)
     for key in ("true_xy", "estimated_xy", "waypoints_xy"):
         doc.pop(key)
     doc["wall_contacts"] = len(doc.pop("wall_contacts_xy"))
+    doc["rivals"] = len(doc.pop("rivals_xy"))
     return doc
 
 
