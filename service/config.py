@@ -1013,10 +1013,17 @@ class GraphConfig(_Section):
 
 
 class RosConfig(_Section):
-    """ROS 2 through Zenoh (service/ros_out.py): CDR messages on the keys zenoh-bridge-ros2dds maps to ROS topics."""
+    """ROS 2 through Zenoh (service/ros_out.py): CDR messages on the keys zenoh-bridge-ros2dds maps to ROS topics,
+    or on rmw_zenoh's own keys (service/ros_transport.py)."""
 
     enabled: bool = Field(False, description="also publish ROS 2 messages (pose, odometry, path, tf, status) and take "
                           "a goal on <namespace>/<vehicle>/macroloc/goal; the protobuf keys stay on")
+    middleware: Literal["bridge", "rmw_zenoh"] = Field(
+        "bridge", description="how ROS topics (and PX4's) travel on Zenoh: 'bridge' on the keys zenoh-bridge-ros2dds "
+        "maps (topic /a/b = key a/b); 'rmw_zenoh' as a node of ROS 2's rmw_zenoh_cpp: keys "
+        "<domain_id>/a/b/<DDS type>/<RIHS01 hash>, the per-sample attachment and liveliness tokens, so that ROS 2 "
+        "machines on the same Zenoh routers see the topics without a bridge")
+    domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID of the rmw_zenoh keys (middleware = rmw_zenoh)")
     namespace: str = Field("", description="ROS namespace before every topic: '' gives /<vehicle>/macroloc/pose and "
                            "/tf (Zenoh keys <vehicle>/macroloc/pose and tf)")
     frame_map: str = Field("map", description="REP-105 map frame id: macroloc's CAD frame")

@@ -1,4 +1,5 @@
-"""PX4 through its uXRCE-DDS topics on Zenoh (with zenoh-bridge-ros2dds, like any ROS 2 topic): external-vision
+"""PX4 through its uXRCE-DDS topics on Zenoh (like any ROS 2 topic: zenoh-bridge-ros2dds's keys, or rmw_zenoh's with
+`[ros] middleware = "rmw_zenoh"`, service.ros_transport): external-vision
 odometry for PX4's EKF2 and offboard setpoints along macroloc's plan.
 
 Out (keys `[<ns>/]fmu/in/...`, px4_msgs CDR, service/msgs/px4_msgs):
@@ -22,7 +23,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import zenoh
 
 from macroloc.graph.localizer import Estimate
 from macroloc.graph.rigid import rotation_angle_rad
@@ -33,6 +33,7 @@ from macroloc.service.ned import (
     quat_wxyz_from_matrix,
     yaw_ned_from_yaw_enu,
 )
+from macroloc.service.ros_transport import RosTransport
 from macroloc.service.ros_types import msg, to_cdr
 from macroloc.service.vehicle_out import Motion, waypoints_arrays
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
@@ -174,17 +175,18 @@ class Px4Output:
     """Publishes `Px4Messages` on PX4's keys (a `service.vehicle_out.VehicleOutput`); a timer thread sends the
     setpoint and offboard_control_mode at `rate_hz` while a plan is active."""
 
-    def __init__(self, session: zenoh.Session, keys: Px4Keys, messages: Px4Messages | None = None,
+    def __init__(self, transport: RosTransport, keys: Px4Keys, messages: Px4Messages | None = None,
                  rate_hz: float = 4.0, reach_m: float = 0.5) -> None:
+        """`transport`: where PX4's topics are on Zenoh (the bridge's keys, or rmw_zenoh's: service.ros_transport)."""
         self.messages = messages or Px4Messages()
         self.motion = Motion()
         self.cursor = PlanCursor(reach_m)
         self.period_s = 1.0 / rate_hz
         self._lock = threading.Lock()
         self._stamp_us = 0
-        self._pubs = {"odometry": session.declare_publisher(keys.visual_odometry, express=True),
-                      "setpoint": session.declare_publisher(keys.trajectory_setpoint, express=True),
-                      "offboard": session.declare_publisher(keys.offboard_control_mode, express=True)}
+        self._pubs = {"odometry": transport.publisher(keys.visual_odometry, VEHICLE_ODOMETRY),
+                      "setpoint": transport.publisher(keys.trajectory_setpoint, TRAJECTORY_SETPOINT),
+                      "offboard": transport.publisher(keys.offboard_control_mode, OFFBOARD_CONTROL_MODE)}
         self._stop = threading.Event()
         self._timer = threading.Thread(target=self._heartbeat, name="px4-offboard", daemon=True)
         self._timer.start()

@@ -1,6 +1,8 @@
-"""ROS 2 through Zenoh without ROS: macroloc's estimates and plans as CDR messages on the keys that
-`zenoh-bridge-ros2dds` maps to ROS 2 topics (ROS topic `/<ns>/<vehicle>/macroloc/pose` <-> Zenoh key
-`<ns>/<vehicle>/macroloc/pose`), and the ROS goal in.
+"""ROS 2 through Zenoh without ROS: macroloc's estimates and plans as CDR messages on ROS 2 topics, and the ROS goal
+in. Where a topic lives on Zenoh is the `service.ros_transport` strategy's: the keys `zenoh-bridge-ros2dds` maps
+(ROS topic `/<ns>/<vehicle>/macroloc/pose` <-> Zenoh key `<ns>/<vehicle>/macroloc/pose`, the default), or
+rmw_zenoh's own keys, attachment and liveliness tokens (`[ros] middleware = "rmw_zenoh"`). Topics below are
+given as the bridge's keys (the ROS topic without its leading slash).
 
 Frames (REP-105): `map` is macroloc's `cad` (the building model's frame), `odom` is macroloc's `map` (the flight's
 odometry frame), `base_link` is `body` (FLU). Out:
@@ -22,11 +24,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import zenoh
 
 from macroloc.graph.localizer import Estimate
 from macroloc.service.inputs import GoalIn, InputParser
 from macroloc.service.ned import cov_ros_from_gtsam, quat_wxyz_from_matrix
+from macroloc.service.ros_transport import RosTransport
 from macroloc.service.ros_types import from_cdr, header, msg, stamp_ns_of, to_cdr
 from macroloc.service.vehicle_out import Motion, waypoints_arrays
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
@@ -168,16 +170,19 @@ class RosMessages:
         return msg(DIAGNOSTICS)(header=header(diag.header.stamp_ns, ""), status=[entry])
 
 
-class RosOutput:
-    """Publishes `RosMessages` as CDR on the bridge's keys (a `service.vehicle_out.VehicleOutput`)."""
+TOPIC_TYPES = {"pose": POSE_COV, "odometry": ODOMETRY, "path": PATH, "status": DIAGNOSTICS}
 
-    def __init__(self, session: zenoh.Session, keys: RosKeys, frames: RosFrames | None = None) -> None:
+
+class RosOutput:
+    """Publishes `RosMessages` as CDR through a `RosTransport` (the bridge's keys or rmw_zenoh's; a
+    `service.vehicle_out.VehicleOutput`)."""
+
+    def __init__(self, transport: RosTransport, keys: RosKeys, frames: RosFrames | None = None) -> None:
         self.keys = keys
         self.messages = RosMessages(keys.vehicle, frames)
         self.motion = Motion()
-        self._pubs = {name: session.declare_publisher(keys.topic(name), express=True)
-                      for name in ("pose", "odometry", "path", "status")}
-        self._pubs["tf"] = session.declare_publisher(keys.tf, express=True)
+        self._pubs = {name: transport.publisher(keys.topic(name), typename) for name, typename in TOPIC_TYPES.items()}
+        self._pubs["tf"] = transport.publisher(keys.tf, TF)
 
     def _put(self, name: str, message: Any, typename: str) -> None:
         self._pubs[name].put(to_cdr(message, typename))
@@ -218,13 +223,16 @@ class RosInputs:
     """The ROS topics the service takes: the goal, checked by the service's `InputParser` like its protobuf twin
     (ROS sensor inputs: service.ros_sensors)."""
 
-    def __init__(self, keys: RosKeys, frames: RosFrames | None = None) -> None:
+    def __init__(self, keys: RosKeys, frames: RosFrames | None = None, transport: RosTransport | None = None) -> None:
+        """`transport`: where the goal topic is (and announces its subscription); the bridge's keys by default."""
         self.keys = keys
         self.frames = frames or RosFrames()
+        self.goal_key = transport.subscription(keys.topic("goal"), POSE_STAMPED) if transport is not None else \
+            keys.topic("goal")
 
     def intakes(self, parser: InputParser) -> dict[str, tuple[Any, str, bool, int]]:
         """key -> (parse(payload) -> event | None, rate name, heavy, ring size), as service.node's intakes."""
-        return {self.keys.topic("goal"): (lambda payload: self.goal(parser, payload), "goal", False, 8)}
+        return {self.goal_key: (lambda payload: self.goal(parser, payload), "goal", False, 8)}
 
     def goal(self, parser: InputParser, payload: bytes) -> GoalIn | None:
         """The ROS goal through `parser.goal` (bounds, finite, stamp not ahead); another frame counts as

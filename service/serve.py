@@ -7,6 +7,7 @@ import signal
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,6 +18,9 @@ from macroloc.service.node import LocalizationService, ServiceParams
 from macroloc.service.ros_sensors import RosSensorTopics
 from macroloc.service.state import MapStore
 from macroloc.service.systemd import Notifier, notifier_from_environment
+
+if TYPE_CHECKING:
+    from macroloc.service.ros_transport import RosTransport
 
 log = logging.getLogger(__name__)
 
@@ -34,46 +38,65 @@ def make_pipeline(cfg: MacrolocConfig) -> FramePipeline:
     return NullPipeline()
 
 
-def make_vehicle_io(cfg: MacrolocConfig, session, T_enu_cad=None):  # noqa: ANN001, ANN201
-    """The ROS 2 / PX4 outputs and the ROS inputs the config enables ([ros], [px4]); null objects otherwise.
-    `T_enu_cad`: the model's geo-reference (graph.geo), which makes PX4's pose frame true NED."""
+def make_ros_transport(cfg: MacrolocConfig, session) -> RosTransport | None:  # noqa: ANN001
+    """Where ROS 2 and PX4 topics travel on Zenoh ([ros] middleware: service.ros_transport), as one rmw_zenoh node
+    named macroloc in the namespace /<[ros] namespace>/<vehicle>; None where neither [ros] nor [px4] is enabled."""
+    from macroloc.service.ros_transport import make_ros_transport as make
+
+    if not (cfg.ros.enabled or cfg.px4.enabled):
+        return None
+    node_namespace = "/" + "/".join(p for p in (cfg.ros.namespace.strip("/"), cfg.service.vehicle) if p)
+    return make(cfg.ros.middleware, session, cfg.ros.domain_id, node_namespace)
+
+
+def make_vehicle_io(cfg: MacrolocConfig, transport: RosTransport | None, T_enu_cad=None):  # noqa: ANN001, ANN201
+    """The ROS 2 / PX4 outputs and the ROS inputs the config enables ([ros], [px4]) on the transport
+    (`make_ros_transport`); null objects otherwise. `T_enu_cad`: the model's geo-reference (graph.geo), which makes
+    PX4's pose frame true NED. The outputs close the transport after themselves."""
     from macroloc.service.ros_out import NullRosInputs, RosFrames, RosInputs, RosKeys, RosOutput
     from macroloc.service.vehicle_out import NullVehicleOutput, VehicleOutput, VehicleOutputs
 
     outputs: list[VehicleOutput] = []
     inputs: RosInputs | NullRosInputs = NullRosInputs()
+    if transport is None:
+        return NullVehicleOutput(), inputs
     if cfg.ros.enabled:
         r = cfg.ros
         keys, frames = RosKeys(cfg.service.vehicle, r.namespace), RosFrames(r.frame_map, r.frame_odom,
                                                                             r.frame_base_link)
-        outputs.append(RosOutput(session, keys, frames))
-        inputs = RosInputs(keys, frames)
-        log.info("ROS 2 topics on Zenoh keys %s, %s, ...", keys.topic("pose"), keys.tf)
+        outputs.append(RosOutput(transport, keys, frames))
+        inputs = RosInputs(keys, frames, transport)
+        log.info("ROS 2 topics (%s) /%s, /%s, ...", r.middleware, keys.topic("pose"), keys.tf)
     if cfg.px4.enabled:
-        import numpy as np
-
         from macroloc.service.px4 import Px4Keys, Px4Messages, Px4Output, ResetCounter
 
         x = cfg.px4
         reset = ResetCounter(x.reset_jump_m, float(np.deg2rad(x.reset_jump_deg)))
-        outputs.append(Px4Output(session, Px4Keys(x.namespace), Px4Messages(T_enu_cad, reset), x.offboard_rate_hz,
+        outputs.append(Px4Output(transport, Px4Keys(x.namespace), Px4Messages(T_enu_cad, reset), x.offboard_rate_hz,
                                  x.reach_m))
-        log.info("PX4 topics on Zenoh keys %s", Px4Keys(x.namespace).visual_odometry)
-    out = outputs[0] if len(outputs) == 1 else VehicleOutputs(outputs) if outputs else NullVehicleOutput()
-    return out, inputs
+        log.info("PX4 topics (%s) /%s", cfg.ros.middleware, Px4Keys(x.namespace).visual_odometry)
+    return VehicleOutputs(outputs, then_close=[transport]), inputs
 
 
-def ros_sensor_topics(cfg: MacrolocConfig) -> RosSensorTopics:
-    """The ROS sensor topics [ros] names, as Zenoh keys (zenoh-bridge-ros2dds: the topic without its leading
-    slash, under the namespace); none unless [ros] is enabled."""
+def ros_sensor_topics(cfg: MacrolocConfig, transport: RosTransport | None) -> RosSensorTopics:
+    """The Zenoh keys of the ROS sensor topics [ros] names (under the namespace) on the transport, their
+    subscriptions announced; none unless [ros] is enabled."""
     from macroloc.service.ros_out import RosKeys
+    from macroloc.service.ros_sensors import CAMERA_INFO, COMPRESSED, IMAGE, IMU
 
     r = cfg.ros
-    if not r.enabled:
+    if not r.enabled or transport is None:
         return RosSensorTopics()
     keys = RosKeys(cfg.service.vehicle, r.namespace)
-    return RosSensorTopics(keys.of(r.left_image), keys.of(r.right_image), keys.of(r.left_info),
-                           keys.of(r.right_info), keys.of(r.imu), r.compressed, r.rectified)
+
+    def key(topic: str, typename: str) -> str:
+        return transport.subscription(keys.of(topic), typename) if topic else ""
+
+    image = COMPRESSED if r.compressed else IMAGE
+    if not (r.left_image and r.right_image and r.left_info and r.right_info):  # a pair is taken whole or not at all
+        return RosSensorTopics(imu=key(r.imu, IMU))
+    return RosSensorTopics(key(r.left_image, image), key(r.right_image, image), key(r.left_info, CAMERA_INFO),
+                           key(r.right_info, CAMERA_INFO), key(r.imu, IMU), r.compressed, r.rectified)
 
 
 def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  # noqa: ANN001
@@ -97,15 +120,16 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     planner = prepared.planner
     log.info("%s: ready", building.name)
     s, perception = cfg.service, cfg.perception.to_params()
+    transport = make_ros_transport(cfg, session)
     params = ServiceParams(vehicle=s.vehicle, building=building.name, building_sha256=model.sha256,
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
                            status_period_s=s.status_period_s, save_period_s=s.save_period_s,
                            replan_period_s=cfg.planning.replan_period_s, stall_after_s=s.stall_after_s,
                            drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep, geo=geo,
-                           limits=limits_from_config(cfg.inputs, model), ros_sensors=ros_sensor_topics(cfg),
+                           limits=limits_from_config(cfg.inputs, model), ros_sensors=ros_sensor_topics(cfg, transport),
                            T_body_cam=None if cfg.camera.T_body_cam is None else np.array(cfg.camera.T_body_cam, float),
                            depth=perception.depth, place=perception.place)
-    vehicle_out, ros_inputs = make_vehicle_io(cfg, session, geo.T_enu_cad() if geo and geo.north_given else None)
+    vehicle_out, ros_inputs = make_vehicle_io(cfg, transport, geo.T_enu_cad() if geo and geo.north_given else None)
     return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), vehicle_out, ros_inputs,
                                notifier)
 

@@ -49,11 +49,17 @@ class NullVehicleOutput:
         pass
 
 
-class VehicleOutputs:
-    """Several outputs as one (ROS and PX4 both on)."""
+class Closes(Protocol):
+    def close(self) -> None: ...
 
-    def __init__(self, outputs: Sequence[VehicleOutput]) -> None:
+
+class VehicleOutputs:
+    """Several outputs as one (ROS and PX4 both on); `then_close`: closed after the outputs (their transport's
+    announcements, service.ros_transport)."""
+
+    def __init__(self, outputs: Sequence[VehicleOutput], then_close: Sequence[Closes] = ()) -> None:
         self.outputs = list(outputs)
+        self.then_close = list(then_close)
 
     def pose(self, est: Estimate) -> None:
         for out in self.outputs:
@@ -70,6 +76,8 @@ class VehicleOutputs:
     def close(self) -> None:
         for out in self.outputs:
             out.close()
+        for other in self.then_close:
+            other.close()
 
 
 class Motion:
