@@ -1035,6 +1035,9 @@ class RosConfig(_Section):
     left_info: str = Field("", description="ROS topic of the left camera's sensor_msgs/CameraInfo")
     right_info: str = Field("", description="ROS topic of the right camera's CameraInfo (its P gives the baseline)")
     imu: str = Field("", description="ROS topic of sensor_msgs/Imu in the body frame, beside macroloc/<vehicle>/imu")
+    odometry: str = Field("", description="ROS topic of the vehicle's nav_msgs/Odometry (a VIO: child base_link FLU in "
+                          "its odom frame), taken as the service's odometry beside macroloc/<vehicle>/odometry "
+                          "(service/odometry_in.py); '' = none")
     compressed: bool = Field(False, description="the image topics carry sensor_msgs/CompressedImage (jpeg, png)")
     rectified: bool = Field(False, description="the image topics carry rectified images (image_rect): not remapped")
 
@@ -1052,6 +1055,9 @@ class Px4Config(_Section):
                                 " a jump of the CAD anchor) increments reset_counter, m")
     reset_jump_deg: float = Field(2.0, gt=0, description="... or by more than this rotation, deg")
     reach_m: float = Field(0.5, gt=0, description="the setpoint moves to the next waypoint within this distance, m")
+    take_odometry: bool = Field(False, description="take fmu/out/vehicle_odometry (NED/FRD, its reset_counter) as "
+                                "the service's odometry (service/odometry_in.py; stamps on PX4's clock). Not while "
+                                "EKF2 fuses macroloc's own pose (EKF2_EV_CTRL): its output then holds that pose")
 
 
 class InputsConfig(_Section):
@@ -1074,6 +1080,12 @@ class InputsConfig(_Section):
                                   "(16 g, a common accelerometer range), m/s^2")
     max_gyro_radps: float = Field(35.0, gt=0, description="largest angular rate (2000 deg/s, a common gyro range), "
                                   "rad/s")
+    odometry_max_speed_mps: float = Field(10.0, gt=0, description="a ROS or PX4 odometry pose that moves further "
+                                          "than this x dt + 0.25 m from the previous one is a reset of the vehicle's "
+                                          "odometry: a new segment, chained at the last pose (service/odometry_in.py), "
+                                          "m/s")
+    odometry_max_rate_degps: float = Field(400.0, gt=0, description="... or that turns more than this x dt + 10 deg, "
+                                           "deg/s")
     clock_reset_s: float = Field(
         2.0, gt=0, description="stamps on a key that go back (or jump ahead) by more than this, in several "
         "consecutive messages that agree among themselves, start a new time base (a vehicle clock reset), s")

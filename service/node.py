@@ -45,7 +45,7 @@ from macroloc.service.inputs import (
 from macroloc.service.places import KeyframePlaces, Placed
 from macroloc.service.planning import GoalSpec, Planner, PlanningError
 from macroloc.service.recording import matrix_from_pose
-from macroloc.service.ros_out import NullRosInputs, RosInputs
+from macroloc.service.ros_out import NullRosInputs, RosIntakes
 from macroloc.service.ros_sensors import RosSensorInputs, RosSensorTopics
 from macroloc.service.state import MapStore
 from macroloc.service.systemd import Notifier, NullNotifier
@@ -89,14 +89,14 @@ class LocalizationService:
 
     def __init__(self, session: zenoh.Session, backend: LocalizerBackend, planner: Planner, store: MapStore,
                  params: ServiceParams, pipeline: FramePipeline | None = None,
-                 vehicle_out: VehicleOutput | None = None, ros_inputs: RosInputs | NullRosInputs | None = None,
+                 vehicle_out: VehicleOutput | None = None, ros_inputs: RosIntakes | None = None,
                  notifier: Notifier | None = None) -> None:
         """`vehicle_out`: ROS 2 / PX4 messages beside the protobuf keys (service.ros_out, service.px4), none by
-        default; `ros_inputs`: the ROS topics taken beside the protobuf inputs (the goal; sensor inputs later);
+        default; `ros_inputs`: the ROS topics taken beside the protobuf inputs (the goal, the vehicle's odometry);
         `notifier`: systemd's notification socket (service.systemd), none outside systemd."""
         self.session = session
         self.vehicle_out: VehicleOutput = vehicle_out or NullVehicleOutput()
-        self.ros_inputs = ros_inputs or NullRosInputs()
+        self.ros_inputs: RosIntakes = ros_inputs or NullRosInputs()
         self.backend = backend
         self.planner = planner
         self.store = store

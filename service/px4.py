@@ -66,6 +66,12 @@ class Px4Keys:
     def offboard_control_mode(self) -> str:
         return self._k("offboard_control_mode")
 
+    @property
+    def vehicle_odometry(self) -> str:
+        """PX4's own odometry, out of the vehicle: `[<ns>/]fmu/out/vehicle_odometry`."""
+        ns = self.namespace.strip("/")
+        return f"{ns}/fmu/out/vehicle_odometry" if ns else "fmu/out/vehicle_odometry"
+
 
 class ResetCounter:
     """PX4's reset_counter (uint8, wraps): +1 at every re-localization (a localized estimate after the service had

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -242,6 +242,21 @@ class RosInputs:
             parser.drops.drop("ros_goal/wrong_frame")
             return None
         return parser.goal(goal.SerializeToString())
+
+
+class RosIntakes(Protocol):
+    def intakes(self, parser: InputParser) -> dict[str, tuple[Any, str, bool, int]]:
+        """key -> (parse(payload) -> event | None, rate name, heavy, ring size), as service.node's intakes."""
+
+
+class AllRosIntakes:
+    """Several ROS inputs as one (the goal, the vehicle's odometry topics)."""
+
+    def __init__(self, parts: list[RosIntakes]) -> None:
+        self.parts = parts
+
+    def intakes(self, parser: InputParser) -> dict[str, tuple[Any, str, bool, int]]:
+        return {key: intake for part in self.parts for key, intake in part.intakes(parser).items()}
 
 
 class NullRosInputs:

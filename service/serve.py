@@ -43,7 +43,7 @@ def make_ros_transport(cfg: MacrolocConfig, session) -> RosTransport | None:  # 
     named macroloc in the namespace /<[ros] namespace>/<vehicle>; None where neither [ros] nor [px4] is enabled."""
     from macroloc.service.ros_transport import make_ros_transport as make
 
-    if not (cfg.ros.enabled or cfg.px4.enabled):
+    if not (cfg.ros.enabled or cfg.px4.enabled or cfg.px4.take_odometry):
         return None
     node_namespace = "/" + "/".join(p for p in (cfg.ros.namespace.strip("/"), cfg.service.vehicle) if p)
     return make(cfg.ros.middleware, session, cfg.ros.domain_id, node_namespace)
@@ -53,29 +53,52 @@ def make_vehicle_io(cfg: MacrolocConfig, transport: RosTransport | None, T_enu_c
     """The ROS 2 / PX4 outputs and the ROS inputs the config enables ([ros], [px4]) on the transport
     (`make_ros_transport`); null objects otherwise. `T_enu_cad`: the model's geo-reference (graph.geo), which makes
     PX4's pose frame true NED. The outputs close the transport after themselves."""
-    from macroloc.service.ros_out import NullRosInputs, RosFrames, RosInputs, RosKeys, RosOutput
+    from macroloc.service.odometry_in import (
+        PX4_ODOMETRY,
+        ROS_ODOMETRY,
+        SegmentRule,
+        VehicleOdometryInput,
+        px4_odometry,
+        ros_odometry,
+    )
+    from macroloc.service.px4 import Px4Keys
+    from macroloc.service.ros_out import (
+        AllRosIntakes,
+        NullRosInputs,
+        RosFrames,
+        RosInputs,
+        RosIntakes,
+        RosKeys,
+        RosOutput,
+    )
     from macroloc.service.vehicle_out import NullVehicleOutput, VehicleOutput, VehicleOutputs
 
     outputs: list[VehicleOutput] = []
-    inputs: RosInputs | NullRosInputs = NullRosInputs()
+    inputs: list[RosIntakes] = []
     if transport is None:
-        return NullVehicleOutput(), inputs
-    if cfg.ros.enabled:
-        r = cfg.ros
+        return NullVehicleOutput(), NullRosInputs()
+    r, x = cfg.ros, cfg.px4
+    rule = SegmentRule(cfg.inputs.odometry_max_speed_mps, float(np.deg2rad(cfg.inputs.odometry_max_rate_degps)))
+    if r.enabled:
         keys, frames = RosKeys(cfg.service.vehicle, r.namespace), RosFrames(r.frame_map, r.frame_odom,
                                                                             r.frame_base_link)
         outputs.append(RosOutput(transport, keys, frames))
-        inputs = RosInputs(keys, frames, transport)
+        inputs.append(RosInputs(keys, frames, transport))
         log.info("ROS 2 topics (%s) /%s, /%s, ...", r.middleware, keys.topic("pose"), keys.tf)
-    if cfg.px4.enabled:
-        from macroloc.service.px4 import Px4Keys, Px4Messages, Px4Output, ResetCounter
+        if r.odometry:
+            inputs.append(VehicleOdometryInput(transport.subscription(keys.of(r.odometry), ROS_ODOMETRY),
+                                               ros_odometry, rule))
+    if x.enabled:
+        from macroloc.service.px4 import Px4Messages, Px4Output, ResetCounter
 
-        x = cfg.px4
         reset = ResetCounter(x.reset_jump_m, float(np.deg2rad(x.reset_jump_deg)))
         outputs.append(Px4Output(transport, Px4Keys(x.namespace), Px4Messages(T_enu_cad, reset), x.offboard_rate_hz,
                                  x.reach_m))
-        log.info("PX4 topics (%s) /%s", cfg.ros.middleware, Px4Keys(x.namespace).visual_odometry)
-    return VehicleOutputs(outputs, then_close=[transport]), inputs
+        log.info("PX4 topics (%s) /%s", r.middleware, Px4Keys(x.namespace).visual_odometry)
+    if x.take_odometry:
+        inputs.append(VehicleOdometryInput(transport.subscription(Px4Keys(x.namespace).vehicle_odometry,
+                                                                  PX4_ODOMETRY), px4_odometry, rule))
+    return VehicleOutputs(outputs, then_close=[transport]), AllRosIntakes(inputs)
 
 
 def ros_sensor_topics(cfg: MacrolocConfig, transport: RosTransport | None) -> RosSensorTopics:
