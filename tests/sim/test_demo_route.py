@@ -86,6 +86,19 @@ def test_the_take_off_view_asked_for_is_what_a_storey_offers(fzk_path: Path) -> 
     assert choose_route(planner, 0).wanted_view == wanted_view()  # type: ignore[arg-type]
 
 
+def test_every_storey_with_something_to_see_is_tried_and_the_refusal_says_what_each_offered(fzk_path: Path) -> None:
+    """No goal fits anywhere (a goal at most 0.1 m away is never in another room): both of the house's storeys
+    were tried, and the one line gives each one's figures."""
+    from macroloc.sim.demo_route import choose_route
+
+    with pytest.raises(UserInputError) as refused:
+        choose_route(planner_for(fzk_path), 0, min_goal_distance_m=0.0, max_goal_distance_m=0.1)  # type: ignore[arg-type]
+    line = str(refused.value)
+    assert "\n" not in line
+    assert line.index("Erdgeschoss: 14 doors/windows") < line.index("Dachgeschoss: 2 doors/windows")
+    assert "best view" in line and "goals tried" in line
+
+
 def test_the_users_storey_and_goal_are_taken(office_path: Path) -> None:
     from macroloc.sim.demo_route import choose_route, parse_goal
 
