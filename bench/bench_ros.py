@@ -1,11 +1,15 @@
-"""Frame in -> pose out over Zenoh, the protobuf pose and the ROS 2 pose (CDR) of the same frames, in one run.
+"""Frame in -> pose out over Zenoh, the protobuf pose and the ROS 2 pose (CDR) of the same frames, per ROS middleware.
 
 `macroloc serve --ros` in its own process (perception off: a frame's pose comes from odometry, so this is
 transport + service + serialization); this process is the vehicle. It first localizes the service with doors
 seen from the model's ground truth (Office_A, as the service tests do), then publishes odometry and a 640x480
 stereo frame per stamp at 30 Hz and records, per stamp, when `macroloc/bench/pose` (protobuf PoseEstimate) and
-`bench/macroloc/pose` (geometry_msgs/msg/PoseWithCovarianceStamped, deserialized here with rosbags) arrive.
-Run: `python -m bench.bench_ros [--frames N]`.
+the ROS pose (geometry_msgs/msg/PoseWithCovarianceStamped, deserialized here with rosbags) arrive: on the bridge's
+key `bench/macroloc/pose` (`[ros] middleware = "bridge"`), or on rmw_zenoh's
+`0/bench/macroloc/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/RIHS01_...` with its attachment
+(`"rmw_zenoh"`). With `--middleware both` (default) one invocation runs the service once per middleware, one after
+the other, on the same machine; the protobuf pose of each service run is the common reference.
+Run: `python -m bench.bench_ros [--frames N] [--middleware bridge|rmw_zenoh|both]`.
 """
 
 from __future__ import annotations
@@ -45,7 +49,16 @@ def _observations(model, T_cad_body: np.ndarray, stamp_ns: int, rng: np.random.G
     return msg
 
 
-def run(frames: int, rate_hz: float = 30.0) -> dict:
+def ros_pose_key(middleware: str) -> str:
+    """The ROS pose's Zenoh key under each middleware (service.ros_transport)."""
+    from macroloc.service.ros_transport import dds_type_name, type_hash
+
+    typename = "geometry_msgs/msg/PoseWithCovarianceStamped"
+    return f"0/bench/macroloc/pose/{dds_type_name(typename)}/{type_hash(typename)}" if middleware == "rmw_zenoh" \
+        else "bench/macroloc/pose"
+
+
+def run(frames: int, rate_hz: float = 30.0, middleware: str = "bridge") -> dict:
     import zenoh
 
     from macroloc.graph.bim import load_building
@@ -58,7 +71,7 @@ def run(frames: int, rate_hz: float = 30.0) -> dict:
     model = load_building(OFFICE)
     port = _free_port()
     env = dict(os.environ, MACROLOC_SERVICE__PERCEPTION="false", MACROLOC_SERVICE__STATUS_PERIOD_S="5",
-               MACROLOC_GRAPH__SURFACE_CHECK="false")
+               MACROLOC_GRAPH__SURFACE_CHECK="false", MACROLOC_ROS__MIDDLEWARE=middleware)
     service = subprocess.Popen([str(Path(sys.executable).parent / "macroloc"), "serve", "--building", str(OFFICE),
                                 "--vehicle", "bench", "--ros", "--listen", f"tcp/127.0.0.1:{port}",
                                 "--state-dir", tempfile.mkdtemp()], env=env, stderr=subprocess.DEVNULL)
@@ -68,6 +81,7 @@ def run(frames: int, rate_hz: float = 30.0) -> dict:
     keys = Keys("bench")
     got_pb: dict[int, float] = {}
     got_ros: dict[int, float] = {}
+    attachments: list[int] = []  # bytes of each ROS sample's attachment (rmw_zenoh: 33)
     localized: list[bool] = []
 
     def on_pb(sample) -> None:  # noqa: ANN001
@@ -81,14 +95,15 @@ def run(frames: int, rate_hz: float = 30.0) -> dict:
         t = time.perf_counter()
         msg = from_cdr(sample.payload.to_bytes(), "geometry_msgs/msg/PoseWithCovarianceStamped")
         got_ros.setdefault(stamp_ns_of(msg.header.stamp), t)
+        attachments.append(len(sample.attachment.to_bytes()) if sample.attachment is not None else 0)
 
     door = [f for f in model.features if f.type == "door" and f.storey == "Level 1"][10]
     T = level_pose(door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4], 0.3)
-    out: dict = {"images": origin, "frame_bytes": template.ByteSize()}
+    out: dict = {"middleware": middleware, "images": origin, "frame_bytes": template.ByteSize()}
     rng = np.random.default_rng(0)
     try:
         with zenoh.open(session_config(ZenohConfig(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))) as s:
-            subs = [s.declare_subscriber(keys.pose, on_pb), s.declare_subscriber("bench/macroloc/pose", on_ros)]
+            subs = [s.declare_subscriber(keys.pose, on_pb), s.declare_subscriber(ros_pose_key(middleware), on_ros)]
             stereo_pub, odo_pub = declare_publisher(s, keys.stereo), declare_publisher(s, keys.odometry)
             while not any(r.ok for r in s.liveliness().get(keys.alive, timeout=1.0)):
                 if service.poll() is not None:
@@ -130,6 +145,7 @@ def run(frames: int, rate_hz: float = 30.0) -> dict:
                 out[name] = {"answered": f"{len(lat)}/{frames}",
                              "p50_ms": round(float(np.percentile(lat, 50)), 2) if len(lat) else None,
                              "p99_ms": round(float(np.percentile(lat, 99)), 2) if len(lat) else None}
+            out["ros_attachment_bytes"] = sorted(set(attachments))
             for sub in subs:
                 sub.undeclare()
     finally:
@@ -141,12 +157,16 @@ def run(frames: int, rate_hz: float = 30.0) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument("--middleware", choices=("bridge", "rmw_zenoh", "both"), default="both")
     args = parser.parse_args()
-    r = run(args.frames)
-    print(json.dumps(r))
-    for name in ("protobuf", "ros"):
-        print(f"{name:>9}: frame->pose p50 {r[name]['p50_ms']} ms, p99 {r[name]['p99_ms']} ms, "
-              f"answered {r[name]['answered']} at 30 Hz")
+    middlewares = ("bridge", "rmw_zenoh") if args.middleware == "both" else (args.middleware,)
+    results = [run(args.frames, middleware=m) for m in middlewares]
+    print(json.dumps(results))
+    for r in results:
+        for name in ("protobuf", "ros"):
+            label = f"{r['middleware']}/{name}"
+            print(f"{label:>18}: frame->pose p50 {r[name]['p50_ms']} ms, p99 {r[name]['p99_ms']} ms, "
+                  f"answered {r[name]['answered']} at 30 Hz")
 
 
 if __name__ == "__main__":
