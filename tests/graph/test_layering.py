@@ -1,6 +1,6 @@
 """The layering (docs/architecture.md): common/ imports nothing of the project; graph/ and perception/ are pure
 libraries that share only common/; sim/ may use graph/; none of them imports service/, zenoh or the CLI, except
-sim's vehicle side (agent, demo, truth_flight), which speaks the service's wire. The rooms of service/: its runtime
+sim's vehicle side (agent, demo, demo_route, truth_flight), which speaks the service's wire. The rooms of service/: its runtime
 modules (what `macroloc serve` runs) never import service.offline (replay, reports, plots, bags) and import sim/
 only inside functions; service.offline may import the runtime modules."""
 
@@ -20,8 +20,9 @@ NEVER = {  # package -> what it must never import (project packages by their sho
     "sim": ("service", "zenoh", "typer"),
 }
 # sim's vehicle side: the simulated vehicle on the wire (agent), ground-truth flights written as recordings
-# (truth_flight) and the closed-loop demo that runs the service against the vehicle (demo)
-SIM_VEHICLE_SIDE = ("agent", "demo", "truth_flight")
+# (truth_flight) and the closed-loop demo that runs the service against the vehicle (demo, and its route on the
+# service's planner: demo_route)
+SIM_VEHICLE_SIDE = ("agent", "demo", "demo_route", "truth_flight")
 # what the vehicle side may import of the service at module level: the wire (messages, recordings, Zenoh keys)
 # and the configuration; any other service module only inside a function (the demo builds the service)
 SERVICE_WIRE = ("macroloc.service.wire", "macroloc.service.recording", "macroloc.service.zenoh_io",
@@ -71,7 +72,7 @@ def test_each_package_imports_only_what_its_layer_may(package: str) -> None:
 
 
 def test_sims_vehicle_side_imports_only_the_services_wire_at_module_level() -> None:
-    """agent, demo and truth_flight: service's wire and config when imported; the rest of the service (the demo's
+    """agent, demo, demo_route and truth_flight: service's wire and config when imported; the rest of the service (the demo's
     planner and in-process service) only inside functions; never the CLI, nor service.offline."""
     offenders = []
     for stem in SIM_VEHICLE_SIDE:
