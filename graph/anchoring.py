@@ -109,7 +109,7 @@ class Anchoring:
             status = "exploring" if result.status == "not_localized" else "ambiguous"
             self.registrations.append((stamp_ns, status))
             self.status = status
-            self.rivals = rival_poses(result) if status == "ambiguous" else []
+            self.rivals = (list(choice.rivals) or rival_poses(result)) if status == "ambiguous" else []
             log.info("registration of %d landmarks: %s (%d inliers)", len(keys), result.status, result.inliers)
             return
         self.registrations.append((stamp_ns, "localized"))
@@ -208,8 +208,9 @@ class Anchoring:
 
 
 def rival_poses(result: Alignment) -> list[np.ndarray]:
-    """The T_cad_map an 'ambiguous' registration could not tell apart: its candidates that explain as many
-    landmarks as the best (a symmetric building's images of the true pose), else its own best pose alone."""
+    """The T_cad_map an 'ambiguous' registration could not tell apart, where the walls named none (`Choice.rivals`):
+    its candidates that explain as many landmarks as the best (a symmetric building's images of the true pose),
+    else its own best pose alone."""
     if result.candidates:
         most = max(n for _, n in result.candidates)
         return [np.asarray(T, float) for T, n in result.candidates if n == most]

@@ -150,8 +150,10 @@ class SurfaceJudge:
             beaten = score[best] >= score[i_reg] + p.surface_margin
             contradicted = checks[i_reg].seen_through > p.surface_refuse_seen_through
             refused = beaten or contradicted or (confirmed and best != i_reg)
-            return Choice(None, False, best_fits and rivalled) if refused else Choice(T_reg, True)
-        return Choice(candidates[best] if confirmed else None, False, best_fits and rivalled)
+            tied = (candidates[best], *rivals) if rivalled else ()
+            return Choice(None, False, best_fits and rivalled, tied) if refused else Choice(T_reg, True)
+        return Choice(candidates[best] if confirmed else None, False, best_fits and rivalled,
+                      () if confirmed or not rivalled else (candidates[best], *rivals))
 
     def _weighed(self, poses: list[np.ndarray], reg: tuple[np.ndarray, np.ndarray] | None, points_map: np.ndarray,
                  origins_map: np.ndarray, sample: tuple[np.ndarray, np.ndarray]
@@ -365,11 +367,13 @@ class PerPose(Generic[V]):
 
 class Choice(NamedTuple):
     """The walls' verdict on a registration (`SurfaceJudge.choose`): the pose to anchor with or None,
-    whether it is the registrar's own answer, and whether two different candidates fit the walls alike."""
+    whether it is the registrar's own answer, whether two different candidates fit the walls alike, and (no pose
+    chosen) those candidates, T_cad_map each."""
 
     T_cad_map: np.ndarray | None
     registrars: bool
     rivals_fit: bool = False
+    rivals: tuple[np.ndarray, ...] = ()  # no pose chosen: the best candidate and those the walls fit as well
 
 
 def same_pose(A: np.ndarray, B: np.ndarray, tol_m: float = 1e-3, tol_rad: float = 1e-4) -> bool:

@@ -240,6 +240,21 @@ def test_one_door_in_a_room_alike_after_a_half_turn_stays_ambiguous() -> None:
     assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None and not loc.links
 
 
+def test_an_ambiguous_localizer_names_the_poses_the_walls_fit_alike() -> None:
+    """The half-turned twin room above: the localizer's rivals are the two poses the walls fit as well (the door
+    matched to each of the two model doors, half a turn apart), not every candidate of the one landmark (four);
+    the demo draws them (sim.demo)."""
+    v, f = room_mesh()
+    box = SurfaceIndex.from_mesh(v, f[:8], SurfaceParams(spacing_m=0.05))
+    box.walls = WallVoxels.from_mesh(v, f[:8])
+    model = doors_on_the_room([((9.0, 0.0), (0, 1)), ((3.0, 7.0), (0, -1))])
+    loc = fly_facing_doors(model, box, ("D00",), (9.0, 3.5), -np.pi / 2)
+    assert loc.status == "ambiguous" and len(loc.rivals) == 2
+    A, B = loc.rivals
+    assert np.allclose(A[:3, :3] @ B[:3, :3].T, np.diag([-1.0, -1.0, 1.0]), atol=1e-3)  # half a turn apart
+    assert np.linalg.norm((A[:3, 3] + B[:3, 3]) / 2 - [6.0, 3.5, 0.0]) < 0.1  # about the room's centre
+
+
 def fly_seeing_a_far_door(model: BuildingModel, room: SurfaceIndex, params: LocalizerParams,
                           far_lift_m: float = 0.0) -> Localizer:
     """Ten keyframes, 0.5 s apart, at (10.5, 3.5) in the box room facing -x and drifting back 5 cm each: door D00
