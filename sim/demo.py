@@ -144,6 +144,20 @@ def bundled_detector(building: Path) -> Path | None:
     return path if path.is_file() else None
 
 
+def detector_choice(building: Path, params: DemoParams, own: MacrolocConfig) -> tuple[Path | None, str]:
+    """The detector the demo's perception chain runs (None: the generic shipped one) and where it comes from:
+    --detector, else the config's perception.detector_model, else the one adapted to this building and shipped
+    beside it (`bundled_detector`), else the generic one."""
+    if params.detector_model is not None:
+        return params.detector_model, f"detector {params.detector_model} (--detector)"
+    if own.perception.detector_model is not None:
+        return own.perception.detector_model, f"detector {own.perception.detector_model} (the config's)"
+    adapted = bundled_detector(building)
+    if adapted is not None:
+        return adapted, f"the detector adapted to {building.name}, {adapted}"
+    return None, "the generic shipped detector (none adapted to this building lies beside it)"
+
+
 def demo_config(building: Path, params: DemoParams, port: int, storey: str | None = None) -> MacrolocConfig:
     """The service's configuration for a demo flight: `params.config`'s keys (or the defaults), under the demo's
     own: its building, vehicle, endpoints and outputs; the take-off storey (`params.storey`, else the file's, else
@@ -151,8 +165,7 @@ def demo_config(building: Path, params: DemoParams, port: int, storey: str | Non
     file names none."""
     own = load_config(params.config)
     perceive = params.observations == "perception"
-    detector = (params.detector_model or own.perception.detector_model or bundled_detector(building)) \
-        if perceive else own.perception.detector_model
+    detector = detector_choice(building, params, own)[0] if perceive else own.perception.detector_model
     return load_config(params.config, service={"building": building, "vehicle": params.vehicle,
                                                "status_period_s": 1.0, "perception": perceive,
                                                "lockstep": params.lockstep},
@@ -194,7 +207,9 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     perceive = params.observations == "perception"
     if params.record is not None and not perceive:
         raise UserInputError("--record needs --observations perception (a recording holds the stereo frames)")
-    route = demo_route(building, params, cfg)
+    own = cfg or load_config(params.config)
+    detector_label = detector_choice(building, params, own)[1]
+    route = demo_route(building, params, own)
     start_xyz = route.start_xyz
     log.info("route: take-off on %s %s (a turn shows %d doors and windows, %d asked), goal %s", route.storey,
              route.start, route.view, route.wanted_view, route.goal.label)
@@ -244,8 +259,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     geo = service.params.geo
     if geo is not None and result.goal_xyz:  # where the goal lies on the Earth (graph.geo)
         result.goal_wgs84 = [float(v) for v in geo.wgs84(np.asarray(result.goal_xyz))[0]]
-    result.observations = sensor.label + (f" (detector {cfg.perception.detector_model or 'shipped'})"
-                                          if perceive else "")
+    result.observations = sensor.label + (f" ({detector_label})" if perceive else "")
     result.wall_time_s = time.monotonic() - wall_start
     return result
 
