@@ -75,6 +75,26 @@ def test_office_a_keeps_the_route_it_flew_before_issue_59(office_path: Path) -> 
     assert route.start_xyz == pytest.approx([30.966, -13.218, 1.4], abs=1e-3)
 
 
+def test_a_building_without_ifcspace_gets_a_door_window_or_free_cell_goal(fzk_path: Path) -> None:
+    """Many IFC exports have no IfcSpace: the goal is then a door, a window or a free cell of another room."""
+    from dataclasses import replace
+
+    from macroloc.service.planning import Planner
+    from macroloc.sim.agent import ray_free
+    from macroloc.sim.demo_route import choose_route
+
+    full: Planner = planner_for(fzk_path)  # type: ignore[assignment]
+    bare = Planner(full.model, replace(full.solids, spaces=[]), full.cell_m, full.vehicle_radius_m,
+                   full.flight_height_m)
+    for seed in (0, 1, 2):
+        route = choose_route(bare, seed)
+        assert route.goal.space_name is None and (route.goal.feature_id or route.goal.position_cad)
+        bare.plan(route.start_xyz, route.goal.spec())
+        grid, free = bare.free_cells(route.start_xyz[2])
+        goal_xy = bare.resolve(route.goal.spec(), route.start_xyz)[0][:2]
+        assert not ray_free(free, grid.cell_of(route.start_xyz), grid.cell_of(goal_xy))
+
+
 def test_the_take_off_view_asked_for_is_what_a_storey_offers(fzk_path: Path) -> None:
     """A house's rooms show fewer doors and windows than the registration would like: its best view is asked
     for instead; with a registration that needs more than any point shows, the route still takes off."""
