@@ -9,15 +9,22 @@ with rendered frames of the duplex and FZK-Haus in a quarter of each batch (`--s
 every exported ONNX (the same weights before the batch norms are folded) and keeps their anchors;
 `macroloc adapt-detector` fine-tunes the shipped `perception/models/detector.pt` on renders of one building.
 
-Data: real indoor photos (`../shared/data/images/indoor_doors`, split 80/10/10 by source photo, seeded:
-`perception.trainset.split_indoor`) fill `--indoor-fraction` of each batch, the real facade photos
-(`../shared/data/images/facades`, fixed split: test = img_n with n % 5 == 0, never trained on; validation = a seeded
-15 % of the rest) the rest; optionally rendered frames of the simulator (`--sim out/sim_yolo`, YOLO labels 0 door,
-1 window, rendered by `python -m bench.sim_trainset` on first use from the duplex and FZK-Haus; Office_A is held
-out) fill `--sim-fraction`. The validation parts of both real sets set the score threshold from their PR curves.
-Augmentation is what a drone sees: the paper's rotations, zoom-in crops onto a door (filling 55-125 % of the frame's
-height, often cut by the border), aspect changes (the indoor photos were stretched to squares), brightness and
-exposure, random greyscale, mirror.
+Data: every real labelled source (`perception.sources.REAL_SOURCES`: the indoor sources under `--indoor`, the
+facades at `--facades`), each split 80/10/10 by source photo, seeded (the facades: test = img_n with n % 5 == 0);
+`--leave-out SOURCE...` keeps sources out entirely, so that a model can be scored on a camera it never saw
+(`bench.eval_detector`). `--indoor-fraction` of each batch's real photos come from the indoor sources, shared by the
+square root of their sizes, the rest from the facades; optionally rendered frames of the simulator (`--sim
+out/sim_yolo`, YOLO labels 0 door, 1 window, rendered by `python -m bench.sim_trainset` on first use from the
+duplex and FZK-Haus; Office_A is held out) fill `--sim-fraction`. The validation parts set the score threshold
+from their PR curves.
+`--arch shufflenet` starts from pretrained features (`perception.backbone.ShuffleYolo`, `--pretrained`, optionally
+`--freeze` its first stages) instead of TinyYolo from scratch.
+Augmentation is what a drone sees: the paper's rotations, zoom-in crops onto a door (filling 55-125 % of the
+frame's height, often cut by the border), aspect changes (the indoor photos were stretched to squares), brightness
+and exposure, random greyscale, mirror, mosaics; with `--camera P` a wide-angle lens distortion and a camera's white
+balance, motion blur or JPEG.
+A run saves its whole state every `--save-every` steps; `--stop-at STEP` stops it there and `--resume` goes on to
+the same weights as one run in one go (a long training in parts).
 Writes `perception/models/detector.onnx`, its JSON sidecar (classes, input size, anchors, threshold,
 figures) and `detector_pr.png`; the detailed figures and the EMA weights (`checkpoint.pt`, for `--export-only`)
 go to `out/detector/`. Needs the `train` extra (torch); runs on the CPU.
@@ -26,6 +33,7 @@ go to `out/detector/`. Needs the `train` extra (torch); runs on the CPU.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import logging
 import os
@@ -38,19 +46,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from macroloc.perception import detector_eval
+from macroloc.perception import detector_eval, sources
 from macroloc.perception.detector import CLASS_NAMES, Detector, DetectorSpec
 from macroloc.perception.evaluate import best_f1_threshold, plot_pr
+from macroloc.perception.sources import REAL_SOURCES, RealSource
 from macroloc.perception.trainset import (
-    FACADE_CLASS_MAP,
-    INDOOR_CLASS_MAP,
+    IMAGE_SUFFIXES,
     Sample,
     augment,
-    facade_label_path,
     load_sample,
     mosaic,
+    split_by_source,
     split_facades,
-    split_indoor,
 )
 
 log = logging.getLogger(__name__)
@@ -62,6 +69,7 @@ N_ANCHORS = 5
 SIM_CLASS_MAP = {0: 0, 1: 1}
 DEFAULT_SIM_DIR = ROOT / "out" / "sim_yolo"
 SHIPPED_WEIGHTS = ROOT / "perception" / "models" / "detector.pt"
+PRETRAINED = SHARED_DATA.parent / "weights" / "fastestdet_coco" / "fastestdet_coco.pth"
 
 
 def kmeans_anchors(wh: np.ndarray, k: int, rng: np.random.Generator, iters: int = 60) -> np.ndarray:
@@ -151,45 +159,25 @@ def yolo_loss(raw, targets, gt_boxes, anchors, stride):  # type: ignore[no-untyp
     return (2.0 * l_xy + 2.0 * l_wh + l_obj + l_cls) / n
 
 
-def load_facades(root: Path, seed: int) -> dict[str, list[Sample]]:
-    split = split_facades(root, seed=seed)
-    return {name: [load_sample(p, facade_label_path(p), FACADE_CLASS_MAP, 480) for p in paths]
-            for name, paths in split.items()}
-
-
-def load_indoor(root: Path, seed: int) -> dict[str, list[Sample]]:
-    split = split_indoor(root, seed=seed)
-    return {name: [load_sample(p, facade_label_path(p), INDOOR_CLASS_MAP, 480) for p in paths]
-            for name, paths in split.items()}
-
-
-def _augment(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator
+def _augment(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator, camera: float = 0.0
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The training augmentation (see the module docstring) into `out_wh`; boxes at least 30 % visible are kept
-    (cut doors)."""
+    (cut doors); `camera` is the probability of a lens distortion and, apart, of a camera's effects."""
     return augment(sample, out_wh, rng, scale_range=(0.7, 2.5), rotation_prob=0.5, min_visible=0.3, zoom_prob=0.35,
-                   aspect_range=(0.7, 1.45))
+                   aspect_range=(0.7, 1.45), camera_prob=camera, lens_prob=camera)
 
 
-def augment_for_training(sample: Sample, rng: np.random.Generator, out_wh: tuple[int, int] = INPUT_WH
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def augment_for_training(sample: Sample, rng: np.random.Generator, out_wh: tuple[int, int] = INPUT_WH,
+                         camera: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One training image (`out_wh`, the network's input size) from one sample."""
-    return _augment(sample, out_wh, rng)
+    return _augment(sample, out_wh, rng, camera)
 
 
-def mosaic_for_training(samples: list[Sample], rng: np.random.Generator, out_wh: tuple[int, int] = INPUT_WH
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def mosaic_for_training(samples: list[Sample], rng: np.random.Generator, out_wh: tuple[int, int] = INPUT_WH,
+                        camera: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Four samples in the quadrants of one training image (`perception.trainset.mosaic`), each with the
     training augmentation."""
-    return mosaic(samples, out_wh, rng, _augment)
-
-
-def real_shares(n_real: int, indoor_fraction: float, has_indoor: bool, has_facades: bool) -> tuple[int, int]:
-    """(indoor, facade) photos among a batch's `n_real` real ones; where one set is absent the other fills them."""
-    if not has_indoor or not has_facades:
-        return (n_real, 0) if has_indoor else (0, n_real)
-    n_indoor = round(indoor_fraction * n_real)
-    return n_indoor, n_real - n_indoor
+    return mosaic(samples, out_wh, rng, lambda s, wh, r: _augment(s, wh, r, camera))
 
 
 def load_sim(dirs: list[Path]) -> list[Sample]:
@@ -234,15 +222,14 @@ def ensure_sim_frames(dirs: list[Path]) -> list[Path]:
 
 def load_init(path: Path):  # type: ignore[no-untyped-def]
     """The weights `--init` starts from: a `checkpoint.pt` of a run ({"ema", "anchors", "width", ...}) or the
-    shipped `detector.pt` (same keys). Returns (TinyYolo in eval mode, anchors (k, 2) px, the file's settings)."""
+    shipped `detector.pt` (same keys; `arch` says the network, TinyYolo where absent). Returns (the network in eval
+    mode, anchors (k, 2) px, the file's settings)."""
     import torch
-
-    from macroloc.perception.model import TinyYolo
 
     ckpt = torch.load(path, weights_only=False, map_location="cpu")
     if "ema" not in ckpt or "anchors" not in ckpt:
         raise ValueError(f"{path}: not a detector checkpoint (needs 'ema' weights and 'anchors')")
-    model = TinyYolo(N_ANCHORS, len(CLASS_NAMES), int(ckpt.get("width", 1)))
+    model = build_model(str(ckpt.get("arch", "tiny")), int(ckpt.get("width", 1)), None)
     model.load_state_dict(ckpt["ema"])
     model.eval()
     return model, np.asarray(ckpt["anchors"], dtype=np.float64), {k: v for k, v in ckpt.items()
@@ -267,52 +254,137 @@ def anchors_for_input(anchors_px: np.ndarray, from_wh: tuple[int, int], to_wh: t
     return np.asarray(anchors_px, float) * (np.asarray(to_wh, float) / np.asarray(from_wh, float))
 
 
+def source_folder(args: argparse.Namespace, src: RealSource) -> Path:
+    """Where a source's images/ and labels/ are: the indoor sources under `--indoor`, the facades at `--facades`."""
+    return args.indoor / Path(src.folder).name if src.indoor else args.facades
+
+
+def load_real(args: argparse.Namespace) -> dict[str, dict[str, list[Sample]]]:
+    """Every registered real source present, minus `--leave-out`, split (train/val/test) and loaded."""
+    out = {}
+    for name, src in REAL_SOURCES.items():
+        if name in args.leave_out:
+            continue
+        folder = source_folder(args, src)
+        parts = split_facades(folder, args.seed) if not src.indoor else split_by_source(_images_in(folder), args.seed)
+        if any(parts.values()):
+            out[name] = {part: sources.load(paths, src) for part, paths in parts.items()}
+    return out
+
+
+def _images_in(folder: Path) -> list[Path]:
+    d = folder / "images"
+    return sorted(p for p in d.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) if d.is_dir() else []
+
+
+def batch_shares(n: int, weights: dict[str, float]) -> dict[str, int]:
+    """`n` batch slots shared in proportion to `weights` (largest remainders; every slot given)."""
+    total = sum(weights.values())
+    exact = {k: n * w / total for k, w in weights.items()}
+    out = {k: int(v) for k, v in exact.items()}
+    for k in sorted(exact, key=lambda k: out[k] - exact[k])[: n - sum(out.values())]:
+        out[k] += 1
+    return out
+
+
+def source_weights(real: dict[str, dict[str, list[Sample]]], indoor_fraction: float) -> dict[str, float]:
+    """Each real source's share of a batch: `indoor_fraction` to the indoor sources, shared in proportion to the
+    square root of their training images (a big source leads, a small one is not drowned: the network should learn
+    doors, not one photographer), the rest to the facades; a kind that is absent leaves its share to the other."""
+    n = {k: len(v["train"]) for k, v in real.items() if v["train"]}
+    indoor = {k: np.sqrt(c) for k, c in n.items() if REAL_SOURCES[k].indoor}
+    outdoor = {k: np.sqrt(c) for k, c in n.items() if not REAL_SOURCES[k].indoor}
+    f_in = indoor_fraction if indoor and outdoor else float(bool(indoor))
+    out = {k: f_in * v / sum(indoor.values()) for k, v in indoor.items()}
+    out.update({k: (1 - f_in) * v / sum(outdoor.values()) for k, v in outdoor.items()})
+    return out
+
+
+def build_model(arch: str, width: int, pretrained: Path | None):  # type: ignore[no-untyped-def]
+    """The network of `--arch`: `tiny` (TinyYolo from scratch) or `shufflenet` (ShuffleYolo, its backbone and neck
+    from `pretrained` where given)."""
+    if arch == "tiny":
+        from macroloc.perception.model import TinyYolo
+
+        return TinyYolo(N_ANCHORS, len(CLASS_NAMES), width)
+    from macroloc.perception.backbone import ShuffleYolo
+
+    model = ShuffleYolo(N_ANCHORS, len(CLASS_NAMES))
+    if pretrained is not None:
+        log.info("pretrained: %d tensors from %s", len(model.load_pretrained(pretrained)), pretrained)
+    return model
+
+
+def freeze(model, parts: list[str]) -> int:  # type: ignore[no-untyped-def]
+    """Keep the weights of these backbone parts (e.g. `first_conv stage2`: the pretrained edge and texture
+    filters, which any camera's doors share) as they are; returns the count of tensors frozen. Their batch-norm
+    statistics still follow the training images."""
+    backbone = getattr(model, "backbone", None)
+    if not parts or backbone is None:
+        return 0
+    frozen = [p for n, p in backbone.named_parameters() if n.split(".")[0] in parts]
+    for p in frozen:
+        p.requires_grad_(False)
+    return len(frozen)
+
+
 def train(args: argparse.Namespace) -> None:
     import torch
 
-    from macroloc.perception.model import STRIDE_PX, TinyYolo
+    from macroloc.perception.model import STRIDE_PX
 
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(1)
+    state = load_state(args) if args.resume else None
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
-    data = {"facades": load_facades(args.facades, args.seed), "indoor": load_indoor(args.indoor, args.seed)}
+    real = load_real(args)
     sim = load_sim(ensure_sim_frames(args.sim))
-    indoor, facades = data["indoor"]["train"], data["facades"]["train"]
-    log.info("train: %d indoor, %d facade, %d rendered; val %d + %d", len(indoor), len(facades), len(sim),
-             len(data["indoor"]["val"]), len(data["facades"]["val"]))
+    log.info("train: %s, %d rendered; left out: %s", ", ".join(f"{len(v['train'])} {k}" for k, v in real.items()),
+             len(sim), ", ".join(args.leave_out) or "none")
     input_wh = input_size(args)
     if input_wh[0] % STRIDE_PX or input_wh[1] % STRIDE_PX:
         raise SystemExit(f"error: --input-wh {input_wh[0]} {input_wh[1]}: both must be multiples of {STRIDE_PX}")
+    train_sets = {k: v["train"] for k, v in real.items() if v["train"]}
     if args.init is not None:  # fine-tune: the init's weights, anchors (the head is tied to them) and width
         model, anchors, init_info = load_init(args.init)
         args.width, args.init_info = int(init_info.get("width", 1)), init_info
+        args.arch = str(init_info.get("arch", "tiny"))
         anchors = anchors_for_input(anchors, init_input_wh(init_info), input_wh)
         log.info("init from %s (%s steps); anchors (px at %dx%d): %s", args.init, init_info.get("steps"),
                  *input_wh, np.round(anchors, 1).tolist())
     else:
-        wh = np.concatenate([b[:, 2:] - b[:, :2] for _ in range(2) for s in indoor + facades + sim
+        wh = np.concatenate([b[:, 2:] - b[:, :2] for _ in range(2) for s in [*sum(train_sets.values(), []), *sim]
                              for b in [augment_for_training(s, rng, input_wh)[1]] if len(b)])
         anchors = kmeans_anchors(wh, N_ANCHORS, rng)
         log.info("anchors (px): %s", np.round(anchors, 1).tolist())
-        model = TinyYolo(N_ANCHORS, len(CLASS_NAMES), args.width)
-    ema = TinyYolo(N_ANCHORS, len(CLASS_NAMES), args.width)
-    ema.load_state_dict(model.state_dict())
+        model = build_model(args.arch, args.width, args.pretrained if args.arch == "shufflenet" else None)
+    ema = copy.deepcopy(model)
     ema.eval()
-    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=5e-4)
+    if args.freeze:
+        log.info("frozen: %d tensors of %s", freeze(model, args.freeze), " ".join(args.freeze))
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=args.lr, weight_decay=5e-4)
     sched = (torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=args.lr, total_steps=args.steps, pct_start=0.05)
              if args.steps > 0 else None)  # --steps 0: export the init as it is
     grid_hw = (input_wh[1] // STRIDE_PX, input_wh[0] // STRIDE_PX)
     n_sim = round(args.sim_fraction * args.batch) if sim else 0
-    n_indoor, n_facades = real_shares(args.batch - n_sim, args.indoor_fraction, bool(indoor), bool(facades))
-    pools = [(_Shuffled(indoor, rng), n_indoor), (_Shuffled(facades, rng), n_facades)]
+    shares = batch_shares(args.batch - n_sim, source_weights(real, args.indoor_fraction)) if train_sets else {}
+    pools = {k: _Shuffled(train_sets[k], rng) for k in shares}
     if n_sim:
-        pools.append((_Shuffled(sim, rng), n_sim))
-    t0 = time.time()
-    for step in range(args.steps):
-        picked = [(s, pool) for pool, n in pools for s in pool.take(n)]
-        batch = [mosaic_for_training([s, *pool.take(3)], rng, input_wh)
-                 if args.mosaic > 0 and rng.random() < args.mosaic else augment_for_training(s, rng, input_wh)
+        pools["rendered"], shares["rendered"] = _Shuffled(sim, rng), n_sim
+    log.info("batch of %d: %s", args.batch, shares)
+    first_step, spent_s = 0, 0.0
+    if state is not None:  # the run goes on exactly where its last state was saved
+        first_step, spent_s = restore_state(state, model, ema, opt, sched, rng, pools)
+        anchors = np.asarray(state["anchors"])
+        log.info("resumed at step %d of %d (%s)", first_step, args.steps, args.report / STATE_FILE)
+    t0 = time.time() - spent_s
+    last = args.steps if args.stop_at is None else min(args.steps, args.stop_at)
+    for step in range(first_step, last):
+        picked = [(s, pools[k]) for k, n in shares.items() for s in pools[k].take(n)]
+        batch = [mosaic_for_training([s, *pool.take(3)], rng, input_wh, args.camera)
+                 if args.mosaic > 0 and rng.random() < args.mosaic
+                 else augment_for_training(s, rng, input_wh, args.camera)
                  for s, pool in picked]
         x = torch.from_numpy(np.stack([b[0] for b in batch]).astype(np.float32) / 255.0).permute(0, 3, 1, 2)
         targets = build_targets([b[1] for b in batch], [b[2] for b in batch], anchors, grid_hw, STRIDE_PX)
@@ -333,10 +405,69 @@ def train(args: argparse.Namespace) -> None:
                     pe.copy_(pm)
         if step % 100 == 0 or step == args.steps - 1:
             log.info("step %d/%d loss %.3f (%.0f s)", step, args.steps, float(loss.detach()), time.time() - t0)
-        if (step + 1) % 1000 == 0 or step == args.steps - 1:  # EMA weights so far: `--export-only` scores them
-            save_checkpoint(ema, anchors, args, step + 1, time.time() - t0)
+        done = step + 1
+        if done % args.save_every == 0 or done == last:  # EMA weights so far: `--export-only` scores them
+            save_checkpoint(ema, anchors, args, done, time.time() - t0)
+            save_state(args, done, time.time() - t0, model, ema, opt, sched, rng, pools, anchors)
+    if last < args.steps:
+        log.info("stopped at step %d of %d: go on with --resume --report %s", last, args.steps, args.report)
+        return
     train_s = time.time() - t0
-    export(ema, anchors, args, data, sim, train_s)
+    export(ema, anchors, args, real, sim, train_s)
+
+
+STATE_FILE = "state.pt"
+RESUMED_SETTINGS = ("steps", "batch", "lr", "seed", "width", "arch", "indoor_fraction", "sim_fraction", "mosaic",
+                    "camera", "freeze", "input_wh", "leave_out", "pretrained", "init", "sim", "indoor", "facades")
+
+
+def save_state(args: argparse.Namespace, step: int, spent_s: float, model, ema, opt, sched,  # type: ignore[no-untyped-def]
+               rng: np.random.Generator, pools: dict[str, _Shuffled], anchors: np.ndarray) -> None:
+    """Everything a stopped run needs to go on to the same result (`--resume`): weights, optimiser, schedule,
+    the random generators, where each data pool is in its epoch, and the run's settings. Written atomically."""
+    import torch
+
+    settings = {k: getattr(args, k) for k in RESUMED_SETTINGS if hasattr(args, k)}
+    state = {"step": step, "spent_s": spent_s, "model": model.state_dict(), "ema": ema.state_dict(),
+             "opt": opt.state_dict(), "sched": None if sched is None else sched.state_dict(),
+             "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
+             "pools": {k: list(p.order) for k, p in pools.items()}, "anchors": np.asarray(anchors),
+             "settings": settings, "init_info": getattr(args, "init_info", None)}
+    tmp = args.report / (STATE_FILE + ".tmp")
+    torch.save(state, tmp)
+    tmp.replace(args.report / STATE_FILE)
+
+
+def load_state(args: argparse.Namespace) -> dict:  # type: ignore[type-arg]
+    """The saved state of the run in `--report`, its settings put back into `args` (those of the command line are
+    the run's own: a resumed run is the same run)."""
+    import torch
+
+    path = args.report / STATE_FILE
+    if not path.exists():
+        raise SystemExit(f"error: --resume: no saved run state at {path} (a run saves it every --save-every steps)")
+    state = torch.load(path, weights_only=False, map_location="cpu")
+    for k, v in state["settings"].items():
+        setattr(args, k, v)
+    if state.get("init_info") is not None:
+        args.init_info = state["init_info"]
+    return state
+
+
+def restore_state(state: dict, model, ema, opt, sched, rng: np.random.Generator,  # type: ignore[no-untyped-def, type-arg]
+                  pools: dict[str, _Shuffled]) -> tuple[int, float]:
+    import torch
+
+    model.load_state_dict(state["model"])
+    ema.load_state_dict(state["ema"])
+    opt.load_state_dict(state["opt"])
+    if sched is not None and state["sched"] is not None:
+        sched.load_state_dict(state["sched"])
+    rng.bit_generator.state = state["rng"]
+    torch.set_rng_state(state["torch_rng"])
+    for k, order in state["pools"].items():
+        pools[k].order = list(order)
+    return int(state["step"]), float(state["spent_s"])
 
 
 def save_checkpoint(ema, anchors: np.ndarray, args: argparse.Namespace, steps: int,  # type: ignore[no-untyped-def]
@@ -344,8 +475,8 @@ def save_checkpoint(ema, anchors: np.ndarray, args: argparse.Namespace, steps: i
     import torch
 
     args.report.mkdir(parents=True, exist_ok=True)
-    torch.save({"ema": ema.state_dict(), "anchors": anchors, "width": args.width, "train_s": train_s,
-                "steps": steps, "settings": training_settings(args)}, args.report / "checkpoint.pt")
+    torch.save({"ema": ema.state_dict(), "anchors": anchors, "width": args.width, "arch": args.arch,
+                "train_s": train_s, "steps": steps, "settings": training_settings(args)}, args.report / "checkpoint.pt")
 
 
 def training_settings(args: argparse.Namespace) -> dict[str, object]:
@@ -353,7 +484,10 @@ def training_settings(args: argparse.Namespace) -> dict[str, object]:
     out: dict[str, object] = {"steps": args.steps, "batch": args.batch, "lr": args.lr, "seed": args.seed,
                               "width": args.width, "indoor_fraction": args.indoor_fraction,
                               "sim_fraction": args.sim_fraction, "mosaic": args.mosaic,
-                              "input_wh": list(args.input_wh)}
+                              "input_wh": list(args.input_wh), "arch": args.arch, "camera": args.camera,
+                              "freeze": list(args.freeze), "leave_out": list(args.leave_out),
+                              "pretrained": None if args.arch != "shufflenet" or args.pretrained is None
+                              else Path(args.pretrained).name}
     init = getattr(args, "init", None)
     if init is not None:
         info = getattr(args, "init_info", {})
@@ -365,21 +499,18 @@ def export_only(args: argparse.Namespace) -> None:
     """Export and score the EMA weights a finished run saved (`--export-only CHECKPOINT`)."""
     import torch
 
-    from macroloc.perception.model import TinyYolo
-
     ckpt = torch.load(args.export_only, weights_only=False)
-    model = TinyYolo(N_ANCHORS, len(CLASS_NAMES), int(ckpt["width"]))
+    model = build_model(str(ckpt.get("arch", "tiny")), int(ckpt["width"]), None)
     model.load_state_dict(ckpt["ema"])
-    data = {"facades": load_facades(args.facades, args.seed), "indoor": load_indoor(args.indoor, args.seed)}
-    args.width, args.steps = int(ckpt["width"]), int(ckpt["steps"])
+    args.width, args.steps, args.arch = int(ckpt["width"]), int(ckpt["steps"]), str(ckpt.get("arch", "tiny"))
     settings = ckpt.get("settings") or {}
-    for k in ("batch", "lr", "seed", "indoor_fraction", "sim_fraction", "input_wh"):
+    for k in ("batch", "lr", "seed", "indoor_fraction", "sim_fraction", "input_wh", "camera", "leave_out"):
         if k in settings:
             setattr(args, k, settings[k])
     if isinstance(settings.get("init"), dict):
         args.init, args.init_info = settings["init"]["path"], {"steps": settings["init"].get("steps"),
                                                                "settings": settings["init"].get("settings")}
-    export(model, np.asarray(ckpt["anchors"]), args, data, [], float(ckpt["train_s"]))
+    export(model, np.asarray(ckpt["anchors"]), args, load_real(args), [], float(ckpt["train_s"]))
 
 
 def reproduce_command(args: argparse.Namespace) -> str:
@@ -424,32 +555,31 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
     torch.onnx.export(model, (dummy,), str(onnx_path), input_names=["image"], output_names=["raw"],
                       opset_version=13, dynamo=False)
     # The weights themselves beside the ONNX (which folds the batch norms): `--init` fine-tunes from them.
-    torch.save({"ema": model.state_dict(), "anchors": np.asarray(anchors), "width": args.width, "steps": args.steps,
-                "settings": training_settings(args)}, onnx_path.with_suffix(".pt"))
+    torch.save({"ema": model.state_dict(), "anchors": np.asarray(anchors), "width": args.width, "arch": args.arch,
+                "steps": args.steps, "settings": training_settings(args)}, onnx_path.with_suffix(".pt"))
     spec = DetectorSpec(CLASS_NAMES, input_wh, STRIDE_PX, tuple((float(w), float(h)) for w, h in anchors), 0.5)
     detector = Detector(onnx_path, spec, threads=args.threads)
-    val_samples = data["indoor"]["val"] + data["facades"]["val"]
+    val_samples = [x for d in data.values() for x in d["val"]]
     val_dets, val_truths = detector_eval.detect_all(detector, val_samples)
     val_curves = detector_eval.curves(val_dets, val_truths)
-    threshold = best_f1_threshold(val_curves)
-    parts = {"indoor_test": data["indoor"]["test"], "facade_test": data["facades"]["test"],
-             "indoor_val": data["indoor"]["val"], "facade_val": data["facades"]["val"]}
+    threshold = best_f1_threshold([c for c in val_curves if c.n_truth])
     figures = {}
-    for name, samples in parts.items():
-        dets, truths = detector_eval.detect_all(detector, samples)
-        figures[name] = detector_eval.figures(samples, dets, truths, threshold, subsets=name.startswith("indoor"))
-        if name == "indoor_test":
-            plot_pr(detector_eval.curves(dets, truths), threshold, str(args.report / "pr_test_indoor.png"),
-                    f"held-out indoor test photos ({len(samples)} images)")
+    for src, d in data.items():
+        for part in ("test", "val"):
+            dets, truths = detector_eval.detect_all(detector, d[part])
+            figures[f"{src}_{part}"] = detector_eval.figures(d[part], dets, truths, threshold,
+                                                              subsets=REAL_SOURCES[src].indoor)
     counts = {f"{src}_{part}": len(v) for src, d in data.items() for part, v in d.items()}
     extra: dict[str, object] = {
-        "threshold_rule": "max mean F1 (door, window) on the PR curves of the validation parts (indoor + facade)",
-        "trained_on": {"real_indoor_photos": len(data["indoor"]["train"]),
-                       "real_facade_photos": len(data["facades"]["train"]), "rendered_frames": len(sim)},
+        "threshold_rule": "max mean F1 (door, window) on the PR curves of the validation parts of the sources trained "
+                          "on",
+        "trained_on": {**{f"{src}_photos": len(d["train"]) for src, d in data.items()}, "rendered_frames": len(sim)},
+        "left_out_sources": list(args.leave_out),
         "data_counts_images": counts,
-        "split": "indoor: 80/10/10 of the source photos, seeded (perception.trainset.split_indoor: augmented copies "
-                 "and frames of one video stay in one part); facades: test = img_n with n % 5 == 0 (never trained "
-                 "on); val = seeded 15 % of the rest",
+        "split": "each source 80/10/10 by source photo, seeded (perception.trainset.split_by_source: augmented "
+                 "copies and frames of one video stay in one part); facades: test = img_n with n % 5 == 0 (never "
+                 "trained on), val = seeded 15 % of the rest. In-source test figures measure memory of a source; "
+                 "the left-out figures are in docs/measurements.md (bench.eval_detector --loso)",
         "training": {**training_settings(args), "rendered_flights": rendered_sources(sim), "threads": args.threads,
                      "seconds": round(train_s), "machine": f"{os.cpu_count()} CPU cores (shared)"},
         "figures": figures,
@@ -458,7 +588,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
     spec = DetectorSpec(CLASS_NAMES, input_wh, STRIDE_PX, spec.anchors_px, threshold, spec.nms_iou, extra)
     onnx_path.with_suffix(".json").write_text(json.dumps(spec.to_json(), indent=1) + "\n")
     plot_pr(val_curves, threshold, str(args.out / "detector_pr.png"),
-            f"validation parts (real indoor + facade photos, {len(val_samples)} images)")
+            f"validation parts ({', '.join(data)}: {len(val_samples)} images)")
     (args.report / "metrics.json").write_text(json.dumps({"threshold": threshold, **figures}, indent=1) + "\n")
     log.info("threshold %.2f; figures %s", threshold, json.dumps(figures))
 
@@ -470,6 +600,20 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--indoor-fraction", type=float, default=0.6,
                     help="share of each batch's real photos drawn from the indoor photos (the rest: facades)")
     ap.add_argument("--width", type=int, default=1, help="channel multiplier of the TinyYolo network")
+    ap.add_argument("--arch", choices=("tiny", "shufflenet"), default="tiny",
+                    help="tiny: TinyYolo from scratch; shufflenet: ShuffleNetV2-0.5x features from --pretrained under "
+                         "a door/window head (perception.backbone)")
+    ap.add_argument("--pretrained", type=Path, default=PRETRAINED,
+                    help="pretrained ShuffleNetV2-0.5x weights for --arch shufflenet (FastestDet's COCO network, or "
+                         "the ImageNet backbone alone)")
+    ap.add_argument("--freeze", nargs="*", default=[], metavar="PART",
+                    help="backbone parts whose pretrained weights stay fixed (shufflenet: first_conv stage2 stage3)")
+    ap.add_argument("--leave-out", nargs="*", default=[], choices=tuple(REAL_SOURCES), metavar="SOURCE",
+                    help=f"real photo sources kept out of training entirely ({', '.join(REAL_SOURCES)}): a model "
+                         "that is then scored on them shows what a camera it never saw gets")
+    ap.add_argument("--camera", type=float, default=0.0,
+                    help="probability of a lens distortion (wide-angle) and, apart, of a camera's white balance, "
+                         "motion blur or JPEG on a training image")
     ap.add_argument("--sim", type=Path, nargs="*", default=[],
                     help="folders of rendered frames with YOLO labels; out/sim_yolo is made by bench.sim_trainset "
                          "on first use (default: none, the shipped model is trained on real photos only)")
@@ -484,6 +628,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--save-every", type=int, default=250,
+                    help="steps between saves of the EMA weights and of the run's whole state (for --resume)")
+    ap.add_argument("--stop-at", type=int, default=None, metavar="STEP",
+                    help="save the run's state at this step and stop (a long training in parts: --resume goes on)")
+    ap.add_argument("--resume", action="store_true",
+                    help="go on with the run whose state is in --report, with its own settings, to the same result "
+                         "as if it had not stopped")
     ap.add_argument("--out", type=Path, default=ROOT / "perception" / "models")
     ap.add_argument("--report", type=Path, default=ROOT / "out" / "detector")
     ap.add_argument("--export-only", type=Path, default=None, help="export and score a finished run's checkpoint.pt")

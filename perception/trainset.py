@@ -198,15 +198,73 @@ def _photometric(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return out
 
 
+def _camera(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """What a drone's camera adds to a photo, one effect each at a time: a white balance set for other light
+    (per-channel gains), motion blur along a random direction (3-9 px), JPEG compression (quality 25-75)."""
+    out: np.ndarray = image
+    if rng.random() < 0.5:
+        gains = np.exp(rng.uniform(-0.15, 0.15, 3))
+        out = np.clip(out.astype(np.float32) * gains, 0, 255).astype(np.uint8)
+    if rng.random() < 0.25:
+        n = int(rng.integers(3, 10))
+        line = np.zeros((n, n), np.float32)
+        line[n // 2] = 1.0 / n
+        rot = cv2.getRotationMatrix2D(((n - 1) / 2, (n - 1) / 2), float(rng.uniform(0, 180)), 1.0)
+        kernel = np.asarray(cv2.warpAffine(line, rot, (n, n)), np.float32)
+        out = cv2.filter2D(out, -1, kernel / max(float(kernel.sum()), 1e-6))
+    if rng.random() < 0.3:
+        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(25, 76))])
+        decoded = cv2.imdecode(buf, cv2.IMREAD_COLOR) if ok else None
+        out = out if decoded is None else np.asarray(decoded)
+    return out
+
+
+def lens_distort(image: np.ndarray, boxes_xyxy: np.ndarray, k1: float) -> tuple[np.ndarray, np.ndarray]:
+    """A wide-angle (k1 > 0: barrel, straight lines bow outwards) or a pincushion (k1 < 0) lens of one radial term
+    about the image centre: the output pixel at normalised radius r (1 at the half-diagonal) samples the input at
+    r * (1 + k1 r^2), so with k1 > 0 more of the scene is squeezed towards the border. Boxes follow
+    their sides' points through the inverse map (fixed-point iterations) and are bounded; returns both."""
+    h, w = image.shape[:2]
+    c, half_diag = np.array([(w - 1) / 2, (h - 1) / 2]), float(np.hypot(w, h) / 2)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    u, v = (xs - c[0]) / half_diag, (ys - c[1]) / half_diag
+    f = 1 + k1 * (u * u + v * v)
+    warped = cv2.remap(image, (c[0] + u * f * half_diag).astype(np.float32),
+                       (c[1] + v * f * half_diag).astype(np.float32), cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=(PAD_VALUE,) * 3)
+    if len(boxes_xyxy) == 0:
+        return warped, boxes_xyxy.reshape(0, 4)
+    t = np.linspace(0, 1, 9)
+    out = []
+    for x0, y0, x1, y1 in boxes_xyxy:
+        edge = np.concatenate([np.stack([x0 + t * (x1 - x0), np.full(9, y0)], 1),
+                               np.stack([x0 + t * (x1 - x0), np.full(9, y1)], 1),
+                               np.stack([np.full(9, x0), y0 + t * (y1 - y0)], 1),
+                               np.stack([np.full(9, x1), y0 + t * (y1 - y0)], 1)])
+        src = (edge - c) / half_diag
+        dst = src.copy()
+        for _ in range(8):  # solve src = dst * (1 + k1 |dst|^2) for dst
+            dst = src / (1 + k1 * (dst ** 2).sum(1, keepdims=True))
+        p = dst * half_diag + c
+        out.append([p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()])
+    boxes = np.asarray(out, np.float64)
+    boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, w)
+    boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, h)
+    return warped, boxes
+
+
 def augment(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator,
             scale_range: tuple[float, float] = (0.6, 2.5), rotation_prob: float = 0.6,
             min_visible: float = 0.45, zoom_prob: float = 0.0,
-            aspect_range: tuple[float, float] = (1.0, 1.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            aspect_range: tuple[float, float] = (1.0, 1.0), camera_prob: float = 0.0,
+            lens_prob: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One augmented training image (H,W,3 uint8) with its boxes (K,4, output pixels) and classes (K,).
 
     The geometric part is one affine map applied by inverse warping (every output pixel samples the
     source at M^-1 p, so no holes: paper §2.2.1); box corners go through the forward map and are bounded.
-    With probability `zoom_prob` the map zooms onto one box at least 15 % of the image tall (`_zoom_affine`).
+    With probability `zoom_prob` the map zooms onto one box at least 15 % of the image tall (`_zoom_affine`);
+    with `lens_prob` a radial lens distortion follows (`lens_distort`), with `camera_prob` a camera's white balance,
+    motion blur or JPEG (`_camera`) after the photometric changes.
     """
     h = sample.image_bgr.shape[0]
     tall = sample.boxes_xyxy[sample.boxes_xyxy[:, 3] - sample.boxes_xyxy[:, 1] >= 0.15 * h]
@@ -218,7 +276,12 @@ def augment(sample: Sample, out_wh: tuple[int, int], rng: np.random.Generator,
     image = cv2.warpAffine(sample.image_bgr, M_inv, out_wh, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                            borderMode=cv2.BORDER_CONSTANT, borderValue=(PAD_VALUE,) * 3)
     boxes, classes = transform_boxes(sample.boxes_xyxy, sample.classes, M, out_wh, min_visible)
-    return _photometric(image, rng), boxes, classes
+    if rng.random() < lens_prob:  # wide-angle (barrel, most drones' cameras) or a little pincushion
+        image, boxes = lens_distort(image, boxes, float(rng.uniform(-0.08, 0.35)))
+        big = (boxes[:, 2] - boxes[:, 0] >= 3) & (boxes[:, 3] - boxes[:, 1] >= 3)
+        boxes, classes = boxes[big], classes[big]
+    image = _photometric(image, rng)
+    return (_camera(image, rng) if rng.random() < camera_prob else image), boxes, classes
 
 
 Augmented = tuple[np.ndarray, np.ndarray, np.ndarray]  # image (H, W, 3) uint8, boxes_xyxy (K, 4), classes (K,)

@@ -60,8 +60,66 @@ def test_onnx_equals_torch_on_a_batch(tmp_path: Path):
     assert np.allclose(got, expected, atol=1e-4)
 
 
-def test_real_shares_fill_the_batch_from_the_sets_present():
-    from macroloc.perception.train import real_shares
+def test_batch_shares_fill_every_slot_in_proportion():
+    from macroloc.perception.train import batch_shares
 
-    assert real_shares(16, 0.6, True, True) == (10, 6)
-    assert real_shares(8, 0.6, False, True) == (0, 8) and real_shares(8, 0.6, True, False) == (8, 0)
+    assert batch_shares(16, {"a": 0.6, "b": 0.4}) == {"a": 10, "b": 6}
+    assert batch_shares(10, {"a": 1.0, "b": 1.0, "c": 1.0}) in ({"a": 4, "b": 3, "c": 3}, {"a": 3, "b": 4, "c": 3},
+                                                                 {"a": 3, "b": 3, "c": 4})
+    assert sum(batch_shares(7, {"a": 0.33, "b": 0.33, "c": 0.34}).values()) == 7
+
+
+def test_source_weights_give_the_indoor_share_by_square_root_and_the_rest_to_facades():
+    from macroloc.perception.train import source_weights
+
+    real = {"robot_door_detection": {"train": [0] * 400}, "fisheye_robot": {"train": [0] * 100},
+            "facades": {"train": [0] * 50}}
+    w = source_weights(real, 0.6)  # type: ignore[arg-type]
+    assert w["robot_door_detection"] == pytest.approx(0.4) and w["fisheye_robot"] == pytest.approx(0.2)
+    assert w["facades"] == pytest.approx(0.4)
+    only_indoor = source_weights({"fisheye_robot": {"train": [0] * 9}}, 0.6)  # type: ignore[dict-item]
+    assert only_indoor == {"fisheye_robot": pytest.approx(1.0)}
+
+
+def test_pretrained_network_exports_to_onnx_equal_to_torch(tmp_path: Path):
+    import onnxruntime as ort
+
+    from macroloc.perception.backbone import ShuffleYolo
+
+    torch.manual_seed(2)
+    model = ShuffleYolo(n_anchors=5, n_classes=3)
+    with torch.no_grad():  # batch-norm statistics away from (0, 1): the export must carry them
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.2, 0.2)
+                m.running_var.uniform_(0.5, 2.0)
+    model.eval()
+    x = torch.rand(2, 3, 240, 320)
+    path = tmp_path / "shuffle.onnx"
+    torch.onnx.export(model, (x[:1],), str(path), input_names=["image"], output_names=["raw"], opset_version=13,
+                      dynamo=False)
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = np.concatenate([session.run(None, {"image": x[i:i + 1].numpy()})[0] for i in range(2)])
+    with torch.no_grad():
+        expected = model(x).numpy()
+    assert got.shape == (2, 5 * 8, 15, 20)  # stride 16 on 320 x 240, as the runtime's decoder expects
+    assert np.allclose(got, expected, atol=1e-4)
+
+
+def test_pretrained_weights_load_exactly_and_a_wrong_file_is_refused(tmp_path: Path):
+    from macroloc.perception.backbone import ShuffleYolo
+    from tests.conftest import shared_data
+
+    weights = shared_data("../weights/fastestdet_coco/fastestdet_coco.pth")
+    state = torch.load(weights, map_location="cpu", weights_only=True)
+    model = ShuffleYolo(5, 3)
+    loaded = model.load_pretrained(weights)
+    own = model.state_dict()
+    assert len(loaded) == sum(1 for k in state if k.split(".")[0] in ("backbone", "SPP"))
+    assert all(torch.equal(own[k], state[k]) for k in loaded)
+    assert not any(k.startswith("head") for k in loaded)  # the COCO head is not the door head
+    backbone_only = ShuffleYolo(5, 3).load_pretrained(weights.parent / "shufflenetv2_0.5x_imagenet_backbone.pth")
+    assert backbone_only and all(k.startswith("backbone.") for k in backbone_only)
+    torch.save({"conv.weight": torch.zeros(3)}, tmp_path / "other.pth")
+    with pytest.raises(ValueError, match="expected layout"):
+        ShuffleYolo(5, 3).load_pretrained(tmp_path / "other.pth")

@@ -92,3 +92,29 @@ def test_shipped_weights_are_the_shipped_onnx() -> None:
     got = ort.InferenceSession(str(DEFAULT_MODEL), providers=["CPUExecutionProvider"]).run(None, {"image": x.numpy()})
     with torch.no_grad():
         assert np.allclose(got[0], model(x).numpy(), atol=1e-4)
+
+
+def test_a_run_stopped_and_resumed_ends_as_the_run_in_one_go(tmp_path: Path) -> None:
+    """A long training in parts (`--stop-at`, then `--resume`) gives the same weights, bit for bit."""
+    from macroloc.perception.train import main
+
+    photos = _photos(tmp_path / "facades")
+    common = ["--steps", "24", "--batch", "4", "--save-every", "5", "--mosaic", "0.5", "--camera", "0.5",
+              "--facades", str(photos), "--indoor", str(tmp_path / "no_indoor"), "--threads", "1"]
+    main([*common, "--out", str(tmp_path / "whole"), "--report", str(tmp_path / "whole")])
+    main([*common, "--out", str(tmp_path / "parts"), "--report", str(tmp_path / "parts"), "--stop-at", "11"])
+    assert not (tmp_path / "parts" / "detector.onnx").exists()  # stopped: nothing exported yet
+    assert torch.load(tmp_path / "parts" / "state.pt", weights_only=False)["step"] == 11
+    main(["--resume", "--out", str(tmp_path / "parts"), "--report", str(tmp_path / "parts"), "--threads", "1"])
+    whole = torch.load(tmp_path / "whole" / "detector.pt", weights_only=False)
+    parts = torch.load(tmp_path / "parts" / "detector.pt", weights_only=False)
+    assert whole["steps"] == parts["steps"] == 24
+    for k, v in whole["ema"].items():
+        assert torch.equal(v, parts["ema"][k]), k
+
+
+def test_resume_without_a_saved_state_says_so(tmp_path: Path) -> None:
+    from macroloc.perception.train import main
+
+    with pytest.raises(SystemExit, match="no saved run state"):
+        main(["--resume", "--report", str(tmp_path / "nothing")])
