@@ -275,9 +275,12 @@ def parse_goal(planner: Planner, text: str) -> DemoGoal:
     found = [s for s in planner.solids.spaces if key in (s.name.casefold(), s.long_name.casefold())]
     if found:
         return DemoGoal(f"space {found[0].name} ({found[0].long_name})", space_name=text.strip())
+    named = [f"{s.name} ({s.long_name})" if s.long_name else s.name for s in planner.solids.spaces if s.name]
+    listed = ", ".join(named[:6]) + (f", ... {len(named) - 6} more" if len(named) > 6 else "")
     raise UserInputError(f"--goal {text!r} is no space name, door or window GlobalId, or x,y,z in "
-                         f"{planner.model.source} ({len(planner.solids.spaces)} spaces, "
-                         f"{len(planner.model.features)} doors and windows)")
+                         f"{planner.model.source}: {len(planner.model.features)} doors and windows "
+                         f"(`macroloc features` lists them), {len(named)} named spaces"
+                         + (f": {listed}" if named else ""))
 
 
 def goal_z_cad(planner: Planner, goal: DemoGoal) -> float:
