@@ -27,6 +27,7 @@ from macroloc.graph.judge import Choice, Judge
 from macroloc.graph.landmark_map import LandmarkMap
 from macroloc.graph.params import AnchorParams, FarParams, RegistrationParams, StatusParams
 from macroloc.graph.posegraph import PoseGraph
+from macroloc.graph.prior import PosePrior
 from macroloc.graph.registrar import Registrar
 from macroloc.graph.relocalize import Alignment
 
@@ -58,6 +59,14 @@ class Anchoring:
         self._registered_with = 0
         self._registered_at: tuple[int, int] = (0, 0)  # (stamp_ns, depth points) of the last registration
         self._held = True  # whether the pose was held (`held`) when last asked
+        self.prior: PosePrior | None = None  # the operator's (graph.prior): picks among tied poses only
+        self.by_prior: list[int] = []  # stamps of the registrations the prior decided
+
+    def set_prior(self, prior: PosePrior | None) -> None:
+        """The operator's prior (graph.prior; None: forget it). While not localized the next keyframe registers
+        again, for the prior to choose among what the registration leaves tied; it never skips the registration."""
+        self.prior = prior
+        self._registered_with, self._registered_at = 0, (0, -1)
 
     def confirmed(self) -> list[int]:
         """The landmarks seen often enough (`min_sightings_to_register`) to take part in a registration."""
@@ -99,6 +108,11 @@ class Anchoring:
             result = result.fallback()
             choice = self._choose(result, stamp_ns)
         T_cad_map, registrars = choice.T_cad_map, choice.registrars
+        if T_cad_map is None and self.prior is not None and result.status == "ambiguous":
+            T_cad_map = self.prior.pick(self._tied(choice, result), self.graph.T_map_body(self.graph.n_keyframes - 1))
+            if T_cad_map is not None:
+                self.by_prior.append(stamp_ns)
+                log.info("the prior (%s) picked one of the poses the registration left tied", self.prior.describe())
         far_sigmas = None
         if T_cad_map is not None and not keys:
             T_cad_map, far_sigmas = self.far.refined(T_cad_map, far)
@@ -128,6 +142,18 @@ class Anchoring:
         self.links.last_link_ns = stamp_ns
         self.graph.update(extra_iterations=2)
         self.links.link_new(self.landmarks.landmarks, stamp_ns)
+
+    def _tied(self, choice: Choice, result: Alignment) -> list[np.ndarray]:
+        """The poses an 'ambiguous' attempt left tied, for a prior to pick from (graph.prior): with the walls, their
+        tied candidates where the best fits them (`Choice.rivals_fit`); without, the registration's candidates
+        that explain as many landmarks as the best, if that is `min_landmarks` or more (each an answer by itself
+        but for the others)."""
+        if self.can_check_surfaces():
+            return list(choice.rivals) if choice.rivals_fit else []
+        most = max((n for _, n in result.candidates), default=0)
+        if most < self.registrar.min_landmarks:
+            return []
+        return [np.asarray(T, float) for T, n in result.candidates if n == most]
 
     def _choose(self, result: Alignment, stamp_ns: int) -> Choice:
         """The registrar's answer and candidates weighed against the walls (graph.judge); without enough depth

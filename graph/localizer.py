@@ -36,6 +36,7 @@ from macroloc.graph.landmark_map import LandmarkMap
 from macroloc.graph.mapstore import KeyframeView, StoredLandmark, StoredMap
 from macroloc.graph.params import LocalizerParams, RegistrationParams
 from macroloc.graph.posegraph import PoseGraph
+from macroloc.graph.prior import PosePrior
 from macroloc.graph.recovery import DoorRecovery, NullRecovery, WallRecovery
 from macroloc.graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
 from macroloc.graph.relocalize import KnownRect
@@ -159,6 +160,11 @@ class Localizer:
         """Depth points (N, 3, body frame) measured at odometry pose T_odom_body between keyframes: the newest
         enter with the next keyframe, moved into its body frame (as `track`'s sightings are)."""
         self._pending_depth = (np.asarray(T_odom_body, float), np.asarray(points_body, float))
+
+    def set_prior(self, prior: PosePrior | None) -> None:
+        """The operator's prior on the pose (graph.prior): it picks among the poses a registration leaves tied,
+        never more (None: forget it)."""
+        self.anchoring.set_prior(prior)
 
     # --- what the components hold -----------------------------------------------------------------------------
 

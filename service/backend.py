@@ -34,7 +34,7 @@ from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.service.frame_answers import ODOMETRY_MATCH_NS, OdometryBuffer
-from macroloc.service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn
+from macroloc.service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn, PriorIn
 from macroloc.service.places import Placed
 from macroloc.service.recording import matrix_from_pose, pose_from_matrix, vector3
 from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, session_from_config
@@ -230,6 +230,30 @@ class LocalizerBackend:
                 self.unmatched += 1
             return None
         return self.session.frame(FrameIn(stamp_ns, T_odom_body, to_body(T_odom_body)))
+
+    def prior(self, ev: PriorIn) -> str | None:
+        """The operator's prior (graph.prior) to the localizer: a pose becomes T_cad_map = T_cad_body times the inverse
+        of the odometry's T_map_body at its stamp (the newest where there is none at it: an operator's prior is
+        coarse); a storey, its band of heights. Returns why it was refused (a drop kind), else None."""
+        from macroloc.graph.prior import PosePrior, storey_band_m
+
+        band = None
+        if ev.storey is not None:
+            if ev.storey not in self.model.storey_elevations_m:
+                return "initialpose/unknown_storey"
+            band = storey_band_m(self.model, ev.storey)
+        T_cad_map = None
+        if ev.T_cad_body is not None:
+            T_odom_body = self._odometry.at(ev.stamp_ns, newest_if_later=True) if ev.stamp_ns else None
+            if T_odom_body is None:
+                T_odom_body = self._odometry.at(np.iinfo(np.int64).max, newest_if_later=True)
+            if T_odom_body is None:
+                return "initialpose/no_odometry"
+            T_cad_map = ev.T_cad_body @ np.linalg.inv(T_odom_body)
+        prior = PosePrior(T_cad_map, ev.sigma_xy_m, ev.sigma_yaw_rad, ev.storey, band)
+        self.session.localizer.set_prior(prior)
+        log.info("operator's prior: %s (%s)", prior.describe(), self.status)
+        return None
 
     def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
         """The buffered odometry pose nearest in time to stamp_ns (within 60 ms), else None (also where stamp_ns is

@@ -1038,6 +1038,13 @@ class RosConfig(_Section):
     odometry: str = Field("", description="ROS topic of the vehicle's nav_msgs/Odometry (a VIO: child base_link FLU in "
                           "its odom frame), taken as the service's odometry beside macroloc/<vehicle>/odometry "
                           "(service/odometry_in.py); '' = none")
+    initialpose: str = Field("/initialpose", description="ROS topic of Nav2's initial pose (geometry_msgs/"
+                             "PoseWithCovarianceStamped in map = CAD, rviz's 2D Pose Estimate), taken as a prior the "
+                             "registration must still confirm (graph/prior.py; a storey's name as std_msgs/String on "
+                             "<vehicle>/macroloc/storey likewise); '' = none")
+    odom_tf: bool = Field(False, description="also publish odom -> base_link on /tf (the odometry's pose); off by "
+                          "default as REP-105 asks of a localizer: the vehicle's VIO owns odom -> base_link, macroloc "
+                          "publishes map -> odom")
     compressed: bool = Field(False, description="the image topics carry sensor_msgs/CompressedImage (jpeg, png)")
     rectified: bool = Field(False, description="the image topics carry rectified images (image_rect): not remapped")
 

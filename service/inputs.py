@@ -126,6 +126,22 @@ class GoalIn:
 
 
 @dataclass(frozen=True)
+class PriorIn:
+    """The operator's prior (graph.prior): the body's pose in the CAD frame at `stamp_ns` (0: now) with its
+    horizontal and heading sigmas, and/or a storey's name."""
+
+    stamp_ns: int
+    T_cad_body: np.ndarray | None  # (4, 4)
+    sigma_xy_m: float
+    sigma_yaw_rad: float
+    storey: str | None
+
+
+DEFAULT_PRIOR_SIGMA_XY_M = 0.5  # rviz's 2D Pose Estimate sends these (covariance 0.25 m^2, 0.0685 rad^2)
+DEFAULT_PRIOR_SIGMA_YAW_RAD = 0.2617
+
+
+@dataclass(frozen=True)
 class ClockReset:
     """A key's stamps moved to a new time base (vehicle clock reset): the worker forgets stamp-ordered state."""
 
@@ -342,6 +358,43 @@ class InputParser:
         if target == "feature_id":
             return GoalIn(GoalSpec(feature_id=name), start)
         return GoalIn(GoalSpec(space_name=name), start)
+
+
+    def prior(self, payload: bytes) -> PriorIn | None:
+        """The operator's prior, a PoseEstimate (frame cad): `T_cad_body` (finite, unit quaternion, inside the model's
+        bounds) with its covariance ([rot; trans] body tangent as every PoseEstimate's; the sigmas read from its
+        yaw and horizontal variances, rviz's defaults where it has none), and/or `storey`; the stamp not ahead of
+        this machine's clock. Neither pose nor storey: `initialpose/empty`."""
+        msg = self._decode("initialpose", pb.PoseEstimate, payload, {"cad"})
+        if msg is None or not self.stamps.not_ahead("initialpose", msg.header.stamp_ns):
+            return None
+        storey = msg.storey or None
+        if storey is not None and len(storey) > 256:
+            self.drops.drop("initialpose/empty", f"storey of {len(storey)} characters")
+            return None
+        T_cad_body = None
+        if msg.HasField("T_cad_body"):
+            if not _pose_ok(msg.T_cad_body):
+                self.drops.drop("initialpose/nan", "pose not finite or quaternion not unit")
+                return None
+            T_cad_body = matrix_from_pose(msg.T_cad_body)
+            if not self.limits.inside_cad(T_cad_body[:3, 3]):
+                self.drops.drop("initialpose/out_of_bounds", f"{np.round(T_cad_body[:3, 3], 1)} m outside the model")
+                return None
+        elif storey is None:
+            self.drops.drop("initialpose/empty", "neither a pose nor a storey")
+            return None
+        sigma_xy, sigma_yaw = DEFAULT_PRIOR_SIGMA_XY_M, DEFAULT_PRIOR_SIGMA_YAW_RAD
+        if len(msg.covariance) == 36:
+            cov = np.asarray(msg.covariance, float).reshape(6, 6)
+            if not np.isfinite(cov).all() or (np.diag(cov) < 0).any():
+                self.drops.drop("initialpose/nan", "covariance not finite or negative")
+                return None
+            if cov[3, 3] > 0 or cov[4, 4] > 0:
+                sigma_xy = float(np.sqrt(max(cov[3, 3], cov[4, 4])))
+            if cov[2, 2] > 0:
+                sigma_yaw = float(np.sqrt(cov[2, 2]))
+        return PriorIn(msg.header.stamp_ns, T_cad_body, sigma_xy, sigma_yaw, storey)
 
 
 RAW_BYTES_PER_PIXEL = {pb.Image.RAW_MONO8: 1, pb.Image.RAW_BGR8: 3, pb.Image.RAW_DEPTH_F32: 4}

@@ -40,6 +40,7 @@ from macroloc.service.inputs import (
     InputParser,
     ObservationsIn,
     OdometryIn,
+    PriorIn,
     StereoIn,
 )
 from macroloc.service.places import KeyframePlaces, Placed
@@ -109,7 +110,8 @@ class LocalizationService:
         self.parser = InputParser(params.cameras, self.drops, params.limits, on_clock_reset=self._clock_reset_seen)
         self.ros_sensors = RosSensorInputs(params.ros_sensors, self.parser, self.drops, params.cameras[0],
                                            params.T_body_cam, params.limits.max_image_pixels, time.monotonic_ns)
-        self.rates = {name: RateMeter() for name in ("stereo", "imu", "odometry", "observations", "goal", "pose")}
+        self.rates = {name: RateMeter() for name in ("stereo", "imu", "odometry", "observations", "goal", "initialpose",
+                                                   "pose")}
         # frame_perceived: a stereo frame's arrival -> perceived and in the pose graph (the worker's delay)
         self.latency = {name: LatencyWindow() for name in ("frame_to_pose", "odometry_to_pose", "keyframe",
                                                            "frame_perceived")}
@@ -136,7 +138,6 @@ class LocalizationService:
         k = self.keys
         self._pubs = {name: declare_publisher(self.session, getattr(k, name), block=self.params.lockstep)
                       for name in ("pose", "waypoints", "features", "diagnostics", "status")}
-        self._token = self.session.liveliness().declare_token(k.alive)
         queryables = [self.session.declare_queryable(k.map, self._answer_map),
                       self.session.declare_queryable(k.plan, self._answer_plan)]
         intakes = {
@@ -145,6 +146,7 @@ class LocalizationService:
             k.imu: (lambda s: self.parser.imu(s), "imu", False, 1024),
             k.observations: (lambda s: self.parser.observations(s), "observations", False, 64),
             k.goal: (lambda s: self.parser.goal(s), "goal", False, 8),
+            k.initialpose: (lambda s: self.parser.prior(s), "initialpose", False, 8),
             **self.ros_inputs.intakes(self.parser),
             **self.ros_sensors.intakes(),
         }
@@ -171,6 +173,8 @@ class LocalizationService:
             t.start()
         log.info("serving vehicle %s on macroloc/%s/** (building %s)", self.params.vehicle, self.params.vehicle,
                  self.params.building)
+        # the readiness signal: the token appears once every input is taken (a launch file waits on it)
+        self._token = self.session.liveliness().declare_token(k.alive)
         self.ready.set()
         self.notifier.ready()
         try:
@@ -260,7 +264,7 @@ class LocalizationService:
         """Handle events until stopped and the queue is empty (the drain)."""
         handlers: dict[type, Callable[[Any], None]] = {
             OdometryIn: self._on_odometry, ObservationsIn: self._on_observations, StereoIn: self._on_stereo,
-            ImuIn: self._on_imu, GoalIn: self._on_goal, ClockReset: self._on_clock_reset}
+            ImuIn: self._on_imu, GoalIn: self._on_goal, PriorIn: self._on_prior, ClockReset: self._on_clock_reset}
         while not self._abandon.is_set():
             self._worker_beat_s = time.monotonic()
             event = self.queue.get(timeout_s=0.1)
@@ -362,6 +366,14 @@ class LocalizationService:
             with self._lock:
                 self.planner.add_obstacle_points(points_body @ T_cad_body[:3, :3].T + T_cad_body[:3, 3],
                                                  float(T_cad_body[2, 3]))
+
+    def _on_prior(self, ev: PriorIn) -> None:
+        """The operator's prior to the localizer (graph.prior: it picks among poses the registration leaves tied);
+        a storey the model lacks, or a pose before any odometry, is counted and dropped."""
+        with self._lock:
+            refused = self.backend.prior(ev)
+        if refused is not None:
+            self.drops.drop(refused)
 
     def _on_goal(self, ev: GoalIn) -> None:
         try:  # a feature or space the model does not have: refused and counted, the current goal is kept

@@ -26,7 +26,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from macroloc.graph.localizer import Estimate
-from macroloc.service.inputs import GoalIn, InputParser
+from macroloc.service.inputs import GoalIn, InputParser, PriorIn
 from macroloc.service.ned import cov_ros_from_gtsam, quat_wxyz_from_matrix
 from macroloc.service.ros_transport import RosTransport
 from macroloc.service.ros_types import from_cdr, header, msg, stamp_ns_of, to_cdr
@@ -41,6 +41,7 @@ PATH = "nav_msgs/msg/Path"
 TF = "tf2_msgs/msg/TFMessage"
 DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+STRING = "std_msgs/msg/String"
 UNKNOWN_COV = np.diag([-1.0, 0, 0, 0, 0, 0])  # ROS: covariance[0] = -1 means the value is unknown
 
 
@@ -104,9 +105,12 @@ def _yaw_R(yaw: float) -> np.ndarray:
 class RosMessages:
     """Estimates, plans and status as ROS 2 messages (rosbags' classes); no transport."""
 
-    def __init__(self, vehicle: str, frames: RosFrames | None = None) -> None:
+    def __init__(self, vehicle: str, frames: RosFrames | None = None, odom_tf: bool = False) -> None:
+        """`odom_tf`: also `odom -> base_link` on /tf (REP-105: the vehicle's VIO usually owns it; off unless
+        `[ros] odom_tf`)."""
         self.vehicle = vehicle
         self.frames = frames or RosFrames()
+        self.odom_tf = odom_tf
 
     def pose_with_covariance(self, est: Estimate) -> Any:
         """PoseWithCovarianceStamped of T_cad_body (frame `map`); requires a localized estimate."""
@@ -136,12 +140,13 @@ class RosMessages:
                              pose=pose, twist=twc)
 
     def tf(self, est: Estimate) -> Any:
-        """`map -> odom` (T_cad_map) where localized, and `odom -> base_link` (T_map_body)."""
+        """`map -> odom` (T_cad_map) where localized (REP-105: a localizer publishes map -> odom), and
+        `odom -> base_link` (T_map_body) only with `odom_tf`; None where that leaves nothing."""
         f = self.frames
-        transforms = [_transform(est.stamp_ns, f.odom, f.base_link, est.T_map_body)]
+        transforms = [_transform(est.stamp_ns, f.odom, f.base_link, est.T_map_body)] if self.odom_tf else []
         if est.T_cad_map is not None:
             transforms.insert(0, _transform(est.stamp_ns, f.map, f.odom, est.T_cad_map))
-        return msg(TF)(transforms=transforms)
+        return msg(TF)(transforms=transforms) if transforms else None
 
     def path(self, plan: pb.Waypoints) -> Any:
         """The waypoints as a Path in `map`, each pose turned to its yaw, stamped with the plan's stamp."""
@@ -177,9 +182,10 @@ class RosOutput:
     """Publishes `RosMessages` as CDR through a `RosTransport` (the bridge's keys or rmw_zenoh's; a
     `service.vehicle_out.VehicleOutput`)."""
 
-    def __init__(self, transport: RosTransport, keys: RosKeys, frames: RosFrames | None = None) -> None:
+    def __init__(self, transport: RosTransport, keys: RosKeys, frames: RosFrames | None = None,
+                 odom_tf: bool = False) -> None:
         self.keys = keys
-        self.messages = RosMessages(keys.vehicle, frames)
+        self.messages = RosMessages(keys.vehicle, frames, odom_tf)
         self.motion = Motion()
         self._pubs = {name: transport.publisher(keys.topic(name), typename) for name, typename in TOPIC_TYPES.items()}
         self._pubs["tf"] = transport.publisher(keys.tf, TF)
@@ -192,7 +198,9 @@ class RosOutput:
         if est.T_cad_body is not None and est.status in ("localized", "degraded"):
             self._put("pose", self.messages.pose_with_covariance(est), POSE_COV)
             self._put("odometry", self.messages.odometry(est, velocity), ODOMETRY)
-        self._put("tf", self.messages.tf(est), TF)
+        tf = self.messages.tf(est)
+        if tf is not None:
+            self._put("tf", tf, TF)
 
     def waypoints(self, plan: pb.Waypoints) -> None:
         if not plan.error:
@@ -219,9 +227,27 @@ def goal_from_pose_stamped(payload: bytes, frames: RosFrames | None = None) -> p
     return goal
 
 
+def prior_from_initialpose(payload: bytes, frames: RosFrames | None = None) -> pb.PoseEstimate | None:
+    """Nav2's /initialpose (geometry_msgs/msg/PoseWithCovarianceStamped in `map` = CAD, rviz's 2D Pose Estimate)
+    as the service's wire prior (a PoseEstimate, frame `cad`; the ROS covariance, x y z rotx roty rotz about `map`'s
+    axes, read for its x, y and yaw variances into the wire's [rot; trans] diagonal: a prior's gate uses no more),
+    to be checked by `InputParser.prior`; None in another frame. Raises on a payload that is not CDR of that type."""
+    m = from_cdr(payload, POSE_COV)
+    if m.header.frame_id not in ("", (frames or RosFrames()).map):
+        return None
+    p, q = m.pose.pose.position, m.pose.pose.orientation
+    cov_ros = np.asarray(m.pose.covariance, float).reshape(6, 6)
+    prior = pb.PoseEstimate(T_cad_body=pb.Pose(position=pb.Vector3(x=p.x, y=p.y, z=p.z), qw=q.w, qx=q.x, qy=q.y,
+                                               qz=q.z))
+    prior.covariance.extend(np.diag([cov_ros[3, 3], cov_ros[4, 4], cov_ros[5, 5],
+                                     cov_ros[0, 0], cov_ros[1, 1], cov_ros[2, 2]]).ravel())
+    prior.header.frame_id, prior.header.stamp_ns = "cad", stamp_ns_of(m.header.stamp)
+    return prior
+
+
 class RosInputs:
     """The ROS topics the service takes: the goal, checked by the service's `InputParser` like its protobuf twin
-    (ROS sensor inputs: service.ros_sensors)."""
+    (ROS sensor inputs: service.ros_sensors; the operator's prior: `RosPriorInputs`)."""
 
     def __init__(self, keys: RosKeys, frames: RosFrames | None = None, transport: RosTransport | None = None) -> None:
         """`transport`: where the goal topic is (and announces its subscription); the bridge's keys by default."""
@@ -242,6 +268,47 @@ class RosInputs:
             parser.drops.drop("ros_goal/wrong_frame")
             return None
         return parser.goal(goal.SerializeToString())
+
+
+class RosPriorInputs:
+    """The operator's prior from ROS (graph.prior): Nav2's /initialpose and a storey's name (std_msgs/msg/String on
+    `<vehicle>/macroloc/storey`), each checked by `InputParser.prior` like the protobuf `initialpose` key."""
+
+    def __init__(self, keys: RosKeys, frames: RosFrames | None = None, transport: RosTransport | None = None,
+                 initialpose: str = "/initialpose") -> None:
+        """`transport`: where the topics are (and announces the subscriptions); the bridge's keys by default.
+        `initialpose`: the initial pose's topic (Nav2's and rviz's `/initialpose`, under `[ros] namespace`; ''
+        for none)."""
+        self.frames = frames or RosFrames()
+
+        def key(topic: str, typename: str) -> str:
+            return transport.subscription(topic, typename) if transport is not None else topic
+
+        self.initialpose_key = key(keys.of(initialpose), POSE_COV) if initialpose else ""
+        self.storey_key = key(keys.topic("storey"), STRING)
+
+    def intakes(self, parser: InputParser) -> dict[str, tuple[Any, str, bool, int]]:
+        """key -> (parse(payload) -> event | None, rate name, heavy, ring size), as service.node's intakes."""
+        intakes: dict[str, tuple[Any, str, bool, int]] = {
+            self.storey_key: (lambda payload: self.storey(parser, payload), "initialpose", False, 8)}
+        if self.initialpose_key:
+            intakes[self.initialpose_key] = (lambda payload: self.initialpose(parser, payload), "initialpose",
+                                             False, 8)
+        return intakes
+
+    def initialpose(self, parser: InputParser, payload: bytes) -> PriorIn | None:
+        """/initialpose through `parser.prior`; another frame counts as ros_initialpose/wrong_frame."""
+        prior = prior_from_initialpose(payload, self.frames)
+        if prior is None:
+            parser.drops.drop("ros_initialpose/wrong_frame")
+            return None
+        return parser.prior(prior.SerializeToString())
+
+    def storey(self, parser: InputParser, payload: bytes) -> PriorIn | None:
+        """A storey's name (std_msgs/msg/String) through `parser.prior`, as a prior with no pose."""
+        prior = pb.PoseEstimate(storey=str(from_cdr(payload, STRING).data))
+        prior.header.frame_id = "cad"
+        return parser.prior(prior.SerializeToString())
 
 
 class RosIntakes(Protocol):

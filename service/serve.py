@@ -70,6 +70,7 @@ def make_vehicle_io(cfg: MacrolocConfig, transport: RosTransport | None, T_enu_c
         RosIntakes,
         RosKeys,
         RosOutput,
+        RosPriorInputs,
     )
     from macroloc.service.vehicle_out import NullVehicleOutput, VehicleOutput, VehicleOutputs
 
@@ -82,8 +83,9 @@ def make_vehicle_io(cfg: MacrolocConfig, transport: RosTransport | None, T_enu_c
     if r.enabled:
         keys, frames = RosKeys(cfg.service.vehicle, r.namespace), RosFrames(r.frame_map, r.frame_odom,
                                                                             r.frame_base_link)
-        outputs.append(RosOutput(transport, keys, frames))
+        outputs.append(RosOutput(transport, keys, frames, r.odom_tf))
         inputs.append(RosInputs(keys, frames, transport))
+        inputs.append(RosPriorInputs(keys, frames, transport, r.initialpose))
         log.info("ROS 2 topics (%s) /%s, /%s, ...", r.middleware, keys.topic("pose"), keys.tf)
         if r.odometry:
             inputs.append(VehicleOdometryInput(transport.subscription(keys.of(r.odometry), ROS_ODOMETRY),

@@ -229,7 +229,9 @@ def _fresh(old: Localizer) -> Localizer:
     """A new localizer like `old`: its model, registrar, parameters, iSAM2 settings, camera position and walls."""
     T_body_cam = np.eye(4)
     T_body_cam[:3, 3] = old.viewer_body
-    return Localizer(old.model, PoseGraph(old.graph.settings), old.registrar, old.params, T_body_cam, old.surfaces)
+    new = Localizer(old.model, PoseGraph(old.graph.settings), old.registrar, old.params, T_body_cam, old.surfaces)
+    new.set_prior(old.anchoring.prior)  # the operator's prior outlives a failed graph
+    return new
 
 
 def _finite(est: Estimate) -> bool:

@@ -55,6 +55,11 @@ class Keys:
     def goal(self) -> str:
         return self._k("goal")
 
+    @property
+    def initialpose(self) -> str:
+        """The operator's prior (a PoseEstimate: T_cad_body and/or storey; graph.prior)."""
+        return self._k("initialpose")
+
     # outputs
     @property
     def pose(self) -> str:

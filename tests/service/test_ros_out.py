@@ -56,7 +56,7 @@ def start_pose(office_model) -> np.ndarray:
 def test_ros_and_px4_messages_match_the_protobuf_ones(office_path, office_model, start_pose, tmp_path) -> None:
     port = free_port()
     cfg = service_config(office_path, tmp_path, port)
-    cfg.ros = RosConfig(enabled=True)
+    cfg.ros = RosConfig(enabled=True, odom_tf=True)  # the chain map -> odom -> base_link below
     cfg.px4 = Px4Config(enabled=True, namespace="px4_1")
     cfg.graph.surface_check = False  # four doors in range register without the walls' check (faster to start)
     with running_service(cfg), client(port) as s:
