@@ -286,6 +286,14 @@ class LocalizerBackend:
     def status(self) -> str:
         return self.localizer.status
 
+    def rival_poses(self) -> list[np.ndarray]:
+        """T_cad_body (4x4) of each rival pose the last 'ambiguous' registration left apart (graph.anchoring's
+        rivals, T_cad_map, at the newest estimate's T_map_body); none while not ambiguous or before any estimate."""
+        last = self.last
+        if last is None:
+            return []
+        return [T_cad_map @ last.T_map_body for T_cad_map in self.localizer.anchoring.rivals]
+
     @property
     def up_body(self) -> np.ndarray | None:
         """Gravity's up in the body frame at the newest odometry sample (the session's), when known."""

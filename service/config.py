@@ -1067,6 +1067,20 @@ class Px4Config(_Section):
                                 "EKF2 fuses macroloc's own pose (EKF2_EV_CTRL): its output then holds that pose")
 
 
+class FoxgloveConfig(_Section):
+    """The operator's live view (service/foxglove_live.py): Foxglove's WebSocket server beside the service, off by
+    default. Its messages go through a bounded queue that drops the oldest, served by the view's own thread."""
+
+    port: int = Field(0, ge=0, le=65535, description="TCP port of Foxglove's WebSocket server (open "
+                      "ws://<host>:<port> in Foxglove with docs/foxglove_layout.json); 0 = no live view")
+    host: str = Field("127.0.0.1", description="address the server binds to: loopback by default; 0.0.0.0 (or a "
+                      "network interface's address) to watch from another machine")
+    image_rate_hz: float = Field(2.0, ge=0, description="left camera images (with the detected boxes) sent at most "
+                                 "this often, Hz; 0 = none")
+    queue_size: int = Field(64, ge=1, description="messages waiting for the view's thread; beyond, the oldest is "
+                            "dropped (the service never waits for the view)")
+
+
 class InputsConfig(_Section):
     """Limits on what the service takes from the wire (service/inputs.py): anything beyond them is dropped,
     counted by key and kind in the diagnostics, and logged once per kind."""
@@ -1114,6 +1128,7 @@ class MacrolocConfig(BaseSettings):
     graph: GraphConfig = Field(default_factory=lambda: GraphConfig())
     ros: RosConfig = Field(default_factory=lambda: RosConfig())
     px4: Px4Config = Field(default_factory=lambda: Px4Config())
+    foxglove: FoxgloveConfig = Field(default_factory=lambda: FoxgloveConfig())
     inputs: InputsConfig = Field(default_factory=lambda: InputsConfig())
 
     @classmethod

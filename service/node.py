@@ -29,6 +29,7 @@ from macroloc.graph.geo import GeoReference
 from macroloc.graph.localizer import Estimate
 from macroloc.perception.params import DepthPointsConfig, PlaceConfig
 from macroloc.service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
+from macroloc.service.foxglove_live import LiveView, NullLiveView
 from macroloc.service.frame_answers import OdometryBuffer
 from macroloc.service.frames import FramePipeline, NullPipeline
 from macroloc.service.health import DropCounter, LatencyWindow, RateMeter
@@ -91,11 +92,13 @@ class LocalizationService:
     def __init__(self, session: zenoh.Session, backend: LocalizerBackend, planner: Planner, store: MapStore,
                  params: ServiceParams, pipeline: FramePipeline | None = None,
                  vehicle_out: VehicleOutput | None = None, ros_inputs: RosIntakes | None = None,
-                 notifier: Notifier | None = None) -> None:
+                 notifier: Notifier | None = None, live: LiveView | None = None) -> None:
         """`vehicle_out`: ROS 2 / PX4 messages beside the protobuf keys (service.ros_out, service.px4), none by
         default; `ros_inputs`: the ROS topics taken beside the protobuf inputs (the goal, the vehicle's odometry);
-        `notifier`: systemd's notification socket (service.systemd), none outside systemd."""
+        `notifier`: systemd's notification socket (service.systemd), none outside systemd; `live`: the operator's
+        live view (service.foxglove_live: it only queues, never waits), none by default; closed at stop."""
         self.session = session
+        self.live: LiveView = live or NullLiveView()
         self.vehicle_out: VehicleOutput = vehicle_out or NullVehicleOutput()
         self.ros_inputs: RosIntakes = ros_inputs or NullRosInputs()
         self.backend = backend
@@ -205,6 +208,7 @@ class LocalizationService:
             for pub in self._pubs.values():
                 pub.undeclare()
             self.vehicle_out.close()
+            self.live.close()
             if self._token is not None:
                 self._token.undeclare()
             if self.backend.supersedes_saved():
@@ -320,6 +324,7 @@ class LocalizationService:
         with self._lock:
             up_body = self.backend.up_body  # the session's, from the IMU: which way is down for the chain
         sightings = self.pipeline(ev.frame, up_body)
+        self.live.frame(ev.frame, ev.stamp_ns, sightings)
         points_body = self.pipeline.points_body  # the pipeline's own stereo depth, when it measured some ...
         measure_depth = self.pipeline.measure_depth  # ... or will for a keyframe
         with self._lock:
@@ -425,6 +430,7 @@ class LocalizationService:
             msg.header.seq = self.rates["pose"].total
             self._pubs["pose"].put(msg.SerializeToString())
             self.vehicle_out.pose(est)
+            self.live.pose(est)
             self.rates["pose"].tick()
 
     def _plausible(self, est: Estimate) -> Estimate:
@@ -448,6 +454,7 @@ class LocalizationService:
         msg = self._plan(self._goal.goal, start_cad, stamp_ns)
         self._pubs["waypoints"].put(msg.SerializeToString())
         self.vehicle_out.waypoints(msg)
+        self.live.waypoints(msg)
 
     def _plan(self, goal: GoalSpec, start_cad: np.ndarray, stamp_ns: int | None = None) -> pb.Waypoints:
         """Waypoints from start_cad to the goal, stamped with the stamp of the pose they start from (`stamp_ns`;
@@ -537,6 +544,7 @@ class LocalizationService:
         self._pubs["diagnostics"].put(diag.SerializeToString())
         self._pubs["status"].put(status.SerializeToString())
         self.vehicle_out.status(diag, status)
+        self.live.status(diag, status)
         state = diag.state
         log.info("status %s: rates %s, latencies %s, dropped %s", state,
                  {k: round(v, 1) for k, v in diag.rates_hz.items()},
@@ -550,6 +558,7 @@ class LocalizationService:
             return
         try:
             snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
+            rivals_cad_body = self.backend.rival_poses()
         finally:
             self._lock.release()
         msg = pb.ObservedFeatures()
@@ -562,6 +571,7 @@ class LocalizationService:
             msg.features.add(type=lm.type, id=lm.id).corners.extend(
                 pb.Vector3(x=c[0], y=c[1], z=c[2]) for c in corners)
         self._pubs["features"].put(msg.SerializeToString())
+        self.live.landmarks(msg, rivals_cad_body)
 
     def _save_periodically(self, stop: threading.Event) -> None:
         """Every save_period_s, on its own thread: a slow disk (fsync) never delays status or poses."""

@@ -20,6 +20,8 @@ from macroloc.service.state import MapStore
 from macroloc.service.systemd import Notifier, notifier_from_environment
 
 if TYPE_CHECKING:
+    from macroloc.graph.features import BuildingModel
+    from macroloc.service.foxglove_live import LiveView
     from macroloc.service.ros_transport import RosTransport
 
 log = logging.getLogger(__name__)
@@ -124,6 +126,18 @@ def ros_sensor_topics(cfg: MacrolocConfig, transport: RosTransport | None) -> Ro
                            key(r.right_info, CAMERA_INFO), key(r.imu, IMU), r.compressed, r.rectified)
 
 
+def make_live_view(cfg: MacrolocConfig, model: BuildingModel, building: Path) -> LiveView:
+    """The operator's live view ([foxglove]: Foxglove's WebSocket server on host:port, service.foxglove_live); none
+    where [foxglove] port is 0 (the default)."""
+    from macroloc.service.foxglove_live import NullLiveView, start_live_view
+    from macroloc.service.offline.plots import load_wall_mesh
+
+    f = cfg.foxglove
+    if not f.port:
+        return NullLiveView()
+    return start_live_view(model, lambda: load_wall_mesh(building), f.host, f.port, f.image_rate_hz, f.queue_size)
+
+
 def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  # noqa: ANN001
                   notifier: Notifier | None = None) -> LocalizationService:
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
@@ -156,7 +170,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                            depth=perception.depth, place=perception.place)
     vehicle_out, ros_inputs = make_vehicle_io(cfg, transport, geo.T_enu_cad() if geo and geo.north_given else None)
     return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), vehicle_out, ros_inputs,
-                               notifier)
+                               notifier, make_live_view(cfg, model, building))
 
 
 def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,

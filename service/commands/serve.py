@@ -21,6 +21,9 @@ def register(app: typer.Typer) -> None:
         ros: bool = typer.Option(False, "--ros", help="Also ROS 2 (CDR) on the keys zenoh-bridge-ros2dds maps to "
                                  "/<vehicle>/macroloc/{pose,odometry,path,status,goal} and /tf (ros.enabled)."),
         px4: bool = typer.Option(False, "--px4", help="Also PX4's fmu/in/ topics (px4.enabled)."),
+        foxglove: int = typer.Option(None, "--foxglove", help="Serve the operator's live view: Foxglove's WebSocket "
+                                     "server on this port (foxglove.port; bound to foxglove.host, 127.0.0.1 by "
+                                     "default; layout docs/foxglove_layout.json)."),
     ) -> None:
         """Serve poses and waypoints over Zenoh: subscribe macroloc/<vehicle>/{stereo,imu,odometry,observations,goal},
         publish {pose,waypoints,features,diagnostics,status}, answer queries on {map,plan}, hold the liveliness
@@ -32,7 +35,7 @@ def register(app: typer.Typer) -> None:
         from macroloc.service.logs import configure_logging
         from macroloc.service.serve import serve as run
 
-        overrides: dict[str, dict] = {"service": {}, "zenoh": {}, "ros": {}, "px4": {}}
+        overrides: dict[str, dict] = {"service": {}, "zenoh": {}, "ros": {}, "px4": {}, "foxglove": {}}
         for section, key, value in (("service", "building", building), ("service", "vehicle", vehicle),
                                     ("service", "state_dir", state_dir), ("zenoh", "connect", connect),
                                     ("zenoh", "listen", listen), ("zenoh", "mode", mode)):
@@ -44,6 +47,8 @@ def register(app: typer.Typer) -> None:
             overrides["ros"]["enabled"] = True
         if px4:
             overrides["px4"]["enabled"] = True
+        if foxglove is not None:
+            overrides["foxglove"]["port"] = foxglove
         cfg = load_config(config, **overrides)
         configure_logging(logging.INFO, cfg.service.log_json)
         run(cfg)

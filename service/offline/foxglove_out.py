@@ -12,6 +12,11 @@ Channels (log time = the flight's stamp of each message):
                                                         the others faint; the walls cut at the flight's height
   /landmarks                foxglove.SceneUpdate        the flight's landmarks in the CAD frame (end of a replay)
   /status                   foxglove.Log                the localizer's status, at each change (replay)
+The live view (service.foxglove_live) adds, through the same class:
+  /pose/covariance          foxglove.SceneUpdate        the pose's position covariance as a 2-sigma ellipsoid (cad)
+  /landmarks/links          foxglove.SceneUpdate        a line from each landmark to the model feature it is linked to
+  /hypotheses               foxglove.PosesInFrame       the rival body poses an 'ambiguous' registration left (cad)
+  /plan                     foxglove.PosesInFrame       the waypoints with their yaws (cad)
 A simulated flight (`macroloc simulate`) carries the image, calibration, transform (cad -> body -> cam, its
 truth), truth pose and model channels beside its macroloc ones.
 Frames: "cad" (the model's, the 3D panel's fixed frame), "map" (the flight's odometry frame; its transform from
@@ -143,8 +148,10 @@ class FoxgloveChannels:
             entities.append(SceneEntity(timestamp=_stamp(stamp_ns), frame_id="cad", id="walls", lines=[line]))
         self.write("/model", SceneUpdate(entities=entities), stamp_ns)
 
-    def landmarks(self, stamp_ns: int, positions_cad: list[tuple[str, str, np.ndarray]]) -> None:
-        """(key, type, position in the CAD frame) of each landmark, as spheres."""
+    def landmarks(self, stamp_ns: int, positions_cad: list[tuple[str, str, np.ndarray]], frame_id: str = "cad"
+                  ) -> None:
+        """(key, type, position) of each landmark, as spheres; positions in `frame_id` (the CAD frame, or "map"
+        before the flight is localized)."""
         from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
         from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
         from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
@@ -156,9 +163,51 @@ class FoxgloveChannels:
             T[:3, 3] = p
             sphere = SpherePrimitive(pose=_pose(T), size=Vector3(x=0.25, y=0.25, z=0.25),
                                      color=_colour(TYPE_COLOUR.get(kind, OTHER_COLOUR), 1.0))
-            entities.append(SceneEntity(timestamp=_stamp(stamp_ns), frame_id="cad", id=f"landmark/{key}",
+            entities.append(SceneEntity(timestamp=_stamp(stamp_ns), frame_id=frame_id, id=f"landmark/{key}",
                                         spheres=[sphere]))
         self.write("/landmarks", SceneUpdate(entities=entities), stamp_ns)
+
+    def links(self, stamp_ns: int, pairs_cad: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """(landmark position, linked model feature's centroid), both (3,) in the CAD frame: one line each."""
+        from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
+        from foxglove_schemas_protobuf.Point3_pb2 import Point3
+        from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+        points = [Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for pair in pairs_cad for p in pair]
+        line = LinePrimitive(type=LinePrimitive.LINE_LIST, pose=_pose(np.eye(4)), thickness=0.04, points=points,
+                             color=_colour((0.1, 0.7, 0.3), 1.0))
+        self.write("/landmarks/links", SceneUpdate(entities=[SceneEntity(
+            timestamp=_stamp(stamp_ns), frame_id="cad", id="links", lines=[line] if points else [])]), stamp_ns)
+
+    def covariance(self, stamp_ns: int, T_cad_body: np.ndarray, covariance: np.ndarray) -> None:
+        """The position covariance of a pose as an ellipsoid of 2 sigma along each principal axis (diameter 4
+        sigma). `covariance`: 6x6 [rot; trans] in the body's tangent space (graph.localizer.Estimate's), so the
+        position block is rotated into the CAD frame: R_cad_body C_tt R_cad_body^T."""
+        from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+        from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
+        from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+
+        R = T_cad_body[:3, :3]
+        C_cad = R @ np.asarray(covariance, float)[3:, 3:] @ R.T
+        variances, axes = np.linalg.eigh(0.5 * (C_cad + C_cad.T))
+        if np.linalg.det(axes) < 0:  # a rotation, not a reflection
+            axes[:, 0] = -axes[:, 0]
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = axes, T_cad_body[:3, 3]
+        d = 4.0 * np.sqrt(np.clip(variances, 0.0, None))
+        sphere = SpherePrimitive(pose=_pose(T), size=Vector3(x=d[0], y=d[1], z=d[2]),
+                                 color=_colour((1.0, 0.62, 0.1), 0.35))
+        self.write("/pose/covariance", SceneUpdate(entities=[SceneEntity(
+            timestamp=_stamp(stamp_ns), frame_id="cad", id="covariance", spheres=[sphere])]), stamp_ns)
+
+    def poses(self, topic: str, stamp_ns: int, Ts_cad: list[np.ndarray]) -> None:
+        """Several 4x4 poses in the CAD frame as one PosesInFrame (the plan's waypoints, the rival hypotheses)."""
+        from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+
+        self.write(topic, PosesInFrame(timestamp=_stamp(stamp_ns), frame_id="cad", poses=[_pose(T) for T in Ts_cad]),
+                   stamp_ns)
 
     def detections(self, stamp_ns: int, info: pb.CameraInfo, corners_cam: list[tuple[str, np.ndarray]]) -> None:
         """Each sighting's corners (4, 3) in the left camera frame, projected as a closed outline."""
