@@ -86,6 +86,7 @@ class DemoResult:
     storey: str = ""  # the take-off storey
     outcome: str = ""  # reached | not reached | ambiguous | not localized
     rivals_xy: list[list[float]] = field(default_factory=list)  # ambiguous: where each rival pose puts the vehicle
+    pose_error_m: float = float("nan")  # the service's estimate vs the truth (horizontal) when last localized
 
     def table_row(self) -> dict[str, float]:
         return {"localization_time_s": self.localization_time_s, "goal_error_m": self.goal_error_m,
@@ -251,7 +252,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
             stop.set()
             thread.join(timeout=30.0)
     result.seed, result.start, result.goal, result.storey = params.seed, route.start, route.goal.label, route.storey
-    result.outcome, result.rivals_xy = _outcome(result, service.backend)
+    result.outcome, result.rivals_xy = _outcome(result, service.backend, cfg.graph.anchor.cad_link_m)
     if result.wall_contacts_xy:
         log.warning("the vehicle touched or crossed the model's walls %d times (first at x %.1f, y %.1f m): this "
                     "simulator lets it through, a real vehicle would have hit", len(result.wall_contacts_xy),
@@ -264,10 +265,15 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     return result
 
 
-def _outcome(result: DemoResult, backend) -> tuple[str, list[list[float]]]:  # noqa: ANN001 - LocalizerBackend
-    """reached | not reached | ambiguous | not localized, and (ambiguous) where each rival pose puts the vehicle
-    (x, y CAD, m): its newest keyframe's pose in the map frame carried into the CAD frame by each rival T_cad_map."""
+def _outcome(result: DemoResult, backend, wrong_m: float) -> tuple[str, list[list[float]]]:  # noqa: ANN001
+    """reached | not reached | localized wrongly | ambiguous | not localized, and (ambiguous) where each rival
+    pose puts the vehicle (x, y CAD, m): its newest keyframe's pose in the map frame carried into the CAD frame by
+    each rival T_cad_map. Wrongly: the estimate was last more than `wrong_m` (graph.anchor.cad_link_m, the
+    distance within which a door seen is linked to a model door) from the truth, so the doors it links are the
+    wrong ones (the ground truth the simulation has; a real flight does not)."""
     if result.localized:
+        if result.pose_error_m > wrong_m:
+            return "localized wrongly", []
         return ("reached" if result.reached else "not reached"), []
     loc = backend.localizer
     if loc.status != "ambiguous" or not loc.rivals:
@@ -279,7 +285,7 @@ def _outcome(result: DemoResult, backend) -> tuple[str, list[list[float]]]:  # n
 def _fly(agent, goal, params: DemoParams) -> DemoResult:  # noqa: ANN001 - VehicleAgent, pb.Goal
     dt = 1.0 / params.rate_hz
     t_sim, t_loc, goal_sent, settled = 0.0, None, False, 0
-    true_xy, est_xy = [], []
+    true_xy, est_xy, pose_error_m = [], [], float("nan")
     wall0 = time.monotonic()
     while t_sim < params.timeout_s:
         agent.tick(dt)
@@ -288,6 +294,7 @@ def _fly(agent, goal, params: DemoParams) -> DemoResult:  # noqa: ANN001 - Vehic
         true_xy.append(agent.drone.T_cad_body[:2, 3].tolist())
         if T_est is not None:
             est_xy.append(T_est[:2, 3].tolist())
+            pose_error_m = float(np.linalg.norm(T_est[:2, 3] - agent.drone.T_cad_body[:2, 3]))
             if t_loc is None:
                 t_loc = t_sim
                 log.info("localized after %.2f s", t_loc)
@@ -307,9 +314,11 @@ def _fly(agent, goal, params: DemoParams) -> DemoResult:  # noqa: ANN001 - Vehic
     reached = settled > 0 and final is not None
     err = float(np.linalg.norm(agent.drone.T_cad_body[:3, 3] - final)) if final is not None else float("nan")
     length = agent.drone.distance_m
-    return DemoResult(0, t_loc is not None, reached, t_loc if t_loc is not None else float("nan"), err, length,
-                      100.0 * err / length if length > 0 else float("nan"), "", "", "", 0.0, true_xy, est_xy,
-                      agent.follower.waypoints_cad[:, :2].tolist(), [] if final is None else final.tolist())
+    result = DemoResult(0, t_loc is not None, reached, t_loc if t_loc is not None else float("nan"), err, length,
+                        100.0 * err / length if length > 0 else float("nan"), "", "", "", 0.0, true_xy, est_xy,
+                        agent.follower.waypoints_cad[:, :2].tolist(), [] if final is None else final.tolist())
+    result.pose_error_m = pose_error_m
+    return result
 
 
 def plot_flight(result: DemoResult, planner: Planner, path: Path) -> Path:
@@ -353,8 +362,9 @@ def plot_flight(result: DemoResult, planner: Planner, path: Path) -> Path:
     ax.set_ylabel("y (m, CAD)")
     ax.set_title(f"seed {result.seed}: localized after {result.localization_time_s:.2f} s, "
                  f"error at goal {result.goal_error_m:.3f} m ({result.goal_error_pct:.2f} % of "
-                 f"{result.path_length_m:.1f} m)" if result.localized else
-                 f"seed {result.seed}: {outcome_line(result)}", fontsize=10 if result.localized else 8)
+                 f"{result.path_length_m:.1f} m)" if result.outcome in ("reached", "not reached") else
+                 f"seed {result.seed}: {outcome_line(result)}",
+                 fontsize=10 if result.outcome in ("reached", "not reached") else 8)
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -368,6 +378,9 @@ def outcome_line(result: DemoResult) -> str:
     if result.outcome == "ambiguous":
         return (f"ambiguous: {len(result.rivals_xy)} poses explain all the vehicle saw equally well (a symmetric "
                 "building), so the service says so instead of guessing; they are drawn on the picture")
+    if result.outcome == "localized wrongly":
+        return (f"localized wrongly: the service's pose was last {result.pose_error_m:.2f} m from the truth "
+                "(the simulation's ground truth says so; the service did not)")
     if result.outcome == "not localized":
         return f"not localized after {result.path_length_m:.1f} m of flight"
     return f"{result.outcome}: {result.goal_error_m:.3f} m from the goal"

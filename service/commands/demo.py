@@ -46,7 +46,10 @@ def register(app: typer.Typer) -> None:
                                       "same flight, to the digit, on an idle or a loaded machine."),
         json_out: bool = typer.Option(False, "--json", help="Print {outcome (reached, not reached, ambiguous: a "
                                       "symmetric building whose rival poses the service will not choose between, "
-                                      "not localized), localized, localization_time_s, goal_error_m, "
+                                      "localized wrongly: the estimate ended more than graph.anchor.cad_link_m "
+                                      "from the simulation's truth, not localized), localized, pose_error_m (the "
+                                      "estimate vs the truth when last localized), localization_time_s, "
+                                      "goal_error_m, "
                                       "path_length_m, goal_error_pct, reached, rivals (ambiguous: how many poses), "
                                       "storey, start, goal, wall_contacts (the times the vehicle touched or crossed "
                                       "the model's walls: this simulator lets it through), wall_time_s} (a list "
@@ -126,8 +129,9 @@ def register(app: typer.Typer) -> None:
                        "  goal at lat {:.7f}, lon {:.7f}, alt {:.2f} m (WGS84)\n".format(*result.goal_wgs84)))
         if json_out:
             docs = [dict(r.table_row(), seed=r.seed, outcome=r.outcome, localized=r.localized,
-                         observations=r.observations, reached=r.reached, rivals=len(r.rivals_xy), storey=r.storey,
-                         start=r.start, goal=r.goal, wall_contacts=len(r.wall_contacts_xy),
+                         pose_error_m=r.pose_error_m, observations=r.observations, reached=r.reached,
+                         rivals=len(r.rivals_xy), storey=r.storey, start=r.start, goal=r.goal,
+                         wall_contacts=len(r.wall_contacts_xy),
                          wall_time_s=round(r.wall_time_s, 1), goal_wgs84=r.goal_wgs84, picture=str(p))
                     for r, p in zip(rows, pictures, strict=True)]
             print_json(docs[0] if len(docs) == 1 else docs)
