@@ -62,6 +62,7 @@ class DemoParams:
     config: Path | None = None  # the service's config file (JSON or TOML): the demo's own settings above win
     storey: str | None = None  # the take-off storey; None: the config's graph.storey_hint, else chosen (demo_route)
     goal: str | None = None  # an IfcSpace name, a door's or window's GlobalId or "x,y,z" (CAD, m); None: chosen
+    foxglove: int = 0  # the operator's live view: Foxglove's WebSocket server on this port ([foxglove]); 0: none
 
 
 @dataclass
@@ -172,6 +173,7 @@ def demo_config(building: Path, params: DemoParams, port: int, storey: str | Non
                                                "lockstep": params.lockstep},
                        zenoh={"listen": [f"tcp/127.0.0.1:{port}", *params.listen]},
                        ros={"enabled": params.ros}, px4={"enabled": params.px4},
+                       foxglove={"port": params.foxglove} if params.foxglove else {},
                        graph={"storey_hint": params.storey or own.graph.storey_hint or storey
                               or take_off_storey(load_building(building))},
                        perception={"detector_model": detector})

@@ -61,6 +61,9 @@ def register(app: typer.Typer) -> None:
                                  "zenoh-bridge-ros2dds maps to /<vehicle>/macroloc/{pose,odometry,path,status}, /tf."),
         px4: bool = typer.Option(False, "--px4", help="Also publish PX4's fmu/in/vehicle_visual_odometry, "
                                  "trajectory_setpoint and offboard_control_mode."),
+        foxglove: int = typer.Option(0, "--foxglove", help="Watch the flight live in Foxglove: the service's "
+                                     "WebSocket server on this port, 127.0.0.1 (foxglove.port; layout "
+                                     "docs/foxglove_layout.json)."),
         vehicle: str = typer.Option("demo", "--vehicle", help="Vehicle name: keys macroloc/<vehicle>/..., ROS "
                                     "topics /<vehicle>/macroloc/..."),
         config: Path | None = typer.Option(None, "--config", "-c", help="The service's config file (JSON or TOML, "
@@ -108,7 +111,7 @@ def register(app: typer.Typer) -> None:
             result = run_demo(path, DemoParams(seed=s, speedup=speedup, observations=observations,
                                                detector_model=detector, record=recording, vehicle=vehicle,
                                                listen=tuple(listen or ()), ros=ros, px4=px4, lockstep=lockstep,
-                                               config=config, storey=storey, goal=goal))
+                                               config=config, storey=storey, goal=goal, foxglove=foxglove))
             picture = out if len(seeds) == 1 else out.with_name(f"{out.stem}-seed{s}{out.suffix or '.png'}")
             planner = Planner.for_building(path, planning.cell_m, planning.vehicle_radius_m, planning.flight_height_m)
             plot_flight(result, planner, picture)

@@ -253,3 +253,15 @@ def test_detected_boxes_are_drawn_where_the_camera_sees_them(office_model) -> No
         view.close()
     finally:
         live.close()
+
+
+def test_demo_passes_its_foxglove_port_to_the_service(office_path, tmp_path) -> None:
+    from macroloc.sim.demo import DemoParams, demo_config
+
+    file = tmp_path / "c.toml"
+    file.write_text("[foxglove]\nport = 9001\nimage_rate_hz = 5.0\n")
+    cfg = demo_config(office_path, DemoParams(foxglove=8765, config=file, observations="truth"), 7447, "Level 1")
+    assert (cfg.foxglove.port, cfg.foxglove.image_rate_hz) == (8765, 5.0)
+    assert demo_config(office_path, DemoParams(config=file, observations="truth"), 7447, "Level 1").foxglove.port \
+        == 9001  # no flag: the file's
+    assert demo_config(office_path, DemoParams(observations="truth"), 7447, "Level 1").foxglove.port == 0  # off
