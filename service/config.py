@@ -1038,6 +1038,9 @@ class RosConfig(_Section):
     odometry: str = Field("", description="ROS topic of the vehicle's nav_msgs/Odometry (a VIO: child base_link FLU in "
                           "its odom frame), taken as the service's odometry beside macroloc/<vehicle>/odometry "
                           "(service/odometry_in.py); '' = none")
+    odometry_tf: bool = Field(False, description="take /tf's frame_odom -> frame_base_link (the vehicle's VIO, "
+                              "REP-105) as the service's odometry (service/odometry_in.py); not with odom_tf, "
+                              "which publishes that link itself")
     initialpose: str = Field("/initialpose", description="ROS topic of Nav2's initial pose (geometry_msgs/"
                              "PoseWithCovarianceStamped in map = CAD, rviz's 2D Pose Estimate), taken as a prior the "
                              "registration must still confirm (graph/prior.py; a storey's name as std_msgs/String on "

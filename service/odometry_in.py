@@ -1,12 +1,17 @@
 """The vehicle's odometry taken where the vehicle has it (issue 57 item 2): a ROS 2 `nav_msgs/msg/Odometry` topic
 (a VIO: OpenVINS, VINS-Fusion, Isaac ROS Visual SLAM) and PX4's `fmu/out/vehicle_odometry`
-(`px4_msgs/msg/VehicleOdometry`), each turned into the service's own odometry event and checked by
+(`px4_msgs/msg/VehicleOdometry`) or the `odom -> base_link` link of ROS's `/tf` (`tf2_msgs/msg/TFMessage`), each
+turned into the service's own odometry event and checked by
 `InputParser.odometry` (finite, unit quaternion, plausible position, stamps in order) like a macroloc `Odometry` on
 `macroloc/<vehicle>/odometry`.
 
 Frames. macroloc's `map` frame (REP-105's `odom`) is the odometry's world frame, `body` is FLU:
 - ROS Odometry: `pose` is the child frame (`base_link`, FLU, REP-103) in the header's frame (the VIO's `odom`), taken
   as T_map_body as it is; header stamp in ns; the pose covariance reordered to the wire's [rot; trans].
+- ROS /tf: the TransformStamped whose header frame is `[ros] frame_odom` and child `[ros] frame_base_link`
+  (T_odom_base_link, the VIO's, REP-105) taken as T_map_body as it is, at its own header stamp; no covariance (the
+  wire's "unknown": none given). A /tf message without that link (the rest of the tree, macroloc's own
+  `map -> odom`) is not odometry: skipped, not counted.
 - PX4 VehicleOdometry: `position` (m) and `q` (w, x, y, z: the FRD body in the world frame) in NED (`pose_frame` 1)
   or FRD-world (2, arbitrary heading), both z down, turned into a z-up frame by `service.ned`
   (T_map_body = T_enu_flu_from_T_ned_frd: x<->y swapped, z flipped; body FRD -> FLU); stamp = `timestamp_sample`
@@ -42,6 +47,7 @@ log = logging.getLogger(__name__)
 
 ROS_ODOMETRY = "nav_msgs/msg/Odometry"
 PX4_ODOMETRY = "px4_msgs/msg/VehicleOdometry"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 PX4_POSE_FRAMES = (1, 2)  # NED, FRD-world: both z down
 JUMP_SLACK_M = 0.25
 JUMP_SLACK_RAD = float(np.deg2rad(10.0))
@@ -94,6 +100,27 @@ def ros_odometry(payload: bytes) -> tuple[pb.Odometry, None]:
     return odometry_message(from_cdr(payload, ROS_ODOMETRY)), None
 
 
+class TfOdometry:
+    """/tf's `odom_frame -> base_frame` link as the vehicle's odometry (module doc)."""
+
+    def __init__(self, odom_frame: str = "odom", base_frame: str = "base_link") -> None:
+        self.odom_frame, self.base_frame = odom_frame.lstrip("/"), base_frame.lstrip("/")
+
+    def __call__(self, payload: bytes) -> tuple[pb.Odometry, None] | None:
+        """A tf2_msgs/msg/TFMessage CDR payload as a wire Odometry (T_map_body = T_odom_base_link, the last such
+        link in the message), or None where the message holds no such link."""
+        from macroloc.service.ros_in import transform_matrix
+        from macroloc.service.ros_types import stamp_ns_of
+
+        links = [t for t in from_cdr(payload, TF_MESSAGE).transforms if t.header.frame_id.lstrip("/") ==
+                 self.odom_frame and t.child_frame_id.lstrip("/") == self.base_frame]
+        if not links:
+            return None
+        msg = pb.Odometry(T_map_body=pose_from_matrix(transform_matrix(links[-1].transform)))
+        msg.header.stamp_ns, msg.header.frame_id = stamp_ns_of(links[-1].header.stamp), "map"
+        return msg, None
+
+
 def px4_odometry(payload: bytes) -> tuple[pb.Odometry | None, int]:
     """A px4_msgs/msg/VehicleOdometry CDR payload as a wire Odometry (T_map_body: z-up world, FLU body; module doc)
     and its reset_counter; None for an unknown pose frame or an invalid (NaN) pose."""
@@ -112,8 +139,10 @@ def px4_odometry(payload: bytes) -> tuple[pb.Odometry | None, int]:
 class VehicleOdometryInput:
     """One odometry topic as an intake of `service.node`: converted, checked by the parser, stitched into segments."""
 
-    def __init__(self, key: str, convert: Callable[[bytes], tuple[pb.Odometry | None, int | None]],
+    def __init__(self, key: str, convert: Callable[[bytes], tuple[pb.Odometry | None, int | None] | None],
                  rule: SegmentRule | None = None) -> None:
+        """`convert`: a payload as (wire Odometry or None where invalid, reset counter or None), or None where the
+        payload carries no odometry (a /tf message of other links: skipped, not counted)."""
         self.key, self.convert, self.rule = key, convert, rule or SegmentRule()
         self.segments: OdometrySegments | None = None
 
@@ -126,10 +155,13 @@ class VehicleOdometryInput:
         invalid (`odometry/nan`), or refused by the parser."""
         assert self.segments is not None, "intakes() first"
         try:
-            msg, reset_counter = self.convert(payload)
+            converted = self.convert(payload)
         except Exception as exc:  # noqa: BLE001 - rosbags raises several types for bytes that are not this CDR
             parser.drops.drop("odometry/not_cdr", str(exc)[:80])
             return None
+        if converted is None:
+            return None
+        msg, reset_counter = converted
         if msg is None:
             parser.drops.drop("odometry/nan", "PX4 odometry with an unknown frame or an invalid pose")
             return None

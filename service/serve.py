@@ -58,7 +58,9 @@ def make_vehicle_io(cfg: MacrolocConfig, transport: RosTransport | None, T_enu_c
     from macroloc.service.odometry_in import (
         PX4_ODOMETRY,
         ROS_ODOMETRY,
+        TF_MESSAGE,
         SegmentRule,
+        TfOdometry,
         VehicleOdometryInput,
         px4_odometry,
         ros_odometry,
@@ -92,6 +94,12 @@ def make_vehicle_io(cfg: MacrolocConfig, transport: RosTransport | None, T_enu_c
         if r.odometry:
             inputs.append(VehicleOdometryInput(transport.subscription(keys.of(r.odometry), ROS_ODOMETRY),
                                                ros_odometry, rule))
+        if r.odometry_tf:
+            if r.odom_tf:
+                raise UserInputError("[ros] odometry_tf takes odom -> base_link from /tf, where odom_tf publishes it: "
+                                     "set one of them")
+            inputs.append(VehicleOdometryInput(transport.subscription(keys.tf, TF_MESSAGE),
+                                               TfOdometry(r.frame_odom, r.frame_base_link), rule))
     if x.enabled:
         from macroloc.service.px4 import Px4Messages, Px4Output, ResetCounter
 

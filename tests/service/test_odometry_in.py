@@ -17,6 +17,7 @@ from macroloc.service.ned import T_ned_frd_from_T_enu_flu, quat_wxyz_from_matrix
 from macroloc.service.odometry_in import (
     OdometrySegments,
     SegmentRule,
+    TfOdometry,
     VehicleOdometryInput,
     px4_odometry,
     ros_odometry,
@@ -62,6 +63,34 @@ def ros_payload(stamp_ns: int, T_odom_body: np.ndarray) -> bytes:
         pose=msg("geometry_msgs/msg/PoseWithCovariance")(pose=pose, covariance=np.eye(6).ravel() * 1e-4),
         twist=msg("geometry_msgs/msg/TwistWithCovariance")(twist=twist, covariance=np.zeros(36)))
     return to_cdr(m, "nav_msgs/msg/Odometry")
+
+
+def tf_payload(stamp_ns: int, links: list[tuple[str, str, np.ndarray]]) -> bytes:
+    """A tf2_msgs/msg/TFMessage of (parent, child, T_parent_child) links."""
+    def stamped(parent: str, child: str, T: np.ndarray) -> object:
+        w, x, y, z = quat_wxyz_from_matrix(T[:3, :3])
+        return msg("geometry_msgs/msg/TransformStamped")(
+            header=header(stamp_ns, parent), child_frame_id=child, transform=msg("geometry_msgs/msg/Transform")(
+                translation=msg("geometry_msgs/msg/Vector3")(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+                rotation=msg("geometry_msgs/msg/Quaternion")(x=x, y=y, z=z, w=w)))
+
+    typename = "tf2_msgs/msg/TFMessage"
+    return to_cdr(msg(typename)(transforms=[stamped(*link) for link in links]), typename)
+
+
+def test_tf_odometry_is_the_odom_to_base_link_link_and_other_links_are_skipped_uncounted() -> None:
+    drops = DropCounter()
+    parser = InputParser(["front"], drops, InputLimits(max_odometry_m=100.0))
+    tf = VehicleOdometryInput("tf", TfOdometry("vio_odom", "body_flu"))
+    tf.intakes(parser)
+    T_odom_body, T_map_odom = yaw_T(0.4, np.array([1.0, -2.0, 1.5])), yaw_T(-1.0, np.array([7.0, 3.0, 0.0]))
+    ev = tf.take(parser, tf_payload(2 * 10**9, [("map", "vio_odom", T_map_odom), ("vio_odom", "body_flu", T_odom_body),
+                                              ("body_flu", "cam", np.eye(4))]))
+    assert ev is not None and ev.stamp_ns == 2 * 10**9
+    assert np.allclose(ev.T_map_body, T_odom_body, atol=1e-9)  # the link as it is, not composed with map -> odom
+    assert tf.take(parser, tf_payload(3 * 10**9, [("map", "vio_odom", T_map_odom)])) is None  # macroloc's own link
+    assert tf.take(parser, tf_payload(3 * 10**9, [("odom", "base_link", T_odom_body)])) is None  # other frame names
+    assert drops.counts() == {}
 
 
 def test_px4_odometry_is_turned_from_ned_frd_to_a_z_up_flu_pose() -> None:
@@ -142,17 +171,17 @@ def _fly(s: zenoh.Session, flight: FakeFlight, T: np.ndarray, steps: int, first_
     return T
 
 
-@pytest.mark.parametrize("source", ["ros_odometry_rmw_zenoh", "px4_vehicle_odometry_bridge"])
+@pytest.mark.parametrize("source", ["ros_odometry_rmw_zenoh", "px4_vehicle_odometry_bridge", "ros_tf_bridge"])
 def test_a_flight_whose_only_odometry_is_the_vehicles_localizes_through_its_reset(
         source: str, office_path, office_model, start_pose, tmp_path) -> None:
     """The service localizes on the vehicle's own odometry alone (no macroloc Odometry is sent); then the vehicle's
     odometry resets (PX4: reset_counter + 1; ROS: its frame jumps 30 m and turns 2 rad): the localized poses stay at
-    the truth, within 0.3 m, none jumps."""
+    the truth, within 0.3 m, none jumps. /tf carries the service's own map -> odom beside the vehicle's link."""
     port = free_port()
     cfg = service_config(office_path, tmp_path, port)
     cfg.graph.surface_check = False
     T_new_frame = yaw_T(2.0, np.array([30.0, -7.0, 0.5]))
-    if source.startswith("ros"):
+    if source == "ros_odometry_rmw_zenoh":
         from pamoja.ros2 import entity_key  # another rmw_zenoh implementation's key (tests/service/test_rmw_zenoh.py)
 
         from tests.service.test_rmw_zenoh import GOLDEN_RIHS01
@@ -163,6 +192,12 @@ def test_a_flight_whose_only_odometry_is_the_vehicles_localizes_through_its_rese
 
         def payload(stamp: int, T: np.ndarray, reset: bool) -> bytes:
             return ros_payload(stamp, T_new_frame @ T if reset else T)
+    elif source == "ros_tf_bridge":
+        cfg.ros = RosConfig(enabled=True, odometry_tf=True)
+        key = "tf"
+
+        def payload(stamp: int, T: np.ndarray, reset: bool) -> bytes:
+            return tf_payload(stamp, [("odom", "base_link", T_new_frame @ T if reset else T)])
     else:
         cfg.px4 = Px4Config(take_odometry=True)
         key = "fmu/out/vehicle_odometry"
