@@ -5,6 +5,7 @@ the server advertised; a client that never reads, with the view's own thread stu
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import struct
 import threading
@@ -35,8 +36,9 @@ class FoxgloveClient:
     thread decodes every message with the advertised schema (protobuf FileDescriptorSet, or JSON)."""
 
     def __init__(self, port: int, read: bool = True) -> None:
-        self.ws = websockets_sync.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None,
-                                          max_queue=1 if not read else 64)
+        self._stack = contextlib.ExitStack()  # websockets 17 wants its connection used as a context manager
+        self.ws = self._stack.enter_context(websockets_sync.connect(
+            f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None, max_queue=1 if not read else 64))
         self.channels: dict[int, dict] = {}  # channel id -> its advertisement
         self.by_sub: dict[int, dict] = {}  # subscription id -> channel
         self.messages: dict[str, list[Any]] = {}  # topic -> decoded messages
@@ -102,7 +104,7 @@ class FoxgloveClient:
         return self._classes[channel["id"]].FromString(payload)
 
     def close(self) -> None:
-        self.ws.close()
+        self._stack.close()
 
 
 def _stereo(stamp_ns: int, left: np.ndarray) -> bytes:
@@ -265,3 +267,19 @@ def test_demo_passes_its_foxglove_port_to_the_service(office_path, tmp_path) -> 
     assert demo_config(office_path, DemoParams(config=file, observations="truth"), 7447, "Level 1").foxglove.port \
         == 9001  # no flag: the file's
     assert demo_config(office_path, DemoParams(observations="truth"), 7447, "Level 1").foxglove.port == 0  # off
+
+
+def test_the_shipped_layout_shows_the_live_view_channels() -> None:
+    """docs/foxglove_layout.json names the live view's channels (and the replay's /pose/truth), none that no one
+    publishes."""
+    from pathlib import Path
+
+    layout = json.loads((Path(__file__).resolve().parents[2] / "docs" / "foxglove_layout.json").read_text())
+    panels = layout["configById"]
+    shown = set(panels["3D!macroloc"]["topics"]) | {panels["Image!macroloc"]["imageMode"]["imageTopic"],
+                                                    panels["RosOut!macroloc"]["topicToRender"],
+                                                    panels["RawMessages!macroloc"]["topicPath"]}
+    shown |= set(panels["Image!macroloc"]["imageMode"]["annotations"])
+    live = set(PROTOBUF_TOPICS) | {DIAGNOSTICS}
+    assert shown - live == {"/pose/truth"}
+    assert live - shown == {"/tf", "/camera/left/calibration"}  # the 3D panel's transforms; the Image's calibration
