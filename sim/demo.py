@@ -182,8 +182,13 @@ def demo_config(building: Path, params: DemoParams, port: int, storey: str | Non
 def demo_route(building: Path, params: DemoParams, cfg: MacrolocConfig | None = None) -> Route:
     """The flight's take-off and goal (`sim.demo_route.choose_route`) on a planner of the config's planning
     settings (the service's own: the same grids); UserInputError, one line, where the building offers none."""
+    from macroloc.graph.bim import MESH_SUFFIXES
     from macroloc.service.planning import Planner
 
+    if building.suffix.lower() in MESH_SUFFIXES:  # the planner's walls and the goals' rooms are IFC elements
+        raise UserInputError(f"cannot fly in {building.name}: the demo plans on an IFC model's walls and rooms "
+                             f"(.ifc, .ifczip), and {building.suffix} is a mesh (`macroloc features` and "
+                             "`localize` read it)")
     own = cfg or load_config(params.config)
     p = own.planning
     planner = Planner.for_building(building, p.cell_m, p.vehicle_radius_m, p.flight_height_m)

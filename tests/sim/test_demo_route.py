@@ -174,6 +174,16 @@ def test_an_unreadable_building_is_one_line_and_exit_2(tmp_path: Path) -> None:
     assert "mine.ifc" in done.stderr and "Traceback" not in done.stderr
 
 
+def test_a_mesh_building_is_refused_in_one_line(tmp_path: Path) -> None:
+    """A mesh model (features and localize read it) has no IFC walls and rooms for the demo to plan on."""
+    from macroloc.sim.demo import DemoParams, demo_route
+
+    mesh = tmp_path / "walls.obj"
+    mesh.write_text("v 0 0 0\nv 4 0 0\nv 4 0 3\nv 0 0 3\nf 1 2 3\nf 1 3 4\n")
+    with pytest.raises(UserInputError, match=r"cannot fly in walls.obj: the demo plans on an IFC model's"):
+        demo_route(mesh, DemoParams(observations="truth"))
+
+
 def test_an_ambiguous_flight_names_its_rival_poses() -> None:
     """The demo's outcome: 'ambiguous' with where each rival pose puts the vehicle, from the localizer's rivals."""
     from types import SimpleNamespace
