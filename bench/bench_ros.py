@@ -9,12 +9,16 @@ key `bench/macroloc/pose` (`[ros] middleware = "bridge"`), or on rmw_zenoh's
 `0/bench/macroloc/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/RIHS01_...` with its attachment
 (`"rmw_zenoh"`). With `--middleware both` (default) one invocation runs the service once per middleware, one after
 the other, on the same machine; the protobuf pose of each service run is the common reference.
-Run: `python -m bench.bench_ros [--frames N] [--middleware bridge|rmw_zenoh|both]`.
+With `--foxglove`, the bridge's service runs three times instead: without the live view, then with
+`serve --foxglove` and a WebSocket client (`FoxgloveReader`) subscribed to every channel and reading, images at
+the default [foxglove] image_rate_hz and at every frame (30 Hz).
+Run: `python -m bench.bench_ros [--frames N] [--middleware bridge|rmw_zenoh|both] [--foxglove]`.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -58,7 +62,46 @@ def ros_pose_key(middleware: str) -> str:
         else "bench/macroloc/pose"
 
 
-def run(frames: int, rate_hz: float = 30.0, middleware: str = "bridge") -> dict:
+class FoxgloveReader:
+    """A Foxglove WebSocket client (subprotocol foxglove.sdk.v1) that subscribes to every channel the server
+    advertises and counts the binary messages it reads, per topic, on its own thread."""
+
+    def __init__(self, port: int, deadline_s: float = 60.0) -> None:
+        import json
+        import threading
+
+        from websockets.sync.client import connect
+
+        self.stack = contextlib.ExitStack()  # websockets 17 wants its connection used as a context manager
+        self.ws = self.stack.enter_context(connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],
+                                                   max_size=None))
+        channels: dict[int, str] = {}
+        end = time.monotonic() + deadline_s
+        while len(channels) < 13 and time.monotonic() < end:  # service.foxglove_live's 12 protobuf + 1 JSON
+            doc = self.ws.recv(timeout=max(0.01, end - time.monotonic()))
+            if isinstance(doc, str) and json.loads(doc).get("op") == "advertise":
+                channels.update({c["id"]: c["topic"] for c in json.loads(doc)["channels"]})
+        self.topics = {i: channels[cid] for i, cid in enumerate(sorted(channels))}
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": i, "channelId": cid} for i, cid in
+                                                                       enumerate(sorted(channels))]}))
+        self.counts: dict[str, int] = {}
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        try:
+            while True:
+                frame = self.ws.recv()
+                if isinstance(frame, bytes) and frame[0] == 1:
+                    topic = self.topics[int.from_bytes(frame[1:5], "little")]
+                    self.counts[topic] = self.counts.get(topic, 0) + 1
+        except Exception:  # closed
+            return
+
+
+def run(frames: int, rate_hz: float = 30.0, middleware: str = "bridge", foxglove_image_hz: float | None = None
+        ) -> dict:
+    """One service run; `foxglove_image_hz`: with the live view ([foxglove] image_rate_hz) and a client reading
+    every channel, else without."""
     import zenoh
 
     from macroloc.graph.bim import load_building
@@ -72,6 +115,9 @@ def run(frames: int, rate_hz: float = 30.0, middleware: str = "bridge") -> dict:
     port = _free_port()
     env = dict(os.environ, MACROLOC_SERVICE__PERCEPTION="false", MACROLOC_SERVICE__STATUS_PERIOD_S="5",
                MACROLOC_GRAPH__SURFACE_CHECK="false", MACROLOC_ROS__MIDDLEWARE=middleware)
+    fox_port = _free_port()
+    if foxglove_image_hz is not None:
+        env |= {"MACROLOC_FOXGLOVE__PORT": str(fox_port), "MACROLOC_FOXGLOVE__IMAGE_RATE_HZ": str(foxglove_image_hz)}
     service = subprocess.Popen([str(Path(sys.executable).parent / "macroloc"), "serve", "--building", str(OFFICE),
                                 "--vehicle", "bench", "--ros", "--listen", f"tcp/127.0.0.1:{port}",
                                 "--state-dir", tempfile.mkdtemp()], env=env, stderr=subprocess.DEVNULL)
@@ -99,7 +145,9 @@ def run(frames: int, rate_hz: float = 30.0, middleware: str = "bridge") -> dict:
 
     door = [f for f in model.features if f.type == "door" and f.storey == "Level 1"][10]
     T = level_pose(door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4], 0.3)
-    out: dict = {"middleware": middleware, "images": origin, "frame_bytes": template.ByteSize()}
+    out: dict = {"middleware": middleware, "images": origin, "frame_bytes": template.ByteSize(),
+                 "foxglove_image_hz": foxglove_image_hz}
+    reader: FoxgloveReader | None = None
     rng = np.random.default_rng(0)
     try:
         with zenoh.open(session_config(ZenohConfig(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))) as s:
@@ -108,6 +156,8 @@ def run(frames: int, rate_hz: float = 30.0, middleware: str = "bridge") -> dict:
             while not any(r.ok for r in s.liveliness().get(keys.alive, timeout=1.0)):
                 if service.poll() is not None:
                     raise RuntimeError("the service exited")
+            if foxglove_image_hz is not None:
+                reader = FoxgloveReader(fox_port)
             for k in range(40):  # localize: odometry (= CAD here), gravity, doors in view
                 stamp = (k + 1) * 33_000_000
                 accel = pb.Imu(accel_mps2=vector3(T[:3, :3].T @ [0, 0, 9.81]), gyro_radps=pb.Vector3())
@@ -146,6 +196,9 @@ def run(frames: int, rate_hz: float = 30.0, middleware: str = "bridge") -> dict:
                              "p50_ms": round(float(np.percentile(lat, 50)), 2) if len(lat) else None,
                              "p99_ms": round(float(np.percentile(lat, 99)), 2) if len(lat) else None}
             out["ros_attachment_bytes"] = sorted(set(attachments))
+            if reader is not None:
+                out["foxglove_messages"] = dict(sorted(reader.counts.items()))
+                reader.stack.close()
             for sub in subs:
                 sub.undeclare()
     finally:
@@ -158,14 +211,22 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--middleware", choices=("bridge", "rmw_zenoh", "both"), default="both")
+    parser.add_argument("--foxglove", action="store_true", help="the bridge without, then with the live view")
     args = parser.parse_args()
-    middlewares = ("bridge", "rmw_zenoh") if args.middleware == "both" else (args.middleware,)
-    results = [run(args.frames, middleware=m) for m in middlewares]
+    if args.foxglove:
+        from macroloc.service.config import FoxgloveConfig
+
+        results = [run(args.frames, middleware="bridge", foxglove_image_hz=hz)
+                   for hz in (None, FoxgloveConfig().image_rate_hz, 30.0)]
+    else:
+        middlewares = ("bridge", "rmw_zenoh") if args.middleware == "both" else (args.middleware,)
+        results = [run(args.frames, middleware=m) for m in middlewares]
     print(json.dumps(results))
     for r in results:
         for name in ("protobuf", "ros"):
-            label = f"{r['middleware']}/{name}"
-            print(f"{label:>18}: frame->pose p50 {r[name]['p50_ms']} ms, p99 {r[name]['p99_ms']} ms, "
+            live = "" if r["foxglove_image_hz"] is None else f"+foxglove {r['foxglove_image_hz']:g} Hz images"
+            label = f"{r['middleware']}{live}/{name}"
+            print(f"{label:>36}: frame->pose p50 {r[name]['p50_ms']} ms, p99 {r[name]['p99_ms']} ms, "
                   f"answered {r[name]['answered']} at 30 Hz")
 
 

@@ -1080,6 +1080,8 @@ class FoxgloveConfig(_Section):
                       "network interface's address) to watch from another machine")
     image_rate_hz: float = Field(2.0, ge=0, description="left camera images (with the detected boxes) sent at most "
                                  "this often, Hz; 0 = none")
+    pose_rate_hz: float = Field(10.0, ge=0, description="poses (with /tf and the covariance) sent at most this often, "
+                                "Hz; 0 = none")
     queue_size: int = Field(64, ge=1, description="messages waiting for the view's thread; beyond, the oldest is "
                             "dropped (the service never waits for the view)")
 

@@ -8,7 +8,7 @@ Foxglove's own schemas, plus one JSON channel:
                                                       the features linked to a landmark opaque
   /landmarks                foxglove.SceneUpdate      the flight's landmarks ("cad" once localized, else "map")
   /landmarks/links          foxglove.SceneUpdate      landmark -> the model feature it is linked to
-  /pose/estimate            foxglove.PoseInFrame      the body in the CAD frame (once localized)
+  /pose/estimate            foxglove.PoseInFrame      the body in the CAD frame (once localized), at most pose_rate_hz
   /pose/covariance          foxglove.SceneUpdate      its position covariance, a 2-sigma ellipsoid
   /tf                       foxglove.FrameTransforms  cad -> map (once localized), map -> body, body -> cam
   /hypotheses               foxglove.PosesInFrame     the rival body poses while 'ambiguous' (none while 'exploring':
@@ -23,7 +23,8 @@ Foxglove's own schemas, plus one JSON channel:
 Cost rule: the service's threads only hand a closure to a `DroppingQueue` (it never waits: beyond `queue_size` the
 oldest is dropped and counted), and only for channels some client subscribes to; the view's own thread builds
 the messages (JPEG, protobuf) and gives them to the server, whose per-client buffer drops a slow client's oldest
-messages (foxglove-sdk's `message_backlog_size`). Images are thinned to `image_rate_hz` on this machine's clock.
+messages (foxglove-sdk's `message_backlog_size`). Images are thinned to `image_rate_hz`, poses (with /tf and the
+covariance) to `pose_rate_hz`, on this machine's clock.
 /model and /status are sent again when a client subscribes to them (the server keeps no message for late
 subscribers).
 """
@@ -171,7 +172,7 @@ class FoxgloveLive:
     wall mesh (service.offline.plots.load_wall_mesh), called once on the view's thread."""
 
     def __init__(self, model: BuildingModel, walls: Callable[[], Any], host: str, port: int, image_rate_hz: float,
-                 queue_size: int, clock_s: Callable[[], float] = time.monotonic) -> None:
+                 queue_size: int, pose_rate_hz: float = 10.0, clock_s: Callable[[], float] = time.monotonic) -> None:
         import foxglove
 
         from macroloc.service.offline.foxglove_out import FoxgloveChannels
@@ -179,6 +180,8 @@ class FoxgloveLive:
         self.model, self._load_walls, self._clock_s = model, walls, clock_s
         self._image_period_s = 1.0 / image_rate_hz if image_rate_hz > 0 else float("inf")
         self._last_image_s = -np.inf
+        self._pose_period_s = 1.0 / pose_rate_hz if pose_rate_hz > 0 else float("inf")
+        self._last_pose_s = -np.inf
         self._T_body_cam = forward_stereo_T_body_cam()  # the simulator's, until a frame gives its own
         self._features = {f.id: f for f in model.features}
         self._wall_mesh: Any = None
@@ -211,8 +214,12 @@ class FoxgloveLive:
     # --- called by the service's threads: queue only ------------------------------------------------------------
 
     def pose(self, est: Estimate) -> None:
-        if self.subscriptions.wanted(*POSE_TOPICS):
-            self.queue.put(lambda: self._pose(est))
+        """Thinned to `pose_rate_hz` of this machine's clock, and only while a client subscribes."""
+        now_s = self._clock_s()
+        if now_s - self._last_pose_s < self._pose_period_s or not self.subscriptions.wanted(*POSE_TOPICS):
+            return
+        self._last_pose_s = now_s
+        self.queue.put(lambda: self._pose(est))
 
     def waypoints(self, msg: pb.Waypoints) -> None:
         if self.subscriptions.wanted("/plan"):
@@ -342,10 +349,10 @@ def _protobuf_schema(foxglove: Any, name: str) -> Any:
 
 
 def start_live_view(model: BuildingModel, walls: Callable[[], Any], host: str, port: int, image_rate_hz: float,
-                    queue_size: int) -> FoxgloveLive:
+                    queue_size: int, pose_rate_hz: float = 10.0) -> FoxgloveLive:
     """The live view on host:port; a one-line UserInputError where foxglove-sdk is not installed."""
     try:
         importlib.import_module("foxglove")
     except ImportError:
         raise UserInputError("the Foxglove live view needs foxglove-sdk: pip install 'macroloc[foxglove]'") from None
-    return FoxgloveLive(model, walls, host, port, image_rate_hz, queue_size)
+    return FoxgloveLive(model, walls, host, port, image_rate_hz, queue_size, pose_rate_hz)

@@ -143,7 +143,8 @@ def make_live_view(cfg: MacrolocConfig, model: BuildingModel, building: Path) ->
     f = cfg.foxglove
     if not f.port:
         return NullLiveView()
-    return start_live_view(model, lambda: load_wall_mesh(building), f.host, f.port, f.image_rate_hz, f.queue_size)
+    return start_live_view(model, lambda: load_wall_mesh(building), f.host, f.port, f.image_rate_hz, f.queue_size,
+                           f.pose_rate_hz)
 
 
 def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  # noqa: ANN001

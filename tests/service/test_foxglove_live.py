@@ -18,6 +18,7 @@ import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from macroloc.common.geometry import forward_stereo_T_body_cam
+from macroloc.graph.localizer import Estimate
 from macroloc.graph.sightings import Sighting
 from macroloc.service.config import FoxgloveConfig
 from macroloc.service.foxglove_live import DIAGNOSTICS, PROTOBUF_TOPICS, DroppingQueue, FoxgloveLive
@@ -124,7 +125,7 @@ def start_pose(office_model) -> np.ndarray:
 def test_a_client_receives_every_channel_with_its_schema(office_path, office_model, start_pose, tmp_path) -> None:
     port = free_port()
     cfg = service_config(office_path, tmp_path, port)
-    cfg.foxglove = FoxgloveConfig(port=free_port(), image_rate_hz=100.0)
+    cfg.foxglove = FoxgloveConfig(port=free_port(), image_rate_hz=100.0, pose_rate_hz=100.0)
     cfg.graph.surface_check = False  # four doors in range register without the walls' check (faster to start)
     expected = set(PROTOBUF_TOPICS) | {DIAGNOSTICS}
     with running_service(cfg), client(port) as s:
@@ -230,6 +231,36 @@ def test_the_dropping_queue_never_blocks_and_drops_the_oldest() -> None:
     assert q.dropped == 7 and len(q) == 3
     assert [q.get(0.0)() for _ in range(3)] == [7, 8, 9]  # type: ignore[misc]
     assert q.get(0.0) is None
+
+
+def test_images_and_poses_are_thinned_to_their_rates_and_sent_only_to_subscribers(office_model) -> None:
+    """At 2 Hz images and 8 Hz poses, 3 s of 32 Hz frames and 64 Hz poses queue 6 images and 24 poses; nothing
+    is queued for a channel nobody subscribes to. (Steps of 1/64 s: exact in binary, no rounding at the periods.)"""
+    now_s = [0.0]
+    live = FoxgloveLive(office_model, lambda: None, "127.0.0.1", free_port(), image_rate_hz=2.0, queue_size=1000,
+                        pose_rate_hz=8.0, clock_s=lambda: now_s[0])
+    try:
+        live.queue.close()  # the view's thread stops: what is queued stays to be counted
+        live._thread.join(5.0)
+        live.queue.closed = False
+        frame = pb.StereoFrame.FromString(_stereo(5, np.zeros((48, 64, 3), np.uint8)))
+        estimate = Estimate(1, "exploring", np.eye(4))
+
+        def run(seconds: float) -> int:
+            before = len(live.queue)
+            for k in range(int(seconds * 64)):  # 64 Hz poses, every other one with a frame
+                now_s[0] += 1 / 64
+                live.pose(estimate)
+                if k % 2 == 0:
+                    live.frame(frame, k, [])
+            return len(live.queue) - before
+
+        assert run(1.0) == 0  # no client
+        live.subscriptions.counts.update({"/camera/left/image": 1, "/tf": 1})
+        assert run(3.0) == 6 + 24
+    finally:
+        live.queue.closed = True
+        live.server.stop()
 
 
 def test_detected_boxes_are_drawn_where_the_camera_sees_them(office_model) -> None:
