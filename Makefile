@@ -2,7 +2,7 @@
 VENV := .venv/bin
 export PYTHONUNBUFFERED := 1
 
-.PHONY: setup demo test test-slow lint bench flights eval eval-shared train proto clean
+.PHONY: setup demo test test-slow lint bench flights eval eval-shared train train-loso proto clean
 setup:
 	@bash scripts/setup.sh
 
@@ -43,6 +43,17 @@ train: setup         ## reproduce the shipped detector weights (needs torch: the
 	  --lr 5e-4 --steps 2000 --out out/detector/stage2 --report out/detector/stage2
 	$(VENV)/python -m macroloc.perception.train --init out/detector/stage2/checkpoint.pt --sim out/sim_yolo \
 	  --sim-fraction 0.25 --indoor-fraction 0.35 --lr 5e-4 --steps 1500
+
+LOSO := python -m macroloc.perception.train --arch shufflenet --freeze first_conv stage2 --camera 0.3 --mosaic 0.25 \
+  --steps 1500 --threads 2
+train-loso: setup    ## issue 55's leave-one-source-out table: a pretrained-start model per left-out source, then bench.eval_detector (~15-25 min a model on 2 cores; a stopped run goes on with `--resume --report DIR`)
+	MACROLOC_EXTRAS=dev,train bash scripts/setup.sh
+	$(VENV)/$(LOSO) --leave-out fisheye_robot indoor_objects --out out/loso/A --report out/loso/A/report
+	$(VENV)/$(LOSO) --leave-out robot_door_detection --out out/loso/C --report out/loso/C/report
+	$(VENV)/$(LOSO) --leave-out facades --out out/loso/D --report out/loso/D/report
+	$(VENV)/python -m bench.eval_detector --left-out fisheye_robot,indoor_objects=out/loso/A/detector.onnx \
+	  --left-out robot_door_detection=out/loso/C/detector.onnx --left-out facades=out/loso/D/detector.onnx \
+	  --json out/loso/eval.json
 
 proto: setup         ## regenerate the committed Python from proto/
 	$(VENV)/python scripts/gen_proto.py

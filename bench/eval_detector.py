@@ -3,7 +3,8 @@
 
     python -m bench.eval_detector --left-out fisheye_robot,indoor_objects=out/loso/A/detector.onnx \\
         --left-out robot_door_detection=out/loso/B/detector.onnx --left-out facades=out/loso/C/detector.onnx \\
-        [--reference perception/models/detector.onnx] [--in-source out/loso/all/detector.onnx] [--json F]
+        [--reference perception/models/detector.onnx] [--in-source out/loso/all/detector.onnx] \
+        [--rendered out/rendered_eval/office_a ...] [--json F]
 
 `--left-out SOURCES=MODEL`: MODEL was trained without those sources (`perception.train --leave-out`); it is scored
 on all of each of them (`perception.detector_eval.leave_one_source_out`). The reference model is scored on all of
@@ -11,7 +12,8 @@ every source, with whether it saw the source in training (from its sidecar). `--
 each source's own test part (`perception.sources`: 80/10/10 by source photo), a memory figure reported beside the
 left-out ones, never used to decide. Per source: door AP50 / AP30 for doors at least 1/4 of the image tall and for
 all doors, window AP50 where the source has windows, precision / recall at the model's own threshold; then the
-real rtabmap double door (frames 50, 60). A benchmark: it prints figures, it asserts nothing.
+real rtabmap double door (frames 50, 60); with `--rendered`, rendered frames of buildings.
+A benchmark: it prints figures, it asserts nothing.
 """
 
 from __future__ import annotations
@@ -80,6 +82,18 @@ def in_source(detector: Detector) -> dict[str, dict[str, object]]:
     return out
 
 
+def rendered(detector: Detector, folders: list[Path]) -> dict[str, dict[str, object]]:
+    """`detector` on rendered frames of buildings (folders of images/ and YOLO labels/, `sim.export`)."""
+    from macroloc.perception.train import load_sim
+
+    out = {}
+    for folder in folders:
+        samples = load_sim([folder])
+        dets, truths = detector_eval.detect_all(detector, samples)
+        out[folder.name] = detector_eval.figures(samples, dets, truths, detector.spec.score_threshold)
+    return out
+
+
 def _row(label: str, fig: dict) -> str:  # type: ignore[type-arg]
     tall, door, win = fig["door_tall"], fig["door"], fig["window"]
     row = (f"  {label:<34} door>=1/4 AP50 {tall['ap50']:.3f} AP30 {tall['ap30']:.3f} "
@@ -107,6 +121,12 @@ def table(report: dict) -> list[str]:  # type: ignore[type-arg]
         if rows:
             lines.append(f"{name} ({rows[0][1]['n_images']} images)")
             lines += [_row(label, fig) for label, fig in rows]
+    if report.get("rendered"):
+        lines.append("rendered frames of buildings no rendered training frame came from (doors, windows):")
+    for m, parts in report.get("rendered", {}).items():
+        for b, fig in parts.items():
+            lines.append(f"  {b:<14} {m:<40} door AP50 {fig['door']['ap50']:.3f} (n={fig['door']['n_truth']}) "
+                         f"window AP50 {fig['window']['ap50']:.3f} (n={fig['window']['n_truth']})")
     lines.append("real double door (rtabmap), best door box at IoU >= 0.5:")
     for m, d in report["double_door"].items():
         found = [f"frame {k} score {v['door_score']:.3f} (IoU {v['iou']:.2f}"
@@ -131,20 +151,27 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--left-out", type=_left_out_arg, action="append", default=[], metavar="SOURCES=MODEL")
     ap.add_argument("--reference", type=Path, default=DEFAULT_MODEL, help="default: the shipped model")
     ap.add_argument("--in-source", type=Path, action="append", default=[], metavar="MODEL")
+    ap.add_argument("--rendered", type=Path, nargs="*", default=[],
+                    help="folders of rendered frames (images/, labels/) of buildings never trained on, one part each")
+    ap.add_argument("--sources", nargs="*", default=list(sources.REAL_SOURCES), choices=tuple(sources.REAL_SOURCES),
+                    metavar="SOURCE", help="the sources the reference is scored on (default: every one)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     t0 = time.time()
-    report: dict[str, object] = {"left_out": {}, "in_source": {}, "double_door": {}}
+    report: dict[str, object] = {"left_out": {}, "in_source": {}, "double_door": {}, "rendered": {}}
     for names, path in args.left_out:
         det = Detector(path, threads=args.threads)
+        if args.rendered:
+            report["rendered"][f"left out {','.join(names)}"] = rendered(det, args.rendered)  # type: ignore[index]
         report["left_out"][str(path)] = detector_eval.leave_one_source_out({n: det for n in names}, IMAGES)  # type: ignore[index]
         report["double_door"][str(path)] = real_double_door(det)  # type: ignore[index]
     ref = Detector(args.reference, threads=args.threads)
     report["reference"] = {"model": str(args.reference), "trained_on": sorted(trained_on(ref)),
-                           "figures": detector_eval.leave_one_source_out({n: ref for n in sources.REAL_SOURCES},
-                                                                         IMAGES)}
+                           "figures": detector_eval.leave_one_source_out({n: ref for n in args.sources}, IMAGES)}
     report["double_door"][f"reference {args.reference}"] = real_double_door(ref)  # type: ignore[index]
+    if args.rendered:
+        report["rendered"]["reference"] = rendered(ref, args.rendered)  # type: ignore[index]
     for path in args.in_source:
         report["in_source"][str(path)] = in_source(Detector(path, threads=args.threads))  # type: ignore[index]
     print("\n".join(table(report)), flush=True)
