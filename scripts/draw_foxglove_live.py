@@ -47,6 +47,7 @@ class Recorder:
         self.log: list[str] = []
         self.images: dict[int, Any] = {}  # log time -> image, until its detections arrive
         self.shown: tuple[Any, Any] | None = None  # (image, detections) with at least one box
+        self.at_first_plan: tuple | None = None  # (last, trail_xy, log, shown) when the first plan came
         self._channels: dict[int, dict] = {}
         self._subs: dict[int, dict] = {}
         self._classes: dict[str, Any] = {}
@@ -97,6 +98,8 @@ class Recorder:
             self.images = {log_time_ns: msg}
         elif topic == "/camera/left/detections" and msg.points and log_time_ns in self.images:
             self.shown = (self.images[log_time_ns], msg)
+        if topic == "/plan" and msg.poses and self.at_first_plan is None:  # the moment to draw: a fresh plan
+            self.at_first_plan = (dict(self.last), list(self.trail_xy), list(self.log), self.shown)
 
 
 def _yaw(q: Any) -> float:
@@ -110,6 +113,10 @@ def _rotation(q: Any) -> np.ndarray:
 
 
 def draw(rec: Recorder, out: Path, title: str) -> None:
+    """The panels as they stood when the first plan came (else at the end of the flight)."""
+    if rec.at_first_plan is not None:
+        rec.last, rec.trail_xy, rec.log, rec.shown = rec.at_first_plan
+        title += "\ndrawn as the first plan came"
     import cv2
     import matplotlib
 
@@ -167,8 +174,9 @@ def draw(rec: Recorder, out: Path, title: str) -> None:
         ax.add_patch(Ellipse((s.pose.position.x, s.pose.position.y), 2 * np.sqrt(w[1]) * 10, 2 * np.sqrt(w[0]) * 10,
                              angle=float(np.degrees(np.arctan2(v[1, 1], v[0, 1]))), fc=(1.0, 0.62, 0.1, 0.3),
                              ec=(1.0, 0.5, 0.0), label="/pose/covariance, 2 sigma x 10"))
-    if rec.trail_xy:  # the flight's part of the building, as the 3D panel following the body would show it
-        lo, hi = np.min(rec.trail_xy, axis=0) - 6.0, np.max(rec.trail_xy, axis=0) + 6.0
+    shown_xy = list(rec.trail_xy) + ([(p.position.x, p.position.y) for p in plan.poses] if plan else [])
+    if shown_xy:  # the flight's and the plan's part of the building, as the 3D panel following the body shows it
+        lo, hi = np.min(shown_xy, axis=0) - 4.0, np.max(shown_xy, axis=0) + 4.0
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
@@ -200,7 +208,7 @@ def draw(rec: Recorder, out: Path, title: str) -> None:
     fig.suptitle(title)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=100)
 
 
 def main() -> None:
@@ -221,8 +229,8 @@ def main() -> None:
     flight.join()
     rec.thread.join(timeout=10.0)
     r = box["result"]
-    draw(rec, args.out, f"macroloc demo --foxglove {port} (seed {r.seed}, {r.storey}, {r.start} -> {r.goal}): "
-                        f"{r.outcome}, localized after {r.localization_time_s:.1f} s")
+    draw(rec, args.out, f"macroloc demo --foxglove {port}, seed {r.seed}, {r.storey} -> {r.goal}: {r.outcome}, "
+                        f"localized after {r.localization_time_s:.1f} s")
     print(f"wrote {args.out}")
 
 
