@@ -325,3 +325,14 @@ def test_the_shipped_layout_shows_the_live_view_channels() -> None:
     live = set(PROTOBUF_TOPICS) | {DIAGNOSTICS}
     assert shown - live == {"/pose/truth"}
     assert live - shown == {"/tf", "/camera/left/calibration"}  # the 3D panel's transforms; the Image's calibration
+
+
+def test_a_port_in_use_is_one_clear_line(office_model) -> None:
+    from macroloc.graph.errors import UserInputError
+
+    first = FoxgloveLive(office_model, lambda: None, "127.0.0.1", 0, image_rate_hz=2.0, queue_size=8)
+    try:
+        with pytest.raises(UserInputError, match=f"cannot listen on 127.0.0.1:{first.port}: .*in use"):
+            FoxgloveLive(office_model, lambda: None, "127.0.0.1", first.port, image_rate_hz=2.0, queue_size=8)
+    finally:
+        first.close()
