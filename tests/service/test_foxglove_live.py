@@ -336,3 +336,37 @@ def test_a_port_in_use_is_one_clear_line(office_model) -> None:
             FoxgloveLive(office_model, lambda: None, "127.0.0.1", first.port, image_rate_hz=2.0, queue_size=8)
     finally:
         first.close()
+
+
+def test_rival_poses_and_landmarks_before_localizing(office_model) -> None:
+    """While ambiguous the rival body poses go out on /hypotheses (CAD frame); landmarks not yet in the CAD frame go
+    out in "map" with no links, and the model is not re-sent for them."""
+    live = FoxgloveLive(office_model, lambda: None, "127.0.0.1", 0, image_rate_hz=2.0, queue_size=8)
+    try:
+        view = FoxgloveClient(live.port)
+        wait_for(lambda: set(PROTOBUF_TOPICS) <= view.advertised(), what="advertised")
+        view.subscribe_all()
+        wait_for(lambda: live.subscriptions.wanted("/hypotheses") and view.of("/model"), what="subscribed")
+        diagnostics = pb.Diagnostics(state="ambiguous")
+        live.status(diagnostics, pb.ServiceStatus())  # a marker: one connection's messages arrive in order
+        wait_for(lambda: view.of(DIAGNOSTICS), what="the first marker")
+        models_before = len(view.of("/model"))
+        features = pb.ObservedFeatures()
+        features.header.stamp_ns, features.header.frame_id = 7, "map"
+        door = next(f for f in office_model.features if f.type == "door")
+        features.features.add(type="door", id=door.id).corners.extend(
+            pb.Vector3(x=c[0], y=c[1], z=c[2]) for c in door.corners_cad)
+        rivals = [yaw_T(0.0, np.array([1.0, 2.0, 1.2])), yaw_T(np.pi, np.array([9.0, -2.0, 1.2]))]
+        live.landmarks(features, rivals)
+        live.status(diagnostics, pb.ServiceStatus())
+        wait_for(lambda: view.of("/hypotheses") and len(view.of(DIAGNOSTICS)) == 2, what="hypotheses, the marker")
+        hypotheses = view.of("/hypotheses")[-1]
+        assert hypotheses.frame_id == "cad" and len(hypotheses.poses) == 2
+        assert [(p.position.x, p.position.y) for p in hypotheses.poses] == [(1.0, 2.0), (9.0, -2.0)]
+        assert abs(abs(hypotheses.poses[1].orientation.z) - 1.0) < 1e-9  # half a turn about z
+        assert view.of("/landmarks")[-1].entities[0].frame_id == "map"
+        assert not view.of("/landmarks/links")[-1].entities[0].lines  # no links before the CAD frame
+        assert len(view.of("/model")) == models_before  # nothing linked: the model is not sent again
+        view.close()
+    finally:
+        live.close()
