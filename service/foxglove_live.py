@@ -21,12 +21,12 @@ Foxglove's own schemas, plus one JSON channel:
   /diagnostics              JSON                      state, rates, latencies, drops (the Diagnostics message's)
 
 Cost rule: the service's threads only hand a closure to a `DroppingQueue` (it never waits: beyond `queue_size` the
-oldest is dropped and counted), and only for channels some client subscribes to; the view's own thread builds
-the messages (JPEG, protobuf) and gives them to the server, whose per-client buffer drops a slow client's oldest
-messages (foxglove-sdk's `message_backlog_size`). Images are thinned to `image_rate_hz`, poses (with /tf and the
-covariance) to `pose_rate_hz`, on this machine's clock.
-/model and /status are sent again when a client subscribes to them (the server keeps no message for late
-subscribers).
+oldest is dropped and counted), and only for channels some client subscribes to (the periodic status excepted: its
+last /status is kept for later clients); the view's own thread builds the messages (JPEG, protobuf) and gives them
+to the server, whose per-client buffer drops a slow client's oldest messages (foxglove-sdk's
+`message_backlog_size`). Images are thinned to `image_rate_hz`, poses (with /tf and the covariance) to
+`pose_rate_hz`, on this machine's clock. /model and /status are sent again when a client subscribes to them (the
+server keeps no message for late subscribers).
 """
 
 from __future__ import annotations
@@ -145,8 +145,8 @@ class DroppingQueue:
 
 
 class _Subscriptions:
-    """foxglove-sdk's ServerListener: how many clients subscribe to each topic; `on_first` runs on a new
-    subscription to a topic (on the server's thread: it must only queue)."""
+    """foxglove-sdk's ServerListener: how many clients subscribe to each topic; `on_subscribe(topic)` runs on
+    each new subscription (on the server's thread: it must only queue)."""
 
     def __init__(self, on_subscribe: Callable[[str], None]) -> None:
         self.counts: dict[str, int] = {}
