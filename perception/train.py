@@ -119,12 +119,13 @@ def yolo_loss(raw, targets, gt_boxes, anchors, stride):  # type: ignore[no-untyp
     n, _, h_g, w_g = raw.shape
     a = len(anchors)
     p = raw.view(n, a, -1, h_g, w_g)
-    t = {k: torch.from_numpy(v) for k, v in targets.items()}
+    dev = raw.device
+    t = {k: torch.from_numpy(v).to(dev) for k, v in targets.items()}
     pos = t["pos"]
     # Objectness: negatives are every non-assigned slot whose predicted box overlaps no truth by > 0.5.
     with torch.no_grad():
-        gy, gx = torch.meshgrid(torch.arange(h_g), torch.arange(w_g), indexing="ij")
-        anc = torch.from_numpy(anchors).float()
+        gy, gx = torch.meshgrid(torch.arange(h_g, device=dev), torch.arange(w_g, device=dev), indexing="ij")
+        anc = torch.from_numpy(anchors).float().to(dev)
         cx = (gx + torch.sigmoid(p[:, :, 0])) * stride
         cy = (gy + torch.sigmoid(p[:, :, 1])) * stride
         bw = anc[None, :, 0, None, None] * torch.exp(p[:, :, 2].clamp(-8, 8))
@@ -134,7 +135,7 @@ def yolo_loss(raw, targets, gt_boxes, anchors, stride):  # type: ignore[no-untyp
         for i, g in enumerate(gt_boxes):
             if len(g) == 0:
                 continue
-            gt = torch.from_numpy(g).float()
+            gt = torch.from_numpy(g).float().to(dev)
             pb = pred[i].reshape(-1, 4)
             lt = torch.maximum(pb[:, None, :2], gt[None, :, :2])
             rb = torch.minimum(pb[:, None, 2:], gt[None, :, 2:])
@@ -359,6 +360,7 @@ def train(args: argparse.Namespace) -> None:
         anchors = kmeans_anchors(wh, N_ANCHORS, rng)
         log.info("anchors (px): %s", np.round(anchors, 1).tolist())
         model = build_model(args.arch, args.width, args.pretrained if args.arch == "shufflenet" else None)
+    model.to(args.device)
     ema = copy.deepcopy(model)
     ema.eval()
     if args.freeze:
@@ -387,6 +389,7 @@ def train(args: argparse.Namespace) -> None:
                  else augment_for_training(s, rng, input_wh, args.camera)
                  for s, pool in picked]
         x = torch.from_numpy(np.stack([b[0] for b in batch]).astype(np.float32) / 255.0).permute(0, 3, 1, 2)
+        x = x.to(args.device)
         targets = build_targets([b[1] for b in batch], [b[2] for b in batch], anchors, grid_hw, STRIDE_PX)
         model.train()
         loss = yolo_loss(model(x), targets, [b[1] for b in batch], anchors, STRIDE_PX)
@@ -549,7 +552,7 @@ def export(model, anchors: np.ndarray, args: argparse.Namespace, data: dict[str,
     args.out.mkdir(parents=True, exist_ok=True)
     args.report.mkdir(parents=True, exist_ok=True)
     onnx_path = args.out / "detector.onnx"
-    model.eval()
+    model = model.cpu().eval()
     input_wh = input_size(args)
     dummy = torch.zeros(1, 3, input_wh[1], input_wh[0])
     torch.onnx.export(model, (dummy,), str(onnx_path), input_names=["image"], output_names=["raw"],
@@ -628,6 +631,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--device", default="cpu",
+                    help="torch device of the training (cpu, the tested one; cuda on a machine with a GPU)")
     ap.add_argument("--save-every", type=int, default=250,
                     help="steps between saves of the EMA weights and of the run's whole state (for --resume)")
     ap.add_argument("--stop-at", type=int, default=None, metavar="STEP",
