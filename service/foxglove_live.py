@@ -2,7 +2,7 @@
 
 `macroloc serve --foxglove PORT` (`[foxglove] port`) serves ws://<host>:<port> (loopback unless `[foxglove] host`
 says otherwise); Foxglove opens it with docs/foxglove_layout.json. The messages are built by
-service.offline.foxglove_out's `FoxgloveChannels` (the conversions a replay writes to MCAP), protobuf-encoded with
+service.foxglove_channels's `FoxgloveChannels` (the conversions a replay writes to MCAP), protobuf-encoded with
 Foxglove's own schemas, plus one JSON channel:
   /model                    foxglove.SceneUpdate      walls (cut at the flight's height), doors (red), windows (blue);
                                                       the features linked to a landmark opaque
@@ -169,13 +169,13 @@ class _Subscriptions:
 class FoxgloveLive:
     """The live view of the module doc: a foxglove-sdk WebSocket server on its own context, and a thread that
     turns the service's estimates, plans, frames and landmarks into its channels. `walls`: loads the building's
-    wall mesh (service.offline.plots.load_wall_mesh), called once on the view's thread."""
+    wall mesh (graph.wall_mesh.load_wall_mesh), called once on the view's thread."""
 
     def __init__(self, model: BuildingModel, walls: Callable[[], Any], host: str, port: int, image_rate_hz: float,
                  queue_size: int, pose_rate_hz: float = 10.0, clock_s: Callable[[], float] = time.monotonic) -> None:
         import foxglove
 
-        from macroloc.service.offline.foxglove_out import FoxgloveChannels
+        from macroloc.service.foxglove_channels import FoxgloveChannels
 
         self.model, self._load_walls, self._clock_s = model, walls, clock_s
         self._image_period_s = 1.0 / image_rate_hz if image_rate_hz > 0 else float("inf")
@@ -329,7 +329,7 @@ class FoxgloveLive:
 
     def _send_model(self, stamp_ns: int = 0) -> None:
         """The doors, windows and the walls cut at the flight's height (else the features' median height)."""
-        from macroloc.service.offline.plots import wall_segments_xy
+        from macroloc.graph.wall_mesh import wall_segments_xy
 
         if not self._walls_loaded:
             self._wall_mesh, self._walls_loaded = self._load_walls(), True

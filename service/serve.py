@@ -137,8 +137,8 @@ def ros_sensor_topics(cfg: MacrolocConfig, transport: RosTransport | None) -> Ro
 def make_live_view(cfg: MacrolocConfig, model: BuildingModel, building: Path) -> LiveView:
     """The operator's live view ([foxglove]: Foxglove's WebSocket server on host:port, service.foxglove_live); none
     where [foxglove] port is 0 (the default)."""
+    from macroloc.graph.wall_mesh import load_wall_mesh
     from macroloc.service.foxglove_live import NullLiveView, start_live_view
-    from macroloc.service.offline.plots import load_wall_mesh
 
     f = cfg.foxglove
     if not f.port:

@@ -1,8 +1,8 @@
 """The layering (docs/architecture.md): common/ imports nothing of the project; graph/ and perception/ are pure
 libraries that share only common/; sim/ may use graph/; none of them imports service/, zenoh or the CLI, except
-sim's vehicle side (agent, demo, demo_route, truth_flight), which speaks the service's wire. The rooms of service/: its runtime
-modules (what `macroloc serve` runs) never import service.offline (replay, reports, plots, bags) and import sim/
-only inside functions; service.offline may import the runtime modules."""
+sim's vehicle side (agent, demo, demo_route, truth_flight), which speaks the service's wire. The rooms of service/:
+its runtime modules (what `macroloc serve` runs) never import service.offline (replay, reports, plots, bags) and
+import sim/ only inside functions; service.offline may import the runtime modules."""
 
 from __future__ import annotations
 
@@ -72,8 +72,8 @@ def test_each_package_imports_only_what_its_layer_may(package: str) -> None:
 
 
 def test_sims_vehicle_side_imports_only_the_services_wire_at_module_level() -> None:
-    """agent, demo, demo_route and truth_flight: service's wire and config when imported; the rest of the service (the demo's
-    planner and in-process service) only inside functions; never the CLI, nor service.offline."""
+    """agent, demo, demo_route and truth_flight: service's wire and config when imported; the rest of the service (the
+    demo's planner and in-process service) only inside functions; never the CLI, nor service.offline."""
     offenders = []
     for stem in SIM_VEHICLE_SIDE:
         path = ROOT / "sim" / f"{stem}.py"
