@@ -20,6 +20,7 @@ from functools import partial
 from typing import Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from macroloc.graph.features import CentroidsByType
 from macroloc.graph.params import JudgeParams
@@ -36,15 +37,20 @@ class SurfaceJudge:
     """Weighs candidate poses against the model's surfaces (see module doc)."""
 
     def __init__(self, surfaces: SurfaceIndex, params: JudgeParams, centroids_cad: CentroidsByType,
-                 inlier_threshold_m: float, surface_fit_sigma_m: float) -> None:
+                 inlier_threshold_m: float, surface_fit_sigma_m: float,
+                 self_maps: Callable[[], np.ndarray] = lambda: np.zeros((0, 4, 4))) -> None:
         """`centroids_cad(type)`: the model's feature centroids (N, 3); `inlier_threshold_m`: how near a CAD
         feature a turned candidate must keep a landmark (the registrar's tolerance, `RegistrationParams`);
-        `surface_fit_sigma_m`: a point's distance to its wall, model against reality, in the fits (`refined`)."""
+        `surface_fit_sigma_m`: a point's distance to its wall, model against reality, in the fits (`refined`);
+        `self_maps()`: the building's near-self-maps (graph.self_maps), (M, 4, 4) T_cad_cad, most voted first,
+        asked for once, when first needed (`with_images`)."""
         self.surfaces = surfaces
         self.params = params
         self.inlier_threshold_m = inlier_threshold_m
         self.surface_fit_sigma_m = surface_fit_sigma_m
         self._centroids_cad = centroids_cad
+        self._self_maps_of_building = self_maps
+        self._self_maps: np.ndarray | None = None
         self.checks: list[tuple[int, list[float]]] = []  # (stamp_ns, score of each candidate pose)
         self.screens: list[tuple[int, list[float]]] = []  # (candidates, their screening scores, best first)
         # within one registration attempt: each candidate fitted to the walls, each fitted pose's check, once
@@ -97,6 +103,10 @@ class SurfaceJudge:
         (`far_explains`: independent evidence of the place) and rule out its rivals (docs/measurements.md, "Wrong
         answers on fresh seeds").
 
+        The best candidate's images under the building's near-self-maps that explain the landmarks as well are
+        weighed too (`with_images`): a candidate is never taken over a pose the doors cannot tell from it and the
+        walls never saw.
+
         Candidates from one landmark are first turned to the walls' heading (`turned`); where then none fits,
         those from up to `surface_turn_max_inliers` are turned too and all are weighed again. Turned, wrong poses
         fit better too, so a pose from two or three doors is turned only when it must be (docs/measurements.md,
@@ -129,6 +139,8 @@ class SurfaceJudge:
             candidates, moved, checks = self._weighed(poses, reg, points_map, origins_map, sample)
         if not candidates:
             return Choice(None, False)
+        if T_reg is None:
+            self.with_images(candidates, moved, checks, points_map, origins_map, landmarks)
         score = np.array([c.score for c in checks])
         self.checks.append((stamp_ns, score.round(3).tolist()))
         log.info("surface check of %d candidate poses (%d points): support %s", len(candidates), len(points_map),
@@ -172,6 +184,66 @@ class SurfaceJudge:
         checks = [self._checked.get(T, partial(self.check, m, origins_map))
                   for T, m in zip(candidates, moved, strict=True)]
         return candidates, moved, checks
+
+    def with_images(self, candidates: list[np.ndarray], moved: list[np.ndarray], checks: list[SurfaceCheck],
+                    points_map: np.ndarray, origins_map: np.ndarray, landmarks: list[tuple[str, np.ndarray]]) -> None:
+        """Adds to the weighed `candidates` (T_cad_map), the points under each (`moved`, CAD frame) and their
+        `checks`, in place: the images S @ T of the best one under the building's near-self-maps S
+        (`self_maps`, `images`) that keep as many of the `landmarks` (type, centre in the map frame) by a same-type
+        CAD feature, each fitted to the walls by `points_map` (N, 3) and checked as seen from `origins_map`
+        (N, 3), where it is a different pose from every one weighed; then the same for the best image, where it
+        is now the best (a self-map that is no half-turn: its image's image may be another pose still).
+
+        The doors cannot tell such an image from the candidate: with a storey's doors and windows 180 deg
+        symmetric, every pose has its half-turned twin, and only the walls may tell the two apart, if anything
+        can. The registrar offers the twins of its own best pose only (graph.robust), and a few windows give
+        candidates it ranks otherwise: on the duplex the best candidate's twin, the true pose, was not among
+        those weighed, and the twin was taken over a poorer rival (docs/measurements.md, "The duplex's mirror
+        image taken as the pose")."""
+        if self.params.surface_self_map_images <= 0 or not landmarks:
+            return
+        extended: set[int] = set()
+        for _ in range(2):
+            best = int(np.argmax([c.score for c in checks]))
+            if best in extended:
+                return
+            extended.add(best)
+            for T_image in self.images(candidates[best], landmarks):
+                T = self._fitted.get(T_image, lambda T: self.refined(T, points_map))
+                m = apply(T, points_map)
+                if all(poses_differ(T, C, m, mc) for C, mc in zip(candidates, moved, strict=True)):
+                    check = self._checked.get(T, partial(self.check, m, origins_map))
+                    log.info("the best candidate's image under a self-map of the building: support %.2f (%.2f "
+                             "seen through walls), score %.2f", check.support, check.seen_through, check.score)
+                    candidates.append(T)
+                    moved.append(m)
+                    checks.append(check)
+
+    def images(self, T_cad_map: np.ndarray, landmarks: list[tuple[str, np.ndarray]]) -> list[np.ndarray]:
+        """The images S @ T_cad_map under the building's near-self-maps S (most voted first, at most
+        `surface_self_map_images`) that put as many of the `landmarks` (type, centre (3,) in the map frame), and
+        at least one, within `inlier_threshold_m` of a CAD feature of their type as T_cad_map does."""
+        if self._self_maps is None:
+            self._self_maps = np.asarray(self._self_maps_of_building(), float).reshape(-1, 4, 4)
+        if not len(self._self_maps) or not landmarks:
+            return []
+        images = self._self_maps @ T_cad_map  # (M, 4, 4)
+        explained = self._explained(np.concatenate([T_cad_map[None], images]), landmarks)
+        keep = np.flatnonzero(explained[1:] >= max(1, explained[0]))[: self.params.surface_self_map_images]
+        return [images[k] for k in keep]
+
+    def _explained(self, T_cad_map: np.ndarray, landmarks: list[tuple[str, np.ndarray]]) -> np.ndarray:
+        """(H,): of the `landmarks` (type, centre in the map frame), how many each pose T_cad_map (H, 4, 4) puts
+        within `inlier_threshold_m` of a CAD feature of their type."""
+        count = np.zeros(len(T_cad_map), int)
+        for kind, x_map in landmarks:
+            centroids = self._centroids_cad(kind)
+            if not len(centroids):
+                continue
+            x_cad = T_cad_map[:, :3, :3] @ x_map + T_cad_map[:, :3, 3]  # (H, 3)
+            near, _ = cKDTree(centroids).query(x_cad, distance_upper_bound=self.inlier_threshold_m)
+            count += np.isfinite(near)
+        return count
 
     def own_wall_points(self, points_map: np.ndarray, walls_map: Sequence[tuple[np.ndarray, np.ndarray]]
                         ) -> np.ndarray:

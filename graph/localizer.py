@@ -34,6 +34,7 @@ from macroloc.graph.features import BuildingModel, CentroidsByType
 from macroloc.graph.judge import Judge, NullJudge, SurfaceJudge
 from macroloc.graph.landmark_map import LandmarkMap
 from macroloc.graph.mapstore import KeyframeView, StoredLandmark, StoredMap
+from macroloc.graph.model_index import index_for
 from macroloc.graph.params import LocalizerParams, RegistrationParams
 from macroloc.graph.posegraph import PoseGraph
 from macroloc.graph.prior import PosePrior
@@ -90,7 +91,8 @@ class Localizer:
         self.far = FarSightings(p.far, p.depth.surface_window_keyframes, p.landmarks.position_sigma_m,
                                 self.viewer_body, centroids_cad, graph.T_map_body)
         judge = None if surfaces is None else SurfaceJudge(
-            surfaces, p.judge, centroids_cad, p.registration.inlier_threshold_m, p.fit.surface_fit_sigma_m)
+            surfaces, p.judge, centroids_cad, p.registration.inlier_threshold_m, p.fit.surface_fit_sigma_m,
+            lambda: index_for(model).self_maps().transforms())
         self.judge: Judge = NullJudge() if judge is None else judge
         self.fitter = NullFitter() if surfaces is None else SurfaceFitter(p.fit, graph, self.depth, surfaces)
         self.map = LandmarkMap(p.landmarks, graph, self.viewer_body)

@@ -123,6 +123,11 @@ class JudgeParams:
     surface_own_wall_m: float = 1.0  # candidates from one door are weighed by the points farther than this from its
     #                                  wall's plane (both faces of the thickest walls, the reveals): nearer, every
     #                                  candidate puts them on a wall (`SurfaceJudge.choose`)
+    surface_self_map_images: int = 8  # before a candidate is taken, its images under up to this many of the
+    #                                   building's near-self-maps (graph.self_maps, most voted first) that keep as
+    #                                   many landmarks by a same-type CAD feature are fitted and weighed too: the
+    #                                   doors cannot tell them apart, and the registrar offers them for its own best
+    #                                   pose only (RobustParams.rival_self_maps, the same count; 0: none)
 
 
 @dataclass(frozen=True)

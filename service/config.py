@@ -796,6 +796,10 @@ class JudgeConfig(_Params):
     surface_own_wall_m: float = Field(
         _JUDGE.surface_own_wall_m, ge=0, description="candidates from one door are weighed by the depth points "
         "farther than this from its wall's plane (nearer, every candidate puts them on a wall), m")
+    surface_self_map_images: int = Field(
+        _JUDGE.surface_self_map_images, ge=0, description="before a candidate pose is taken, its images under up to "
+        "this many of the building's near-self-maps that keep as many landmarks by a same-type CAD feature are "
+        "weighed too (the doors cannot tell them apart); 0: none")
 
 
 class FarConfig(_Params):

@@ -6,10 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from macroloc.graph.features import BuildingModel
 from macroloc.graph.judge import NullJudge
+from macroloc.graph.localizer import Localizer
+from macroloc.graph.posegraph import PoseGraph
 from macroloc.graph.registrar import FirstOfRegistrar
 from macroloc.graph.relocalize import Alignment
-from macroloc.graph.rigid import rotation_angle_deg
+from macroloc.graph.rigid import apply, rotation_angle_deg
 from macroloc.graph.surfaces import (
     SurfaceIndex,
     SurfaceParams,
@@ -19,12 +22,15 @@ from tests.graph.rooms import (
     NEAR_THE_PARTITION_END,
     T_TRUE,
     T_WRONG,
+    UP,
+    WALL_SEGMENTS,
     CandidatesRegistrar,
     fly_in_room,
     fly_seeing,
     room_mesh,
+    seen_points,
 )
-from tests.graph.scenes import make_T, rot_z
+from tests.graph.scenes import door, make_T, rot_z, sightings_from
 
 
 def test_the_walls_choose_the_true_candidate(room: SurfaceIndex) -> None:
@@ -151,12 +157,12 @@ def test_lines_of_sight_tell_apart_what_the_surfaces_cannot(room: SurfaceIndex,
     would have seen a third of them through the partition, and the lines of sight settle it."""
     half_turn = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))
     loc = fly_seeing(room, CandidatesRegistrar([half_turn @ T_TRUE, T_TRUE]), NEAR_THE_PARTITION_END)
-    assert loc.status == "ambiguous" and min(loc.judge.checks[-1][1]) >= 0.9
+    assert loc.status == "ambiguous" and min(loc.judge.checks[-1][1][:2]) >= 0.9  # the two offered (then images)
     loc = fly_seeing(room_with_walls, CandidatesRegistrar([half_turn @ T_TRUE, T_TRUE]), NEAR_THE_PARTITION_END)
     assert loc.status == "localized"
     T_cad_map = loc.graph.T_cad_map()
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
-    half_turn_score, true_score = loc.judge.checks[-1][1]
+    half_turn_score, true_score = loc.judge.checks[-1][1][:2]  # the two offered (then their images)
     assert true_score > 0.95 and half_turn_score < true_score - 0.3
 
 
@@ -219,3 +225,56 @@ def test_points_on_the_one_doors_own_wall_do_not_choose_among_its_candidates(roo
     assert choice(own, door_wall, far_explains=True) is not None  # ... unless the far sightings explain the pose
     chosen = choice(np.vstack([own, other]), door_wall)
     assert chosen is not None and np.abs(chosen[:3, 3]).max() < 0.05
+
+
+HALF_TURN = make_T(rot_z(np.pi), np.array([12.0, 7.0, 0.0]))  # the test room's half-turn about its centre
+
+
+def fly_between_twin_doors(room: SurfaceIndex, registrar: CandidatesRegistrar, segments: np.ndarray,
+                           **params: float) -> Localizer:
+    """Keyframes from (2, 3.5) on along +x (the map frame is T_TRUE's), seeing two alike doors half a turn apart
+    about the room's centre, (6, 7) and (6, 0), and what a camera there measures of the walls `segments` all
+    around."""
+    model = BuildingModel(source="room", sha256="room-twin-doors",
+                          features=[door("A", (6.0, 7.0), (0, -1)), door("B", (6.0, 0.0), (0, 1))], storeys=["L1"])
+    loc = Localizer(model, PoseGraph(), registrar, localizer_params(surface_min_points=100, **params),  # type: ignore[arg-type]
+                    surfaces=room)
+    rng = np.random.default_rng(5)
+    for k in range(3):
+        xy = np.array([2.0 + 0.1 * k, 3.5])
+        T_cad_body = make_T(np.eye(3), np.array([xy[0], xy[1], 1.4]))
+        sightings = sightings_from(model, T_cad_body)
+        assert len(sightings) == 2
+        points_body = apply(np.linalg.inv(T_cad_body), seen_points(rng, xy, segments=segments))
+        loc.add_keyframe(k * 500_000_000, np.linalg.inv(T_TRUE) @ T_cad_body, sightings, UP, points_body=points_body)
+    return loc
+
+
+def test_the_half_turned_twin_of_the_best_candidate_is_weighed_before_it_is_taken() -> None:
+    """The duplex's seed 2 (docs/measurements.md, "The duplex's mirror image taken as the pose"): the doors seen
+    are alike after a half-turn of the building, and so are its walls; the registrar offered the half-turned
+    twin of the true pose and a poorer rival, not the true pose. Weighed against the rival alone, the twin was
+    taken: a wrong pose, 2.8 m off. Its own twin under the building's self-map, the true pose, fits the walls as
+    well: ambiguous, the true pose named among the rivals."""
+    v, f = room_mesh()
+    box = SurfaceIndex.from_mesh(v, f[:8], SurfaceParams(spacing_m=0.05))  # the 4 outer walls: alike half-turned
+    offered = [HALF_TURN @ T_TRUE, T_WRONG]
+    loc = fly_between_twin_doors(box, CandidatesRegistrar(offered), WALL_SEGMENTS[:4])
+    assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None
+    assert any(np.linalg.norm(T[:3, 3] - T_TRUE[:3, 3]) < 0.1 and rotation_angle_deg(T[:3, :3].T) < 1.0
+               for T in loc.rivals)
+    blind = fly_between_twin_doors(box, CandidatesRegistrar(offered), WALL_SEGMENTS[:4], surface_self_map_images=0)
+    T_blind = blind.graph.T_cad_map()  # without the twins weighed: the bug
+    assert blind.status == "localized" and T_blind is not None
+    assert np.linalg.norm(T_blind[:3, 3] - (HALF_TURN @ T_TRUE)[:3, 3]) < 0.1
+
+
+def test_a_twin_the_walls_tell_apart_is_taken_or_refused_by_them(room: SurfaceIndex) -> None:
+    """The room with its partition is not alike after a half-turn. Offered the twin and the rival, the true pose,
+    the twin's own twin, is found and taken (the twin puts the partition's points off every wall); offered the
+    true pose, its twin is weighed and refused."""
+    for offered in ([HALF_TURN @ T_TRUE, T_WRONG], [T_TRUE, T_WRONG]):
+        loc = fly_between_twin_doors(room, CandidatesRegistrar(offered), WALL_SEGMENTS)
+        T_cad_map = loc.graph.T_cad_map()
+        assert loc.status == "localized" and T_cad_map is not None
+        assert np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05

@@ -174,8 +174,11 @@ def test_two_doors_seen_turned_are_turned_back_by_the_walls(room_with_walls: Sur
     T_cad_map = loc.graph.T_cad_map()
     assert T_cad_map is not None and np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
     assert rotation_angle_deg(T_cad_map[:3, :3] @ T_TRUE[:3, :3].T) < 0.5
+    # without the best candidate's images under the room's self-maps (JudgeParams.surface_self_map_images), which
+    # may land a candidate's image on the true place, where the wall fit takes it
     one_door_only = fly_facing_doors(model, room_with_walls, seen, (9.0, 3.5), -np.pi / 2,
-                                     localizer_params(base, surface_turn_max_inliers=1), seen_turn_deg=8.0, keyframes=6)
+                                     localizer_params(base, surface_turn_max_inliers=1, surface_self_map_images=0),
+                                     seen_turn_deg=8.0, keyframes=6)
     assert one_door_only.status == "ambiguous" and one_door_only.graph.T_cad_map() is None
 
 
