@@ -5,6 +5,10 @@ as possible): the IMU samples since the previous frame, the stereo frame, and, w
 (ground truth with realistic errors: the service's perception is then not needed), the odometry and the
 doors/windows seen (body frame) with the frame's stamp. The service's poses are collected and scored against
 the recording's ground truth (CAD frame, no alignment), with the frame-in -> pose-out latency.
+
+`odometry_out`: where the vehicle's odometry goes instead of macroloc's own `Odometry` on
+`macroloc/<vehicle>/odometry` (bench.bench_odometry_sources plays it as a ROS `nav_msgs/msg/Odometry` or PX4's
+`vehicle_odometry`): the same poses at the same stamps, only the message and key differ.
 """
 
 from __future__ import annotations
@@ -12,7 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,8 +24,10 @@ import numpy as np
 import zenoh
 
 from macroloc.graph.errors import UserInputError
+from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.perception.gravity import ImuGravity
 from macroloc.service.config import ZenohConfig
+from macroloc.service.offline.replay import WRONG_ROT_DEG, WRONG_TRANS_M
 from macroloc.service.offline.replay_sources import ObservationSource, TruthSource, gravity_at
 from macroloc.service.recording import FlightFrame, matrix_from_pose, pose_from_matrix, read_flight, vector3
 from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
@@ -40,12 +46,17 @@ class ZenohReplayResult:
     ape_rmse_m: float | None = None  # localized poses vs ground truth, CAD frame, no alignment
     latency_ms: dict[str, float] = field(default_factory=dict)  # frame published -> its pose received
     odometry: str = "none"  # what the vehicle's odometry was: source, recorded, simulated or none
+    wrong_localizations: int = 0  # entries into LOCALIZED with a pose WRONG_TRANS_M / WRONG_ROT_DEG off the truth
+    keyframes: int | None = None  # the service's last status: keyframes in its graph
+    status_final: str | None = None  # ... and its localization status
 
     def to_json(self) -> dict:
         return {"frames": self.frames, "poses": self.poses, "duration_s": round(self.duration_s, 3),
                 "odometry": self.odometry,
                 "localized": self.localized, "time_to_localize_s": self.time_to_localize_s,
-                "ape_rmse_m": self.ape_rmse_m, "latency_ms": {k: round(v, 3) for k, v in self.latency_ms.items()}}
+                "ape_rmse_m": self.ape_rmse_m, "wrong_localizations": self.wrong_localizations,
+                "keyframes": self.keyframes, "status_final": self.status_final,
+                "latency_ms": {k: round(v, 3) for k, v in self.latency_ms.items()}}
 
 
 class PoseCollector:
@@ -64,6 +75,17 @@ class PoseCollector:
     def has(self, stamp_ns: int) -> bool:
         with self._lock:
             return stamp_ns in self.poses
+
+
+class LastStatus:
+    """The service's last ServiceStatus."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.status: pb.ServiceStatus | None = None
+        self._sub = session.declare_subscriber(key, self._on_status)
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        self.status = pb.ServiceStatus.FromString(sample.payload.to_bytes())
 
 
 class ServiceIdle:
@@ -115,10 +137,15 @@ def _observations(stamp_ns: int, sightings: list) -> pb.ObservedFeatures:  # noq
 
 def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConfig, vehicle: str,
                       source: ObservationSource | None, speed: float = 1.0, wait_s: float = 30.0,
-                      seed: int = 0) -> ZenohReplayResult:
+                      seed: int = 0,
+                      odometry_out: Callable[[zenoh.Session], Callable[[pb.Odometry], None]] | None = None,
+                      answered: bool = False) -> ZenohReplayResult:
     """Publish the recording (a macroloc MCAP, or its frames from any reader:
     service.offline.ros_bag.open_flight) to the service of `vehicle` and score what it sends back (see module doc).
-    `seed`: of the simulated odometry's drift, where the vehicle's odometry is simulated."""
+    `seed`: of the simulated odometry's drift, where the vehicle's odometry is simulated. `odometry_out(session)`:
+    the vehicle's odometry sender, in place of macroloc's own Odometry message (module doc). `answered`: each
+    frame's pose is waited for (up to 10 s) before the next frame goes out, as a lock-step vehicle does (with
+    `[service] lockstep` and speed 0, a run that does not depend on the machine's load)."""
     keys = Keys(vehicle)
     result = ZenohReplayResult(odometry="source" if source is not None else "none")
     simulated = TruthSource(seed=seed)  # the vehicle's VIO, for a simulated recording without odometry
@@ -130,7 +157,10 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
         wait_for_service(session, keys, wait_s)
         pubs = {name: declare_publisher(session, getattr(keys, name), express=True)
                 for name in ("stereo", "imu", "odometry", "observations")}
+        put_odometry = odometry_out(session) if odometry_out is not None else \
+            (lambda odo: pubs["odometry"].put(odo.SerializeToString()))
         poses = PoseCollector(session, keys.pose)
+        last_status = LastStatus(session, keys.status)
         idle = ServiceIdle(session, keys.diagnostics)
         start_wall, first_stamp = time.perf_counter(), None
         frame: FlightFrame
@@ -147,19 +177,23 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
                 inputs = source(frame, ahead, gravity_at(gravity, frame, ahead))
                 odo = pb.Odometry(T_map_body=pose_from_matrix(inputs.T_odom_body))
                 odo.header.stamp_ns, odo.header.frame_id = frame.stamp_ns, "map"
-                pubs["odometry"].put(odo.SerializeToString())
+                put_odometry(odo)
                 pubs["observations"].put(_observations(frame.stamp_ns, inputs.sightings).SerializeToString())
             elif frame.odometry:
                 for odo in frame.odometry:
-                    pubs["odometry"].put(odo.SerializeToString())
+                    put_odometry(odo)
                 result.odometry = "recorded"
             elif frame.ground_truth is not None and result.odometry != "recorded":
                 odo = pb.Odometry(T_map_body=pose_from_matrix(simulated.odometry(frame)))
                 odo.header.stamp_ns, odo.header.frame_id = frame.stamp_ns, "map"
-                pubs["odometry"].put(odo.SerializeToString())
+                put_odometry(odo)
                 result.odometry = "simulated"
             sent_at[frame.stamp_ns] = time.perf_counter()
             pubs["stereo"].put(frame.stereo.SerializeToString())
+            if answered:
+                deadline = time.monotonic() + 10.0
+                while not poses.has(frame.stamp_ns) and time.monotonic() < deadline:
+                    time.sleep(0.0005)
             if frame.ground_truth is not None:
                 truth[frame.stamp_ns] = matrix_from_pose(frame.ground_truth.T_cad_body)
             result.frames += 1
@@ -170,6 +204,10 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
         if idle.wait(time.time_ns(), timeout_s=max(deadline - time.monotonic(), 0.0)):
             time.sleep(0.1)  # the poses of its last events, on their way
         result.duration_s = time.perf_counter() - start_wall
+        time.sleep(0.3)  # a status sent after the last event (every [service] status_period_s)
+        if last_status.status is not None:
+            result.keyframes = last_status.status.keyframes
+            result.status_final = pb.PoseEstimate.Status.Name(last_status.status.status).lower()
         for pub in pubs.values():
             pub.undeclare()
     _score(result, poses.poses, sent_at, truth, first_stamp or 0)
@@ -191,6 +229,14 @@ def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, fl
                   for s in localized if s in truth]
         if errors:
             result.ape_rmse_m = round(float(np.sqrt(np.mean(np.square(errors)))), 4)
+    before = pb.PoseEstimate.EXPLORING
+    for stamp in sorted(poses):  # as replay's: entries into LOCALIZED at a wrong pose
+        status = poses[stamp][0].status
+        if status == pb.PoseEstimate.LOCALIZED and before != status and stamp in truth:
+            d = np.linalg.inv(truth[stamp]) @ matrix_from_pose(poses[stamp][0].T_cad_body)
+            result.wrong_localizations += int(np.linalg.norm(d[:3, 3]) > WRONG_TRANS_M or
+                                              rotation_angle_deg(d[:3, :3]) > WRONG_ROT_DEG)
+        before = status
 
 
 def replay_command(flight: Path | Iterable[FlightFrame], source: ObservationSource | None, connect: list[str],

@@ -55,6 +55,7 @@ def test_replay_over_zenoh_localizes_and_scores(office_path, office_model, tmp_p
     assert result.frames == 45 and result.poses > 0
     assert result.localized and result.ape_rmse_m is not None and result.ape_rmse_m < 0.3
     assert result.latency_ms["n"] > 0
+    assert result.wrong_localizations == 0 and result.keyframes and result.status_final == "localized"
 
 
 def test_a_restarted_service_is_placed_by_its_saved_maps_views(rendered_office_flight, office_path, office_model,
