@@ -160,6 +160,8 @@ def test_a_client_receives_every_channel_with_its_schema(office_path, office_mod
                  what="links once localized")
         # the model is sent again after the links when the linked set changes: wait for the one that matches them
         wait_for(lambda: _links_end_on_opaque_features(view, office_model), what="links ending on opaque features")
+        # the status log follows the service's status period, which may come after the pose that said localized
+        wait_for(lambda: any(m.message == "status: localized" for m in view.of("/status")), what="the status log")
         view.close()
 
     by_topic = {c["topic"]: c for c in view.channels.values()}
