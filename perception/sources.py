@@ -55,20 +55,29 @@ def source(name: str) -> RealSource:
     return REAL_SOURCES[name]
 
 
-def source_images(images_root: Path, src: RealSource) -> list[Path]:
-    """Every image file of one source (sorted); empty where the folder is absent."""
-    folder = images_root / src.folder / "images"
-    if not folder.is_dir():
+def folder_images(folder: Path) -> list[Path]:
+    """Every image file of a source's folder (its images/, sorted); empty where it is absent."""
+    images = folder / "images"
+    if not images.is_dir():
         return []
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    return sorted(p for p in images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def source_images(images_root: Path, src: RealSource) -> list[Path]:
+    """Every image file of one source under the images root (sorted); empty where the folder is absent."""
+    return folder_images(images_root / src.folder)
+
+
+def split_folder(folder: Path, src: RealSource, seed: int = 0) -> dict[str, list[Path]]:
+    """{"train", "val", "test"} image paths of one source's folder: by source photo, or the facades' fixed split."""
+    if not src.indoor:
+        return split_facades(folder, seed) if (folder / "images").is_dir() else {p: [] for p in PARTS}
+    return split_by_source(folder_images(folder), seed)
 
 
 def split_source(images_root: Path, src: RealSource, seed: int = 0) -> dict[str, list[Path]]:
-    """{"train", "val", "test"} image paths of one source: by source photo, or the facades' fixed split."""
-    if not src.indoor:
-        folder = images_root / src.folder
-        return split_facades(folder, seed) if (folder / "images").is_dir() else {p: [] for p in PARTS}
-    return split_by_source(source_images(images_root, src), seed)
+    """`split_folder` of one source under the images root."""
+    return split_folder(images_root / src.folder, src, seed)
 
 
 def load(paths: list[Path], src: RealSource) -> list[Sample]:

@@ -50,15 +50,7 @@ from macroloc.perception import detector_eval, sources
 from macroloc.perception.detector import CLASS_NAMES, Detector, DetectorSpec
 from macroloc.perception.evaluate import best_f1_threshold, plot_pr
 from macroloc.perception.sources import REAL_SOURCES, RealSource
-from macroloc.perception.trainset import (
-    IMAGE_SUFFIXES,
-    Sample,
-    augment,
-    load_sample,
-    mosaic,
-    split_by_source,
-    split_facades,
-)
+from macroloc.perception.trainset import Sample, augment, load_sample, mosaic
 
 log = logging.getLogger(__name__)
 
@@ -266,16 +258,10 @@ def load_real(args: argparse.Namespace) -> dict[str, dict[str, list[Sample]]]:
     for name, src in REAL_SOURCES.items():
         if name in args.leave_out:
             continue
-        folder = source_folder(args, src)
-        parts = split_facades(folder, args.seed) if not src.indoor else split_by_source(_images_in(folder), args.seed)
+        parts = sources.split_folder(source_folder(args, src), src, args.seed)
         if any(parts.values()):
             out[name] = {part: sources.load(paths, src) for part, paths in parts.items()}
     return out
-
-
-def _images_in(folder: Path) -> list[Path]:
-    d = folder / "images"
-    return sorted(p for p in d.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) if d.is_dir() else []
 
 
 def batch_shares(n: int, weights: dict[str, float]) -> dict[str, int]:

@@ -8,8 +8,8 @@ Facade photos (`../shared/data/images/facades`, labels `0 window, 1 cantilever, 
 The held-out real test split is every `img_n.jpg` with n % 5 == 0 (the simulator's textures avoid it too);
 the rest is split, seeded, into train and validation (the validation part sets the score threshold).
 
-Indoor photos (`../shared/data/images/indoor_doors/{robot_door_detection,indoor_objects}`, labels `0 door,
-1 window`, an empty label file is a negative image): split train/val/test by *source photo* (`source_stem`), seeded,
+Indoor photos (`../shared/data/images/indoor_doors/<source>`, `perception.sources`; labels `0 door, 1 window`, an
+empty label file is a negative image): each source split train/val/test by *source photo* (`source_stem`), seeded,
 80/10/10 of the sources, so that the augmented copies of one photo (Roboflow's `NAME_ext.rf.HASH`) and the frames
 of one video never sit in two parts.
 """
@@ -32,7 +32,6 @@ log = logging.getLogger(__name__)
 FACADE_CLASS_MAP = {5: 0, 0: 1, 4: 1, 1: 2, 2: 2, 3: 2}
 ROTATIONS_DEG = tuple(range(-20, 21, 5))  # paper §2.2.1: ±20° in 5° steps, eq. (1)
 INDOOR_CLASS_MAP = {0: 0, 1: 1}
-INDOOR_FOLDERS = ("robot_door_detection", "indoor_objects")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 _SPLIT_PREFIX = re.compile(r"^(train|valid|test)_")  # the exporter's own split, not the source photo
 _AUGMENTED_COPY = re.compile(r"_[A-Za-z]+\.rf\.[0-9a-fA-F]+$")  # Roboflow: SOURCE_png.rf.HASH (also jpg, JPG, jpeg)
@@ -111,17 +110,6 @@ def split_by_source(paths: list[Path], seed: int = 0,
     n_train, n_val = round(fractions[0] * len(keys)), round(fractions[1] * len(keys))
     parts = {"train": order[:n_train], "val": order[n_train:n_train + n_val], "test": order[n_train + n_val:]}
     return {name: sorted(p for i in idx for p in groups[keys[i]]) for name, idx in parts.items()}
-
-
-def indoor_images(root: Path) -> list[Path]:
-    """Every image of the indoor folders under `root` (images/indoor_doors) that exist."""
-    return sorted(p for folder in INDOOR_FOLDERS if (root / folder / "images").is_dir()
-                  for p in (root / folder / "images").iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-
-
-def split_indoor(root: Path, seed: int = 0) -> dict[str, list[Path]]:
-    """Fixed split of the indoor photos by source photo, 80/10/10 (see `split_by_source`)."""
-    return split_by_source(indoor_images(root), seed)
 
 
 def load_sample(image_path: Path, label_path: Path, class_map: dict[int, int], max_side_px: int) -> Sample:

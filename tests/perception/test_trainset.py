@@ -155,15 +155,6 @@ def test_split_by_source_keeps_every_copy_of_a_photo_in_one_part():
     assert [len(split[k]) // 3 for k in ("train", "val", "test")] == [32, 4, 4]  # 80/10/10 of the 40 sources
 
 
-def test_indoor_split_has_no_source_photo_in_two_parts():
-    from macroloc.perception.trainset import split_indoor
-
-    split = split_indoor(shared_data("images/indoor_doors"), seed=0)
-    parts = _parts_by_stem(split)
-    assert all(len(p) == 1 for p in parts.values())
-    assert len(parts) > 1000 and min(len(v) for v in split.values()) > 300
-
-
 def test_anchors_follow_the_input_size_and_old_runs_were_320_by_240():
     from macroloc.perception.train import anchors_for_input, init_input_wh
 
