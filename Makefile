@@ -11,7 +11,7 @@ demo:                ## the main job on the bundled building (set-up installs th
 	$(VENV)/macroloc demo
 
 test: setup          ## the fast suite (< 10 min on 2 cores) + lint and type check
-	$(VENV)/ruff check common graph perception sim service tests bench scripts
+	$(VENV)/ruff check common graph perception proto sim service cli tests bench scripts
 	bash scripts/typecheck.sh
 	$(VENV)/python -m pytest -q
 

@@ -39,8 +39,8 @@ def peak_rss_mb(pid: int) -> float:
 def main() -> None:
     sys.path.insert(0, str(ROOT))
     from macroloc.graph.bim import load_building
-    from macroloc.service.recording import encode_image
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import encode_image
     from macroloc.service.zenoh_io import session_config
     from tests.perception.helpers import png_bomb
     from tests.service.helpers import FakeFlight, free_port, loopback, wait_for, yaw_T

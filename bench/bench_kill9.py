@@ -38,7 +38,7 @@ def main() -> None:
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT))
     from macroloc.graph.bim import load_building
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
     from macroloc.service.zenoh_io import session_config
     from tests.service.helpers import FakeFlight, free_port, loopback, wait_for, yaw_T
     from tests.service.test_service import Collector, fly

@@ -46,7 +46,7 @@ def depth_points(building: Path, n_frames: int, stride: int) -> tuple[list[np.nd
 
 
 def bench(building: Path, n_frames: int, stride: int) -> list[str]:
-    from macroloc.service.planning_grid import ObstacleLayer, OccupancyGrid
+    from macroloc.graph.planning_grid import ObstacleLayer, OccupancyGrid
 
     clouds, origins, z_fly = depth_points(building, n_frames, stride)
     cell_m = 0.2

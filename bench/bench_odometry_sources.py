@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from macroloc.service.recording import FlightFrame
+from macroloc.proto.recording import FlightFrame
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MACROLOC_SHARED_DATA", ROOT.parent / "shared" / "data")) / "bim"
@@ -73,9 +73,9 @@ def service_env(source: str, lockstep: bool) -> dict[str, str]:
 
 def ros_odometry_cdr(odo) -> bytes:  # noqa: ANN001 - pb.Odometry
     """nav_msgs/msg/Odometry of a wire Odometry: base_link (FLU) in the VIO's odom frame, the stamp as it is."""
+    from macroloc.proto.recording import matrix_from_pose
+    from macroloc.proto.ros_types import header, msg, to_cdr
     from macroloc.service.ned import quat_wxyz_from_matrix
-    from macroloc.service.recording import matrix_from_pose
-    from macroloc.service.ros_types import header, msg, to_cdr
 
     T = matrix_from_pose(odo.T_map_body)
     w, x, y, z = quat_wxyz_from_matrix(T[:3, :3])
@@ -93,9 +93,9 @@ def ros_odometry_cdr(odo) -> bytes:  # noqa: ANN001 - pb.Odometry
 def px4_odometry_cdr(odo) -> bytes:  # noqa: ANN001 - pb.Odometry
     """px4_msgs/msg/VehicleOdometry of a wire Odometry: NED position, FRD attitude (service.ned), float32 as PX4
     sends them, timestamp_sample = the stamp in whole microseconds (PX4's unit)."""
+    from macroloc.proto.recording import matrix_from_pose
+    from macroloc.proto.ros_types import msg, to_cdr
     from macroloc.service.ned import T_ned_frd_from_T_enu_flu, quat_wxyz_from_matrix
-    from macroloc.service.recording import matrix_from_pose
-    from macroloc.service.ros_types import msg, to_cdr
 
     T = T_ned_frd_from_T_enu_flu(matrix_from_pose(odo.T_map_body))
     nan3 = np.full(3, np.nan, np.float32)
@@ -146,12 +146,13 @@ def run(flight: Path, building: Path, source: str, seed: int, lockstep: bool, sp
     """One fresh `macroloc serve` (own process, own state) and the flight played into it."""
     import zenoh
 
+    from macroloc.proto.keys import Keys
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import read_flight
     from macroloc.service.config import ZenohConfig
     from macroloc.service.offline.replay_sources import TruthSource
     from macroloc.service.offline.replay_zenoh import replay_over_zenoh
-    from macroloc.service.recording import read_flight
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
-    from macroloc.service.zenoh_io import Keys, session_config
+    from macroloc.service.zenoh_io import session_config
 
     port = _free_port()
     log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)  # noqa: SIM115 - read after the run

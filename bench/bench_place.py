@@ -24,15 +24,15 @@ ROOT = Path(__file__).resolve().parents[1]
 def main() -> None:
     import cv2
 
+    from macroloc.cli.main import main as cli
     from macroloc.graph.bim import load_building
     from macroloc.graph.building_assets import surfaces_for
     from macroloc.perception.calib import StereoRig
     from macroloc.perception.place import PlaceRecognizer
-    from macroloc.service.cli import main as cli
+    from macroloc.proto.recording import decode_image, matrix_from_pose, read_flight
     from macroloc.service.offline.replay import replay
     from macroloc.service.offline.replay_sources import TruthSource
     from macroloc.service.places import KeyframePlaces
-    from macroloc.service.recording import decode_image, matrix_from_pose, read_flight
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flight", type=Path)

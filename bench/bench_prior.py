@@ -28,7 +28,7 @@ class _PriorAtFirstFrame:
         self.sessions, self.make_prior, self.given = sessions, make_prior, False
 
     def frame(self, frame, inputs, est) -> None:  # noqa: ANN001
-        from macroloc.service.recording import matrix_from_pose
+        from macroloc.proto.recording import matrix_from_pose
 
         if not self.given and frame.ground_truth is not None:
             T_cad_body = matrix_from_pose(frame.ground_truth.T_cad_body)

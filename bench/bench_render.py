@@ -56,8 +56,8 @@ def bench_render(building: Path, n_frames: int) -> list[str]:
 
 
 def bench_flight(building: Path, flight_s: float) -> list[str]:
+    from macroloc.cli.simulated_flight import simulate_to_mcap
     from macroloc.service.config import load_config
-    from macroloc.service.offline.simulated_flight import simulate_to_mcap
 
     cfg = load_config(None)
     cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"duration_s": flight_s})})

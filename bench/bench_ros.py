@@ -38,8 +38,8 @@ OFFICE = ROOT / "data" / "buildings" / "office_a.ifc"
 
 
 def _observations(model, T_cad_body: np.ndarray, stamp_ns: int, rng: np.random.Generator):  # noqa: ANN001, ANN202
-    from macroloc.service.recording import vector3
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import vector3
 
     msg = pb.ObservedFeatures()
     msg.header.stamp_ns, msg.header.frame_id = stamp_ns, "body"
@@ -105,11 +105,12 @@ def run(frames: int, rate_hz: float = 30.0, middleware: str = "bridge", foxglove
     import zenoh
 
     from macroloc.graph.bim import load_building
+    from macroloc.proto.keys import Keys, declare_publisher
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import encode_image, pose_from_matrix, vector3
+    from macroloc.proto.ros_types import from_cdr, stamp_ns_of
     from macroloc.service.config import ZenohConfig
-    from macroloc.service.recording import encode_image, pose_from_matrix, vector3
-    from macroloc.service.ros_types import from_cdr, stamp_ns_of
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
-    from macroloc.service.zenoh_io import Keys, declare_publisher, session_config
+    from macroloc.service.zenoh_io import session_config
 
     model = load_building(OFFICE)
     port = _free_port()

@@ -28,7 +28,7 @@ TOPICS = dict(left="/drone/stereo/left/image", right="/drone/stereo/right/image"
 
 
 def _read_fps(frames) -> tuple[int, float]:  # noqa: ANN001 - an iterator of FlightFrame
-    from macroloc.service.recording import decode_image
+    from macroloc.proto.recording import decode_image
 
     start, n = time.perf_counter(), 0
     for f in frames:
@@ -40,7 +40,7 @@ def _read_fps(frames) -> tuple[int, float]:  # noqa: ANN001 - an iterator of Fli
 def _replay(path: Path, building: Path, config: Path | None, topics: dict[str, str] | None) -> dict:
     import json
 
-    from macroloc.service.cli import main
+    from macroloc.cli.main import main
 
     argv = ["replay", str(path), "--building", str(building), "--observations", "perception", "--json"]
     argv += ["--config", str(config)] if config else []
@@ -53,9 +53,9 @@ def _replay(path: Path, building: Path, config: Path | None, topics: dict[str, s
 
 
 def main() -> None:
+    from macroloc.proto.recording import decode_image, read_flight
     from macroloc.service.offline.ros_bag import read_ros_bag
     from macroloc.service.offline.ros_bag_write import BagTopics, write_ros_bag
-    from macroloc.service.recording import decode_image, read_flight
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flight", type=Path)
@@ -69,7 +69,7 @@ def main() -> None:
     args.out.mkdir(parents=True)
     flight = args.flight
     if flight is None:
-        from macroloc.service.cli import main as cli
+        from macroloc.cli.main import main as cli
 
         flight = args.out / "flight.mcap"
         with contextlib.redirect_stdout(io.StringIO()):

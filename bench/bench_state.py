@@ -27,8 +27,8 @@ def main() -> None:
     from scipy.spatial.transform import Rotation
 
     from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
     from macroloc.service.state import MapStore, view_to_wire
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     rng = np.random.default_rng(0)
 

@@ -62,10 +62,11 @@ def run(pipeline: str, frames: int, rates_hz: list[float]) -> dict:
     each rate = frames answered / time; sustained fps = the best throughput with >= 95 % of frames answered."""
     import zenoh
 
+    from macroloc.proto.keys import Keys, declare_publisher
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import encode_image, pose_from_matrix
     from macroloc.service.config import ZenohConfig
-    from macroloc.service.recording import encode_image, pose_from_matrix
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
-    from macroloc.service.zenoh_io import Keys, declare_publisher, session_config
+    from macroloc.service.zenoh_io import session_config
 
     port = _free_port()
     env = dict(os.environ, MACROLOC_SERVICE__PERCEPTION=str(pipeline == "perception").lower(),
@@ -150,9 +151,9 @@ def run_flight(flight: Path, building: Path, seconds: float, service_log: Path |
 def _play(service: subprocess.Popen, flight: Path, seconds: float, port: int) -> dict:
     import itertools
 
+    from macroloc.proto.recording import read_flight
     from macroloc.service.config import ZenohConfig
     from macroloc.service.offline.replay_zenoh import replay_over_zenoh
-    from macroloc.service.recording import read_flight
 
     try:
         frames = itertools.islice(read_flight(flight), int(round(seconds * 30.0)))

@@ -2,7 +2,7 @@
 
 The harness spawns `macroloc localize` once per scenario (~1 s of start-up each on 2 cores), so its full matrix
 (4 buildings x 3 variants x 2 noise levels x 2 seeds x 200 scenarios) would take hours. This driver loads the
-harness from its own folder, unchanged, and replaces only how it runs a command: `macroloc.service.cli.main`
+harness from its own folder, unchanged, and replaces only how it runs a command: `macroloc.cli.main.main`
 in this process, stdout and stderr captured, exit code returned. Scenarios, the oracle, the scoring and the
 printed summary are the harness's own. Figures for the record come from the harness as shipped (one spawn per
 scenario) on a subset; this driver's last lines must agree with those on the runs both made.
@@ -34,7 +34,7 @@ VARIANTS = ("gravity", "full", "nogravity")
 
 def in_process_cli(argv: list[str], timeout: float | None = None) -> tuple[int, str, str, float]:
     """`macroloc ARGS` in this process: (exit code, stdout, stderr, wall seconds); argv[0] is the program."""
-    from macroloc.service.cli import main
+    from macroloc.cli.main import main
 
     out, err = io.StringIO(), io.StringIO()
     t0 = time.perf_counter()

@@ -216,7 +216,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "foxglove_live.png")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    from macroloc.sim.demo import DEFAULT_BUILDING, DemoParams, run_demo
+    from macroloc.cli.demo import DEFAULT_BUILDING, DemoParams, run_demo
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

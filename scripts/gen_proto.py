@@ -1,4 +1,4 @@
-"""Regenerate service/wire/ from proto/ with grpcio-tools' protoc (committed; a test checks it is current)."""
+"""Regenerate proto/ from proto/ with grpcio-tools' protoc (committed; a test checks it is current)."""
 
 from __future__ import annotations
 
@@ -21,6 +21,6 @@ def generate(out_dir: Path) -> list[Path]:
 
 
 if __name__ == "__main__":
-    files = generate(ROOT / "service" / "wire")
+    files = generate(ROOT / "proto")
     print("\n".join(str(f.relative_to(ROOT)) for f in files))
     sys.exit(0)

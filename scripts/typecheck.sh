@@ -5,6 +5,6 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 tree=build/typecheck/macroloc
 mkdir -p "$tree"
-for p in common graph perception service sim data; do ln -sfn "../../../$p" "$tree/$p"; done
+for p in common graph perception proto service sim cli data; do ln -sfn "../../../$p" "$tree/$p"; done
 cd build/typecheck
 exec ../../.venv/bin/mypy --config-file ../../pyproject.toml -p macroloc "$@"

@@ -25,9 +25,9 @@ from pathlib import Path
 
 from macroloc.graph.bim import BuildingModel, cache_dir
 from macroloc.graph.building_assets import BuildingSolids
+from macroloc.graph.planning import Planner
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.service.config import GraphConfig, PlanningConfig
-from macroloc.service.planning import Planner
 
 log = logging.getLogger(__name__)
 

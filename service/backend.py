@@ -33,13 +33,13 @@ from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
 from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
 from macroloc.graph.surfaces import SurfaceIndex
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import matrix_from_pose, pose_from_matrix, vector3
 from macroloc.service.frame_answers import ODOMETRY_MATCH_NS, OdometryBuffer
 from macroloc.service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn, PriorIn
 from macroloc.service.places import Placed
-from macroloc.service.recording import matrix_from_pose, pose_from_matrix, vector3
 from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, session_from_config
 from macroloc.service.state import view_from_wire
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 if TYPE_CHECKING:
     from macroloc.service.config import GraphConfig, MacrolocConfig

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from macroloc.graph.features import BuildingModel
-from macroloc.service.recording import decode_image
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import decode_image
 
 log = logging.getLogger(__name__)
 

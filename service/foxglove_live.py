@@ -46,8 +46,8 @@ from macroloc.graph.errors import UserInputError
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.localizer import Estimate
 from macroloc.graph.sightings import Sighting
-from macroloc.service.recording import matrix_from_pose
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import matrix_from_pose
 
 log = logging.getLogger(__name__)
 

@@ -19,9 +19,9 @@ import numpy as np
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.localizer import Sighting
 from macroloc.graph.rigid import apply
-from macroloc.perception.params import DepthPointsConfig, PerceptionParams
-from macroloc.service.recording import decode_image, matrix_from_pose
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.perception.params import DepthPointsParams, PerceptionParams
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import decode_image, matrix_from_pose
 
 log = logging.getLogger(__name__)
 
@@ -77,9 +77,9 @@ class StereoDepth:
         """`disparity`: the frame's shared SGBM (perception.stereo.FrameDisparity) where the perception chain or
         the odometry match the same frames; None: its own, with `num_disparities`. `range_m`: the points kept.
         `every` 0: no depth points on either schedule."""
-        from macroloc.perception.stereo import SgbmConfig, SgbmMatcher
+        from macroloc.perception.stereo import SgbmMatcher, SgbmParams
 
-        self.matcher = disparity or SgbmMatcher(SgbmConfig(num_disparities=num_disparities))
+        self.matcher = disparity or SgbmMatcher(SgbmParams(num_disparities=num_disparities))
         self.every = every
         self.stride_px = stride_px
         self.range_m = range_m
@@ -87,7 +87,7 @@ class StereoDepth:
         self._n = 0
 
     @classmethod
-    def configured(cls, params: DepthPointsConfig, disparity=None) -> StereoDepth:  # noqa: ANN001 - FrameDisparity
+    def configured(cls, params: DepthPointsParams, disparity=None) -> StereoDepth:  # noqa: ANN001 - FrameDisparity
         """As [perception.depth] says, on the frame's shared SGBM (`disparity`) where given."""
         return cls(params.every, params.stride_px, disparity=disparity,
                    range_m=(params.min_range_m, params.max_range_m), at_keyframes=params.at_keyframes)
@@ -119,7 +119,7 @@ class PerceptionPipeline:
     """StereoFrame -> sightings (corners in the body frame, metres) through the perception chain."""
 
     def __init__(self, perception, default_T_body_cam: np.ndarray,  # noqa: ANN001 - perception.Perception
-                 depth: DepthPointsConfig | None = None) -> None:
+                 depth: DepthPointsParams | None = None) -> None:
         """Frames also give stereo depth points (SGBM over the whole frame) for the walls' checks, as `depth` says
         ([perception.depth]: by default `measure_depth`, for the session to call where the frame becomes a
         keyframe; every 16th pixel). Where the chain's matcher is a shared FrameDisparity, the depth points take
@@ -129,7 +129,7 @@ class PerceptionPipeline:
         self.perception = perception
         self.default_T_body_cam = default_T_body_cam
         shared = perception.matcher if isinstance(perception.matcher, FrameDisparity) else None
-        self.depth = StereoDepth.configured(depth or DepthPointsConfig(), shared)
+        self.depth = StereoDepth.configured(depth or DepthPointsParams(), shared)
         self.points_body: np.ndarray | None = None  # the last frame's depth points, when it measured them
         self.measure_depth: Callable[[], np.ndarray] | None = None  # the last frame's, measured when called
 

@@ -24,12 +24,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from google.protobuf.message import DecodeError, Message
 
+from macroloc.graph.planning import GoalSpec
 from macroloc.perception.image_header import DEFAULT_MAX_PIXELS, ImageHeaderError, check_encoded
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import matrix_from_pose
 from macroloc.service.health import DropCounter
-from macroloc.service.planning import GoalSpec
-from macroloc.service.recording import matrix_from_pose
 from macroloc.service.stamps import StampGate
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 FEATURE_TYPES = {"door", "window"}
 OBS_FRAMES = {"map", "body", "cam_left"}

@@ -27,7 +27,11 @@ import zenoh
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.geo import GeoReference
 from macroloc.graph.localizer import Estimate
-from macroloc.perception.params import DepthPointsConfig, PlaceConfig
+from macroloc.graph.planning import GoalSpec, Planner, PlanningError
+from macroloc.perception.params import DepthPointsParams, PlaceParams
+from macroloc.proto.keys import PROTOBUF, Keys, declare_publisher
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import matrix_from_pose
 from macroloc.service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
 from macroloc.service.foxglove_live import LiveView, NullLiveView
 from macroloc.service.frame_answers import OdometryBuffer
@@ -45,16 +49,12 @@ from macroloc.service.inputs import (
     StereoIn,
 )
 from macroloc.service.places import KeyframePlaces, Placed
-from macroloc.service.planning import GoalSpec, Planner, PlanningError
-from macroloc.service.recording import matrix_from_pose
 from macroloc.service.ros_out import NullRosInputs, RosIntakes
 from macroloc.service.ros_sensors import RosSensorInputs, RosSensorTopics
 from macroloc.service.state import MapStore
 from macroloc.service.systemd import Notifier, NullNotifier
 from macroloc.service.vehicle_out import NullVehicleOutput, VehicleOutput
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.service.workqueue import CountingRing, WorkQueue
-from macroloc.service.zenoh_io import PROTOBUF, Keys, declare_publisher
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +78,8 @@ class ServiceParams:
     stall_after_s: float  # a handler busy this long is a stall: liveliness withdrawn, watchdog not fed
     drain_timeout_s: float  # at stop, the queued events get this long; then the map is saved and we exit
     lockstep: bool  # inputs handled in the order sent (one FIFO intake, nothing dropped), replans first
-    depth: DepthPointsConfig  # a depth image's points ([perception.depth])
-    place: PlaceConfig  # place recognition in the saved map ([perception.place])
+    depth: DepthPointsParams  # a depth image's points ([perception.depth])
+    place: PlaceParams  # place recognition in the saved map ([perception.place])
     geo: GeoReference | None = None  # the model's geo-reference: poses also in ENU and WGS84
     limits: InputLimits = field(default_factory=InputLimits)  # what the input keys take (service.inputs)
     ros_sensors: RosSensorTopics = field(default_factory=RosSensorTopics)  # ROS sensor topics taken ([ros])

@@ -17,8 +17,8 @@ import numpy as np
 from macroloc.graph.mapstore import VIEW_SPACING_DEG, VIEW_SPACING_M, KeyframeView, StoredMap
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.perception.calib import StereoRig
-from macroloc.perception.place import PlaceConfig, PlaceRecognizer
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.perception.place import PlaceParams, PlaceRecognizer
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ class KeyframePlaces:
 
     MIN_VIEW_POINTS = 20  # a view with fewer (a blank wall, a dark frame) has nothing to place by: not kept
 
-    def __init__(self, stored: StoredMap | None, keep_views: bool, config: PlaceConfig | None = None,
+    def __init__(self, stored: StoredMap | None, keep_views: bool, config: PlaceParams | None = None,
                  every_s: float = 1.0, view_every_m: float = VIEW_SPACING_M,
                  view_every_deg: float = VIEW_SPACING_DEG) -> None:
         """`every_s`: placing is tried at most this often (flight time); a view is kept for a keyframe this far
@@ -68,7 +68,7 @@ class KeyframePlaces:
         describe = self.keep_views and self._view_due(T_odom_body)
         if not place and not describe:
             return Placed(None, None)
-        from macroloc.service.recording import decode_image
+        from macroloc.proto.recording import decode_image
 
         recognizer = self._recognizer_for(frame, T_body_cam)
         left = decode_image(frame.left)

@@ -2,7 +2,7 @@
 `[ros] middleware = "rmw_zenoh"`, service.ros_transport): external-vision
 odometry for PX4's EKF2 and offboard setpoints along macroloc's plan.
 
-Out (keys `[<ns>/]fmu/in/...`, px4_msgs CDR, service/msgs/px4_msgs):
+Out (keys `[<ns>/]fmu/in/...`, px4_msgs CDR, proto/px4_msgs):
 - `vehicle_visual_odometry` VehicleOdometry: T_cad_body as a pose in NED (body FRD). The CAD frame is taken as a
   local ENU frame (z up; x, y the model's axes) made NED by `service.ned`; where the model is geo-referenced
   (`T_enu_cad` given) that frame is true ENU and `pose_frame` is NED, else its heading is arbitrary and
@@ -26,6 +26,8 @@ import numpy as np
 
 from macroloc.graph.localizer import Estimate
 from macroloc.graph.rigid import rotation_angle_rad
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.ros_types import msg, to_cdr
 from macroloc.service.ned import (
     R_FLU_FRD,
     R_NED_ENU,
@@ -34,9 +36,7 @@ from macroloc.service.ned import (
     yaw_ned_from_yaw_enu,
 )
 from macroloc.service.ros_transport import RosTransport
-from macroloc.service.ros_types import msg, to_cdr
 from macroloc.service.vehicle_out import Motion, waypoints_arrays
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

@@ -17,8 +17,8 @@ import numpy as np
 
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.errors import UserInputError
-from macroloc.service.recording import pose_from_matrix, vector3
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import pose_from_matrix, vector3
 
 log = logging.getLogger(__name__)
 

@@ -26,12 +26,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from macroloc.graph.localizer import Estimate
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.ros_types import from_cdr, header, msg, stamp_ns_of, to_cdr
 from macroloc.service.inputs import GoalIn, InputParser, PriorIn
 from macroloc.service.ned import cov_ros_from_gtsam, quat_wxyz_from_matrix
 from macroloc.service.ros_transport import RosTransport
-from macroloc.service.ros_types import from_cdr, header, msg, stamp_ns_of, to_cdr
 from macroloc.service.vehicle_out import Motion, waypoints_arrays
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

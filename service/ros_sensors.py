@@ -23,9 +23,11 @@ import numpy as np
 
 from macroloc.graph.errors import UserInputError
 from macroloc.perception.image_header import ImageHeaderError, check_encoded
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import encode_image
+from macroloc.proto.ros_types import from_cdr
 from macroloc.service.health import DropCounter
 from macroloc.service.inputs import ImuIn, InputParser, StereoIn
-from macroloc.service.recording import encode_image
 from macroloc.service.ros_in import (
     CameraCalibration,
     StereoRectifier,
@@ -34,8 +36,6 @@ from macroloc.service.ros_in import (
     imu_message,
     stamp_ns,
 )
-from macroloc.service.ros_types import from_cdr
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

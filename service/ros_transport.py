@@ -34,7 +34,7 @@ from typing import Protocol
 
 import zenoh
 
-from macroloc.service.ros_types import typestore
+from macroloc.proto.ros_types import typestore
 
 log = logging.getLogger(__name__)
 

@@ -27,8 +27,8 @@ import numpy as np
 from google.protobuf.message import DecodeError
 
 from macroloc.graph.mapstore import KeyframeView
-from macroloc.service.recording import matrix_from_pose, pose_from_matrix, poses_from_matrices
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import matrix_from_pose, pose_from_matrix, poses_from_matrices
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ from typing import Protocol
 import numpy as np
 
 from macroloc.graph.localizer import Estimate
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 
 MAX_VELOCITY_GAP_NS = 500_000_000  # poses further apart than this give no velocity
 

@@ -1,8 +1,6 @@
-"""Zenoh plumbing shared by the service, the vehicle agent, replay and the benchmarks.
-
-`open_session(cfg)` builds a session config from an optional JSON5 file plus the typed overrides (peer mode on
-loopback, multicast and gossip scouting off by default); `Keys` names every key expression of one vehicle.
-Payloads are `macroloc.v1` protobuf messages with the protobuf encoding set.
+"""The service's Zenoh sessions: `open_session(cfg)` builds a session config from an optional JSON5 file plus the
+typed overrides (peer mode on loopback, multicast and gossip scouting off by default), and checks what it exposes.
+The key expressions and the publishers' encoding are the wire's (macroloc.proto.keys).
 """
 
 from __future__ import annotations
@@ -10,8 +8,6 @@ from __future__ import annotations
 import ipaddress
 import json
 import logging
-from dataclasses import dataclass
-from typing import Any
 
 import zenoh
 
@@ -21,79 +17,6 @@ from macroloc.service.config import ZenohConfig
 log = logging.getLogger(__name__)
 SECURE_PROTOCOLS = ("tls", "quic")  # encrypted and authenticated by the TLS configuration
 LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")  # never leave the machine
-
-PROTOBUF = zenoh.Encoding.APPLICATION_PROTOBUF
-
-
-@dataclass(frozen=True)
-class Keys:
-    """Key expressions under macroloc/<vehicle>/ (DESIGN.md)."""
-
-    vehicle: str
-
-    def _k(self, leaf: str) -> str:
-        return f"macroloc/{self.vehicle}/{leaf}"
-
-    # inputs
-    @property
-    def stereo(self) -> str:
-        return self._k("stereo")
-
-    @property
-    def imu(self) -> str:
-        return self._k("imu")
-
-    @property
-    def odometry(self) -> str:
-        return self._k("odometry")
-
-    @property
-    def observations(self) -> str:
-        return self._k("observations")
-
-    @property
-    def goal(self) -> str:
-        return self._k("goal")
-
-    @property
-    def initialpose(self) -> str:
-        """The operator's prior (a PoseEstimate: T_cad_body and/or storey; graph.prior)."""
-        return self._k("initialpose")
-
-    # outputs
-    @property
-    def pose(self) -> str:
-        return self._k("pose")
-
-    @property
-    def waypoints(self) -> str:
-        return self._k("waypoints")
-
-    @property
-    def features(self) -> str:
-        return self._k("features")
-
-    @property
-    def diagnostics(self) -> str:
-        return self._k("diagnostics")
-
-    @property
-    def status(self) -> str:
-        return self._k("status")
-
-    @property
-    def alive(self) -> str:
-        return self._k("alive")
-
-    # queryables
-    @property
-    def map(self) -> str:
-        return self._k("map")
-
-    @property
-    def plan(self) -> str:
-        return self._k("plan")
-
 
 def session_config(cfg: ZenohConfig) -> zenoh.Config:
     """A zenoh.Config: the JSON5 file (if any), then mode, endpoints and scouting from the typed config."""
@@ -158,15 +81,3 @@ def describe_exposure(conf: zenoh.Config) -> str:
 
 def open_session(cfg: ZenohConfig) -> zenoh.Session:
     return zenoh.open(session_config(cfg))
-
-
-def put_message(publisher: Any, message: Any) -> None:
-    """Serialize a protobuf message and put it through a publisher declared with the protobuf encoding."""
-    publisher.put(message.SerializeToString())
-
-
-def declare_publisher(session: zenoh.Session, key: str, express: bool = True, block: bool = False) -> zenoh.Publisher:
-    """`block`: wait when the link is congested instead of dropping (Zenoh's default for puts): for a lock-step
-    vehicle that waits for every answer, a dropped message would stall the loop."""
-    congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-    return session.declare_publisher(key, encoding=PROTOBUF, express=express, congestion_control=congestion)

@@ -21,7 +21,9 @@ import numpy as np
 import zenoh
 
 from macroloc.graph.features import BuildingModel
-from macroloc.service.recording import (
+from macroloc.proto.keys import Keys, declare_publisher
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import (
     TOPIC_GROUND_TRUTH,
     TOPIC_STEREO,
     FlightWriter,
@@ -29,12 +31,10 @@ from macroloc.service.recording import (
     pose_from_matrix,
     vector3,
 )
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
-from macroloc.service.zenoh_io import Keys, declare_publisher
 from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, yaw_of
 
 if TYPE_CHECKING:
-    from macroloc.service.planning_grid import OccupancyGrid
+    from macroloc.graph.planning_grid import OccupancyGrid
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +128,7 @@ class RenderedStereoCamera:
         self._k = 0
 
     def measure(self, stamp_ns: int, T_cad_body: np.ndarray) -> list[tuple[str, Any]]:
-        from macroloc.service.recording import encode_image
+        from macroloc.proto.recording import encode_image
 
         self._k += 1
         left, right = self.sim.renderer.render_stereo(T_cad_body @ self.sim.T_body_cam, self.sim.lighting,
@@ -143,7 +143,7 @@ class RenderedStereoCamera:
 
     def _truth(self, stamp_ns: int, T_cad_body: np.ndarray, left: Any) -> pb.GroundTruth:  # noqa: ANN401 - a render
         """The frame's ground truth as `macroloc simulate` records it (its depth in 1 mm steps)."""
-        from macroloc.service.recording import add_features_in_view, depth_image_mm
+        from macroloc.proto.recording import add_features_in_view, depth_image_mm
         from macroloc.sim.groundtruth import features_in_view
 
         truth = pb.GroundTruth(header=pb.Header(stamp_ns=stamp_ns, frame_id="cam_left", seq=self._k),

@@ -33,8 +33,8 @@ from macroloc.graph.errors import UserInputError
 
 if TYPE_CHECKING:  # the service's planner, imported where used: sim/ imports only service's wire and config at its top
     from macroloc.graph.features import BuildingModel, MacroFeature
-    from macroloc.service.planning import GoalSpec, Planner
-    from macroloc.service.planning_grid import OccupancyGrid
+    from macroloc.graph.planning import GoalSpec, Planner
+    from macroloc.graph.planning_grid import OccupancyGrid
 
 FRONT_M = 1.2  # the take-off point's distance in front of a door or window, m
 TURN_HEADINGS = 12  # the turn on the spot: headings looked at, evenly spaced
@@ -52,7 +52,7 @@ class DemoGoal:
 
     def spec(self) -> GoalSpec:
         """The goal as the service's planner takes it."""
-        from macroloc.service.planning import GoalSpec
+        from macroloc.graph.planning import GoalSpec
 
         pos = None if self.position_cad is None else np.asarray(self.position_cad, float)
         return GoalSpec(position_cad=pos, feature_id=self.feature_id, space_name=self.space_name)
@@ -237,7 +237,7 @@ def _in_view(free: np.ndarray, grid: OccupancyGrid, a_xyz: np.ndarray, b_xy: np.
 
 
 def _connected(planner: Planner, start_xyz: np.ndarray, goal: DemoGoal) -> bool:
-    from macroloc.service.planning import PlanningError
+    from macroloc.graph.planning import PlanningError
 
     try:
         planner.plan(start_xyz, goal.spec())

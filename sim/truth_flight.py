@@ -294,8 +294,8 @@ def write_truth_flight(building: Path, out: Path, seed: int = 0, duration_s: flo
     waypoint) or "open" (one of the three waypoints with the most features in line of sight: taking off in a
     corridor or hall rather than in a closet)."""
     from macroloc.graph.bim import load_building
-    from macroloc.service.recording import FlightMetadata, FlightWriter, pose_from_matrix, vector3
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import FlightMetadata, FlightWriter, pose_from_matrix, vector3
 
     camera = camera or CameraModel()
     model = load_building(building)

@@ -73,7 +73,7 @@ def _folder(tmp_path: Path) -> tuple[Path, dict[str, str]]:
     bin_dir = tmp_path / ".bin"
     bin_dir.mkdir()
     shim = bin_dir / "macroloc"
-    shim.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m macroloc.service.cli "$@"\n')
+    shim.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m macroloc.cli.main "$@"\n')
     shim.chmod(0o755)
     env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}")
     return tmp_path, env
@@ -130,8 +130,8 @@ def test_no_page_points_users_at_files_they_do_not_have() -> None:
 
 
 def test_no_help_text_points_users_at_files_they_do_not_have() -> None:
-    """The commands' help (service/cli.py, service/commands/*.py) names neither `../shared` nor DESIGN.md."""
-    for source in [ROOT / "service" / "cli.py", *(ROOT / "service" / "commands").glob("*.py")]:
+    """The commands' help (cli/main.py, cli/commands/*.py) names neither `../shared` nor DESIGN.md."""
+    for source in [ROOT / "cli" / "main.py", *(ROOT / "cli" / "commands").glob("*.py")]:
         text = source.read_text()
         assert "../shared" not in text and "DESIGN.md" not in text, f"{source.name} points at an internal file"
 

@@ -34,9 +34,9 @@ from typing import Any
 import numpy as np
 
 from macroloc.graph.features import BuildingModel
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import FlightFrame, matrix_from_pose
 from macroloc.service.foxglove_channels import FoxgloveChannels
-from macroloc.service.recording import FlightFrame, matrix_from_pose
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

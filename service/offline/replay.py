@@ -26,9 +26,9 @@ from macroloc.graph.mapstore import StoredMap
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
+from macroloc.proto.recording import FlightFrame
 from macroloc.service.offline.replay_sources import AHEAD_FRAMES, FrameInput, ObservationSource, TruthSource, gravity_at
 from macroloc.service.places import KeyframePlaces
-from macroloc.service.recording import FlightFrame
 from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, make_session
 
 log = logging.getLogger(__name__)
@@ -139,7 +139,7 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
     wall time from the first frame asked for to the last estimate, reading included."""
     import scipy.spatial.transform  # noqa: F401 - a one-off import (0.5 s here) kept out of the timed loop
 
-    from macroloc.service.recording import matrix_from_pose, read_flight
+    from macroloc.proto.recording import matrix_from_pose, read_flight
 
     source = source or TruthSource()
     settings = settings or SessionSettings()

@@ -22,7 +22,7 @@ import numpy as np
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.localizer import Sighting
 from macroloc.graph.rigid import apply, rot_z, rotation_aligning, rotation_angle_rad
-from macroloc.service.recording import FlightFrame, matrix_from_pose
+from macroloc.proto.recording import FlightFrame, matrix_from_pose
 
 if TYPE_CHECKING:
     from macroloc.perception.calib import StereoRig
@@ -167,7 +167,7 @@ class TruthSource:
         if not gt.HasField("depth"):
             return None
         from macroloc.perception.stereo import back_project, depth_grid
-        from macroloc.service.recording import decode_image
+        from macroloc.proto.recording import decode_image
 
         uv, z = depth_grid(decode_image(gt.depth), self.noise.depth_stride_px, 0.3)
         z = z + self.depth_rng.normal(0, 1, len(z)) * self.noise.depth_sigma_per_m2 * z * z

@@ -26,12 +26,13 @@ import zenoh
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.perception.gravity import ImuGravity
+from macroloc.proto.keys import Keys, declare_publisher
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import FlightFrame, matrix_from_pose, pose_from_matrix, read_flight, vector3
 from macroloc.service.config import ZenohConfig
 from macroloc.service.offline.replay import WRONG_ROT_DEG, WRONG_TRANS_M
 from macroloc.service.offline.replay_sources import ObservationSource, TruthSource, gravity_at
-from macroloc.service.recording import FlightFrame, matrix_from_pose, pose_from_matrix, read_flight, vector3
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
-from macroloc.service.zenoh_io import Keys, declare_publisher, session_config
+from macroloc.service.zenoh_io import session_config
 
 log = logging.getLogger(__name__)
 

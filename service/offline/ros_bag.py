@@ -22,9 +22,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from macroloc.graph.errors import UserInputError
+from macroloc.proto.recording import FlightFrame
 from macroloc.service.config import CameraConfig
 from macroloc.service.offline.ros_bag_frames import TF_STATIC, BagStats, FrameAssembler, RosTopics
-from macroloc.service.recording import FlightFrame
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +69,7 @@ def open_flight(path: Path, topics: dict[str, str] | None = None, camera: Camera
         return read_ros_bag(path, topics or {}, camera, stats)
     if topics:
         raise UserInputError(f"--topic applies to ROS 2 bags; {path} is a macroloc recording")
-    from macroloc.service.recording import read_flight
+    from macroloc.proto.recording import read_flight
 
     return read_flight(path)
 

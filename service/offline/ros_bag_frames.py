@@ -12,8 +12,9 @@ from typing import Any
 import numpy as np
 
 from macroloc.graph.errors import UserInputError
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import FlightFrame, encode_image
 from macroloc.service.config import CameraConfig
-from macroloc.service.recording import FlightFrame, encode_image
 from macroloc.service.ros_in import (
     CameraCalibration,
     StereoRectifier,
@@ -25,7 +26,6 @@ from macroloc.service.ros_in import (
     pose_message,
     stamp_ns,
 )
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
 

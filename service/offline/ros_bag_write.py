@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from macroloc.service.recording import decode_image, matrix_from_pose, read_flight
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import decode_image, matrix_from_pose, read_flight
 
 LEFT_FRAME = "cam0_optical_frame"
 RIGHT_FRAME = "cam1_optical_frame"

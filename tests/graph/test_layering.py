@@ -1,8 +1,10 @@
 """The layering (docs/architecture.md): common/ imports nothing of the project; graph/ and perception/ are pure
-libraries that share only common/; sim/ may use graph/; none of them imports service/, zenoh or the CLI, except
-sim's vehicle side (agent, demo, demo_route, truth_flight), which speaks the service's wire. The rooms of service/:
-its runtime modules (what `macroloc serve` runs) never import service.offline (replay, reports, plots, bags) and
-import sim/ only inside functions; service.offline may import the runtime modules."""
+libraries that share only common/; proto/ is the wire (protobuf messages, recordings, ROS 2 CDR types, Zenoh keys)
+below both the service and the simulated vehicle; sim/ (the simulator and its vehicle) and service/ (the runtime,
+its ROS 2 / PX4 adapters and service.offline: replay, bags, reports) never import each other; cli/ (the commands
+and the demo, which runs the service against the simulated vehicle) is the composition root above them all. Of the
+simulator, only the vehicle (agent) speaks Zenoh. Within service/, the running service never imports
+service.offline."""
 
 from __future__ import annotations
 
@@ -12,21 +14,16 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PROJECT_PACKAGES = ("common", "graph", "perception", "service", "sim")
-NEVER = {  # package -> what it must never import (project packages by their short name)
-    "common": ("graph", "perception", "service", "sim", "zenoh", "typer"),
-    "graph": ("perception", "service", "sim", "zenoh", "typer"),
-    "perception": ("graph", "service", "sim", "zenoh", "typer"),
-    "sim": ("service", "zenoh", "typer"),
+PROJECT_PACKAGES = ("common", "graph", "perception", "proto", "service", "sim", "cli")
+NEVER = {  # package -> what it must never import, anywhere (project packages by their short name)
+    "common": ("graph", "perception", "proto", "service", "sim", "cli", "zenoh", "typer"),
+    "graph": ("perception", "proto", "service", "sim", "cli", "zenoh", "typer"),
+    "perception": ("graph", "proto", "service", "sim", "cli", "zenoh", "typer"),
+    "proto": ("service", "sim", "cli", "typer"),
+    "sim": ("service", "cli", "typer"),
+    "service": ("sim", "cli"),
 }
-# sim's vehicle side: the simulated vehicle on the wire (agent), ground-truth flights written as recordings
-# (truth_flight) and the closed-loop demo that runs the service against the vehicle (demo, and its route on the
-# service's planner: demo_route)
-SIM_VEHICLE_SIDE = ("agent", "demo", "demo_route", "truth_flight")
-# what the vehicle side may import of the service at module level: the wire (messages, recordings, Zenoh keys)
-# and the configuration; any other service module only inside a function (the demo builds the service)
-SERVICE_WIRE = ("macroloc.service.wire", "macroloc.service.recording", "macroloc.service.zenoh_io",
-                "macroloc.service.config")
+SIM_ON_ZENOH = ("agent",)  # the simulated vehicle on the wire; the rest of sim/ never touches Zenoh
 
 
 def _imports(path: Path, top_level_only: bool = False) -> list[str]:
@@ -62,53 +59,19 @@ def _is_type_checking(test: ast.expr) -> bool:
 def test_each_package_imports_only_what_its_layer_may(package: str) -> None:
     offenders = []
     for path in sorted((ROOT / package).rglob("*.py")):
-        if package == "sim" and path.stem in SIM_VEHICLE_SIDE:
-            continue  # test_sims_vehicle_side_imports_only_the_services_wire_at_module_level
+        if "_pb2" in path.stem:
+            continue  # protoc's generated code
         offenders += [f"{path.relative_to(ROOT)}: {n}" for n in _imports(path) if _package(n) in NEVER[package]]
-        if package == "sim":  # the simulator core stays free of the service through the vehicle side, too
-            offenders += [f"{path.relative_to(ROOT)}: {n}" for n in _imports(path)
-                          if n.split(".")[:2] == ["macroloc", "sim"] and n.split(".")[-1] in SIM_VEHICLE_SIDE]
+        if package == "sim" and path.stem not in SIM_ON_ZENOH:
+            offenders += [f"{path.relative_to(ROOT)}: {n}" for n in _imports(path) if _package(n) == "zenoh"]
     assert not offenders, offenders
 
 
-def test_sims_vehicle_side_imports_only_the_services_wire_at_module_level() -> None:
-    """agent, demo, demo_route and truth_flight: service's wire and config when imported; the rest of the service (the
-    demo's planner and in-process service) only inside functions; never the CLI, nor service.offline."""
+def test_the_running_service_never_imports_offline() -> None:
     offenders = []
-    for stem in SIM_VEHICLE_SIDE:
-        path = ROOT / "sim" / f"{stem}.py"
-        assert path.is_file(), path
-        offenders += [f"sim/{stem}.py: {n}" for n in _imports(path, top_level_only=True)
-                      if _package(n) == "service" and not n.startswith(SERVICE_WIRE)]
-        offenders += [f"sim/{stem}.py: {n}" for n in _imports(path)
-                      if _package(n) == "typer" or n.startswith(("macroloc.service.offline", "macroloc.service.cli",
-                                                                 "macroloc.service.commands"))]
-    assert not offenders, offenders
-
-
-def _service_runtime_modules() -> list[Path]:
-    """service/'s own modules (what `macroloc serve` is built of, and the CLI's entry): not its sub-rooms
-    (service.offline, service.commands) nor the generated wire code."""
-    return sorted((ROOT / "service").glob("*.py"))
-
-
-def test_the_running_service_never_imports_offline_and_sim_only_inside_functions() -> None:
-    offenders = []
-    for path in _service_runtime_modules():
+    for path in sorted((ROOT / "service").glob("*.py")):
         offenders += [f"{path.relative_to(ROOT)}: {n}" for n in _imports(path)
                       if n.startswith("macroloc.service.offline")]
-        offenders += [f"{path.relative_to(ROOT)} (module level): {n}" for n in _imports(path, top_level_only=True)
-                      if _package(n) == "sim"]
-    assert not offenders, offenders
-
-
-def test_the_cli_commands_import_offline_and_sim_only_inside_their_command() -> None:
-    """Every command module is imported at start (`macroloc serve` too): what replay or the demo needs is imported
-    when that command runs."""
-    offenders = []
-    for path in sorted((ROOT / "service" / "commands").glob("*.py")):
-        offenders += [f"{path.relative_to(ROOT)}: {n}" for n in _imports(path, top_level_only=True)
-                      if _package(n) == "sim" or n.startswith("macroloc.service.offline")]
     assert not offenders, offenders
 
 
@@ -116,7 +79,10 @@ def test_the_rooms_exist() -> None:
     """A guard on the tests above: the folders they read are where they look."""
     assert (ROOT / "service" / "offline" / "replay.py").is_file()
     assert (ROOT / "service" / "session.py").is_file()
-    assert len(_service_runtime_modules()) > 20
+    assert (ROOT / "proto" / "recording.py").is_file()
+    assert (ROOT / "cli" / "main.py").is_file()
+    assert (ROOT / "sim" / "agent.py").is_file()
+    assert len(list((ROOT / "service").glob("*.py"))) > 20
 
 
 def _package(module: str) -> str:
@@ -125,13 +91,14 @@ def _package(module: str) -> str:
     return parts[1] if parts[0] == "macroloc" and len(parts) > 1 else parts[0]
 
 
-@pytest.mark.parametrize("folder", ["common", "graph", "perception", "service", "sim", "tests", "bench", "scripts"])
+@pytest.mark.parametrize("folder", ["common", "graph", "perception", "proto", "service", "sim", "cli", "tests",
+                                    "bench", "scripts"])
 def test_the_project_is_imported_under_its_namespace_only(folder: str) -> None:
     """Installed, the packages are `macroloc.graph`, `macroloc.service`, ...: a bare `import service` would take
     PyPI's `service` (or nothing) instead of ours."""
     bare = []
     for path in sorted((ROOT / folder).rglob("*.py")):
-        if "wire" in path.parts:
+        if "_pb2" in path.stem:
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else \

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from macroloc.service.cli import main
+from macroloc.cli.main import main
 from tests.conftest import shared_data
 from tests.perception.helpers import png_bomb
 

@@ -57,8 +57,8 @@ def test_a_rendered_close_up_door_is_found_without_the_detector(close_up):
 def test_perceive_s_chain_takes_the_proposals_and_size_check_from_the_config(close_up):
     """`macroloc perceive --config`: [perception.proposals] max_proposals = 0 leaves the close-up door the
     detector does not see unfound; a size check with no tolerance cannot confirm it."""
+    from macroloc.cli.commands.perceive import model_checked_chain
     from macroloc.perception.pipeline import StereoPair
-    from macroloc.service.commands.perceive import model_checked_chain
     from macroloc.service.config import PerceptionConfig
 
     left, right, rig, box = close_up

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from macroloc.service.cli import main
+from macroloc.cli.main import main
 
 
 @pytest.fixture(scope="session")

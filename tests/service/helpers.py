@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import pose_from_matrix, vector3
 from macroloc.service.config import MacrolocConfig, ZenohConfig, load_config
-from macroloc.service.recording import pose_from_matrix, vector3
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
 
 def free_port() -> int:

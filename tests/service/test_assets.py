@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from macroloc.service.cli import main
+from macroloc.cli.main import main
 from tests.conftest import BUILDINGS
 
 
@@ -50,7 +50,7 @@ def test_an_interrupted_preparation_keeps_what_it_finished(tmp_path: Path, monke
     started over (and timed out too). Killed after its first part, `prepare` leaves that part whole."""
     cache = tmp_path / "cache"
     env = {**os.environ, "MACROLOC_CACHE": str(cache)}
-    proc = subprocess.Popen([sys.executable, "-m", "macroloc.service.cli", "prepare", str(BUILDINGS / "duplex.ifc")],
+    proc = subprocess.Popen([sys.executable, "-m", "macroloc.cli.main", "prepare", str(BUILDINGS / "duplex.ifc")],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 240
     while not list(cache.glob("features-*.json")) and proc.poll() is None and time.monotonic() < deadline:

@@ -222,7 +222,7 @@ def test_a_flags_override_of_a_table_keeps_the_files_other_keys(tmp_path: Path) 
 
 
 def test_dump_config_prints_the_tables_and_reads_back(tmp_path: Path) -> None:
-    from macroloc.service.cli import main
+    from macroloc.cli.main import main
 
     out = io.StringIO()
     with contextlib.redirect_stdout(out):

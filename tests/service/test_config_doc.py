@@ -41,7 +41,7 @@ def test_every_key_is_in_the_reference() -> None:
 
 
 def test_a_misspelt_key_inside_a_section_is_refused(tmp_path) -> None:  # noqa: ANN001
-    from macroloc.service.cli import main
+    from macroloc.cli.main import main
 
     bad = tmp_path / "bad.toml"
     bad.write_text('[graph]\nstorey_hintt = "Level 1"\n')

@@ -21,10 +21,10 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.localizer import Estimate
 from macroloc.graph.sightings import Sighting
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import encode_image
 from macroloc.service.config import FoxgloveConfig
 from macroloc.service.foxglove_live import DIAGNOSTICS, PROTOBUF_TOPICS, DroppingQueue, FoxgloveLive
-from macroloc.service.recording import encode_image
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for, yaw_T
 from tests.service.test_service import Collector, fly
 
@@ -305,7 +305,7 @@ def test_detected_boxes_are_drawn_where_the_camera_sees_them(office_model) -> No
 
 
 def test_demo_passes_its_foxglove_port_to_the_service(office_path, tmp_path) -> None:
-    from macroloc.sim.demo import DemoParams, demo_config
+    from macroloc.cli.demo import DemoParams, demo_config
 
     file = tmp_path / "c.toml"
     file.write_text("[foxglove]\nport = 9001\nimage_rate_hz = 5.0\n")

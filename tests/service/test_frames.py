@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from macroloc.service.recording import encode_image, pose_from_matrix
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import encode_image, pose_from_matrix
 
 
 def textured_pair(disparity_px: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -55,12 +55,12 @@ def test_by_default_a_frame_s_depth_points_are_measured_only_when_asked_for() ->
 def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
     pytest.importorskip("onnxruntime")
     from macroloc.common.geometry import forward_stereo_T_body_cam
-    from macroloc.perception.params import DepthPointsConfig
+    from macroloc.perception.params import DepthPointsParams
     from macroloc.perception.pipeline import Perception
     from macroloc.service.frames import PerceptionPipeline
 
     pipeline = PerceptionPipeline(Perception.create(None), forward_stereo_T_body_cam(),
-                                  depth=DepthPointsConfig(at_keyframes=False))
+                                  depth=DepthPointsParams(at_keyframes=False))
     left, right = textured_pair(24)
     info = pb.CameraInfo(width=640, height=480, fx=480.0, fy=480.0, cx=319.5, cy=239.5, baseline_m=0.12,
                          T_body_cam=pose_from_matrix(forward_stereo_T_body_cam()))

@@ -11,9 +11,9 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import encode_image, vector3
 from macroloc.service.config import MacrolocConfig
-from macroloc.service.recording import encode_image, vector3
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.perception.helpers import png_bomb
 from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for, yaw_T
 from tests.service.test_service import Collector, _localized_at, fly

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from macroloc.graph.errors import UserInputError
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import decode_image, encode_image, pose_from_matrix, vector3
 from macroloc.service.health import DropCounter
 from macroloc.service.inputs import InputLimits, InputParser
-from macroloc.service.recording import decode_image, encode_image, pose_from_matrix, vector3
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.perception.helpers import png_bomb
 
 BOUNDS = (np.array([-10.0, -10.0, -5.0]), np.array([30.0, 20.0, 15.0]))
@@ -179,8 +179,8 @@ def test_a_goal_stamped_beyond_the_clock_is_refused_as_every_input_is() -> None:
 def test_replaying_a_recording_that_holds_a_bomb_is_one_line_and_exit_2(office_path, tmp_path, capsys) -> None:
     """The offline path: `macroloc replay` decodes recorded images (here through the visual odometry); a frame
     whose PNG decodes to 20000 x 20000 pixels ends the replay with one line, before it is decoded."""
-    from macroloc.service.cli import main
-    from macroloc.service.recording import FlightWriter
+    from macroloc.cli.main import main
+    from macroloc.proto.recording import FlightWriter
 
     bomb = pb.Image(width=640, height=480, encoding=pb.Image.PNG, data=png_bomb(20000, 20000))
     flight = tmp_path / "bomb.mcap"
@@ -213,7 +213,7 @@ def test_no_pose_outside_the_model_or_not_finite_goes_out() -> None:
 def test_the_pixel_cap_is_a_config_key_that_dump_config_shows(capsys, monkeypatch) -> None:
     import json
 
-    from macroloc.service.cli import main
+    from macroloc.cli.main import main
     from macroloc.service.config import load_config
     from macroloc.service.inputs import limits_from_config
 

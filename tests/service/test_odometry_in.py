@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 import zenoh
 
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.ros_types import header, msg, to_cdr
 from macroloc.service.config import Px4Config, RosConfig
 from macroloc.service.health import DropCounter
 from macroloc.service.inputs import InputLimits, InputParser
@@ -22,8 +24,6 @@ from macroloc.service.odometry_in import (
     px4_odometry,
     ros_odometry,
 )
-from macroloc.service.ros_types import header, msg, to_cdr
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import (
     FakeFlight,
     client,

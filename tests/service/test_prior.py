@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from macroloc.service.recording import matrix_from_pose, pose_from_matrix
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import matrix_from_pose, pose_from_matrix
 
 
 @pytest.fixture(scope="module")
@@ -116,8 +116,8 @@ def test_the_wire_prior_is_checked_as_every_input_is() -> None:
 
 
 def test_rviz_initialpose_and_a_storey_name_become_priors() -> None:
+    from macroloc.proto.ros_types import msg, to_cdr
     from macroloc.service.ros_out import RosKeys, RosPriorInputs
-    from macroloc.service.ros_types import msg, to_cdr
 
     parser = _parser()
     inputs = RosPriorInputs(RosKeys("t1"))

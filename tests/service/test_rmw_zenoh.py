@@ -16,6 +16,7 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.service.config import Px4Config, RosConfig
 from macroloc.service.ros_transport import (
     RmwZenohTransport,
@@ -24,7 +25,6 @@ from macroloc.service.ros_transport import (
     mangle,
     type_hash,
 )
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for, yaw_T
 from tests.service.test_service import _query, fly
 

@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import zenoh
 
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import matrix_from_pose
+from macroloc.proto.ros_types import from_cdr, msg, stamp_ns_of, to_cdr
 from macroloc.service.config import Px4Config, RosConfig
 from macroloc.service.ned import cov_ros_from_gtsam, matrix_from_quat_wxyz
 from macroloc.service.px4 import ResetCounter
-from macroloc.service.recording import matrix_from_pose
 from macroloc.service.ros_in import pose_message as ros_pose
 from macroloc.service.ros_in import transform_matrix
-from macroloc.service.ros_types import from_cdr, msg, stamp_ns_of, to_cdr
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import FakeFlight, client, free_port, running_service, service_config, wait_for, yaw_T
 from tests.service.test_service import Collector, _query, fly
 
@@ -200,7 +200,7 @@ def test_the_demo_can_be_watched_live_through_listen(tmp_path) -> None:
     be) receives the demo's ROS poses in `map` while it flies; the goal's latitude/longitude come back. In real
     time: at 3x and 4x the simulated clock (with the ROS outputs) the vehicle circled its waypoints and gave up
     (2026-12-03), the localization itself on track."""
-    from macroloc.sim.demo import DemoParams, run_demo
+    from macroloc.cli.demo import DemoParams, run_demo
 
     port = free_port()
     poses: list[Any] = []

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import encode_image
+from macroloc.proto.ros_types import to_cdr, typestore
 from macroloc.service.offline.ros_bag_write import _Messages
-from macroloc.service.recording import encode_image
-from macroloc.service.ros_types import to_cdr, typestore
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import client, free_port, running_service, service_config, wait_for, wait_subscribed
 from tests.service.test_service import Collector
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from macroloc.service.recording import matrix_from_pose
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import matrix_from_pose
 from macroloc.service.zenoh_io import session_config
 from tests.service.helpers import (
     FakeFlight,
@@ -221,7 +221,7 @@ def test_stop_event_drains_and_saves(office_path, office_model, start_pose, tmp_
 def test_obstacles_seen_in_depth_enter_the_planner(office_path, office_model, start_pose, tmp_path) -> None:
     """A wall the model does not have, 1.5 m ahead in a frame's depth image, marks the planner's grid there."""
     from macroloc.common.geometry import forward_stereo_T_body_cam
-    from macroloc.service.recording import pose_from_matrix
+    from macroloc.proto.recording import pose_from_matrix
 
     port = free_port()
     with running_service(service_config(office_path, tmp_path, port)) as service, client(port) as s:

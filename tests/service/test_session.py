@@ -121,10 +121,10 @@ def test_the_service_and_the_replay_give_the_keyframes_the_same_gravity(monkeypa
     along x at 1 m/s^2, rolled 5 degrees: the specific force alone leans 5.8 degrees off up)."""
     from scipy.spatial.transform import Rotation
 
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import FlightFrame, vector3
     from macroloc.service.inputs import ImuIn
     from macroloc.service.offline.replay_sources import OdometryStep, gravity_at
-    from macroloc.service.recording import FlightFrame, vector3
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     given: list[tuple[Localizer, np.ndarray | None]] = []
     add_keyframe = Localizer.add_keyframe

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from macroloc.service.recording import encode_image
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import encode_image
 from tests.service.helpers import (
     FakeFlight,
     client,

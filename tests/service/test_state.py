@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from macroloc.graph.mapstore import KeyframeView
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.service.state import MapStore, ViewLog, view_from_wire, view_to_wire
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.graph.scenes import make_T, rot_z
 
 SHA = "sha-of-the-building"

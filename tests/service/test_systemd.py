@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.service.systemd import NullNotifier, SystemdNotifier, notifier_from_environment
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import (
     FakeFlight,
     client,

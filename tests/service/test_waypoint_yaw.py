@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from macroloc.service.planning import GoalSpec, Planner, waypoint_yaws
+from macroloc.graph.planning import GoalSpec, Planner, waypoint_yaws
 
 
 def test_yaw_is_the_direction_of_travel() -> None:

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import zenoh
 
-from macroloc.service.planning import Planner, line_of_sight
-from macroloc.service.recording import pose_from_matrix
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.cli.demo import exploration_route, wall_contacts
+from macroloc.graph.planning import Planner, line_of_sight
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import pose_from_matrix
 from macroloc.service.zenoh_io import session_config
 from macroloc.sim.agent import VehicleAgent
-from macroloc.sim.demo import exploration_route, wall_contacts
 from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
 from tests.service.helpers import loopback
 
@@ -120,7 +120,7 @@ def test_a_track_into_the_walls_is_counted_once_per_wall(planner: Planner) -> No
     """Two walls across a 10 m x 10 m grid: a track across both goes into the walls twice, one along the free
     space never, one into a wall and back out on its side once. On Office_A at flight height the demo's
     exploration route keeps out of the walls, and a straight 20 m line across the storey does not."""
-    from macroloc.service.planning_grid import OccupancyGrid
+    from macroloc.graph.planning_grid import OccupancyGrid
 
     occupied = np.zeros((100, 100), bool)
     occupied[30:32, :] = occupied[70:72, :] = True  # walls at y = 3.0-3.2 m and 7.0-7.2 m
@@ -173,8 +173,8 @@ class StampCamera:
 
     def measure(self, stamp_ns: int, T_cad_body: np.ndarray) -> list:
         self.stamps_ns.append(stamp_ns)
-        from macroloc.service.recording import encode_image, pose_from_matrix
-        from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
+        from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+        from macroloc.proto.recording import encode_image, pose_from_matrix
 
         image = encode_image(np.full((8, 10, 3), stamp_ns % 251, np.uint8))
         frame = pb.StereoFrame(header=pb.Header(stamp_ns=stamp_ns, frame_id="cam_left"), left=image, right=image)
@@ -188,7 +188,7 @@ class StampCamera:
 def test_a_recorded_flight_holds_what_the_vehicle_sent_and_replays_frame_by_frame(tmp_path) -> None:  # noqa: ANN001
     """`recorder`: every IMU and odometry sample the vehicle publishes, and its camera's frames with their ground
     truth; read back, each frame carries the odometry of its own stamp (the pose the service placed it at)."""
-    from macroloc.service.recording import FlightWriter, matrix_from_pose, read_flight
+    from macroloc.proto.recording import FlightWriter, matrix_from_pose, read_flight
 
     T0 = level_pose(np.array([2.0, 1.0, 1.4]), 0.4)
     odometry = DriftingOdometry(level_pose(np.array([5.0, -3.0, 0.0]), 1.1), T0, seed=3)

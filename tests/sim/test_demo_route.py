@@ -21,7 +21,7 @@ _PLANNERS: dict[Path, object] = {}
 
 
 def planner_for(path: Path):  # noqa: ANN201 - service.planning.Planner, imported lazily
-    from macroloc.service.planning import Planner
+    from macroloc.graph.planning import Planner
 
     if path not in _PLANNERS:
         _PLANNERS[path] = Planner.for_building(path, 0.2, 0.35, 1.4)  # the default planning settings
@@ -29,7 +29,7 @@ def planner_for(path: Path):  # noqa: ANN201 - service.planning.Planner, importe
 
 
 def _check_route(path: Path, seed: int) -> None:
-    from macroloc.service.planning import Planner
+    from macroloc.graph.planning import Planner
     from macroloc.sim.agent import ray_free
     from macroloc.sim.demo_route import choose_route, goal_distance_range_m
 
@@ -79,7 +79,7 @@ def test_a_building_without_ifcspace_gets_a_door_window_or_free_cell_goal(fzk_pa
     """Many IFC exports have no IfcSpace: the goal is then a door, a window or a free cell of another room."""
     from dataclasses import replace
 
-    from macroloc.service.planning import Planner
+    from macroloc.graph.planning import Planner
     from macroloc.sim.agent import ray_free
     from macroloc.sim.demo_route import choose_route
 
@@ -142,7 +142,7 @@ class _Plan:
     """A planner stand-in: a model, a flight height and free cells (none, or all)."""
 
     def __init__(self, model, free: bool) -> None:  # noqa: ANN001 - BuildingModel
-        from macroloc.service.planning_grid import OccupancyGrid
+        from macroloc.graph.planning_grid import OccupancyGrid
 
         self.model, self.flight_height_m = model, 1.4
         self._grid = OccupancyGrid(np.zeros((10, 10), bool), np.zeros(2), 0.2, 1.4)
@@ -168,7 +168,7 @@ def test_a_building_that_cannot_be_flown_says_why_with_the_figure(office_model) 
 def test_an_unreadable_building_is_one_line_and_exit_2(tmp_path: Path) -> None:
     bad = tmp_path / "mine.ifc"
     bad.write_text("ISO-10303-21;\nHEADER;\n")
-    done = subprocess.run([sys.executable, "-m", "macroloc.service.cli", "demo", "--building", str(bad),
+    done = subprocess.run([sys.executable, "-m", "macroloc.cli.main", "demo", "--building", str(bad),
                            "--observations", "truth"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "mine.ifc" in done.stderr and "Traceback" not in done.stderr
@@ -176,7 +176,7 @@ def test_an_unreadable_building_is_one_line_and_exit_2(tmp_path: Path) -> None:
 
 def test_a_mesh_building_is_refused_in_one_line(tmp_path: Path) -> None:
     """A mesh model (features and localize read it) has no IFC walls and rooms for the demo to plan on."""
-    from macroloc.sim.demo import DemoParams, demo_route
+    from macroloc.cli.demo import DemoParams, demo_route
 
     mesh = tmp_path / "walls.obj"
     mesh.write_text("v 0 0 0\nv 4 0 0\nv 4 0 3\nv 0 0 3\nf 1 2 3\nf 1 3 4\n")
@@ -188,9 +188,9 @@ def test_an_ambiguous_flight_names_its_rival_poses() -> None:
     """The demo's outcome: 'ambiguous' with where each rival pose puts the vehicle, from the localizer's rivals."""
     from types import SimpleNamespace
 
+    from macroloc.cli.demo import DemoResult, _outcome, outcome_line
     from macroloc.graph.anchoring import rival_poses
     from macroloc.graph.relocalize import Alignment
-    from macroloc.sim.demo import DemoResult, _outcome, outcome_line
 
     turn = np.diag([-1.0, -1.0, 1.0, 1.0])  # 180° about z
     shift = np.eye(4)
@@ -221,7 +221,7 @@ def test_the_demo_flies_each_shared_building_in_lockstep(building: Path) -> None
     """Ground-truth sightings (no camera), lock-step, seed 0: an asymmetric building is localized and its goal
     reached within the project's 0.10 m target; the duplex, exactly symmetric, may end 'ambiguous' (said, with
     its rival poses) but is never wrongly reached."""
-    from macroloc.sim.demo import DemoParams, run_demo
+    from macroloc.cli.demo import DemoParams, run_demo
     from tests.conftest import shared_data
 
     shared_data(str(building.relative_to(SHARED_DATA)))

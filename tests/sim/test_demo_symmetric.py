@@ -13,7 +13,7 @@ def test_the_duplex_seed_2_is_not_taken_for_its_mirror_image() -> None:
     the half-turned image of the true pose, 2.84 m off, at 18.9 s; the true pose, which fits them as well, had
     not been weighed. Now it ends 'ambiguous' with its rivals drawn, or, localized, within cad_link_m of the
     truth."""
-    from macroloc.sim.demo import DemoParams, run_demo
+    from macroloc.cli.demo import DemoParams, run_demo
     from tests.conftest import shared_data
 
     building = shared_data("bim/webifc__duplex.ifc")

@@ -17,9 +17,9 @@ BUILDINGS = sorted(BIM.glob("*.ifc")) + sorted((BIM / "aws_hospital").glob("*.wo
 @pytest.mark.data
 @pytest.mark.parametrize("building", BUILDINGS or [BIM / "absent.ifc"], ids=lambda p: p.name)
 def test_building_simulates(building: Path, tmp_path: Path) -> None:
+    from macroloc.cli.simulated_flight import simulate_to_mcap
+    from macroloc.proto.recording import read_flight
     from macroloc.service.config import load_config
-    from macroloc.service.offline.simulated_flight import simulate_to_mcap
-    from macroloc.service.recording import read_flight
     from tests.conftest import shared_data
 
     shared_data(str(building.relative_to(SHARED_DATA)))

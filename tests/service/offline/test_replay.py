@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from macroloc.service.cli import main
+from macroloc.cli.main import main
 
 KEYS = {"frames", "processing_fps", "localized", "time_to_localize_s", "ape_rmse_m", "ape_max_m",
         "wrong_localizations", "wrong_while_localized_s", "status_final"}
@@ -29,7 +29,7 @@ def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, dict 
 
 
 def test_the_truth_flight_holds_what_the_contract_says(flight: Path) -> None:
-    from macroloc.service.recording import matrix_from_pose, read_flight, read_metadata
+    from macroloc.proto.recording import matrix_from_pose, read_flight, read_metadata
 
     frames = list(read_flight(flight))
     assert len(frames) == 14 * 30
@@ -135,9 +135,9 @@ def test_a_correct_entry_that_drifts_away_counts_as_wrong_while_localized() -> N
 def test_truth_depth_points_come_from_the_true_depth_image() -> None:
     """`--observations truth` measures depth points on a grid of the true depth image (with stereo noise), in
     the body frame: what the surface check of registrations reads (graph.surfaces)."""
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import encode_image, pose_from_matrix
     from macroloc.service.offline.replay_sources import TruthSource
-    from macroloc.service.recording import encode_image, pose_from_matrix
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     gt = pb.GroundTruth(depth=encode_image(np.full((480, 640), 2.0, np.float32)))
     gt.T_body_cam.CopyFrom(pose_from_matrix(np.eye(4)))
@@ -209,12 +209,12 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
     """A saved map with views: the restarted backend is placed by them (a keyframe placed at the saved pose) and
     its next saved map holds its own views plus those saved views it has none near, in its own map frame."""
     from macroloc.graph.mapstore import KeyframeView
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import pose_from_matrix
     from macroloc.service.backend import LocalizerBackend
     from macroloc.service.places import Placed
-    from macroloc.service.recording import pose_from_matrix
     from macroloc.service.session import FrameIn
     from macroloc.service.state import view_to_wire
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.graph.scenes import corridor_model, make_T, rot_z
 
     model = corridor_model()
@@ -281,9 +281,9 @@ def test_the_vehicles_recorded_odometry_places_each_frame() -> None:
     from macroloc.graph.errors import UserInputError
     from macroloc.graph.rigid import rot_z
     from macroloc.perception.gravity import ImuGravity
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import FlightFrame, encode_image, pose_from_matrix, vector3
     from macroloc.service.offline.replay_sources import OdometryStep, VehicleOdometry, gravity_at
-    from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 
     image = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
     info = pb.CameraInfo(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5, baseline_m=0.1,
@@ -319,9 +319,9 @@ def test_the_visual_odometry_says_how_long_it_only_extrapolated() -> None:
     """The stereo visual odometry (`--observations perception` without the vehicle's odometry) tracks a textured
     wall; a blank view (a wall nearer than stereo measures looks so) loses it, and each such frame reports its
     interval as dead-reckoned, for the graph to trust that stretch of odometry less; tracked again, none."""
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import FlightFrame, encode_image, pose_from_matrix
     from macroloc.service.offline.replay_sources import VisualOdometry
-    from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.perception.helpers import RIG, fronto_parallel_pair
 
     left, right = fronto_parallel_pair(2.0)
@@ -344,9 +344,9 @@ def test_the_visual_odometry_says_how_long_it_only_extrapolated() -> None:
 def test_the_visual_odometry_dead_reckons_the_height_on_the_imu_while_it_has_lost_track() -> None:
     """1.5 s hovering before a textured wall (tracked; the IMU reads gravity alone), then 1 s blank (lost) while the
     IMU reads a climb at 1 m/s^2: the height follows it (0.5 m), where the last velocity would have kept it."""
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import FlightFrame, encode_image, pose_from_matrix, vector3
     from macroloc.service.offline.replay_sources import VisualOdometry
-    from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix, vector3
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.perception.helpers import RIG, fronto_parallel_pair
 
     left, right = fronto_parallel_pair(2.0)
@@ -382,9 +382,9 @@ def test_a_session_keyframe_s_depth_points_re_key_the_visual_odometry_on_their_s
     from dataclasses import replace
 
     from macroloc.perception.params import PerceptionParams
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.proto.recording import FlightFrame, encode_image, pose_from_matrix
     from macroloc.service.offline.replay_sources import VisualOdometry
-    from macroloc.service.recording import FlightFrame, encode_image, pose_from_matrix
-    from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
     from tests.perception.helpers import RIG, fronto_parallel_pair
 
     left, right = fronto_parallel_pair(2.0)
@@ -488,8 +488,8 @@ def test_a_frame_s_match_made_ahead_is_found_when_its_turn_comes(rendered_office
     from dataclasses import replace
 
     from macroloc.perception.params import PerceptionParams
+    from macroloc.proto.recording import read_flight
     from macroloc.service.offline.replay_sources import AHEAD_FRAMES, PerceptionSource
-    from macroloc.service.recording import read_flight
 
     params = PerceptionParams()
     source = PerceptionSource(params=replace(params, odometry=replace(params.odometry, rekey_translation_m=0.0)))

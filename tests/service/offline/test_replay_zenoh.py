@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from macroloc.common.geometry import forward_stereo_T_body_cam
-from macroloc.service.recording import FlightWriter, pose_from_matrix, vector3
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import FlightWriter, pose_from_matrix, vector3
 from macroloc.service.state import MapStore
-from macroloc.service.wire.macroloc.v1 import macroloc_pb2 as pb
 from tests.service.helpers import free_port, loopback, running_service, service_config, yaw_T
 
 

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from macroloc.service.cli import main
+from macroloc.cli.main import main
+from macroloc.proto.recording import FlightFrame, decode_image, read_flight
 from macroloc.service.offline.ros_bag import BagStats, read_ros_bag
 from macroloc.service.offline.ros_bag_write import BagTopics, write_ros_bag
-from macroloc.service.recording import FlightFrame, decode_image, read_flight
 
 TOPICS = BagTopics(left="/drone/stereo/left/image", right="/drone/stereo/right/image",
                    left_info="/drone/stereo/left/info", right_info="/drone/stereo/right/info", imu="/drone/imu",
@@ -106,7 +106,7 @@ def test_a_distorted_bag_is_rectified_back_to_the_pinhole_images(short_flight: P
 
 
 def test_the_camera_mounting_comes_from_tf_static(short_flight: Path, tmp_path: Path) -> None:
-    from macroloc.service.recording import matrix_from_pose
+    from macroloc.proto.recording import matrix_from_pose
     from macroloc.service.ros_in import TransformTree
 
     frames = list(read_ros_bag(write_ros_bag(short_flight, tmp_path / "bag", "sqlite3", TOPICS, max_frames=2),
@@ -133,8 +133,8 @@ def test_the_camera_mounting_comes_from_tf_static(short_flight: Path, tmp_path: 
 
 
 def test_without_camera_info_and_tf_static_the_configured_camera_is_taken(short_flight: Path, tmp_path: Path) -> None:
+    from macroloc.proto.recording import matrix_from_pose
     from macroloc.service.config import CameraConfig
-    from macroloc.service.recording import matrix_from_pose
 
     full = write_ros_bag(short_flight, tmp_path / "full", "sqlite3", TOPICS, max_frames=3)
     bare = _copy_bag(full, tmp_path / "bare", lambda topic, _: topic not in ("/tf_static", TOPICS.left_info,
@@ -287,7 +287,7 @@ def test_bags_of_a_flight_replay_to_the_recordings_figures(office_flight_20s: Pa
     """Office_A seed 1 (20 s; the adapted detector localizes it at 14.7 s): the `.db3` bag with Image and the
     `.mcap` with CompressedImage give the native recording's frames, time to localize (within a frame) and APE
     (1 cm)."""
-    from macroloc.sim.demo import bundled_detector
+    from macroloc.cli.demo import bundled_detector
 
     rendered_office_flight = office_flight_20s
 

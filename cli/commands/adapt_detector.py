@@ -1,0 +1,113 @@
+"""`macroloc adapt-detector BUILDING --out DIR`: a door/window detector adapted to one building from renders of
+its own model, for the config's `perception.detector_model`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def _seeds(text: str) -> tuple[int, ...]:
+    from macroloc.graph.errors import UserInputError
+
+    try:
+        seeds = tuple(int(s) for s in text.split(",") if s.strip())
+    except ValueError:
+        raise UserInputError(f"--seeds must be integers separated by commas, not {text!r}") from None
+    if not seeds:
+        raise UserInputError("--seeds names no seed")
+    return seeds
+
+
+FINE_TUNE_STEPS = 1000
+FINE_TUNE_LR = 1e-3
+SCRATCH_STEPS = 2400
+
+
+def _init_weights(text: str) -> Path | None:
+    from macroloc.graph.errors import UserInputError
+    from macroloc.perception.train import SHIPPED_WEIGHTS
+
+    if text == "none":
+        return None
+    path = SHIPPED_WEIGHTS if text == "shipped" else Path(text)
+    if not path.is_file():
+        raise UserInputError(f"no detector weights at {path}: give --init CHECKPOINT or --init none")
+    return path
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("adapt-detector")
+    def adapt_detector(
+        building: Path = typer.Argument(..., help="IFC file (or mesh) of the building the drone will fly in."),
+        out: Path = typer.Option(..., "--out", "-o", help="Folder for the rendered frames (frames/), the model "
+                                 "(detector.onnx + detector.json) and its figures (report/)."),
+        seeds: str = typer.Option("11,12,13", "--seeds", help="Seeds of the rendered flights, comma-separated "
+                                  "(keep them apart from the seeds you evaluate on)."),
+        duration: float = typer.Option(40.0, "--duration", min=1.0, help="Length of each rendered flight, s."),
+        every: int = typer.Option(6, "--every", min=1, help="Keep every N-th frame of a flight (30 Hz)."),
+        steps: int | None = typer.Option(None, "--steps", min=1, help="Training steps (batches of 16; default: "
+                                         f"{FINE_TUNE_STEPS} fine-tuning from --init, {SCRATCH_STEPS} from scratch)."),
+        init: str = typer.Option("shipped", "--init", help="Weights to fine-tune from: 'shipped' (the real-trained "
+                                 "detector's perception/models/detector.pt), a checkpoint.pt of a training run, or "
+                                 "'none' to train from scratch."),
+        threads: int = typer.Option(2, "--threads", min=1, help="CPU threads for training."),
+        facades: Path | None = typer.Option(None, "--facades", help="Real door/window photos with YOLO labels "
+                                            "(images/, labels/; default: $MACROLOC_SHARED_DATA/images/facades); "
+                                            "with the real indoor photos ($MACROLOC_SHARED_DATA/images/indoor_doors, "
+                                            "where present) half of each batch, and the held-out test splits "
+                                            "reported."),
+        json_out: bool = typer.Option(False, "--json", help="Print {model, frames, doors, windows, figures}."),
+    ) -> None:
+        """Adapt the door/window detector to one building: render seeded flights through its model, label every
+        door and window in view, train the detector on those frames and the real photos, export it to ONNX.
+
+        By default it fine-tunes the shipped detector (trained on real indoor and facade photos; its weights are
+        perception/models/detector.pt) for 1000 steps; `--init none` trains from scratch (2400 steps). On
+        held-out Office_A flights (seeds 1-2) door AP50: generic 0.28, from scratch 0.54, fine-tuned 0.61 (6-15 min
+        on 1 thread), and the fine-tuned one keeps indoor door AP50 0.86 on real photos (from scratch: 0.51).
+        Use it with `perception.detector_model = "DIR/detector.onnx"` in the config. Needs torch:
+        pip install -e '.\\[train]'.
+        """
+        import importlib.util
+        import json
+        import logging
+
+        from macroloc.cli.commands._io import existing_file, print_json
+        from macroloc.graph.errors import UserInputError
+
+        existing_file(building, "building model")
+        seed_list = _seeds(seeds)
+        init_path = _init_weights(init)
+        if importlib.util.find_spec("torch") is None:
+            raise UserInputError("adapt-detector trains with torch, which is not installed: "
+                                 "pip install -e '.[train]' (or make train)")
+        from macroloc.perception.train import SHARED_DATA
+        from macroloc.perception.train import main as train_main
+        from macroloc.sim.export import render_training_frames
+
+        photos = facades or SHARED_DATA / "images" / "facades"
+        if not (photos / "images").is_dir() or not (photos / "labels").is_dir():
+            raise UserInputError(f"no facade photos with labels at {photos} (images/, labels/): give --facades")
+        from macroloc.service.progress import is_quiet
+
+        if not is_quiet():
+            logging.getLogger().setLevel(logging.INFO)  # rendering and training take minutes: show progress
+        frames = out / "frames"
+        counts = render_training_frames(building, frames, seed_list, duration, every)
+        if counts["door"] + counts["window"] == 0:
+            raise UserInputError(f"no door or window came into view in {counts['images']} rendered frames of "
+                                 f"{building.name}: try other --seeds or a longer --duration")
+        start = ["--init", str(init_path), "--lr", str(FINE_TUNE_LR)] if init_path is not None else []
+        n_steps = steps or (FINE_TUNE_STEPS if init_path is not None else SCRATCH_STEPS)
+        train_main(["--facades", str(photos), "--sim", str(frames), "--steps", str(n_steps), "--threads", str(threads),
+                    "--out", str(out), "--report", str(out / "report"), *start])
+        model = out / "detector.onnx"
+        figures = json.loads(model.with_suffix(".json").read_text()).get("figures", {})
+        if json_out:
+            print_json({"model": str(model), "frames": counts["images"], "doors": counts["door"],
+                        "windows": counts["window"], "figures": figures})
+            return
+        typer.echo(f"{model}: trained on {counts['images']} rendered frames ({counts['door']} doors, "
+                   f"{counts['window']} windows); set perception.detector_model to it in the config")
