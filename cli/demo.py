@@ -259,7 +259,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
             stop.set()
             thread.join(timeout=30.0)
     result.seed, result.start, result.goal, result.storey = params.seed, route.start, route.goal.label, route.storey
-    result.outcome, result.rivals_xy = _outcome(result, service.backend, cfg.graph.anchor.cad_link_m)
+    result.outcome, result.rivals_xy = _outcome(result, service.front_end, cfg.graph.anchor.cad_link_m)
     if result.wall_contacts_xy:
         log.warning("the vehicle touched or crossed the model's walls %d times (first at x %.1f, y %.1f m): this "
                     "simulator lets it through, a real vehicle would have hit", len(result.wall_contacts_xy),

@@ -24,18 +24,16 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.geo import GeoReference
 from macroloc.graph.localizer import Estimate
 from macroloc.graph.planning import GoalSpec, Planner, PlanningError
-from macroloc.perception.params import DepthPointsParams, PlaceParams
 from macroloc.proto.keys import PROTOBUF, Keys, declare_publisher
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import matrix_from_pose
-from macroloc.service.backend import STATUS_TO_WIRE, LocalizerBackend, plausible, pose_message
 from macroloc.service.foxglove_live import LiveView, NullLiveView
 from macroloc.service.frame_answers import OdometryBuffer
-from macroloc.service.frames import FramePipeline, NullPipeline
+from macroloc.service.frames import depth_points_body
+from macroloc.service.front_end import STATUS_TO_WIRE, FrontEnd, plausible, pose_message
 from macroloc.service.health import DropCounter, LatencyWindow, RateMeter
 from macroloc.service.inputs import (
     ClockReset,
@@ -48,7 +46,6 @@ from macroloc.service.inputs import (
     PriorIn,
     StereoIn,
 )
-from macroloc.service.places import KeyframePlaces, Placed
 from macroloc.service.ros_out import NullRosInputs, RosIntakes
 from macroloc.service.ros_sensors import RosSensorInputs, RosSensorTopics
 from macroloc.service.state import MapStore
@@ -64,7 +61,7 @@ VERSION = "0.1.0"
 @dataclass
 class ServiceParams:
     """The running service's settings, from the config (service.serve.build_service): [service]'s and
-    [planning]'s have no defaults here, the config's are the only ones; `depth` and `place` are [perception]'s."""
+    [planning]'s have no defaults here, the config's are the only ones."""
 
     vehicle: str
     building: str
@@ -78,8 +75,6 @@ class ServiceParams:
     stall_after_s: float  # a handler busy this long is a stall: liveliness withdrawn, watchdog not fed
     drain_timeout_s: float  # at stop, the queued events get this long; then the map is saved and we exit
     lockstep: bool  # inputs handled in the order sent (one FIFO intake, nothing dropped), replans first
-    depth: DepthPointsParams  # a depth image's points ([perception.depth])
-    place: PlaceParams  # place recognition in the saved map ([perception.place])
     geo: GeoReference | None = None  # the model's geo-reference: poses also in ENU and WGS84
     limits: InputLimits = field(default_factory=InputLimits)  # what the input keys take (service.inputs)
     ros_sensors: RosSensorTopics = field(default_factory=RosSensorTopics)  # ROS sensor topics taken ([ros])
@@ -89,8 +84,8 @@ class ServiceParams:
 class LocalizationService:
     """One vehicle's service on an open Zenoh session (see module doc)."""
 
-    def __init__(self, session: zenoh.Session, backend: LocalizerBackend, planner: Planner, store: MapStore,
-                 params: ServiceParams, pipeline: FramePipeline | None = None,
+    def __init__(self, session: zenoh.Session, front_end: FrontEnd, planner: Planner, store: MapStore,
+                 params: ServiceParams,
                  vehicle_out: VehicleOutput | None = None, ros_inputs: RosIntakes | None = None,
                  notifier: Notifier | None = None, live: LiveView | None = None) -> None:
         """`vehicle_out`: ROS 2 / PX4 messages beside the protobuf keys (service.ros_out, service.px4), none by
@@ -101,12 +96,10 @@ class LocalizationService:
         self.live: LiveView = live or NullLiveView()
         self.vehicle_out: VehicleOutput = vehicle_out or NullVehicleOutput()
         self.ros_inputs: RosIntakes = ros_inputs or NullRosInputs()
-        self.backend = backend
+        self.front_end = front_end  # the one per-frame path (service.front_end), the replay's too
         self.planner = planner
         self.store = store
         self.params = params
-        self.pipeline = pipeline or NullPipeline()
-        self.places = KeyframePlaces(backend.restored, keep_views=True, config=params.place)  # on stereo frames
         self.keys = Keys(params.vehicle)
         self.drops = DropCounter()
         self.queue = WorkQueue(params.queue_size)
@@ -121,7 +114,7 @@ class LocalizationService:
         self._odometry = OdometryBuffer()  # for answering frames on their intake thread
         self._publish_lock = threading.Lock()  # poses go out from the worker and the stereo intake
         self.ready = threading.Event()  # everything declared: inputs are being taken
-        self._lock = threading.Lock()  # the backend and planner are used by the worker and the queryables
+        self._lock = threading.Lock()  # the front end and planner are used by the worker and the queryables
         self._goal: GoalIn | None = None
         self._last_plan_ns: int | None = None  # the pose stamp the last plan started from (vehicle clock)
         self._pubs: dict[str, zenoh.Publisher] = {}
@@ -211,7 +204,7 @@ class LocalizationService:
             self.live.close()
             if self._token is not None:
                 self._token.undeclare()
-            if self.backend.supersedes_saved():
+            if self.front_end.supersedes_saved():
                 log.info("stopped; map saved to %s", self.store.path)
             else:
                 log.info("stopped before localizing; the saved map %s is kept as it was", self.store.path)
@@ -258,9 +251,9 @@ class LocalizationService:
 
     def _answer_frame(self, ev: StereoIn) -> None:
         """The frame's pose at once, on its intake thread (service.frame_answers); the worker perceives it later."""
-        snapshot, T_odom_body = self.backend.session.snapshot, self._odometry.at(ev.stamp_ns, newest_if_later=True)
+        snapshot, T_odom_body = self.front_end.session.snapshot, self._odometry.at(ev.stamp_ns, newest_if_later=True)
         est = snapshot.at(ev.stamp_ns, T_odom_body) if snapshot is not None and T_odom_body is not None else \
-            Estimate(ev.stamp_ns, self.backend.status, np.eye(4))
+            Estimate(ev.stamp_ns, self.front_end.status, np.eye(4))
         self._publish_pose(est)
         self.latency["frame_to_pose"].add_ms((time.monotonic_ns() - ev.received_ns) * 1e-6)
 
@@ -290,56 +283,44 @@ class LocalizationService:
 
     def _on_clock_reset(self, ev: ClockReset) -> None:
         """A key's stamps restarted from a new time base: poses go out again from the new stamps on, and the
-        backend forgets what it keeps by stamp (its odometry buffer, pending sightings)."""
+        front end forgets what it keeps by stamp (its odometry buffer, pending sightings)."""
         if ev.stamp_ns < self._last_pose_ns:
             log.warning("clock reset on %s: poses restart from stamp %d ns", ev.key, ev.stamp_ns)
             self._last_pose_ns = -1
             with self._lock:
-                self.backend.new_time_base()
+                self.front_end.handle(ev)
 
     def _on_imu(self, ev: ImuIn) -> None:
         with self._lock:
-            self.backend.imu(ev)
+            self.front_end.handle(ev)
 
     def _on_odometry(self, ev: OdometryIn) -> None:
         start = time.perf_counter()
         with self._lock:
-            est = self.backend.odometry(ev)
+            est = self.front_end.handle(ev)
+        assert est is not None  # an odometry sample is a frame of its own
         self._publish_worker(est)
         self.latency["odometry_to_pose"].add_ms((time.perf_counter() - start) * 1e3)
 
     def _on_observations(self, ev: ObservationsIn) -> None:
         start = time.perf_counter()
         with self._lock:
-            est = self.backend.observations(ev)
+            est = self.front_end.handle(ev)
         if est is None:
-            return  # waiting for the odometry of its stamp (or counted as unmatched by the backend)
+            return  # waiting for the odometry of its stamp (or counted as unmatched by the front end)
         self.latency["keyframe"].add_ms((time.perf_counter() - start) * 1e3)
         self._publish_worker(est)
 
     def _on_stereo(self, ev: StereoIn) -> None:
-        """Perceive the frame; its sightings become a keyframe at the odometry pose of its stamp (kept pending
-        until that odometry arrives). In lock-step its pose goes out now; otherwise it went out on arrival, and
-        what the frame changed goes out at the last answer's stamp (`_publish_worker`)."""
+        """The front end perceives the frame and adds it to the pose graph (service.front_end). In lock-step its
+        pose goes out now; otherwise it went out on arrival, and what the frame changed goes out at the last
+        answer's stamp (`_publish_worker`)."""
         with self._lock:
-            up_body = self.backend.up_body  # the session's, from the IMU: which way is down for the chain
-        sightings = self.pipeline(ev.frame, up_body)
+            est = self.front_end.handle(ev)
+            sightings, status = self.front_end.sightings, self.front_end.status
         self.live.frame(ev.frame, ev.stamp_ns, sightings)
-        points_body = self.pipeline.points_body  # the pipeline's own stereo depth, when it measured some ...
-        measure_depth = self.pipeline.measure_depth  # ... or will for a keyframe
-        with self._lock:
-            T_odom_body, status = self.backend.odometry_at(ev.stamp_ns), self.backend.status
-        placed = self._place(ev, T_odom_body, up_body, status)
-        if ev.frame.HasField("depth") and self.backend.localizer.surfaces is not None:
-            from macroloc.service.frames import depth_points_body
-
-            d = self.params.depth
-            points_body = depth_points_body(ev.frame, d.depth_image_stride_px, d.max_range_m)  # the vehicle's depth
-            measure_depth = None
-        with self._lock:
-            est = self.backend.stereo(ev.stamp_ns, sightings, points_body, placed, measure_depth)
         if est is None:
-            est = Estimate(ev.stamp_ns, self.backend.status, np.eye(4))
+            est = Estimate(ev.stamp_ns, status, np.eye(4))
         self.latency["frame_perceived"].add_ms((time.monotonic_ns() - ev.received_ns) * 1e-6)
         if self.params.lockstep:
             self._publish_pose(est)
@@ -349,23 +330,8 @@ class LocalizationService:
         if est.T_cad_body is not None and ev.frame.HasField("depth"):
             self._add_obstacles(ev.frame, est.T_cad_body)
 
-    def _place(self, ev: StereoIn, T_odom_body: np.ndarray | None, up_body: np.ndarray | None,
-               status: str) -> Placed | None:
-        """Place recognition on the frame (service.places): its pose in the saved map while not localized, its
-        view to keep for the next one; None where neither applies (no odometry for the frame yet, no
-        calibration, or nothing due)."""
-        if T_odom_body is None:
-            return None
-
-        info = ev.frame.info
-        T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
-        placed = self.places.at_frame(ev.frame, ev.stamp_ns, T_odom_body, T_body_cam, up_body, status)
-        return placed if placed.T_cad_body is not None or placed.view is not None else None
-
     def _add_obstacles(self, frame: pb.StereoFrame, T_cad_body: np.ndarray) -> None:
         """Depth seen by the vehicle (CAD frame) into the planner's obstacle layer of the current storey."""
-        from macroloc.service.frames import depth_points_body
-
         points_body = depth_points_body(frame)
         if len(points_body):
             with self._lock:
@@ -376,7 +342,7 @@ class LocalizationService:
         """The operator's prior to the localizer (graph.prior: it picks among poses the registration leaves tied);
         a storey the model lacks, or a pose before any odometry, is counted and dropped."""
         with self._lock:
-            refused = self.backend.prior(ev)
+            refused = self.front_end.prior(ev)
         if refused is not None:
             self.drops.drop(refused)
 
@@ -391,8 +357,8 @@ class LocalizationService:
         log.info("new goal: %s", ev.goal)
         if ev.start_cad is not None:
             self._plan_and_publish(ev.start_cad)
-        elif self.backend.last is not None:
-            self._maybe_replan(self.backend.last)
+        elif self.front_end.last is not None:
+            self._maybe_replan(self.front_end.last)
 
     # --- outputs ------------------------------------------------------------------------------------------------
 
@@ -414,9 +380,9 @@ class LocalizationService:
         if est.stamp_ns >= self._last_pose_ns:
             self._publish(est)
             return
-        stamp_ns, snapshot = self._last_pose_ns, self.backend.session.snapshot
+        stamp_ns, snapshot = self._last_pose_ns, self.front_end.session.snapshot
         T_odom_body = self._odometry.at(stamp_ns, newest_if_later=True)
-        if self.backend.session.keyframe and snapshot is not None and T_odom_body is not None:
+        if self.front_end.session.keyframe and snapshot is not None and T_odom_body is not None:
             self._publish(snapshot.at(stamp_ns, T_odom_body))
 
     def _publish_pose(self, est: Estimate) -> None:
@@ -434,7 +400,7 @@ class LocalizationService:
             self.rates["pose"].tick()
 
     def _plausible(self, est: Estimate) -> Estimate:
-        """The estimate, or LOST without a pose where it is implausible (`backend.plausible`): no garbage pose
+        """The estimate, or LOST without a pose where it is implausible (`front_end.plausible`): no garbage pose
         goes out, least of all as LOCALIZED (counted as pose/implausible)."""
         if plausible(est, self.params.limits):
             return est
@@ -477,7 +443,7 @@ class LocalizationService:
 
     def _answer_map(self, query: zenoh.Query) -> None:
         with self._lock:
-            snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
+            snap = self.front_end.snapshot(self.params.building, self.params.building_sha256)
         query.reply(query.key_expr, snap.SerializeToString(), encoding=PROTOBUF)
 
     def _answer_plan(self, query: zenoh.Query) -> None:
@@ -486,7 +452,7 @@ class LocalizationService:
         if goal is None:
             msg = pb.Waypoints(error="the query's payload must be a macroloc.v1.Goal")
         else:
-            start, last = goal.start_cad, self.backend.last  # read once: the worker replaces it meanwhile
+            start, last = goal.start_cad, self.front_end.last  # read once: the worker replaces it meanwhile
             if start is None and last is not None and last.T_cad_body is not None:
                 start = last.T_cad_body[:3, 3]
             msg = self._plan(goal.goal, start) if start is not None else \
@@ -512,7 +478,7 @@ class LocalizationService:
         self._stalled = stalled
 
     def diagnostics(self) -> pb.Diagnostics:
-        msg = pb.Diagnostics(state=self.backend.status)
+        msg = pb.Diagnostics(state=self.front_end.status)
         msg.header.stamp_ns = time.time_ns()
         for name, meter in self.rates.items():
             msg.rates_hz[name] = meter.rate_hz()
@@ -523,8 +489,8 @@ class LocalizationService:
         for kind, n in self.drops.counts().items():
             msg.dropped[kind] = n
         msg.dropped["queue_overrun"] = self.queue.dropped
-        msg.dropped["observations/no_odometry"] = self.backend.unmatched
-        msg.dropped["graph/restarted"] = self.backend.graph_restarts
+        msg.dropped["observations/no_odometry"] = self.front_end.unmatched
+        msg.dropped["graph/restarted"] = self.front_end.graph_restarts
         msg.counts["queued"] = len(self.queue)
         msg.latencies_ms["worker_busy"] = (time.monotonic() - self._worker_beat_s) * 1e3  # > stall_after_s: stalled
         return msg
@@ -533,7 +499,7 @@ class LocalizationService:
         diag = self.diagnostics()
         if self._lock.acquire(timeout=0.2):  # a stalled worker holds the lock: publish what was last known
             try:
-                loc = self.backend.localizer
+                loc = self.front_end.localizer
                 self._last_status = pb.ServiceStatus(
                     version=VERSION, vehicle=self.params.vehicle, building=self.params.building,
                     status=STATUS_TO_WIRE[loc.status], keyframes=loc.graph.n_keyframes, landmarks=len(loc.landmarks))
@@ -557,8 +523,8 @@ class LocalizationService:
         if not self._lock.acquire(timeout=0.2):  # the worker is busy: the next period publishes them
             return
         try:
-            snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
-            rivals_cad_body = self.backend.rival_poses()
+            snap = self.front_end.snapshot(self.params.building, self.params.building_sha256)
+            rivals_cad_body = self.front_end.rival_poses()
         finally:
             self._lock.release()
         msg = pb.ObservedFeatures()
@@ -584,11 +550,11 @@ class LocalizationService:
             log.warning("worker stalled: the map saved last is kept (a snapshot mid-update would be inconsistent)")
             return False
         try:
-            if not self.backend.supersedes_saved():
+            if not self.front_end.supersedes_saved():
                 log.debug("not localized yet: the saved map this run restarted from is kept")
                 return True
-            snap = self.backend.snapshot(self.params.building, self.params.building_sha256)
-            views = self.backend.saved_views()
+            snap = self.front_end.snapshot(self.params.building, self.params.building_sha256)
+            views = self.front_end.saved_views()
         finally:
             self._lock.release()
         self.store.save(snap, views)  # off the lock: the worker goes on meanwhile

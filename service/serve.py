@@ -152,7 +152,7 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
     from macroloc.graph.geo import read_geo_reference
     from macroloc.service.assets import prepare_building
-    from macroloc.service.backend import LocalizerBackend
+    from macroloc.service.front_end import FrontEnd
     from macroloc.service.inputs import limits_from_config
 
     if cfg.service.building is None:
@@ -164,10 +164,10 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     log.info("geo-reference of %s: %s", building.name, geo.to_json() if geo else "none")
     store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
     snapshot = store.load(model.sha256)
-    backend = LocalizerBackend.fresh_or_restored(model, snapshot, cfg, prepared.surfaces)  # the replay's session
+    front_end = FrontEnd.fresh_or_restored(model, snapshot, cfg, prepared.surfaces, make_pipeline(cfg))
     planner = prepared.planner
     log.info("%s: ready", building.name)
-    s, perception = cfg.service, cfg.perception.to_params()
+    s = cfg.service
     transport = make_ros_transport(cfg, session)
     params = ServiceParams(vehicle=s.vehicle, building=building.name, building_sha256=model.sha256,
                            cameras=list(s.cameras), ring_size=s.ring_size, queue_size=s.queue_size,
@@ -175,11 +175,10 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
                            replan_period_s=cfg.planning.replan_period_s, stall_after_s=s.stall_after_s,
                            drain_timeout_s=s.drain_timeout_s, lockstep=s.lockstep, geo=geo,
                            limits=limits_from_config(cfg.inputs, model), ros_sensors=ros_sensor_topics(cfg, transport),
-                           T_body_cam=None if cfg.camera.T_body_cam is None else np.array(cfg.camera.T_body_cam, float),
-                           depth=perception.depth, place=perception.place)
+                           T_body_cam=None if cfg.camera.T_body_cam is None else np.array(cfg.camera.T_body_cam, float))
     vehicle_out, ros_inputs = make_vehicle_io(cfg, transport, geo.T_enu_cad() if geo and geo.north_given else None)
-    return LocalizationService(session, backend, planner, store, params, make_pipeline(cfg), vehicle_out, ros_inputs,
-                               notifier, make_live_view(cfg, model, building))
+    return LocalizationService(session, front_end, planner, store, params, vehicle_out, ros_inputs, notifier,
+                               make_live_view(cfg, model, building))
 
 
 def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,

@@ -8,7 +8,7 @@ seconds dead-reckoned, a place-recognition result), which returns the `Estimate`
 gravity's up, the keyframe rule (`graph.keyframes.KeyframeRule`), the depth hand-over to the next keyframe, the
 dead-reckoned seconds summed until a keyframe takes them, the hand-off of a frame placed in a stored map (or whose
 view is kept: always a keyframe), and a fresh graph where an update fails. The drivers only assemble frames: the
-replay from a recording (service.offline.replay), the service from its wire events (service.backend: odometry by
+replay from a recording (service.offline.replay), the service from its wire events (service.front_end: odometry by
 stamp, sightings waiting for their odometry). Both read `up_body` for the perception chain and place recognition,
 which run before the frame is handed in (service.places.KeyframePlaces.at_frame decides when that works).
 
@@ -19,17 +19,16 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.keyframes import KeyframeRule
-from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
-from macroloc.graph.mapstore import StoredMap
+from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar
 from macroloc.graph.posegraph import IsamSettings, PoseGraph
-from macroloc.graph.registrar import FirstOfRegistrar, Registrar
+from macroloc.graph.registrar import Registrar
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.perception.gravity import ImuGravity
 from macroloc.perception.params import GravityParams
@@ -37,6 +36,7 @@ from macroloc.service.places import Placed
 
 if TYPE_CHECKING:
     from macroloc.service.config import GraphConfig, MacrolocConfig
+    from macroloc.service.saved_map import SavedMap
 
 log = logging.getLogger(__name__)
 
@@ -244,39 +244,31 @@ def _finite(est: Estimate) -> bool:
 def settings_from_config(graph: GraphConfig, *, storey_hint: str | None = None, method: str = "robust",
                          covariance: bool = False) -> SessionSettings:
     """The factory's half that reads the config's [graph] section: typed arguments for the components, each
-    [graph.<part>] table onto its part of `LocalizerParams` (the rest at their defaults), [graph.keyframes] onto
-    the `KeyframeRule`, [graph.isam] onto the `IsamSettings`.
-    `storey_hint`: a checked one (BuildingModel.checked_storey), else the section's own."""
-    d = LocalizerParams()
-    params = replace(d, **{f.name: getattr(graph, f.name).to_params(getattr(d, f.name)) for f in fields(d)
-                           if f.name in type(graph).model_fields})  # [graph.judge] to LocalizerParams.judge, ...
-    return SessionSettings(params, graph.keyframes.to_rule(), graph.isam.to_params(IsamSettings()),
+    [graph.<part>] table its part of `LocalizerParams`, [graph.keyframes] the `KeyframeRule`, [graph.isam] the
+    `IsamSettings`. `storey_hint`: a checked one (BuildingModel.checked_storey), else the section's own."""
+    return SessionSettings(graph.localizer_params(), graph.keyframes, graph.isam,
                            storey_hint if storey_hint is not None else graph.storey_hint, method, covariance)
 
 
-def make_localizer(model: BuildingModel, stored: StoredMap | None = None, storey_hint: str | None = None,
-                   T_body_cam: np.ndarray | None = None, params: LocalizerParams | None = None,
-                   isam: IsamSettings | None = None, surfaces: SurfaceIndex | None = None,
-                   registrar: Registrar | None = None, method: str = "robust") -> Localizer:
-    """Registration against a stored map when one is given, else against the whole model (or `registrar`);
-    with the model's surfaces, registrations are checked against the depth points (graph.surfaces)."""
+def make_localizer(model: BuildingModel, storey_hint: str | None = None, T_body_cam: np.ndarray | None = None,
+                   params: LocalizerParams | None = None, isam: IsamSettings | None = None,
+                   surfaces: SurfaceIndex | None = None, registrar: Registrar | None = None,
+                   method: str = "robust") -> Localizer:
+    """Registration against the whole model (or `registrar`); with the model's surfaces, registrations are checked
+    against the depth points (graph.surfaces)."""
     p = params or LocalizerParams()
     if registrar is None:
         registrar = model_registrar(model, p.registration, storey_hint, surfaces is not None, method)
-    if stored is not None:
-        registrar = FirstOfRegistrar([stored_registrar(model, stored.known_rects(model), p.registration,
-                                                       surfaces is not None),
-                                      registrar])
     return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam, surfaces=surfaces)
 
 
-def make_session(model: BuildingModel, settings: SessionSettings | None = None, *, stored: StoredMap | None = None,
+def make_session(model: BuildingModel, settings: SessionSettings | None = None, *,
                  surfaces: SurfaceIndex | None = None, T_body_cam: np.ndarray | None = None,
                  registrar: Registrar | None = None) -> LocalizationSession:
     """A session from typed settings (`session_from_config` reads them from the config). `registrar`: instead
-    of the whole model's (e.g. service.backend's after a restart from a saved map)."""
+    of the whole model's (e.g. service.front_end's after a restart from a saved map)."""
     s = settings or SessionSettings()
-    localizer = make_localizer(model, stored, s.storey_hint, T_body_cam, s.localizer, s.isam, surfaces, registrar,
+    localizer = make_localizer(model, s.storey_hint, T_body_cam, s.localizer, s.isam, surfaces, registrar,
                                s.method)
 
     def fresh(old: Localizer) -> Localizer:
@@ -285,26 +277,24 @@ def make_session(model: BuildingModel, settings: SessionSettings | None = None, 
     return LocalizationSession(localizer, s.rule, s.covariance, fresh, s.gravity)
 
 
-def session_from_config(cfg: MacrolocConfig | GraphConfig, model: BuildingModel, *,
-                        stored: StoredMap | None = None, surfaces: SurfaceIndex | None = None,
+def session_from_config(cfg: MacrolocConfig, model: BuildingModel, *,
+                        saved: SavedMap | None = None, surfaces: SurfaceIndex | None = None,
                         T_body_cam: np.ndarray | None = None,
                         registrar: Callable[[SessionSettings], Registrar] | None = None,
                         storey_hint: str | None = None, method: str | None = None,
                         covariance: bool = False) -> LocalizationSession:
-    """THE factory: a session from the config (or its [graph] section) in `model`, what `serve`, `replay`, `demo`
-    and the benchmarks run. `stored`: a stored map to re-localize in first; `surfaces`: the model's walls, for the
-    surface check; `T_body_cam`: the left camera in the body frame; `registrar`: makes the registrar from the
-    settings instead of the model's (service.backend's after a restart); `storey_hint`: instead of
-    graph.storey_hint (checked against the model: UserInputError where it has no such storey); `method`: the
-    registration's search (default: the config's localize.method where the whole config is given). Gravity's up
-    from the IMU takes [perception.gravity] where the whole config is given (its defaults with [graph] alone)."""
-    from macroloc.service.config import MacrolocConfig
-
-    graph = cfg.graph if isinstance(cfg, MacrolocConfig) else cfg
-    method = method or (cfg.localize.method if isinstance(cfg, MacrolocConfig) else "robust")
-    storey = model.checked_storey(storey_hint or graph.storey_hint)
-    settings = settings_from_config(graph, storey_hint=storey, method=method, covariance=covariance)
-    if isinstance(cfg, MacrolocConfig):  # [perception.gravity]: gravity's up from the IMU
-        settings = replace(settings, gravity=cfg.perception.gravity.to_params(GravityParams()))
-    return make_session(model, settings, stored=stored, surfaces=surfaces, T_body_cam=T_body_cam,
+    """THE factory: a session from the whole config in `model`, what `serve`, `replay`, `demo` and the benchmarks
+    run ([graph] for the localizer, [perception.gravity] for gravity's up from the IMU, [localize] method for the
+    registration's search). `saved`: the saved map to start from (service.saved_map); `surfaces`: the model's
+    walls, for the surface check; `T_body_cam`: the left camera in the body frame; `registrar`: makes the
+    registrar from the settings instead of the model's (or the saved map's); `storey_hint`: instead of
+    graph.storey_hint (checked against the model: UserInputError where it has no such storey); `method`: instead
+    of localize.method."""
+    storey = model.checked_storey(storey_hint or cfg.graph.storey_hint)
+    settings = settings_from_config(cfg.graph, storey_hint=storey, method=method or cfg.localize.method,
+                                    covariance=covariance)
+    settings = replace(settings, gravity=cfg.perception.gravity)
+    if saved is not None:
+        registrar = saved.registrar(model, with_surfaces=surfaces is not None)
+    return make_session(model, settings, surfaces=surfaces, T_body_cam=T_body_cam,
                         registrar=None if registrar is None else registrar(settings))

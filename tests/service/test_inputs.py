@@ -197,7 +197,7 @@ def test_replaying_a_recording_that_holds_a_bomb_is_one_line_and_exit_2(office_p
 
 def test_no_pose_outside_the_model_or_not_finite_goes_out() -> None:
     from macroloc.graph.localizer import Estimate
-    from macroloc.service.backend import plausible
+    from macroloc.service.front_end import plausible
 
     def est(xyz: tuple[float, float, float], cov: float = 0.01) -> Estimate:
         T = np.eye(4)

@@ -239,13 +239,13 @@ def test_reset_counter_increments_exactly_at_a_re_localization_in_a_flight(offic
     x = 1e300 let through past the edge checks) and restarts LOST, then the vehicle flies on and is localized
     again. VehicleOdometry's reset_counter is 0 throughout the first localization and 1 from the first pose after
     the re-localization on, while T_cad_map itself barely moved (same odometry frame)."""
-    from macroloc.service.backend import LocalizerBackend
+    from macroloc.service.front_end import FrontEnd
     from macroloc.service.health import DropCounter
     from macroloc.service.inputs import InputParser, OdometryIn
     from macroloc.service.px4 import Px4Messages
     from tests.service.helpers import FakeFlight
 
-    backend = LocalizerBackend.fresh_or_restored(office_model, None)
+    backend = FrontEnd.fresh_or_restored(office_model, None)
     parser, messages = InputParser(["front"], DropCounter()), Px4Messages()
     door = [f for f in office_model.features if f.type == "door" and f.storey == "Level 1"][10]
     T = yaw_T(0.3, door.centroid_cad + np.r_[door.normal_cad[:2] * 1.5, 0.4])

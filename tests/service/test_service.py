@@ -283,7 +283,7 @@ def test_a_storey_hint_that_is_not_in_the_building_is_refused_at_start(office_pa
     cfg = cfg.model_copy(update={"graph": cfg.graph.model_copy(update={"storey_hint": "Level 2"})})
     with zenoh.open(session_config(loopback())) as session:
         service = build_service(cfg, session)
-    assert service.backend.localizer.registrar.storey_hint == "Level 2"  # type: ignore[attr-defined]
+    assert service.front_end.localizer.registrar.storey_hint == "Level 2"  # type: ignore[attr-defined]
 
 
 def test_the_service_takes_the_configured_perception_parameters(office_path, tmp_path) -> None:
@@ -298,7 +298,7 @@ def test_the_service_takes_the_configured_perception_parameters(office_path, tmp
         service = build_service(cfg, session)
     assert service.params.place.min_inliers == 55 and service.places.config == service.params.place
     assert service.params.depth.depth_image_stride_px == 12
-    assert service.backend.session.gravity.params.window_s == 1.5
+    assert service.front_end.session.gravity.params.window_s == 1.5
 
 
 def test_maps_accumulate_across_restarts(office_path, office_model, start_pose, tmp_path) -> None:

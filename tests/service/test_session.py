@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from macroloc.graph.localizer import Localizer
-from macroloc.service.backend import LocalizerBackend
+from macroloc.service.front_end import FrontEnd
 from macroloc.service.inputs import OdometryIn
 from macroloc.service.session import FrameIn, make_session
 from tests.graph.corridor_flight import model_registrar
@@ -20,7 +20,7 @@ def test_the_service_and_the_replay_make_the_same_keyframes() -> None:
     """The service's odometry events and the replay's frames go through one keyframe rule: the same frames
     become keyframes (here every 0.28 m: 0.04 m a frame, more than [graph.keyframes] translation_m = 0.25 m)."""
     model = corridor_model()
-    backend = LocalizerBackend.fresh_or_restored(model, None)
+    backend = FrontEnd.fresh_or_restored(model, None)
     bare = make_session(model)
     service, replay = [], []
     for k in range(40):
@@ -115,7 +115,7 @@ def test_the_snapshot_gives_a_frame_between_keyframes_the_session_s_own_pose() -
 
 
 def test_the_service_and_the_replay_give_the_keyframes_the_same_gravity(monkeypatch) -> None:  # noqa: ANN001
-    """The IMU is the session's input in both drivers: the service's IMU and odometry events (service.backend)
+    """The IMU is the session's input in both drivers: the service's IMU and odometry events (service.front_end)
     and the replay's frames with their IMU samples (service.offline.replay_sources.gravity_at) give every
     keyframe the same up, the specific force less the odometry's acceleration (here a vehicle accelerating
     along x at 1 m/s^2, rolled 5 degrees: the specific force alone leans 5.8 degrees off up)."""
@@ -143,7 +143,7 @@ def test_the_service_and_the_replay_give_the_keyframes_the_same_gravity(monkeypa
         return T
 
     model = corridor_model()
-    backend = LocalizerBackend.fresh_or_restored(model, None)
+    backend = FrontEnd.fresh_or_restored(model, None)
     session = make_session(model)
     for k in range(45):
         stamp_ns = k * 33_000_000
@@ -189,7 +189,6 @@ def test_the_configured_gravity_reaches_the_session() -> None:
 
     cfg = load_config(None, perception={"gravity": {"window_s": 2.0}})
     assert session_from_config(cfg, corridor_model()).gravity.params.window_s == 2.0
-    assert session_from_config(cfg.graph, corridor_model()).gravity.params.window_s == 1.0  # [graph] alone
 
 
 def test_a_keyframe_older_than_the_newest_pose_moves_it() -> None:

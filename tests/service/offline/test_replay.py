@@ -152,16 +152,16 @@ def test_truth_depth_points_come_from_the_true_depth_image() -> None:
 
 
 def test_the_backend_hands_depth_to_the_next_keyframe() -> None:
-    """LocalizerBackend.depth: points measured at a stamp reach the localizer with the next keyframe, moved into
+    """FrontEnd.depth: points measured at a stamp reach the localizer with the next keyframe, moved into
     its body frame by the odometry between the two."""
     from macroloc.graph.surfaces import SurfaceIndex
-    from macroloc.service.backend import LocalizerBackend
+    from macroloc.service.front_end import FrontEnd
     from macroloc.service.inputs import OdometryIn
     from tests.graph.scenes import corridor_model, make_T
 
     model = corridor_model()
     surfaces = SurfaceIndex(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
-    backend = LocalizerBackend.fresh_or_restored(model, None, surfaces=surfaces)
+    backend = FrontEnd.fresh_or_restored(model, None, surfaces=surfaces)
     backend.odometry(OdometryIn(0, np.eye(4)))
     backend.depth(0, np.array([[3.0, 0.0, 0.1], [4.0, 1.0, -0.2]]))
     backend.odometry(OdometryIn(100_000_000, make_T(np.eye(3), np.array([1.5, 0.0, 0.0]))))  # a keyframe (> 1 m)
@@ -211,7 +211,7 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
     from macroloc.graph.mapstore import KeyframeView
     from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
     from macroloc.proto.recording import pose_from_matrix
-    from macroloc.service.backend import LocalizerBackend
+    from macroloc.service.front_end import FrontEnd
     from macroloc.service.places import Placed
     from macroloc.service.session import FrameIn
     from macroloc.service.state import view_to_wire
@@ -228,7 +228,7 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
     saved = pb.MapSnapshot(building_sha256=model.sha256, status=pb.PoseEstimate.LOCALIZED,
                            T_cad_map=pose_from_matrix(T_cad_map_old))
     saved.views.extend([view_to_wire(view(), here), view_to_wire(view(), far)])
-    backend = LocalizerBackend.fresh_or_restored(model, saved)
+    backend = FrontEnd.fresh_or_restored(model, saved)
     assert backend.restored is not None and len(backend.restored.placed_views()) == 2
     assert not backend.supersedes_saved()  # not localized yet: the saved map is kept
     T_odom_body = make_T(rot_z(-0.7), np.array([3.0, 4.0, 1.4]))  # the new run's odometry frame is another one

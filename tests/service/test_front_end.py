@@ -1,10 +1,10 @@
-"""service.backend: the pose graph defends itself against an update it cannot survive."""
+"""service.front_end: the pose graph defends itself against an update it cannot survive."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from macroloc.service.backend import LocalizerBackend
+from macroloc.service.front_end import FrontEnd
 from macroloc.service.inputs import OdometryIn
 from tests.service.helpers import yaw_T
 
@@ -12,7 +12,7 @@ from tests.service.helpers import yaw_T
 def test_an_absurd_odometry_restarts_the_graph_and_poses_stay_finite(duplex_model) -> None:
     """One odometry sample at x = 1e300 (what an unchecked peer sent) makes GTSAM's system indeterminate: the
     backend answers LOST for it, starts a fresh graph, and the next samples give finite poses again."""
-    backend = LocalizerBackend.fresh_or_restored(duplex_model, None)
+    backend = FrontEnd.fresh_or_restored(duplex_model, None)
     stamp = 0
     for k in range(10):
         stamp += 100_000_000
@@ -32,7 +32,7 @@ def test_the_configured_gravity_estimate_is_the_backend_s_also_after_a_new_time_
     from macroloc.service.config import load_config
 
     cfg = load_config(None, perception={"gravity": {"window_s": 2.0, "max_specific_force_mps2": 12.0}})
-    backend = LocalizerBackend.fresh_or_restored(duplex_model, None, cfg)
+    backend = FrontEnd.fresh_or_restored(duplex_model, None, cfg)
     gravity = backend.session.gravity
     assert gravity.params.window_s == 2.0 and gravity.params.max_specific_force_mps2 == 12.0
     backend.new_time_base()

@@ -1,30 +1,40 @@
-"""The service's localization backend: wire events in, `graph.localizer.Estimate` out, map snapshots.
+"""The one per-frame front end of `serve` and `replay` (kiss-icp's `register_frame`): the vehicle's input events
+in, `graph.localizer.Estimate` out. The service's worker hands it every event it takes (service.node), and the
+offline replay hands it the same events made from a recording (service.offline.replay), so that a replay runs the
+path the service runs.
 
-`LocalizerBackend` feeds the localization session (service.session, the one `replay` runs too, with its keyframe
-rule): odometry poses are buffered by stamp; a set of sightings (ObservedFeatures in the body, left-camera or
-odometry frame, or sightings made by the perception pipeline from a stereo frame) becomes a frame at the odometry
-pose of its stamp; every odometry sample is a frame without sightings. The IMU's samples and each odometry pose go
-to the session, whose gravity's up (the specific force less the odometry's own acceleration: perception.gravity)
-the perception chain and place recognition read.
+`FrontEnd.handle(event)` takes the typed events of service.inputs, in the order the vehicle sent them:
+- `ImuIn`: a specific force sample, to the session (gravity's up with the next odometry pose: perception.gravity).
+- `OdometryIn`: the vehicle's odometry pose: buffered by stamp, to the session, then the sightings that waited for
+  it, then a frame of its own (no sightings).
+- `ObservationsIn`: doors/windows sent by the vehicle (body, left-camera or odometry frame): a frame at the
+  odometry pose of their stamp, kept pending until that pose arrives.
+- `StereoIn`: a stereo frame, once each: decoded, its camera geometry taken from its CameraInfo, perceived (every
+  `perceive_every`-th frame: the cadence, the same in serve and replay), its depth points (the vehicle's depth image
+  where the frame carries one and the model's walls are known, else the pipeline's stereo depth, measured when it
+  becomes a keyframe), place recognition (service.places), then the session's update at the odometry pose of its
+  stamp.
+- `PriorIn` (the operator's prior, graph.prior) and `ClockReset` (the vehicle's clock restarted).
 
 Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cam_left, cad. Metres.
 
-Restarting from a saved map (`MapSnapshot`): where it holds keyframe views and was localized, the service's
-stereo frames are placed in them by place recognition (`restored`, service.places, in service.node) from the
-first frame on, before any door is seen. Otherwise `RestoredRegistrar` first checks the saved T_cad_map against
-the first sightings (the vehicle's odometry usually outlives a service restart), then falls back to the landmarks
-the previous run linked to the model (`StoredMapRegistrar`), then to the whole model.
+Restarting from a saved map (`MapSnapshot`): where it holds keyframe views and was localized, the stereo frames
+are placed in them by place recognition (`restored`, service.places) from the first frame on, before any door is
+seen. Otherwise `RestoredRegistrar` first checks the saved T_cad_map against the first sightings (the vehicle's
+odometry usually outlives a service restart), then falls back to the landmarks the previous run linked to the
+model (`StoredMapRegistrar`), then to the whole model.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.geo import GeoReference
 from macroloc.graph.landmarks import feature_frame_cad
@@ -33,16 +43,27 @@ from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
 from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
 from macroloc.graph.surfaces import SurfaceIndex
+from macroloc.perception.params import DepthPointsParams, PlaceParams
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import matrix_from_pose, pose_from_matrix, vector3
 from macroloc.service.frame_answers import ODOMETRY_MATCH_NS, OdometryBuffer
-from macroloc.service.inputs import ImuIn, InputLimits, Observation, ObservationsIn, OdometryIn, PriorIn
-from macroloc.service.places import Placed
+from macroloc.service.frames import FramePipeline, NullPipeline, depth_points_body
+from macroloc.service.inputs import (
+    ClockReset,
+    ImuIn,
+    InputLimits,
+    Observation,
+    ObservationsIn,
+    OdometryIn,
+    PriorIn,
+    StereoIn,
+)
+from macroloc.service.places import KeyframePlaces, Placed
 from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, session_from_config
 from macroloc.service.state import view_from_wire
 
 if TYPE_CHECKING:
-    from macroloc.service.config import GraphConfig, MacrolocConfig
+    from macroloc.service.config import MacrolocConfig
 
 log = logging.getLogger(__name__)
 
@@ -106,18 +127,37 @@ class _Pending:
     to_body: Callable[[np.ndarray], list[Sighting]]  # T_odom_body -> the sightings, body frame
 
 
-class LocalizerBackend:
-    """Turns the service's input events into frames of its `LocalizationSession` (service.session, the one the
-    replay runs too): odometry by stamp, sightings waiting for the odometry of their stamp; the IMU and each
-    odometry sample go to the session as they come (it estimates gravity's up). One thread only (the service's
-    worker)."""
+@dataclass(frozen=True)
+class FrontEndParams:
+    """The per-frame path's own settings: `perceive_every` ([perception] detect_every: the chain runs on every n-th
+    stereo frame, counted from the first, the same in serve and replay); `depth` ([perception.depth]: the points
+    taken of a vehicle's depth image); `place` ([perception.place]: place recognition in a saved map's views)."""
+
+    perceive_every: int = 1
+    depth: DepthPointsParams = field(default_factory=DepthPointsParams)
+    place: PlaceParams | None = None
+
+
+class FrontEnd:
+    """See module doc: the vehicle's events into frames of its `LocalizationSession` (service.session): odometry by
+    stamp, sightings waiting for the odometry of their stamp, stereo frames perceived; the IMU and each odometry
+    sample go to the session as they come (it estimates gravity's up). One thread only (the service's worker, the
+    replay's loop)."""
 
     def __init__(self, model: BuildingModel, session: LocalizationSession,
-                 T_body_cam: np.ndarray | None = None) -> None:
-        """`T_body_cam`: the left camera in the body frame, for sightings sent in the cam_left frame."""
+                 T_body_cam: np.ndarray | None = None, pipeline: FramePipeline | None = None,
+                 params: FrontEndParams | None = None) -> None:
+        """`T_body_cam`: the left camera in the body frame, for sightings sent in the cam_left frame and stereo
+        frames whose CameraInfo carries none; `pipeline`: the perception chain on stereo frames (none: frames give
+        a pose from the odometry only, sightings come as observations)."""
         self.model = model
         self.session = session
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
+        self.pipeline: FramePipeline = pipeline or NullPipeline()
+        self.params = params or FrontEndParams()
+        self.places = KeyframePlaces(None, keep_views=True, config=self.params.place)  # a saved map's: `fresh_or_restored`
+        self.sightings: list[Sighting] = []  # the last stereo frame's perceived doors and windows, body frame
+        self._stereo_frames = 0  # stereo frames taken, for the cadence
         self._odometry = OdometryBuffer()  # stamp_ns -> T_odom_body
         self._pending: list[_Pending] = []  # sightings that arrived before the odometry of their stamp
         self.unmatched = 0  # sightings dropped: no odometry near their stamp
@@ -127,16 +167,23 @@ class LocalizerBackend:
 
     @classmethod
     def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None,
-                          cfg: MacrolocConfig | GraphConfig | None = None,
-                          surfaces: SurfaceIndex | None = None) -> LocalizerBackend:
-        """The backend on a session from the config (service.session.session_from_config; the defaults without
-        one), with covariance; `surfaces`: the model's walls, to check registrations against the frames' depth
-        (graph.surfaces)."""
-        from macroloc.service.config import GraphConfig
+                          cfg: MacrolocConfig | None = None,
+                          surfaces: SurfaceIndex | None = None, pipeline: FramePipeline | None = None,
+                          T_body_cam: np.ndarray | None = None) -> FrontEnd:
+        """The backend on a session from the config (service.session.session_from_config; the defaults, with the
+        environment's MACROLOC_* over them, without one), with covariance; `surfaces`: the model's walls, to check
+        registrations against the frames' depth (graph.surfaces)."""
+        from macroloc.service.config import MacrolocConfig
 
-        cfg = cfg or GraphConfig()
+        cfg = cfg or MacrolocConfig()
+        chain = cfg.perception.to_params()
+        params = FrontEndParams(cfg.perception.detect_every, chain.depth, chain.place)
+
+        def front_end(session: LocalizationSession) -> FrontEnd:
+            return cls(model, session, T_body_cam, pipeline, params)
+
         if snapshot is None:
-            return cls(model, session_from_config(cfg, model, surfaces=surfaces, covariance=True))
+            return front_end(session_from_config(cfg, model, surfaces=surfaces, covariance=True))
         features = {f.id: f for f in model.features}
         linked = [KnownRect(lm.id, features[lm.id].type, feature_frame_cad(features[lm.id]))
                   for lm in snapshot.landmarks_map if lm.id in features and features[lm.id].orientation == "vertical"]
@@ -149,10 +196,11 @@ class LocalizerBackend:
             return RestoredRegistrar(model, saved_T, linked, fallback, params=s.localizer,
                                      with_surfaces=surfaces is not None)
 
-        backend = cls(model, session_from_config(cfg, model, surfaces=surfaces, registrar=restored, covariance=True))
+        backend = front_end(session_from_config(cfg, model, surfaces=surfaces, registrar=restored, covariance=True))
         backend.restored_localized = saved_T is not None
         if saved_T is not None and snapshot.views:  # views with their poses, as a map carries an earlier one's
             backend.restored = StoredMap(model.sha256, saved_T, carried=[view_from_wire(v) for v in snapshot.views])
+            backend.places = KeyframePlaces(backend.restored, keep_views=True, config=params.place)
         if saved_T is not None:  # in an unlocalized map's frame they cannot be placed: dropped
             backend.carried = [CarriedLandmark(lm.type, lm.id, np.array([[c.x, c.y, c.z] for c in lm.corners])
                                                @ saved_T[:3, :3].T + saved_T[:3, 3])
@@ -205,21 +253,57 @@ class LocalizerBackend:
 
         return self._sightings_frame(ev.stamp_ns, to_body)
 
-    def stereo(self, stamp_ns: int, sightings: list[Sighting], points_body: np.ndarray | None = None,
-               placed: Placed | None = None,
-               measure_depth: Callable[[], np.ndarray] | None = None) -> Estimate | None:
-        """A stereo frame the service perceived: sightings (body frame), depth points (N, 3, body frame), its
-        place-recognition result (service.places), its depth measured on demand (`measure_depth`, called where it
-        becomes a keyframe): a frame at the odometry pose of its stamp. Without that pose,
-        its sightings wait for it (its depth and place are dropped) and the answer is the pose tracked at the
-        last estimate's (None before any)."""
+    def stereo(self, ev: StereoIn) -> Estimate | None:
+        """A stereo frame (see module doc): perceived where the cadence says, its depth points and place, then a
+        frame of the session at the odometry pose of its stamp. Without that pose, its sightings wait for it (its
+        depth and place are dropped) and the answer is the pose tracked at the last estimate's (None before
+        any). `sightings` holds what it perceived."""
+        frame, stamp_ns = ev.frame, ev.stamp_ns
+        due = self._stereo_frames % self.params.perceive_every == 0
+        self._stereo_frames += 1
+        up_body = self.up_body  # the session's, from the IMU: which way is down for the chain
+        self.sightings = self.pipeline(frame, up_body) if due else []
+        points_body = self.pipeline.points_body if due else None  # the chain's own stereo depth, when it measured
+        measure_depth = self.pipeline.measure_depth if due else None  # ... or will for a keyframe
         T_odom_body = self.odometry_at(stamp_ns)
+        if frame.HasField("depth") and self.localizer.surfaces is not None:  # the vehicle's depth image
+            d = self.params.depth
+            points_body, measure_depth = depth_points_body(frame, d.depth_image_stride_px, d.max_range_m), None
         if T_odom_body is None:
-            if sightings:
+            if self.sightings:
+                sightings = self.sightings
                 self._sightings_frame(stamp_ns, lambda _: sightings)
             return None if self.last is None else self.session.pose_at(stamp_ns, self.last.T_map_body)
-        return self.session.frame(FrameIn(stamp_ns, T_odom_body, sightings, points_body=points_body,
+        placed = self._place(frame, stamp_ns, T_odom_body, up_body)
+        return self.session.frame(FrameIn(stamp_ns, T_odom_body, self.sightings, points_body=points_body,
                                           placed=placed, measure_depth=measure_depth))
+
+    def _place(self, frame: pb.StereoFrame, stamp_ns: int, T_odom_body: np.ndarray,
+               up_body: np.ndarray | None) -> Placed | None:
+        """Place recognition on the frame (service.places): its pose in the saved map while not localized, its view
+        to keep for the next one; None where neither applies (no calibration, or nothing due)."""
+        info = frame.info
+        T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
+        placed = self.places.at_frame(frame, stamp_ns, T_odom_body, T_body_cam, up_body, self.status)
+        return placed if placed.T_cad_body is not None or placed.view is not None else None
+
+    def handle(self, event: object) -> Estimate | None:
+        """One input event of the vehicle (module doc), in the order sent: its estimate, where it gives one."""
+        if isinstance(event, StereoIn):
+            return self.stereo(event)
+        if isinstance(event, OdometryIn):
+            return self.odometry(event)
+        if isinstance(event, ObservationsIn):
+            return self.observations(event)
+        if isinstance(event, ImuIn):
+            self.imu(event)
+        elif isinstance(event, ClockReset):
+            self.new_time_base()
+        elif isinstance(event, PriorIn):
+            self.prior(event)
+        else:
+            raise TypeError(f"not an input event of the front end: {type(event).__name__}")
+        return None
 
     def _sightings_frame(self, stamp_ns: int, to_body: Callable[[np.ndarray], list[Sighting]]) -> Estimate | None:
         T_odom_body = self.odometry_at(stamp_ns)
