@@ -76,17 +76,17 @@ class Chain:
 def make_chains(rig, sgbm_scale: float = 1.0, vo: str | None = None,  # type: ignore[no-untyped-def]
                 at_keyframes: bool = False) -> tuple[Chain, Chain]:
     from bench.chain_old import OLD_ODOMETRY, join_segments_python
-    from macroloc.perception.odometry import OdometryConfig, StereoOdometry
+    from macroloc.perception.odometry import StereoOdometry, VisualOdometryParams
     from macroloc.perception.pipeline import Perception
-    from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher
+    from macroloc.perception.stereo import FrameDisparity, SgbmMatcher, SgbmParams
     from macroloc.perception.threads import THREADS
     from macroloc.service.frames import StereoDepth
     from macroloc.service.offline.replay_sources import KEPT_MATCHES
 
     old = Chain("old", StereoOdometry(rig, OLD_ODOMETRY), StereoDepth(), Perception.create(threads=2),
                 join_segments_python)
-    shared = FrameDisparity(SgbmMatcher(SgbmConfig(num_disparities=128, scale=sgbm_scale)), keep=KEPT_MATCHES)
-    config = OdometryConfig() if vo is None else OdometryConfig(tracker=vo)
+    shared = FrameDisparity(SgbmMatcher(SgbmParams(num_disparities=128, scale=sgbm_scale)), keep=KEPT_MATCHES)
+    config = VisualOdometryParams() if vo is None else VisualOdometryParams(tracker=vo)
     new = Chain("new", StereoOdometry(rig, config, disparity=shared),
                 StereoDepth(disparity=shared, at_keyframes=at_keyframes),
                 Perception.create(threads=THREADS.onnxruntime, disparity=shared), None)
@@ -233,7 +233,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--sgbm-scale", type=float, default=1.0, help="the new chain's SGBM on the pair shrunk so")
     ap.add_argument("--boxes", type=int, default=0, help="keep the N largest openings a frame (0: all)")
     ap.add_argument("--vo", choices=("orb", "klt"), default=None,
-                    help="the new chain's odometry tracker (default: OdometryConfig's)")
+                    help="the new chain's odometry tracker (default: VisualOdometryParams's)")
     ap.add_argument("--schedule", action="store_true",
                     help="the detector every third frame, the new chain's depth points at keyframes (see above)")
     ap.add_argument("--two-threads", action="store_true",

@@ -1,4 +1,4 @@
-"""Visual odometry, ORB every frame (`OdometryConfig(tracker="orb")`) against optical flow between keyframes
+"""Visual odometry, ORB every frame (`VisualOdometryParams(tracker="orb")`) against optical flow between keyframes
 (`tracker="klt"`), in the same run: CPU ms of `StereoOdometry.track` a frame and the path against the truth, on
 whole rendered flights with the true gyroscope (issue 37, item 1).
 
@@ -71,13 +71,13 @@ class Counted:
 def run_flight(name: str, frames: int | None, new: dict[str, Any] | None = None) -> dict[str, Any]:
     from bench.vo_frames import cached, load
     from macroloc.perception.calib import StereoRig
-    from macroloc.perception.odometry import OdometryConfig, StereoOdometry
+    from macroloc.perception.odometry import StereoOdometry, VisualOdometryParams
 
     building, seed, duration = FLIGHTS[name]
     fl = load(cached(building, seed, duration), frames)
     fx, fy, cx, cy, baseline_m, w, h = fl.rig
     rig = StereoRig(fx, fy, cx, cy, baseline_m, int(w), int(h))
-    modes = {m: Counted(StereoOdometry(rig, OdometryConfig(tracker=m, **(new or {}) if m == "klt" else {})))
+    modes = {m: Counted(StereoOdometry(rig, VisualOdometryParams(tracker=m, **(new or {}) if m == "klt" else {})))
              for m in ("orb", "klt")}
     cpu: dict[str, list[float]] = {m: [] for m in modes}
     poses: dict[str, list[np.ndarray]] = {m: [] for m in modes}
@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--flights", nargs="+", default=list(FLIGHTS), choices=list(FLIGHTS))
     ap.add_argument("--frames", type=int, default=None, help="at most this many frames of each flight")
     ap.add_argument("--new", nargs="*", default=[], metavar="FIELD=VALUE",
-                    help="OdometryConfig fields for the klt odometry (numbers or words), to try settings")
+                    help="VisualOdometryParams fields for the klt odometry (numbers or words), to try settings")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     from macroloc.perception.threads import set_threads

@@ -55,7 +55,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("/tmp/macroloc-flights"))
     args = parser.parse_args()
     model = load_building(DUPLEX)
-    graph = load_config(None).graph
+    cfg = load_config(None)
     storeys = args.storeys.split(",")
 
     def right(T_cad_body: np.ndarray, T_map_body: np.ndarray) -> PosePrior:
@@ -83,7 +83,7 @@ def main() -> None:
                 sessions: list = []
 
                 def make(T_body_cam, sessions=sessions):  # noqa: ANN001, ANN202
-                    sessions.append(session_from_config(graph, model, T_body_cam=T_body_cam))
+                    sessions.append(session_from_config(cfg, model, T_body_cam=T_body_cam))
                     return sessions[-1]
 
                 recorder = None if make_prior is None else _PriorAtFirstFrame(sessions, make_prior)

@@ -23,11 +23,11 @@ BUILDINGS = {"Office_A": ROOT / "data/buildings/office_a.ifc",
              "duplex": ROOT / "data/buildings/duplex.ifc"}
 
 
-def _session(graph, model, stored=None):  # noqa: ANN001, ANN202
+def _session(cfg, model, stored=None):  # noqa: ANN001, ANN202
     """The session the service runs (service.session's one factory), for the flight's camera T_body_cam."""
     from macroloc.service.session import session_from_config
 
-    return lambda T_body_cam: session_from_config(graph, model, stored=stored, T_body_cam=T_body_cam)
+    return lambda T_body_cam: session_from_config(cfg, model, stored=stored, T_body_cam=T_body_cam)
 
 
 def main() -> None:
@@ -44,7 +44,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("/tmp/macroloc-flights"))
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
-    graph = load_config(None).graph  # the session the service runs (service.session), from the default config
+    cfg = load_config(None)  # the session the service runs (service.session), from the default config
     print(f"{'building':<11} {'seed':>4} {'localize s':>10} {'APE rmse':>9} {'APE max':>8} {'wrong':>5} "
           f"{'links':>5} {'bad links':>9} {'final':>10} {'relocalize (proc s / flight s)':>32}")
     for name, path in BUILDINGS.items():
@@ -56,12 +56,12 @@ def main() -> None:
             flight = args.out / f"{path.stem}-{args.start}-{int(args.duration)}s-{seed}.mcap"
             if not flight.exists():
                 write_truth_flight(path, flight, seed=seed, duration_s=args.duration, start=args.start)
-            r = replay(flight, model, TruthSource(seed=seed), make=_session(graph, model))
+            r = replay(flight, model, TruthSource(seed=seed), make=_session(cfg, model))
             j = r.to_json()
             reloc = "-"
             if r.localized:
                 again = replay(flight, model, TruthSource(seed=seed + 100),
-                               make=_session(graph, model, r.localizer.stored_map()))
+                               make=_session(cfg, model, r.localizer.stored_map()))
                 reloc = f"{again.processing_to_localize_s:.3f} / {again.time_to_localize_s:.2f}" if again.localized \
                     else "not localized"
             print(f"{name:<11} {seed:>4} {j['time_to_localize_s']!s:>10} {j['ape_rmse_m']!s:>9} "

@@ -13,9 +13,9 @@ import numpy as np
 import macroloc.perception.pipeline as pipeline
 import macroloc.perception.reconstruct as reconstruct
 from macroloc.perception.calib import StereoRig
-from macroloc.perception.lines import LineConfig, Sides, _merge, _orient
-from macroloc.perception.odometry import OdometryConfig
-from macroloc.perception.reconstruct import WallPlaneConfig
+from macroloc.perception.lines import LineParams, Sides, _merge, _orient
+from macroloc.perception.odometry import VisualOdometryParams
+from macroloc.perception.reconstruct import WallPlaneParams
 from macroloc.perception.stereo import back_project
 
 
@@ -29,7 +29,7 @@ def _angle_diff_deg(a: float, b: float) -> float:
     return min(d, 180.0 - d)
 
 
-def _joinable(a: np.ndarray, b: np.ndarray, cfg: LineConfig) -> bool:
+def _joinable(a: np.ndarray, b: np.ndarray, cfg: LineParams) -> bool:
     if _angle_diff_deg(_angle_deg(a), _angle_deg(b)) > cfg.join_angle_deg:
         return False
     gap = min(np.linalg.norm(p - q) for p in a for q in b)
@@ -40,9 +40,9 @@ def _joinable(a: np.ndarray, b: np.ndarray, cfg: LineConfig) -> bool:
     return bool(np.max(np.abs((b - a[0]) @ normal)) <= cfg.join_offset_px)
 
 
-def join_segments_python(segments: list[np.ndarray], cfg: LineConfig | None = None) -> list[np.ndarray]:
+def join_segments_python(segments: list[np.ndarray], cfg: LineParams | None = None) -> list[np.ndarray]:
     """perception.lines.join_segments before issue 37: pair by pair in Python, restarting after each merge."""
-    cfg = cfg or LineConfig()
+    cfg = cfg or LineParams()
     segs = [_orient(np.asarray(s, np.float64).reshape(2, 2)) for s in segments]
     merged = True
     while merged:
@@ -59,8 +59,8 @@ def join_segments_python(segments: list[np.ndarray], cfg: LineConfig | None = No
     return segs
 
 
-# The odometry's settings before issue 37 (perception.odometry.OdometryConfig's defaults then).
-OLD_ODOMETRY = OdometryConfig(n_features=2000, tracker="orb")  # ORB matched every frame
+# The odometry's settings before issue 37 (perception.odometry.VisualOdometryParams's defaults then).
+OLD_ODOMETRY = VisualOdometryParams(n_features=2000, tracker="orb")  # ORB matched every frame
 
 
 def sample_depth_nanmedian(depth_m: np.ndarray, uv_px: np.ndarray, half_width_px: int = 2) -> np.ndarray:
@@ -79,7 +79,7 @@ def sample_depth_nanmedian(depth_m: np.ndarray, uv_px: np.ndarray, half_width_px
 
 
 def _strip_points_old(edge_px: np.ndarray, offset_px: np.ndarray, depth_m: np.ndarray, rig: StereoRig,
-                  cfg: WallPlaneConfig) -> np.ndarray:
+                  cfg: WallPlaneParams) -> np.ndarray:
     """Back-projected points (M, 3) of a strip beside an edge (2, 2): `n_samples` along it at each offset
     from `near_px` to `far_px` in the unit direction `offset_px`; those without depth left out."""
     t = np.linspace(0.05, 0.95, cfg.n_samples)[:, None]
@@ -91,9 +91,9 @@ def _strip_points_old(edge_px: np.ndarray, offset_px: np.ndarray, depth_m: np.nd
 
 
 def wall_plane_loop(sides: Sides, depth_m: np.ndarray, rig: StereoRig, gravity_cam: np.ndarray | None = None,
-               cfg: WallPlaneConfig | None = None) -> tuple[np.ndarray, float] | None:
+               cfg: WallPlaneParams | None = None) -> tuple[np.ndarray, float] | None:
     """perception.reconstruct.wall_plane before issue 37: one RANSAC hypothesis at a time."""
-    cfg = cfg or WallPlaneConfig()
+    cfg = cfg or WallPlaneParams()
     (tl, bl), (tr, br) = sides.left_px, sides.right_px
     across = (tr + br - tl - bl) / 2
     across = across / max(float(np.linalg.norm(across)), 1e-9)

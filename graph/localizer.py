@@ -241,7 +241,7 @@ class Localizer:
         return points_body
 
     def _predict(self, T_odom_body: np.ndarray, dead_reckoned_s: float = 0.0) -> tuple[int, np.ndarray]:
-        """A new keyframe at the odometry's prediction, with the odometry factor (`OdometryParams`)."""
+        """A new keyframe at the odometry's prediction, with the odometry factor (`OdometryFactorParams`)."""
         if self._T_odom_prev is None:
             self._T_odom_prev = T_odom_body
             return self.graph.add_first_keyframe(T_odom_body), T_odom_body  # map = odometry frame at start

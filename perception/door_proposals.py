@@ -19,8 +19,8 @@ import numpy as np
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.evaluate import iou_xyxy
 from macroloc.perception.lines import Sides, detect_segments
-from macroloc.perception.params import ProposalConfig
-from macroloc.perception.reconstruct import WallPlaneConfig, wall_plane
+from macroloc.perception.params import ProposalParams
+from macroloc.perception.reconstruct import WallPlaneParams, wall_plane
 from macroloc.perception.size_check import OpeningSizes, SizeTolerance, fitting
 from macroloc.perception.stereo import back_project, to_gray
 
@@ -55,7 +55,7 @@ class _Lines:
         return self.top[:, 0].reshape(shape) + du.reshape(shape) * (v - self.top[:, 1].reshape(shape))
 
 
-def segments(gray: np.ndarray, cfg: ProposalConfig) -> tuple[np.ndarray, np.ndarray]:
+def segments(gray: np.ndarray, cfg: ProposalParams) -> tuple[np.ndarray, np.ndarray]:
     """LSD's segments (S, 2, 2) of the image at `cfg.scale`, in full-resolution pixels: (near-vertical,
     near-horizontal), each within max_tilt_deg."""
     small = cv2.resize(gray, None, fx=cfg.scale, fy=cfg.scale, interpolation=cv2.INTER_AREA)
@@ -65,7 +65,7 @@ def segments(gray: np.ndarray, cfg: ProposalConfig) -> tuple[np.ndarray, np.ndar
     return segs[d[:, 0] <= d[:, 1] * tan], segs[d[:, 1] <= d[:, 0] * tan]
 
 
-def vertical_lines(segs: np.ndarray, cfg: ProposalConfig) -> _Lines:
+def vertical_lines(segs: np.ndarray, cfg: ProposalParams) -> _Lines:
     """Near-vertical segments (S, 2, 2) oriented top first, collinear pieces joined, those >= min_side_px kept."""
     segs = segs.copy()
     flip = segs[:, 0, 1] > segs[:, 1, 1]
@@ -84,7 +84,7 @@ def _contrast(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.where(inside, img[vi, ui + 2] - img[vi, ui - 2], 0.0)
 
 
-def extend_lines(lines: _Lines, gray: np.ndarray, cfg: ProposalConfig) -> _Lines:
+def extend_lines(lines: _Lines, gray: np.ndarray, cfg: ProposalParams) -> _Lines:
     """Each line grown along itself, up and down, by at most its own length, through rows whose horizontal
     contrast has the line's sign and at least half its median, across gaps up to the joining distance: LSD stops
     short of a side's ends where it fades into the corner's shading (perception.lines does the same in a box)."""
@@ -110,7 +110,7 @@ def extend_lines(lines: _Lines, gray: np.ndarray, cfg: ProposalConfig) -> _Lines
     return _Lines(ends[0], ends[1])
 
 
-def _join(top: np.ndarray, bottom: np.ndarray, cfg: ProposalConfig) -> tuple[np.ndarray, np.ndarray]:
+def _join(top: np.ndarray, bottom: np.ndarray, cfg: ProposalParams) -> tuple[np.ndarray, np.ndarray]:
     """Chain pieces, in order of their top, onto a line above whose extension passes within join_offset_px of the
     piece's top and whose bottom lies within join_gap_px of it (or past it): LSD breaks a side into a handful.
     Both distances are the paper's in the image LSD ran on: / cfg.scale in full-resolution pixels."""
@@ -134,7 +134,7 @@ def _join(top: np.ndarray, bottom: np.ndarray, cfg: ProposalConfig) -> tuple[np.
     return out_t[alive], out_b[alive]
 
 
-def _wall_depth_m(lines: _Lines, depth_m: np.ndarray, side: float, cfg: ProposalConfig) -> np.ndarray:
+def _wall_depth_m(lines: _Lines, depth_m: np.ndarray, side: float, cfg: ProposalParams) -> np.ndarray:
     """Median depth (N,) of the strip `strip_px` outside each line, on its left (side -1) or right (+1): the wall
     an opening stands in, where the line is the opening's side (NaN where the strip has none)."""
     t = np.linspace(0.1, 0.9, 12)
@@ -161,14 +161,14 @@ def _top_edge_support(horizontal: np.ndarray, u_i: np.ndarray, u_j: np.ndarray, 
 
 
 def propose_doors(image: np.ndarray, depth_m: np.ndarray, rig: StereoRig, sizes: OpeningSizes,
-                  tol: SizeTolerance | None = None, cfg: ProposalConfig | None = None,
-                  gravity_cam: np.ndarray | None = None, wall: WallPlaneConfig | None = None) -> list[DoorProposal]:
+                  tol: SizeTolerance | None = None, cfg: ProposalParams | None = None,
+                  gravity_cam: np.ndarray | None = None, wall: WallPlaneParams | None = None) -> list[DoorProposal]:
     """Door candidates (best fit first, at most cfg.max_proposals, overlapping ones suppressed) in the left image
     from its LSD lines, its depth (m, NaN unknown) and the model's door sizes. A door stands on the floor the
     vehicle flies above: where its bottom is in view it lies below the camera (along `gravity_cam`, a unit vector
     in the camera frame, where known; else the camera's y axis: a level camera). The sides must stand in one wall
     by `wall` (the chain's; None: its defaults) unless `cfg.check_wall` is off."""
-    cfg, tol, wall = cfg or ProposalConfig(), tol or SizeTolerance(), wall or WallPlaneConfig()
+    cfg, tol, wall = cfg or ProposalParams(), tol or SizeTolerance(), wall or WallPlaneParams()
     doors = sizes.wh_m("door")
     gray = to_gray(image)
     vertical, horizontal = segments(gray, cfg)
@@ -257,7 +257,7 @@ def _row_median(z: np.ndarray, min_valid: int) -> np.ndarray:
 
 def _best(lines: _Lines, i: np.ndarray, j: np.ndarray, width: np.ndarray, height: np.ndarray, z: np.ndarray,
           cut: np.ndarray, fits: np.ndarray, tol_m: np.ndarray, doors: np.ndarray, keep: np.ndarray,
-          step: np.ndarray, on_wall: _OnWall, cfg: ProposalConfig) -> list[DoorProposal]:
+          step: np.ndarray, on_wall: _OnWall, cfg: ProposalParams) -> list[DoorProposal]:
     """The kept pairs as proposals, best fit first, a box overlapping a better one by IoU >= 0.3 dropped, and one
     whose sides do not stand in one wall dropped (checked here, on the few that get this far: ~1 ms each)."""
     out: list[DoorProposal] = []
@@ -291,7 +291,7 @@ class _OnWall:
     depth_m: np.ndarray
     rig: StereoRig
     gravity_cam: np.ndarray | None
-    cfg: WallPlaneConfig | None
+    cfg: WallPlaneParams | None
 
     def __call__(self, lines: _Lines, i: int, j: int) -> bool:
         if self.cfg is None:

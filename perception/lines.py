@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from macroloc.perception.params import LineConfig
+from macroloc.perception.params import LineParams
 from macroloc.perception.stereo import to_gray
 
 log = logging.getLogger(__name__)
@@ -46,7 +46,7 @@ def _angle_diff_deg(a: np.ndarray, b: np.ndarray | float) -> np.ndarray:
     return np.minimum(d, 180.0 - d)
 
 
-def _joinable(a: np.ndarray, b: np.ndarray, cfg: LineConfig) -> np.ndarray:
+def _joinable(a: np.ndarray, b: np.ndarray, cfg: LineParams) -> np.ndarray:
     """Whether each segment of `a` (N, 2, 2) joins the one of `b` (M, 2, 2): (N, M) bool. Not symmetric: the
     collinearity is measured from the line of `a`'s segment (as the paper's pairwise test, first against later).
     Angles within `join_angle_deg`, nearest endpoints within `join_gap_px`, `b`'s ends within `join_offset_px`
@@ -70,13 +70,13 @@ def _merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return _orient(np.stack([pts[i], pts[j]]))
 
 
-def join_segments(segments: list[np.ndarray], cfg: LineConfig | None = None) -> list[np.ndarray]:
+def join_segments(segments: list[np.ndarray], cfg: LineParams | None = None) -> list[np.ndarray]:
     """Join broken segments (angle <= 2 deg, endpoint gap <= 10 px, collinear) until none can be joined.
 
     The first joinable pair (i < j, in index order) is merged into i and j dropped, and the search starts over:
     the pairwise test runs once over all pairs as numpy (an (N, N) table), and after each merge only the merged
     segment's row and column are tested again."""
-    cfg = cfg or LineConfig()
+    cfg = cfg or LineParams()
     segs = np.array([_orient(np.asarray(s, np.float64).reshape(2, 2)) for s in segments]).reshape(-1, 2, 2)
     table = np.triu(_joinable(segs, segs, cfg), k=1)
     while (first := np.flatnonzero(table)).size:
@@ -141,7 +141,7 @@ def _edge_extent(gray: np.ndarray, seg: np.ndarray, v_top: float, v_bottom: floa
     return float(min(rows[top_i], seg[0, 1])), float(max(rows[bottom_i], seg[1, 1]))
 
 
-def _side_ends(gray: np.ndarray, seg: np.ndarray, v_top: float, v_bottom: float, cfg: LineConfig) -> np.ndarray:
+def _side_ends(gray: np.ndarray, seg: np.ndarray, v_top: float, v_bottom: float, cfg: LineParams) -> np.ndarray:
     """The side's segment, extended along its line to the edge's true ends; an end within `snap` x box height of
     the box's top or bottom row goes onto that row (edges fade into a corner's shading)."""
     top, bottom = _edge_extent(gray, seg, v_top, v_bottom, cfg.join_gap_px)
@@ -151,7 +151,7 @@ def _side_ends(gray: np.ndarray, seg: np.ndarray, v_top: float, v_bottom: float,
     return _extend_to_rows(seg, top, bottom)
 
 
-def _pick_side(cands: list[np.ndarray], edge_u: float, cfg: LineConfig) -> np.ndarray | None:
+def _pick_side(cands: list[np.ndarray], edge_u: float, cfg: LineParams) -> np.ndarray | None:
     if not cands:
         return None
     lengths = np.array([np.linalg.norm(s[1] - s[0]) for s in cands])
@@ -161,15 +161,15 @@ def _pick_side(cands: list[np.ndarray], edge_u: float, cfg: LineConfig) -> np.nd
     return cands[best]
 
 
-Joiner = Callable[[list[np.ndarray], LineConfig], list[np.ndarray]]
+Joiner = Callable[[list[np.ndarray], LineParams], list[np.ndarray]]
 
 
-def refine_box(image: np.ndarray, box_xyxy: tuple[float, float, float, float], cfg: LineConfig | None = None,
+def refine_box(image: np.ndarray, box_xyxy: tuple[float, float, float, float], cfg: LineParams | None = None,
                join: Joiner = join_segments) -> Sides:
     """The two vertical sides of the feature inside a detection box (image pixels; `image` grey or BGR: a frame
     with several boxes is best given grey, converted once). `join`: the segment joiner (bench.bench_chain passes
     the pure-Python one this replaced, to compare)."""
-    cfg = cfg or LineConfig()
+    cfg = cfg or LineParams()
     gray = to_gray(image)
     h_img, w_img = gray.shape
     x0, y0, x1, y1 = box_xyxy
@@ -196,7 +196,7 @@ def refine_box(image: np.ndarray, box_xyxy: tuple[float, float, float, float], c
 
 
 def _edge_column(gray: np.ndarray, box_xyxy: tuple[float, float, float, float], edge_u: float,
-                 cfg: LineConfig) -> np.ndarray:
+                 cfg: LineParams) -> np.ndarray:
     """Fallback when LSD finds no side: the image column of strongest horizontal gradient within the side band
     (summed over the box's rows), as a vertical segment over the box's rows; the box edge if nothing stands out."""
     x0, y0, x1, y1 = box_xyxy

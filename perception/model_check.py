@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 
 from macroloc.perception.detector import Detection
-from macroloc.perception.door_proposals import DoorProposal, ProposalConfig, propose_doors
+from macroloc.perception.door_proposals import DoorProposal, ProposalParams, propose_doors
 from macroloc.perception.evaluate import iou_xyxy
 from macroloc.perception.pipeline import ObservedFeature, Perception, PerceptionResult, Rejected, StereoPair
 from macroloc.perception.size_check import OpeningSizes, SizeTolerance, SizeVerdict, check_size
@@ -58,7 +58,7 @@ class ModelCheckedPerception:
     `use_detector=False` runs geometry alone, `proposals=None` the detector alone (both for the benchmark)."""
 
     def __init__(self, chain: Perception, sizes: OpeningSizes | None, tol: SizeTolerance | None = None,
-                 proposals: ProposalConfig | None = ProposalConfig(), use_detector: bool = True) -> None:
+                 proposals: ProposalParams | None = ProposalParams(), use_detector: bool = True) -> None:
         self.chain = chain
         self.sizes = sizes if sizes is not None and sizes.sizes else None
         self.tol = tol or SizeTolerance()

@@ -1,7 +1,7 @@
 """Stereo visual odometry: ORB matches (or optical flow between keyframes), SGBM depth at keyframes, PnP-RANSAC
 against the last keyframe.
 
-Each frame with `OdometryConfig.tracker` "klt": up to `flow_points` of the reference keyframe's 3D-pointed
+Each frame with `VisualOdometryParams.tracker` "klt": up to `flow_points` of the reference keyframe's 3D-pointed
 keypoints, spread over the grid, are followed from the last frame into this one by pyramidal Lucas-Kanade, each
 starting where the last pose moved on at the last velocity and turned by the gyro's rotation puts it; a point that
 does not come back to within `flow_round_trip_px` when followed back, or nears the image's edge, is dropped
@@ -48,8 +48,8 @@ from scipy.spatial.transform import Rotation
 from macroloc.common.geometry import rotation_angle_rad
 from macroloc.perception.binary_match import BinaryIndex
 from macroloc.perception.calib import StereoRig
-from macroloc.perception.params import OdometryConfig
-from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher, keypoint_points, to_gray
+from macroloc.perception.params import VisualOdometryParams
+from macroloc.perception.stereo import FrameDisparity, SgbmMatcher, SgbmParams, keypoint_points, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -83,17 +83,17 @@ class _Tracks:
 class StereoOdometry:
     """Frame-to-keyframe stereo odometry (see module doc). Feed frames in time order."""
 
-    def __init__(self, rig: StereoRig, config: OdometryConfig | None = None,
+    def __init__(self, rig: StereoRig, config: VisualOdometryParams | None = None,
                  disparity: SgbmMatcher | FrameDisparity | None = None) -> None:
         """`disparity`: the frame's shared SGBM (FrameDisparity) where other consumers match the same frames;
         None: its own, with `config.num_disparities`."""
         self.rig = rig
-        self.config = config or OdometryConfig()
+        self.config = config or VisualOdometryParams()
         self.orb = cv2.ORB_create(  # type: ignore[attr-defined]
             nfeatures=self.config.detect_features, fastThreshold=self.config.fast_threshold)
-        self.sgbm = disparity or SgbmMatcher(SgbmConfig(num_disparities=self.config.num_disparities))
+        self.sgbm = disparity or SgbmMatcher(SgbmParams(num_disparities=self.config.num_disparities))
         if self.config.tracker not in ("klt", "orb") or self.config.flow_from not in ("last", "keyframe"):
-            raise ValueError(f"OdometryConfig.tracker {self.config.tracker!r}: 'klt' or 'orb'; flow_from "
+            raise ValueError(f"VisualOdometryParams.tracker {self.config.tracker!r}: 'klt' or 'orb'; flow_from "
                              f"{self.config.flow_from!r}: 'last' or 'keyframe'")
         self.K = rig.K
         self._ref: _Keyframe | None = None

@@ -16,18 +16,18 @@ import numpy as np
 
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.detector import DEFAULT_MODEL, Detection, Detector
-from macroloc.perception.lines import LineConfig, Sides, refine_box
+from macroloc.perception.lines import LineParams, Sides, refine_box
 from macroloc.perception.params import PerceptionParams
 from macroloc.perception.reconstruct import (
-    PlausibilityConfig,
-    WallPlaneConfig,
+    PlausibilityParams,
+    WallPlaneParams,
     check_plausible,
     corners_on_plane,
     measure,
     reconstruct_sides,
     wall_plane,
 )
-from macroloc.perception.stereo import FrameDisparity, SgbmConfig, SgbmMatcher, depth_from_disparity, to_gray
+from macroloc.perception.stereo import FrameDisparity, SgbmMatcher, SgbmParams, depth_from_disparity, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -109,18 +109,18 @@ class PerceptionResult:
 class Perception:
     """The whole chain with its components; `process(pair)` is the paper's §2.2 step by step."""
 
-    def __init__(self, detector: Detector, matcher: SgbmMatcher | FrameDisparity, lines: LineConfig | None = None,
-                 plausibility: PlausibilityConfig | None = None, wall: WallPlaneConfig | None = WallPlaneConfig()
+    def __init__(self, detector: Detector, matcher: SgbmMatcher | FrameDisparity, lines: LineParams | None = None,
+                 plausibility: PlausibilityParams | None = None, wall: WallPlaneParams | None = WallPlaneParams()
                  ) -> None:
         self.detector = detector
         self.matcher = matcher  # a FrameDisparity shares the frame's one SGBM with the depth points and odometry
-        self.lines = lines or LineConfig()
-        self.plausibility = plausibility or PlausibilityConfig()
+        self.lines = lines or LineParams()
+        self.plausibility = plausibility or PlausibilityParams()
         self.wall = wall  # corners on the wall's plane beside the opening, where it shows one (None: the sides')
         self.band_margin_px = 24  # rows of stereo context above and below the boxes
 
     @staticmethod
-    def create(model_path: Path | None = None, sgbm: SgbmConfig | None = None, threads: int = 2,
+    def create(model_path: Path | None = None, sgbm: SgbmParams | None = None, threads: int = 2,
                disparity: FrameDisparity | None = None, params: PerceptionParams | None = None) -> Perception:
         """The chain with the detector at `model_path` (None: the shipped one); stereo from `disparity` (the
         frame's shared SGBM) where given, else its own band SGBM with `sgbm`; the sides, plausibility limits and

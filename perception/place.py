@@ -27,8 +27,8 @@ import numpy as np
 from macroloc.common.views import KeyframeView
 from macroloc.perception.binary_match import BinaryIndex
 from macroloc.perception.calib import StereoRig
-from macroloc.perception.params import PlaceConfig
-from macroloc.perception.stereo import SgbmConfig, SgbmMatcher, keypoint_points, to_gray
+from macroloc.perception.params import PlaceParams
+from macroloc.perception.stereo import SgbmMatcher, SgbmParams, keypoint_points, to_gray
 
 
 @dataclass(frozen=True)
@@ -41,10 +41,10 @@ class PlaceMatch:
 class PlaceRecognizer:
     """Describes keyframes for a stored map and places new ones in it (see module doc)."""
 
-    def __init__(self, rig: StereoRig, T_body_cam: np.ndarray, config: PlaceConfig | None = None) -> None:
+    def __init__(self, rig: StereoRig, T_body_cam: np.ndarray, config: PlaceParams | None = None) -> None:
         self.rig = rig
         self.T_body_cam = np.asarray(T_body_cam, float)
-        self.config = c = config or PlaceConfig()
+        self.config = c = config or PlaceParams()
         self._orb = cv2.ORB_create(nfeatures=c.n_features, fastThreshold=c.fast_threshold)  # type: ignore[attr-defined]
         self._sgbm: SgbmMatcher | None = None
         self._views: list[tuple[np.ndarray, KeyframeView]] = []
@@ -60,7 +60,7 @@ class PlaceRecognizer:
         if desc is None or not kp:
             return KeyframeView(np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
         if self._sgbm is None:
-            self._sgbm = SgbmMatcher(SgbmConfig(num_disparities=c.num_disparities))
+            self._sgbm = SgbmMatcher(SgbmParams(num_disparities=c.num_disparities))
         points_cam = keypoint_points(self._sgbm.disparity_px(left, right), np.array([k.pt for k in kp]), self.rig,
                                      max_depth_m=c.max_depth_m)
         ok = np.flatnonzero(points_cam[:, 2] > 0)

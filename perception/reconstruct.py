@@ -20,7 +20,7 @@ import numpy as np
 
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.lines import Sides
-from macroloc.perception.params import PlausibilityConfig, WallPlaneConfig
+from macroloc.perception.params import PlausibilityParams, WallPlaneParams
 from macroloc.perception.stereo import back_project, ray_cam, sample_depth_m
 
 log = logging.getLogger(__name__)
@@ -137,7 +137,7 @@ def reconstruct_sides(sides: Sides, depth_m: np.ndarray, rig: StereoRig, n_sampl
 
 
 def _strip_points(edge_px: np.ndarray, offset_px: np.ndarray, depth_m: np.ndarray, rig: StereoRig,
-                  cfg: WallPlaneConfig) -> np.ndarray:
+                  cfg: WallPlaneParams) -> np.ndarray:
     """Back-projected points (M, 3) of a strip beside an edge (2, 2): `n_samples` along it at each offset
     from `near_px` to `far_px` in the unit direction `offset_px`; those without depth left out."""
     t = np.linspace(0.05, 0.95, cfg.n_samples)[:, None]
@@ -149,7 +149,7 @@ def _strip_points(edge_px: np.ndarray, offset_px: np.ndarray, depth_m: np.ndarra
 
 
 def wall_plane(sides: Sides, depth_m: np.ndarray, rig: StereoRig, gravity_cam: np.ndarray | None = None,
-               cfg: WallPlaneConfig | None = None) -> tuple[np.ndarray, float] | None:
+               cfg: WallPlaneParams | None = None) -> tuple[np.ndarray, float] | None:
     """The plane n . X = d (unit n towards the camera, d < 0; camera frame, m) of the wall an opening sits in,
     or None where the depth beside it does not show one.
 
@@ -166,7 +166,7 @@ def wall_plane(sides: Sides, depth_m: np.ndarray, rig: StereoRig, gravity_cam: n
     (`bench.eval_perception_sim`: docs/measurements.md, "Door corners from the wall beside the opening").
     Where the box itself is wrong (wider than the door, or a doorway's box around a door seen through it) the
     wall beside it is some other wall: the tail grows a little."""
-    cfg = cfg or WallPlaneConfig()
+    cfg = cfg or WallPlaneParams()
     (tl, bl), (tr, br) = sides.left_px, sides.right_px
     across = (tr + br - tl - bl) / 2
     across = across / max(float(np.linalg.norm(across)), 1e-9)
@@ -233,9 +233,9 @@ def measure(corners_cam: np.ndarray, gravity_cam: np.ndarray | None) -> Reconstr
 
 
 def check_plausible(kind: str, rec: Reconstruction, side_dirs: tuple[np.ndarray, np.ndarray],
-                    gravity_known: bool, cfg: PlausibilityConfig | None = None) -> str | None:
+                    gravity_known: bool, cfg: PlausibilityParams | None = None) -> str | None:
     """None if the reconstruction is a plausible door/window, else the reason to reject it."""
-    cfg = cfg or PlausibilityConfig()
+    cfg = cfg or PlausibilityParams()
     z = rec.corners_cam[:, 2]
     if z.min() < cfg.depth_range_m[0] or z.max() > cfg.depth_range_m[1]:
         return f"depth {z.min():.2f}-{z.max():.2f} m outside {cfg.depth_range_m}"

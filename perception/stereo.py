@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from macroloc.perception.calib import StereoRig
-from macroloc.perception.params import SgbmConfig
+from macroloc.perception.params import SgbmParams
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +41,8 @@ class SgbmMatcher:
     the walls (docs/measurements.md, "SGBM's padding on the left edge").
     """
 
-    def __init__(self, config: SgbmConfig | None = None) -> None:
-        c = config or SgbmConfig()
+    def __init__(self, config: SgbmParams | None = None) -> None:
+        c = config or SgbmParams()
         self.config = c
         self._disparities = max(16, int(round(c.num_disparities * c.scale / 16)) * 16)  # at the matched size
         self._local = threading.local()  # OpenCV's matcher keeps its buffers: one per thread that matches
@@ -121,7 +121,7 @@ class FrameDisparity:
     different threads are safe (each thread matches with its own OpenCV matcher)."""
 
     def __init__(self, matcher: SgbmMatcher | None = None, keep: int = 1) -> None:
-        self.matcher = matcher or SgbmMatcher(SgbmConfig(num_disparities=128))
+        self.matcher = matcher or SgbmMatcher(SgbmParams(num_disparities=128))
         self.config = self.matcher.config
         self.keep = max(1, keep)
         self._matched: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()  # id(left)

@@ -43,7 +43,7 @@ def random_building(rng: np.random.Generator, n: int = 40, size_m: float = 40.0)
 
 def localizer_params(base: LocalizerParams | None = None, **changes: object) -> LocalizerParams:
     """`base` (None: the defaults) with fields of its parts changed by their names (`surface_min_points=100` is
-    `DepthParams.surface_min_points`): a test's shorthand for the nested `LocalizerParams`."""
+    `DepthWindowParams.surface_min_points`): a test's shorthand for the nested `LocalizerParams`."""
     base = base or LocalizerParams()
     parts = {part.name: getattr(base, part.name) for part in fields(base)}
     for name, value in changes.items():

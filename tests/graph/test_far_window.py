@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from macroloc.graph.far_window import FarSightings
 from macroloc.graph.features import BuildingModel, CentroidsByType, MacroFeature
-from macroloc.graph.params import DepthParams, FarParams, LandmarkParams
+from macroloc.graph.params import DepthWindowParams, FarParams, LandmarkParams
 from macroloc.graph.rigid import apply, make_T, rot_z, rotation_angle_deg
 
 DOORS_CAD = np.array([[0.0, 0.0, 1.05], [12.0, 1.0, 1.05], [3.0, 14.0, 1.05], [14.0, 11.0, 1.05],
@@ -29,7 +29,7 @@ def model() -> BuildingModel:
 def window(T_cad_map: np.ndarray, T_map_bodies: list[np.ndarray], seen: list[list[int]],
            params: FarParams | None = None) -> FarSightings:
     """A window whose keyframe k (at T_map_bodies[k]) saw the doors `seen[k]`, exactly."""
-    far = FarSightings(params or FarParams(far_min_sightings=3), DepthParams().surface_window_keyframes,
+    far = FarSightings(params or FarParams(far_min_sightings=3), DepthWindowParams().surface_window_keyframes,
                        LandmarkParams().position_sigma_m, VIEWER_BODY, CentroidsByType(model().features),
                        lambda i: T_map_bodies[i])
     for i, (T_map_body, doors) in enumerate(zip(T_map_bodies, seen, strict=True)):

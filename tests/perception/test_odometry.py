@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from macroloc.perception.calib import StereoRig
-from macroloc.perception.odometry import OdometryConfig, StereoOdometry
+from macroloc.perception.odometry import StereoOdometry, VisualOdometryParams
 
 RIG = StereoRig(fx_px=480.0, fy_px=480.0, cx_px=319.5, cy_px=239.5, baseline_m=0.12, width_px=640, height_px=480)
 DEPTH_M = 3.0
@@ -38,7 +38,7 @@ TRACKERS = ("klt", "orb")
 @pytest.mark.parametrize(("tracker", "flow_from"), [("klt", "last"), ("klt", "keyframe"), ("orb", "last")])
 def test_recovers_a_sideways_slide(tracker: str, flow_from: str) -> None:
     texture = wall_texture()
-    vo = StereoOdometry(RIG, OdometryConfig(tracker=tracker, flow_from=flow_from))
+    vo = StereoOdometry(RIG, VisualOdometryParams(tracker=tracker, flow_from=flow_from))
     xs = np.arange(0, 21) * 0.03  # 0.6 m to the right, 3 cm per frame
     for x in xs:
         result = vo.track(*view(texture, x))
@@ -68,7 +68,7 @@ def test_a_rotation_the_gyro_contradicts_is_replaced_and_the_translation_refitte
     np.testing.assert_allclose(fixed, T_ref_cam, atol=1e-6)
     close = T_ref_cam.copy()
     close[:3, :3] = T_ref_cam[:3, :3] @ Rotation.from_euler("x", 1.0, degrees=True).as_matrix()
-    pnp_as_is = StereoOdometry(RIG, OdometryConfig(pnp_rotation_gain=1.0))
+    pnp_as_is = StereoOdometry(RIG, VisualOdometryParams(pnp_rotation_gain=1.0))
     pnp_as_is._inliers = (obj, img)
     np.testing.assert_array_equal(pnp_as_is._agree_with_gyro(close, T_ref_cam[:3, :3]), close)  # within tolerance
 
@@ -112,9 +112,9 @@ def test_a_weak_jump_no_drone_can_make_is_coasted_over(tracker: str) -> None:
     xs = list(np.arange(0, 11) * 0.025)
     glitch = len(xs)
     xs += [xs[-1] + 0.025 + 0.10] + [xs[-1] + 0.025 * k for k in (2, 3, 4)]
-    every_pnp_weak = OdometryConfig(rekey_inliers=100_000, tracker=tracker)
-    unbounded = OdometryConfig(rekey_inliers=100_000, max_step_change_m=0.0, tracker=tracker)
-    for config, coasts in ((every_pnp_weak, True), (unbounded, False), (OdometryConfig(tracker=tracker), False)):
+    every_pnp_weak = VisualOdometryParams(rekey_inliers=100_000, tracker=tracker)
+    unbounded = VisualOdometryParams(rekey_inliers=100_000, max_step_change_m=0.0, tracker=tracker)
+    for config, coasts in ((every_pnp_weak, True), (unbounded, False), (VisualOdometryParams(tracker=tracker), False)):
         vo = StereoOdometry(RIG, config)
         results = [vo.track(*view(texture, x)) for x in xs]
         x = [r.T_odom_cam[0, 3] for r in results]
@@ -148,7 +148,7 @@ def test_optical_flow_runs_orb_only_for_keyframes() -> None:
     texture = wall_texture()
     xs = np.arange(0, 31) * 0.02  # 0.6 m: past the 0.3 m rekey distance
     for tracker in TRACKERS:
-        vo = StereoOdometry(RIG, OdometryConfig(tracker=tracker))
+        vo = StereoOdometry(RIG, VisualOdometryParams(tracker=tracker))
         counts = counted(vo)
         results = [vo.track(*view(texture, x)) for x in xs]
         assert all(r.tracked for r in results)
@@ -163,7 +163,7 @@ def test_a_frame_the_flow_loses_falls_back_to_orb_and_tracks_on(monkeypatch: pyt
     texture = wall_texture()
     xs = np.arange(0, 14) * 0.02  # 0.26 m: short of the 0.3 m rekey distance
     lose = 7
-    vo = StereoOdometry(RIG, OdometryConfig(tracker="klt"))
+    vo = StereoOdometry(RIG, VisualOdometryParams(tracker="klt"))
     counts = counted(vo)
     flow = cv2.calcOpticalFlowPyrLK
     frame = {"i": 0}
@@ -193,7 +193,7 @@ def test_rekey_makes_the_last_frame_the_reference_once_and_tracking_goes_on(trac
 
     texture = wall_texture()
     disparity = FrameDisparity()
-    vo = StereoOdometry(RIG, OdometryConfig(tracker=tracker), disparity=disparity)
+    vo = StereoOdometry(RIG, VisualOdometryParams(tracker=tracker), disparity=disparity)
     counts = counted(vo)
     xs = np.arange(0, 13) * 0.02  # 0.24 m: short of the odometry's own 0.3 m re-key distance
     for i, x in enumerate(xs):

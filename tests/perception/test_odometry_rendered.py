@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from macroloc.perception.calib import StereoRig
-from macroloc.perception.odometry import OdometryConfig, StereoOdometry
+from macroloc.perception.odometry import StereoOdometry, VisualOdometryParams
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +36,7 @@ def flight():  # noqa: ANN201 - [(T_cad_cam, left, right)]
 @pytest.mark.parametrize("tracker", ["klt", "orb"])
 def test_follows_a_rendered_flight_within_two_percent_of_its_length(flight, tracker: str) -> None:
     cam = StereoRig(480.0, 480.0, 319.5, 239.5, 0.12, 640, 480)
-    vo = StereoOdometry(cam, OdometryConfig(tracker=tracker))
+    vo = StereoOdometry(cam, VisualOdometryParams(tracker=tracker))
     T0 = flight[0][0]
     for _, left, right in flight:
         result = vo.track(left, right)

@@ -3,8 +3,8 @@ import pytest
 
 from macroloc.perception.stereo import (
     FrameDisparity,
-    SgbmConfig,
     SgbmMatcher,
+    SgbmParams,
     back_project,
     depth_from_disparity,
     ray_cam,
@@ -51,10 +51,10 @@ def test_no_disparity_puts_the_match_left_of_the_right_image():
     """The padding repeats the right image's first column: a left pixel matched into it (disparity greater than
     its column) has no match in view. 128 disparities on a plane 5 m away (11.5 px) gave 2,787 such pixels down
     the left edge (in Office_A seed 3's frames: walls 5-7 m away measured at 0.5 m); none is kept."""
-    from macroloc.perception.stereo import SgbmConfig
+    from macroloc.perception.stereo import SgbmParams
 
     left, right = fronto_parallel_pair(5.0)
-    disparity = SgbmMatcher(SgbmConfig(num_disparities=128)).disparity_px(left, right)
+    disparity = SgbmMatcher(SgbmParams(num_disparities=128)).disparity_px(left, right)
     column = np.arange(disparity.shape[1])
     assert not np.any(disparity > column)
     truth = RIG.fx_px * RIG.baseline_m / 5.0
@@ -91,7 +91,7 @@ def test_the_matcher_is_never_handed_unequal_empty_or_oversized_pairs() -> None:
 @pytest.mark.parametrize("u0", [10, 300])  # near the left edge (padded) and inside (real columns left of it)
 def test_a_window_matches_as_the_whole_frame_does(u0: int) -> None:
     left, right = fronto_parallel_pair(3.0)
-    matcher = SgbmMatcher(SgbmConfig(num_disparities=64))
+    matcher = SgbmMatcher(SgbmParams(num_disparities=64))
     whole = matcher.disparity_px(left, right)[100:300, u0:u0 + 200]
     window = matcher.window_px(left, right, 100, 300, u0, u0 + 200)
     assert window.shape == whole.shape
@@ -101,7 +101,7 @@ def test_a_window_matches_as_the_whole_frame_does(u0: int) -> None:
 
 def test_a_frame_is_matched_once_for_all_who_ask() -> None:
     left, right = fronto_parallel_pair(3.0)
-    shared = FrameDisparity(SgbmMatcher(SgbmConfig(num_disparities=64)))
+    shared = FrameDisparity(SgbmMatcher(SgbmParams(num_disparities=64)))
     whole = shared.disparity_px(left, right)
     assert shared.disparity_px(left, right) is whole
     assert np.array_equal(shared.window_px(left, right, 10, 50, 100, 200), whole[10:50, 100:200], equal_nan=True)
@@ -117,8 +117,8 @@ def test_the_last_pairs_matched_are_kept_for_a_thread_that_comes_later() -> None
     import threading
 
     pairs = [fronto_parallel_pair(d) for d in (2.0, 2.5, 3.0, 3.5)]
-    alone = [SgbmMatcher(SgbmConfig(num_disparities=64)).disparity_px(*p) for p in pairs]
-    shared = FrameDisparity(SgbmMatcher(SgbmConfig(num_disparities=64)), keep=3)
+    alone = [SgbmMatcher(SgbmParams(num_disparities=64)).disparity_px(*p) for p in pairs]
+    shared = FrameDisparity(SgbmMatcher(SgbmParams(num_disparities=64)), keep=3)
     got: dict[int, np.ndarray] = {}
 
     def match(k: int) -> None:
@@ -134,7 +134,7 @@ def test_the_last_pairs_matched_are_kept_for_a_thread_that_comes_later() -> None
     assert all(np.array_equal(got[k], alone[k], equal_nan=True) for k in (0, 1, 2))
     assert all(shared.disparity_px(*pairs[k]) is got[k] for k in (0, 1, 2)) and shared.computed == 3  # all kept
 
-    in_turn = FrameDisparity(SgbmMatcher(SgbmConfig(num_disparities=64)), keep=3)
+    in_turn = FrameDisparity(SgbmMatcher(SgbmParams(num_disparities=64)), keep=3)
     first = [in_turn.disparity_px(*p) for p in pairs]  # the fourth drops the first matched
     assert in_turn.computed == 4
     assert in_turn.disparity_px(*pairs[1]) is first[1] and in_turn.computed == 4

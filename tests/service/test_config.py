@@ -7,18 +7,21 @@ import contextlib
 import dataclasses
 import io
 import logging
+import tomllib
+import typing
 from pathlib import Path
 
+import pydantic
+import pydantic_settings
 import pytest
 
 from macroloc.graph.errors import UserInputError
-from macroloc.graph.keyframes import KeyframePolicy, KeyframeRule
+from macroloc.graph.keyframes import KeyframeRule
 from macroloc.graph.params import IsamSettings, LocalizerParams
 from macroloc.service.config import LEGACY_GRAPH_KEYS, GraphConfig, MacrolocConfig, load_config
 from macroloc.service.session import SessionSettings, settings_from_config
 
-TABLES = [name for name, f in GraphConfig.model_fields.items()
-          if isinstance(f.annotation, type) and hasattr(f.annotation, "to_params")]
+TABLES = [name for name, f in GraphConfig.model_fields.items() if dataclasses.is_dataclass(f.annotation)]
 
 
 def _other(value: object) -> object:
@@ -29,6 +32,8 @@ def _other(value: object) -> object:
         return value + 1
     if isinstance(value, tuple):  # one element changed: one leaf of the settings
         return (_other(value[0]), *value[1:])
+    if isinstance(value, str):
+        return value + "_other"
     assert isinstance(value, float)
     return value * 0.5 + 0.0625 if value <= 1.0 else value * 1.5 + 0.125  # fractions stay fractions
 
@@ -49,7 +54,7 @@ def test_the_default_graph_section_is_the_components_defaults() -> None:
     s = settings_from_config(MacrolocConfig().graph)
     assert s == SessionSettings()
     assert s.localizer == LocalizerParams() and s.isam == IsamSettings(relinearize_threshold=0.01)
-    assert s.rule == KeyframeRule(KeyframePolicy(0.25, 0.15, 0.34), while_exploring=False, without_sightings_m=0.0)
+    assert s.rule == KeyframeRule(0.25, 0.15, 0.34, while_exploring=False, without_sightings_m=0.0)
     assert s.localizer.registration.inlier_threshold_m == 0.6 and s.storey_hint is None
 
 
@@ -59,18 +64,16 @@ def test_tables_are_named_as_the_components() -> None:
     assert set(TABLES) - parts == {"keyframes", "isam"}
 
 
-def test_every_parameter_of_the_localizer_and_the_graph_is_a_key() -> None:
-    """Every field of each `LocalizerParams` part, of the `KeyframeRule` and of `IsamSettings` is a key of its
-    table: nothing that changes the localizer's behaviour is out of the config's (and `dump-config`'s) reach."""
+def test_every_table_of_the_graph_is_its_components_parameters() -> None:
+    """Each `LocalizerParams` part, the `KeyframeRule` and `IsamSettings` is its table, of the same type and the
+    same defaults (each key declared once, as the dataclass's field): nothing that changes the localizer's
+    behaviour is out of the config's (and `dump-config`'s) reach."""
     graph = GraphConfig()
     for part in dataclasses.fields(LocalizerParams):
-        keys = set(type(getattr(graph, part.name)).model_fields)
-        missing = {f.name for f in dataclasses.fields(getattr(LocalizerParams(), part.name))} - keys
-        assert not missing, f"[graph.{part.name}] lacks {sorted(missing)}"
-    rule = {f.name for f in dataclasses.fields(KeyframeRule)} - {"policy"} | \
-        {f.name for f in dataclasses.fields(KeyframePolicy)}
-    assert not rule - set(type(graph.keyframes).model_fields)
-    assert not {f.name for f in dataclasses.fields(IsamSettings)} - set(type(graph.isam).model_fields)
+        assert getattr(graph, part.name) == getattr(LocalizerParams(), part.name), part.name
+        assert type(getattr(graph, part.name)) is type(getattr(LocalizerParams(), part.name)), part.name
+    assert type(graph.keyframes) is KeyframeRule and graph.keyframes == KeyframeRule()
+    assert type(graph.isam) is IsamSettings and graph.isam == IsamSettings()
 
 
 @pytest.mark.parametrize("table", TABLES)
@@ -78,13 +81,13 @@ def test_every_key_of_every_table_takes_effect(table: str) -> None:
     """Each key set to another value changes that one value of the session's settings, and it arrives under its
     own name (`[graph.judge] surface_margin` is `LocalizerParams.judge.surface_margin`)."""
     default = settings_from_config(GraphConfig())
-    model = type(getattr(GraphConfig(), table))
-    assert model.model_fields, table
-    for key in model.model_fields:
-        value = _other(getattr(model(), key))
+    part = getattr(GraphConfig(), table)
+    assert dataclasses.fields(part), table
+    for key in (f.name for f in dataclasses.fields(part)):
+        value = _other(getattr(part, key))
         s = settings_from_config(GraphConfig.model_validate({table: {key: value}}))
         if table == "keyframes":
-            where = s.rule.policy if hasattr(s.rule.policy, key) else s.rule
+            where = s.rule
         elif table == "isam":
             where = s.isam
         else:
@@ -130,42 +133,52 @@ def test_a_flat_graph_file_loads_as_its_nested_equivalent_with_one_warning_per_k
         assert sum(w == f"config: [graph] {old} is now [graph.{table}] {key}" for w in warnings) == 1, old
 
 
+def _other_key(part: object, key: str) -> object:
+    """Another value for `part`'s field `key`, of its type (another of a Literal's choices) and within its bounds."""
+    value = getattr(part, key)
+    choices = typing.get_args(typing.get_type_hints(type(part))[key])
+    if typing.get_origin(typing.get_type_hints(type(part))[key]) is typing.Literal:
+        return next(c for c in choices if c != value)
+    return 32 if key == "num_disparities" else _other(value)
+
+
 def test_every_parameter_of_the_one_shot_registration_is_a_key_and_takes_effect() -> None:
-    """Every field of `RobustParams` is a [localize] key and of its `VerifyParams` a [localize.verify] key; each,
-    set to another value, changes that one value of `robust_params()`."""
-    from macroloc.graph.params import RobustParams, VerifyParams
+    """[localize] is `RobustParams` with `method`: each of its fields a key, each nested parameter set (`verify`)
+    a table; each key, set to another value, changes that one value of `robust_params()`."""
+    from macroloc.graph.params import RobustParams
     from macroloc.service.config import LocalizeConfig
 
-    keys = set(LocalizeConfig.model_fields) - {"method"}
-    assert keys == {f.name for f in dataclasses.fields(RobustParams)}
-    assert set(type(LocalizeConfig().verify).model_fields) == {f.name for f in dataclasses.fields(VerifyParams)}
-    assert LocalizeConfig().robust_params() == RobustParams()
-    for key in sorted(keys - {"verify"}):
-        value = _other(getattr(RobustParams(), key))
-        got = LocalizeConfig.model_validate({key: value}).robust_params()
-        assert got == dataclasses.replace(RobustParams(), **{key: value}), key
-    for key in type(LocalizeConfig().verify).model_fields:
-        value = _other(getattr(VerifyParams(), key))
-        got = LocalizeConfig.model_validate({"verify": {key: value}}).robust_params()
-        assert got == RobustParams(verify=dataclasses.replace(VerifyParams(), **{key: value})), key
+    section = pydantic.TypeAdapter(LocalizeConfig)
+    assert {f.name for f in dataclasses.fields(LocalizeConfig)} - {"method"} == \
+        {f.name for f in dataclasses.fields(RobustParams)}
+    default = RobustParams()
+    assert LocalizeConfig().robust_params() == default
+    tables = [f.name for f in dataclasses.fields(RobustParams) if dataclasses.is_dataclass(getattr(default, f.name))]
+    assert "verify" in tables
+    for key in (f.name for f in dataclasses.fields(RobustParams) if f.name not in tables):
+        value = _other_key(default, key)
+        got = section.validate_python({key: value}).robust_params()
+        assert got == dataclasses.replace(default, **{key: value}), key
+    for table in tables:
+        part = getattr(default, table)
+        for key in (f.name for f in dataclasses.fields(part)):
+            value = _other_key(part, key)
+            got = section.validate_python({table: {key: value}}).robust_params()
+            assert got == dataclasses.replace(default, **{table: dataclasses.replace(part, **{key: value})}), key
 
 
 def test_every_parameter_of_the_perception_chain_is_a_key_and_takes_effect() -> None:
-    """Every field of each `PerceptionParams` part is a key of its [perception.<part>] table; each, set to another
-    value, changes that one value of `to_params()`; no key set: the chain's own defaults."""
+    """Each `PerceptionParams` part is its [perception.<part>] table; each of its keys, set to another value,
+    changes that one value of `to_params()`; no key set: the chain's own defaults."""
     from macroloc.perception.params import PerceptionParams
     from macroloc.service.config import PerceptionConfig
 
     default = PerceptionParams()
     assert PerceptionConfig().to_params() == default
     for part in dataclasses.fields(PerceptionParams):
-        table = type(getattr(PerceptionConfig(), part.name))
-        fields_ = {f.name: getattr(getattr(default, part.name), f.name)
-                   for f in dataclasses.fields(getattr(default, part.name))}
-        assert set(table.model_fields) == set(fields_), part.name
-        for key, value in fields_.items():
-            other = {"orb": "klt", "klt": "orb", "last": "keyframe", "keyframe": "last"}[value] \
-                if isinstance(value, str) else 32 if key == "num_disparities" else _other(value)
+        assert type(getattr(PerceptionConfig(), part.name)) is type(getattr(default, part.name)), part.name
+        for key in (f.name for f in dataclasses.fields(getattr(default, part.name))):
+            other = _other_key(getattr(default, part.name), key)
             got = PerceptionConfig.model_validate({part.name: {key: other}}).to_params()
             want = dataclasses.replace(default, **{part.name: dataclasses.replace(getattr(default, part.name),
                                                                                  **{key: other})})
@@ -230,7 +243,7 @@ def test_dump_config_prints_the_tables_and_reads_back(tmp_path: Path) -> None:
     text = out.getvalue()
     for table in TABLES:
         assert f"\n[graph.{table}]\n" in text
-    assert "\n[graph.judge]\nsurface_turn_deg = 24.0\nsurface_margin = 0.3\n" in text
+    assert "\n[graph.judge]\nsurface_min_points = 200\nsurface_min_support = 0.9\nsurface_margin = 0.3\n" in text
     path = tmp_path / "dumped.toml"
     path.write_text(text)
     assert load_config(path).graph == GraphConfig()
@@ -244,3 +257,36 @@ def test_a_window_too_short_for_the_surface_check_is_refused(tmp_path: Path) -> 
         load_config(path)
     path.write_text("[graph.isam]\nwindow_keyframes = 0\n")
     assert settings_from_config(load_config(path).graph).isam.window_keyframes == 0
+
+
+def test_a_key_is_declared_once_as_its_components_field(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A parameter is one line, `name: type = param(default, description, bounds)` in its component's dataclass:
+    as a table of a config section, that line alone gives the key its default, check and description (the schema
+    and docs/configuration.md read them), a file's and the environment's value, and its place in dump-config."""
+    from pydantic import Field
+
+    from macroloc.common.parameters import Parameters, param
+    from macroloc.service.config import _Section
+
+    @dataclasses.dataclass(frozen=True)
+    class ExampleParams(Parameters):
+        speed_mps: float = param(2.0, "an example key, m/s", gt=0, le=5)
+
+    class Section(_Section):
+        example: ExampleParams = Field(default_factory=ExampleParams, description="[x.example]: an example table")
+
+    class Settings(pydantic_settings.BaseSettings):
+        model_config = pydantic_settings.SettingsConfigDict(env_prefix="EXAMPLE_", env_nested_delimiter="__")
+        x: Section = Field(default_factory=Section)
+
+    schema = Settings.model_json_schema()["$defs"]["ExampleParams"]["properties"]["speed_mps"]
+    assert schema == {"default": 2.0, "description": "an example key, m/s", "exclusiveMinimum": 0, "maximum": 5,
+                      "title": "Speed Mps", "type": "number"}
+    path = tmp_path / "example.toml"
+    path.write_text("[x.example]\nspeed_mps = 3.5\n")
+    assert Settings(**tomllib.loads(path.read_text())).x.example == ExampleParams(speed_mps=3.5)
+    monkeypatch.setenv("EXAMPLE_X__EXAMPLE__SPEED_MPS", "4.0")
+    assert Settings().x.example.speed_mps == 4.0 and Settings().model_dump() == {"x": {"example": {"speed_mps": 4.0}}}
+    for bad in ({"speed_mps": 0.0}, {"speed_mps": 6.0}, {"speed": 1.0}):
+        with pytest.raises(pydantic.ValidationError):
+            Section.model_validate({"example": bad})

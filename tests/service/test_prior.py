@@ -43,10 +43,10 @@ def _replay(flight, model, make_prior=None):  # noqa: ANN001, ANN202
     from macroloc.service.offline.replay_sources import TruthSource
     from macroloc.service.session import session_from_config
 
-    graph, sessions = load_config(None).graph, []
+    cfg, sessions = load_config(None), []
 
     def make(T_body_cam):  # noqa: ANN001, ANN202
-        sessions.append(session_from_config(graph, model, T_body_cam=T_body_cam))
+        sessions.append(session_from_config(cfg, model, T_body_cam=T_body_cam))
         return sessions[-1]
 
     recorder = None if make_prior is None else _PriorAfterFirstFrame(sessions, make_prior)
