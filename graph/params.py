@@ -1,11 +1,13 @@
 """The localizer's parameters: one small frozen dataclass per component, composed in `LocalizerParams`. Each
 component receives its own (the judge `JudgeParams`, the far sightings `FarParams`, ...), never the whole set.
 
-They live in this one leaf module (numpy only) so that the service's config (service/config.py) can take its
-defaults from them without importing the components (graph.judge pulls in scipy); the components re-export
-theirs (`from macroloc.graph.judge import JudgeParams`). A field's name is its config key's where the config
-sets it, in the [graph] section's table named as the `LocalizerParams` field (`[graph.judge] surface_margin` is
-`JudgeParams.surface_margin`). Metres, seconds, degrees where named so.
+Each parameter is declared here once, as a field with its default, bounds and description
+(`common.parameters.param`), and each dataclass is a config table of the service's (service/config.py) as it
+is: `[graph.judge] surface_margin` is `JudgeParams.surface_margin`, in the [graph] section's table named as the
+`LocalizerParams` field; `[localize]` is `RobustParams`. A new parameter is one line here; its key, its check,
+docs/configuration.md and `macroloc dump-config` follow. They live in this one leaf module (numpy only) so that
+the config takes them without importing the components (graph.judge pulls in scipy); the components re-export
+theirs (`from macroloc.graph.judge import JudgeParams`). Metres, seconds, degrees where named so.
 """
 
 from __future__ import annotations

@@ -1,8 +1,10 @@
 """The perception chain's parameters: one small frozen dataclass per component, composed in `PerceptionParams`
 (the frame's stereo, the sides' line segments, the plausibility limits, the wall plane, the visual odometry,
-gravity). They live in this leaf module (no OpenCV) so that the service's config (service/config.py,
-`[perception.*]`) can take its defaults from them; the components re-export theirs. Pixels, metres, degrees,
-seconds where named so.
+gravity, ...). Each parameter is declared here once, as a field with its default, bounds and description
+(`common.parameters.param`), and each part is the service's config table of its name as it is
+(`[perception.odometry]` is `VisualOdometryParams`; service/config.py). They live in this leaf module (no OpenCV)
+so that the config takes them without importing the components; the components re-export theirs. Pixels,
+metres, degrees, seconds where named so.
 """
 
 from __future__ import annotations

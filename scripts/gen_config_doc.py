@@ -1,8 +1,8 @@
 """Write docs/configuration.md from the typed configuration (macroloc.service.config).
 
-Every key of every section with its type, default, bounds and description, read from the pydantic models, so
-that the reference cannot drift from the code: tests/service/test_config_doc.py regenerates it and fails where
-the committed file differs.
+Every key of every section with its type, default, bounds and description, read from the pydantic models and
+the components' parameter dataclasses (their fields' metadata), so that the reference cannot drift from the code:
+tests/service/test_config_doc.py regenerates it and fails where the committed file differs.
 
     python scripts/gen_config_doc.py            # rewrite docs/configuration.md
     python scripts/gen_config_doc.py --check    # exit 1 where it is stale
@@ -60,6 +60,11 @@ associate_m`; `registration_tolerance_m`, now `[graph.registration] inlier_thres
 moves to its table with one warning line naming the new key.
 
 Units are in the key's name (`_m` metres, `_s` seconds, `_deg` degrees, `_hz` hertz) or its description.
+
+A component's parameter is declared once, as one field of its frozen dataclass (`graph/params.py`,
+`graph/keyframes.py`, `perception/params.py`), e.g. `surface_margin: float = param(0.3, "...", ge=0)`: that
+dataclass is its table here, so the line gives the key, its default, its check and its row below; the service's
+own keys are declared in `service/config.py`. Then run `python scripts/gen_config_doc.py`.
 
 """
 
