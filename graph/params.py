@@ -29,10 +29,9 @@ class OdometryFactorParams(Parameters):
     odometry_sigma_per_m: float = param(
         0.03, "the odometry's translation sigma per metre travelled (its drift), m/m", gt=0)
     odometry_rot_sigma_per_m: float = param(0.01, "its rotation sigma per metre travelled, rad/m", gt=0)
-    odometry_dead_reckoned_sigma_mps: float = param(  # translation sigma per second the odometry lost track and only
+    odometry_dead_reckoned_sigma_mps: float = param(
         0.5, "translation sigma per second the odometry lost track and only extrapolated (a drone's speed it could not "
         "see change), m/s", gt=0)
-    #                                               extrapolated (a drone's speed it could not see change)
 
 
 @dataclass(frozen=True)
@@ -66,13 +65,13 @@ class RegistrationParams(Parameters):
     min_sightings_to_register: int = param(
         2, "a landmark takes part in registration once seen this often (one sighting may be a passing false detection)",
         ge=1)
-    inlier_threshold_m: float = param(  # an aligned landmark this close to a same-type CAD feature supports a pose:
+    # an aligned landmark this close to a same-type CAD feature supports a pose: the registrar's inlier and ambiguity
+    # tolerance (RobustParams.inlier_threshold_m and ambiguity_tau_m), the judge's turns' too
+    inlier_threshold_m: float = param(
         0.6, "an aligned landmark this close to a same-type CAD feature supports the pose (the registration's inlier "
         "and ambiguity tolerance, as [localize] inlier_threshold_m is the one-shot localize's), m (perception's "
         "landmarks lie 0.1-0.5 m off their feature: a tighter tolerance leaves the right pose too few inliers to beat "
         "its rivals)", gt=0)
-    #                                  the registrar's inlier and ambiguity tolerance (RobustParams.inlier_threshold_m
-    #                                  and ambiguity_tau_m), the judge's turns' too
     registration_min_landmarks: int = param(  # the model registrar answers 'localized' from this many landmarks ...
         4, "registration is tried once this many landmarks have been seen twice, and a pose must explain as many. With "
         "gravity two doors fix a pose, but at the tolerance above a building of a hundred alike doors offers chance "
@@ -81,10 +80,9 @@ class RegistrationParams(Parameters):
         1, "with the surface check ([graph] surface_check), candidate poses are weighed from this many landmarks. From "
         "one door or window (gravity known) they are every alike feature of the model, seen from either side; the "
         "walls must single one out", ge=1)
-    registration_early_stop: float = param(  # with the surface check, it stops seeding hypotheses once a pose explains
+    registration_early_stop: float = param(
         1.0, "with the surface check, hypotheses stop being seeded once a pose explains this fraction of the landmarks "
         "(1: never)", gt=0, le=1)
-    #                                       this fraction of the landmarks (1.0: never; see `model_registrar`)
     surface_retry_s: float = param(  # with no new landmark, the check is retried this often as the walls come in view
         1.0, "while not localized and no new landmark came, the walls weigh the candidate poses again this often as "
         "more of them is seen, s (each check costs 0.1-0.4 s of CPU on a 2-core machine)", gt=0)
@@ -120,10 +118,9 @@ class DepthWindowParams(Parameters):
 class FarParams(Parameters):
     """The doors and windows seen beyond the sighting range (graph.far_window.FarSightings)."""
 
-    far_bearing_deg: float = param(  # a far sighting is explained where a same-type CAD feature lies within this
+    far_bearing_deg: float = param(
         3.0, "a far sighting is explained where a same-type CAD feature lies within this horizontal bearing of it, "
         "seen from the keyframe's camera (and 3 sigmas of its range), deg", gt=0)
-    #                               horizontal bearing of it, seen from the keyframe's camera, and 3 sigmas of its range
     far_elevation_deg: float = param(  # ... and within this of its elevation (a one-door candidate's height is coarse)
         5.0, "... and within this of its elevation, deg", gt=0)
     far_turn_deg: float = param(2.0, "... turning the candidate pose by up to this to do so, deg", ge=0)
@@ -144,10 +141,9 @@ class FarParams(Parameters):
         3, "... from this many of the newest keyframes that saw such a pair (the widest pair of each)", ge=1)
     far_resection_sightings: int = param(
         60, "the resected candidates are judged by this many far sightings, evenly drawn", ge=1)
-    far_place_m: float = param(  # one candidate per place this size; a pair whose ranges leave the camera more than
+    far_place_m: float = param(
         1.0, "one resected candidate per place this size; a pair whose ranges leave the camera more than this to move "
         "resects none, m", gt=0)
-    #                           this to move (within one sigma) resects none (`FarSightings.resected`)
     far_height_sigma_m: float = param(
         0.2, "the pose taken from far sightings holds the keyframe's height with this sigma, m ...", gt=0)
     far_bearing_sigma_deg: float = param(0.5, "... and is fitted to the far bearings with this one, deg", gt=0)
@@ -162,15 +158,15 @@ class JudgeParams(Parameters):
         "registration_min_landmarks)", ge=1)
     surface_min_support: float = param(
         0.9, "a pose must put this fraction of the depth points on the model's surfaces", ge=0, le=1)
-    surface_margin: float = param(  # ... and every other candidate pose this much less (of points on surfaces and in
+    # ... and every other candidate pose this much less (of points on surfaces and in sight, with the model's walls:
+    # SurfaceCheck.score) ...
+    surface_margin: float = param(
         0.3, "a candidate pose is taken only where every different candidate scores this much less (the fraction of "
         "the depth points on the model's surfaces and in sight); a smaller margin localizes sooner and risks a wrong "
         "pose where the building repeats itself", ge=0)
-    #                               sight, with the model's walls: SurfaceCheck.score) ...
-    surface_margin_unfit: float = param(  # ... or this much less where that pose does not fit the walls itself
+    surface_margin_unfit: float = param(
         0.15, "... or this much less where that other pose does not fit the walls itself (candidates from two "
         "landmarks or more)", ge=0)
-    #                                     (candidates from two landmarks or more: `SurfaceJudge.choose`) ...
     surface_max_seen_through: float = param(
         0.1, "... and let at most this fraction be seen through a wall ([graph] line_of_sight)", ge=0, le=1)
     surface_refuse_seen_through: float = param(
@@ -194,19 +190,19 @@ class JudgeParams(Parameters):
     surface_turn_max_inliers: int = param(
         3, "where no candidate fits the walls unturned, candidates from up to this many doors are turned too (keeping "
         "as many by a CAD feature)", ge=1)
-    surface_own_wall_m: float = param(  # candidates from one door are weighed by the points farther than this from its
+    # candidates from one door are weighed by the points farther than this from its wall's plane (both faces of the
+    # thickest walls, the reveals): nearer, every candidate puts them on a wall (`SurfaceJudge.choose`)
+    surface_own_wall_m: float = param(
         1.0, "candidates from one door are weighed by the depth points farther than this from its wall's plane "
         "(nearer, every candidate puts them on a wall), m", ge=0)
-    #                                  wall's plane (both faces of the thickest walls, the reveals): nearer, every
-    #                                  candidate puts them on a wall (`SurfaceJudge.choose`)
-    surface_self_map_images: int = param(  # before a candidate is taken, its images under up to this many of the
+    # before a candidate is taken, its images under up to this many of the building's near-self-maps (graph.self_maps,
+    # most voted first) that keep as many landmarks by a same-type CAD feature are fitted and weighed too: the doors
+    # cannot tell them apart, and the registrar offers them for its own best pose only (RobustParams.rival_self_maps,
+    # the same count; 0: none)
+    surface_self_map_images: int = param(
         8, "before a candidate pose is taken, its images under up to this many of the building's near-self-maps that "
         "keep as many landmarks by a same-type CAD feature are weighed too (the doors cannot tell them apart); 0: none",
         ge=0)
-    #                                   building's near-self-maps (graph.self_maps, most voted first) that keep as
-    #                                   many landmarks by a same-type CAD feature are fitted and weighed too: the
-    #                                   doors cannot tell them apart, and the registrar offers them for its own best
-    #                                   pose only (RobustParams.rival_self_maps, the same count; 0: none)
 
 
 @dataclass(frozen=True)
@@ -224,10 +220,9 @@ class SurfaceFitParams(Parameters):
         "found by, deg", gt=0)
     surface_fit_settling_keyframes: int = param(  # pose's heading is the few doors' it was found by
         10, "those first keyframes", ge=0)
-    surface_fit_sigma_m: float = param(  # a fitted point's distance to its wall, model against reality (m); the
+    surface_fit_sigma_m: float = param(
         0.05, "a fitted point's distance to its wall, model against reality (the judge's fits of candidate poses use "
         "it too), m", gt=0)
-    #                                    judge's fits of candidate poses use it too
 
 
 @dataclass(frozen=True)
@@ -236,13 +231,13 @@ class StatusParams(Parameters):
 
     degraded_after_s: float = param(10.0, "localized, but no sighting of a CAD-linked landmark for this long: degraded")
     lost_after_s: float = param(30.0, "... for this long: lost")
-    held_sigma_m: float = param(  # the pose is held to the model while its horizontal sigma (the graph's marginal,
+    # the pose is held to the model while its horizontal sigma (the graph's marginal, worst direction) is within this: 3
+    # sigma inside the 0.5 m a wall fit may move it and a link may reach (surface_fit_max_correction_m, cad_link_m).
+    # Only then is it `localized` and are the keyframe's wall fit and new links made (graph.anchoring)
+    held_sigma_m: float = param(
         0.17, "the pose is held to the model while its horizontal sigma (the pose graph's) is within this: only then "
         "is it localized, fitted to the walls and are new doors linked by proximity. Beyond (the odometry lost track "
         "and extrapolated), the walls and the doors look for it again ([graph.recovery])", gt=0)
-    #                             worst direction) is within this: 3 sigma inside the 0.5 m a wall fit may move it
-    #                             and a link may reach (surface_fit_max_correction_m, cad_link_m). Only then is it
-    #                             `localized` and are the keyframe's wall fit and new links made (graph.anchoring)
 
 
 @dataclass(frozen=True)
@@ -254,21 +249,21 @@ class RecoveryParams(Parameters):
         "odometry tracks again (taken only where no other shift fits them as well: [graph.judge]), else by the doors "
         "and windows mapped since it was held (taken where it puts two or more on the model's, and no shift "
         "recovery_apart_m from it as many)")
-    recovery_step_m: float = param(  # candidate shifts on a grid this fine, within 3 sigma of the pose: the walls' fit
-        0.5, "the shifts' grid spacing", gt=0)
-    #                               of each candidate (JudgeParams.surface_refine_m, 0.6) reaches the truth from the
-    #                               nearest grid point (at most 0.35 m away)
+    # candidate shifts on a grid this fine, within 3 sigma of the pose: the walls' fit of each candidate
+    # (JudgeParams.surface_refine_m, 0.6) reaches the truth from the nearest grid point (at most 0.35 m away)
+    recovery_step_m: float = param(0.5, "the shifts' grid spacing", gt=0)
     recovery_max_m: float = param(  # ... and within this
         4.0, "the largest shift", gt=0)
     recovery_candidates: int = param(  # the shifts that put most points on the walls, recovery_apart_m apart, are
         8, "the shifts that put most depth points on the walls, this many ...", ge=1)
-    recovery_apart_m: float = param(  # fitted and judged (JudgeParams.surface_screen_top, the judge's own cut); the
-        1.0, "... at least this far apart, are fitted and judged, m", ge=0)
-    #                                doors' shift is refused where one this far from it puts as many on the model
-    recovery_min_doors: int = param(  # the doors' shift puts this many landmarks on the model's features, or is not
+    # fitted and judged (JudgeParams.surface_screen_top, the judge's own cut); the doors' shift is refused where one
+    # this far from it puts as many on the model
+    recovery_apart_m: float = param(1.0, "... at least this far apart, are fitted and judged, m", ge=0)
+    # the doors' shift puts this many landmarks on the model's features, or is not taken: one is the false door by a
+    # model door that holding keeps out
+    recovery_min_doors: int = param(
         2, "the doors' shift is taken where it puts this many doors and windows mapped since the pose was held on the "
         "model's (one alone may be a false detection by a model door)", ge=2)
-    #                              taken: one is the false door by a model door that holding keeps out
     recovery_sigma_m: float = param(  # the pose found: its sigmas in the CAD frame (a placement's, AnchorParams)
         0.15, "the position sigma of a pose found again", gt=0)
     recovery_sigma_deg: float = param(2.0, "... its orientation sigma, deg", gt=0)
@@ -288,8 +283,6 @@ class IsamSettings(Parameters):
         "check reads back", ge=0)
     marginalise_every: int = param(
         100, "with a window: keyframes are marginalised this many at a time (one re-factorisation each time)", ge=1)
-    # With a window: a landmark no live keyframe sees is marginalised with the keyframes and re-enters when seen
-    # again (graph.posegraph), so the live graph holds the doors in view, not every door mapped.
     marginalise_landmarks: bool = param(
         True, "with a window: a door or window no live keyframe sees leaves the graph with them, its CAD links set "
         "aside, and re-enters when seen again, at its last estimate with its links (unlinked: with a prior of its last "

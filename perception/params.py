@@ -30,9 +30,10 @@ class SgbmParams(Parameters):
     speckle_window: int = param(100, "OpenCV's speckleWindowSize, px", ge=0)
     speckle_range: int = param(2, "OpenCV's speckleRange", ge=0)
     three_way: bool = param(True, "OpenCV's 3-way mode (faster than the full mode)")
-    scale: float = param(  # < 1: matched on the pair shrunk by this factor (disparities and block too), then the
+    # < 1: matched on the pair shrunk by this factor (disparities and block too), then the disparity brought back to
+    # full size (nearest pixel, values / scale): 0.5 costs ~1/4
+    scale: float = param(
         1.0, "below 1: matched on the pair shrunk by this factor, the disparity brought back to full size", gt=0, le=1)
-    #                     disparity brought back to full size (nearest pixel, values / scale): 0.5 costs ~1/4
 
 
 @dataclass(frozen=True)
@@ -115,17 +116,18 @@ class VisualOdometryParams(Parameters):
     rekey_inliers: int = param(80, "fewer: the frame becomes the reference keyframe", ge=1)
     rekey_translation_m: float = param(0.3, "... or after this much motion, m", gt=0)
     rekey_rotation_rad: float = param(0.35, "... or rotation, rad", gt=0)
+    # the session's keyframes become the odometry's too, sharing their SGBM (where the depth points are measured at
+    # keyframes: StereoOdometry.rekey); 12 % less replay CPU, but off: APE worse on held-out Office_A flights
+    # (docs/measurements.md, "The odometry re-keyed on the session's keyframes")
     rekey_at_session_keyframes: bool = param(
         False, "the session's keyframes become the odometry's reference too, sharing their whole-frame SGBM (with "
         "[perception.depth] at_keyframes; less CPU, but off: held-out APE worse, docs/measurements.md)")
-    #   SGBM (where the depth points are measured at keyframes: StereoOdometry.rekey); 12 % less replay CPU, but
-    #   off: APE worse on held-out Office_A flights (docs/measurements.md, "The odometry re-keyed on the session's
-    #   keyframes")
     max_step_m: float = param(0.15, "a frame-to-frame jump beyond this is a wrong PnP solution, m", gt=0)
     max_step_rad: float = param(0.25, "... or a turn beyond this, rad", gt=0)
-    max_step_change_m: float = param(  # a pose from fewer than rekey_inliers this far off the last step's velocity
+    # a pose from fewer than rekey_inliers this far off the last step's velocity (27 m/s^2 at 30 Hz) is a wrong PnP
+    # solution (a wall filling the view)
+    max_step_change_m: float = param(
         0.03, "a pose from few inliers this far off the last step's velocity is wrong, m", gt=0)
-    #                                  (27 m/s^2 at 30 Hz) is a wrong PnP solution (a wall filling the view)
     gyro_tolerance_rad: float = param(
         0.035, "a PnP rotation this far from the gyro's is replaced by the gyro's, rad", gt=0)
     pnp_rotation_gain: float = param(0.2, "with a gyro: the share of PnP's rotation taken per frame", ge=0, le=1)
@@ -142,9 +144,9 @@ class VisualOdometryParams(Parameters):
         2, "klt: its pyramid's levels", ge=0)
     flow_from: Literal["last", "keyframe"] = param(
         "last", "klt: each point followed from the last frame or from the keyframe's image")
-    flow_min_eigen: float = param(  # LK's minEigThreshold (OpenCV's): a point whose window's gradients are weaker is
-        1e-4, "klt: Lucas-Kanade's minEigThreshold", gt=0)
-    #                               lost (higher: fewer points on edges, which slide along them)
+    # LK's minEigThreshold (OpenCV's): a point whose window's gradients are weaker is lost (higher: fewer points on
+    # edges, which slide along them)
+    flow_min_eigen: float = param(1e-4, "klt: Lucas-Kanade's minEigThreshold", gt=0)
     flow_round_trip_px: float = param(1.0, "klt: a point tracked forward then back further than this is lost, px", gt=0)
     flow_border_px: float = param(8.0, "klt: a point tracked this near the image's edge is lost, px", ge=0)
 
@@ -171,10 +173,11 @@ class DepthPointsParams(Parameters):
     every: int = param(
         3, "depth points on every this many stereo frames (the localizer keeps the newest before each keyframe); 0: "
         "none", ge=0)
-    at_keyframes: bool = param(  # measured only on the frames that become keyframes (what the localizer uses: a
+    # measured only on the frames that become keyframes (what the localizer uses: a keyframe takes the newest before
+    # it), not on every `every`-th frame
+    at_keyframes: bool = param(
         True, "measure them only on the frames that become keyframes (a keyframe takes the newest before it, the "
         "others are never used); false: on every `every`-th frame")
-    #                            keyframe takes the newest before it), not on every `every`-th frame
     stride_px: int = param(16, "every this many pixels of the disparity, px", ge=1)
     min_range_m: float = param(  # ... at this range ...
         0.3, "points nearer are dropped, m", ge=0)
