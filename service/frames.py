@@ -3,7 +3,7 @@
 `PerceptionPipeline` decodes a wire `StereoFrame`, runs `perception.pipeline.Perception` (detector -> LSD ->
 SGBM -> 3D corners) and returns the doors/windows with corners in the body frame, using the frame's own
 CameraInfo (intrinsics, baseline, T_body_cam); every few frames it also measures stereo depth points for the
-localizer's surface check (graph.surfaces). `make_pipeline` picks it when the detector's weights load, and
+localizer's surface check (graph.surfaces). `configured_pipeline` picks it when the detector's weights load, and
 the decode-only pipeline otherwise (logged).
 """
 
@@ -189,3 +189,14 @@ def depth_points_body(frame: pb.StereoFrame, stride_px: int = 8, max_range_m: fl
     points_cam = np.column_stack([(u[ok] - info.cx) / info.fx * z, (v[ok] - info.cy) / info.fy * z, z])  # pinhole
     T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
     return points_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3]
+
+
+def configured_pipeline(cfg) -> FramePipeline:  # noqa: ANN001 - service.config.MacrolocConfig
+    """The stereo-frame pipeline the config asks for: the perception chain when [service] perception is on and it
+    loads, else none (frames still give a pose from the odometry; sightings then come on the observations key)."""
+    if cfg.service.perception:
+        pipeline = make_perception_pipeline(detector_model=cfg.perception.detector_model,
+                                            params=cfg.perception.to_params())
+        if pipeline is not None:
+            return pipeline
+    return NullPipeline()

@@ -18,17 +18,14 @@ path the service runs.
 
 Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cam_left, cad. Metres.
 
-Restarting from a saved map (`MapSnapshot`): where it holds keyframe views and was localized, the stereo frames
-are placed in them by place recognition (`restored`, service.places) from the first frame on, before any door is
-seen. Otherwise `RestoredRegistrar` first checks the saved T_cad_map against the first sightings (the vehicle's
-odometry usually outlives a service restart), then falls back to the landmarks the previous run linked to the
-model (`StoredMapRegistrar`), then to the whole model.
+Restarting from a saved map (`restored`): service.saved_map, the one restore path of `serve` and `replay --map`
+(place recognition in its keyframe views from the first frame on, its T_cad_map, its CAD-linked landmarks).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -37,17 +34,14 @@ import numpy as np
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.geo import GeoReference
-from macroloc.graph.landmarks import feature_frame_cad
-from macroloc.graph.localizer import Estimate, Localizer, LocalizerParams, Sighting, model_registrar, stored_registrar
-from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
-from macroloc.graph.registrar import FirstOfRegistrar, Registrar
-from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
+from macroloc.graph.localizer import Estimate, Localizer, Sighting
+from macroloc.graph.mapstore import PlacedView
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.perception.params import DepthPointsParams, PlaceParams
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
-from macroloc.proto.recording import matrix_from_pose, pose_from_matrix, vector3
+from macroloc.proto.recording import matrix_from_pose, pose_from_matrix
 from macroloc.service.frame_answers import ODOMETRY_MATCH_NS, OdometryBuffer
-from macroloc.service.frames import FramePipeline, NullPipeline, depth_points_body
+from macroloc.service.frames import FramePipeline, NullPipeline, configured_pipeline, depth_points_body
 from macroloc.service.inputs import (
     ClockReset,
     ImuIn,
@@ -59,64 +53,15 @@ from macroloc.service.inputs import (
     StereoIn,
 )
 from macroloc.service.places import KeyframePlaces, Placed
-from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, session_from_config
-from macroloc.service.state import view_from_wire
+from macroloc.service.saved_map import STATUS_TO_WIRE, SavedMap, map_snapshot, saved_views, supersedes
+from macroloc.service.session import FrameIn, LocalizationSession, session_from_config
 
 if TYPE_CHECKING:
     from macroloc.service.config import MacrolocConfig
 
 log = logging.getLogger(__name__)
 
-STATUS_TO_WIRE = {"exploring": pb.PoseEstimate.EXPLORING, "localized": pb.PoseEstimate.LOCALIZED,
-                  "ambiguous": pb.PoseEstimate.AMBIGUOUS, "degraded": pb.PoseEstimate.DEGRADED,
-                  "lost": pb.PoseEstimate.LOST}
 WIRE_TO_STATUS = {v: k for k, v in STATUS_TO_WIRE.items()}
-
-
-class RestoredRegistrar:
-    """Re-localization after a restart: saved T_cad_map, then the saved CAD-linked landmarks, then the model."""
-
-    min_landmarks = 1
-    candidates_from = 1
-
-    def __init__(self, model: BuildingModel, T_cad_map_saved: np.ndarray | None, linked: list[KnownRect],
-                 fallback: Registrar, agree_m: float = 0.4, params: LocalizerParams | None = None,
-                 with_surfaces: bool = False) -> None:
-        self.T_cad_map_saved = T_cad_map_saved
-        stored = stored_registrar(model, linked, (params or LocalizerParams()).registration, with_surfaces) \
-            if linked else None
-        # the saved landmarks' few poses first (checked by the walls), the whole model's where they fail
-        self.chain: Registrar = FirstOfRegistrar([stored, fallback]) if stored is not None else fallback
-        self.agree_m = agree_m
-        self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
-                       if f.orientation == "vertical"]
-        self._known_xyz = np.array([k.T_cad_rect[:3, 3] for k in self._known]).reshape(-1, 3)
-
-    def __call__(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
-        if self.T_cad_map_saved is not None:
-            matches = self._agreeing(landmarks)
-            if len(matches) >= max(1, int(np.ceil(0.6 * len(landmarks)))):
-                saved = Alignment("localized", self.T_cad_map_saved, matches, len(matches))
-                saved.fallback = lambda: self._registered(landmarks, corners_map)  # where the walls refuse it
-                return saved
-        return self._registered(landmarks, corners_map)
-
-    def _registered(self, landmarks: list[ObservedRect], corners_map: Sequence[np.ndarray | None]) -> Alignment:
-        if len(landmarks) >= self.chain.candidates_from:
-            return self.chain(landmarks, corners_map)
-        return Alignment("not_localized", None)
-
-    def _agreeing(self, landmarks: list[ObservedRect]) -> list[tuple[int, str]]:
-        assert self.T_cad_map_saved is not None
-        matches = []
-        for lm in landmarks:
-            xyz_cad = (self.T_cad_map_saved @ lm.T_map_rect)[:3, 3]
-            d = np.linalg.norm(self._known_xyz - xyz_cad, axis=1)
-            for k in np.argsort(d)[:3]:
-                if d[k] < self.agree_m and self._known[k].type == lm.type:
-                    matches.append((lm.key, self._known[k].id))
-                    break
-        return matches
 
 
 @dataclass(frozen=True)
@@ -155,15 +100,13 @@ class FrontEnd:
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
         self.pipeline: FramePipeline = pipeline or NullPipeline()
         self.params = params or FrontEndParams()
-        self.places = KeyframePlaces(None, keep_views=True, config=self.params.place)  # a saved map's: `fresh_or_restored`
+        self.places = KeyframePlaces(None, keep_views=True, config=self.params.place)  # `fresh_or_restored`'s
         self.sightings: list[Sighting] = []  # the last stereo frame's perceived doors and windows, body frame
         self._stereo_frames = 0  # stereo frames taken, for the cadence
         self._odometry = OdometryBuffer()  # stamp_ns -> T_odom_body
         self._pending: list[_Pending] = []  # sightings that arrived before the odometry of their stamp
         self.unmatched = 0  # sightings dropped: no odometry near their stamp
-        self.restored: StoredMap | None = None  # a saved map's keyframe views and T_cad_map, for place recognition
-        self.restored_localized = False  # restarted from a saved map that was localized (see `supersedes_saved`)
-        self.carried: list[CarriedLandmark] = []  # a saved map's landmarks, CAD frame, kept in the next saved map
+        self.restored: SavedMap | None = None  # the saved map this run started from (service.saved_map)
 
     @classmethod
     def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None,
@@ -184,27 +127,10 @@ class FrontEnd:
 
         if snapshot is None:
             return front_end(session_from_config(cfg, model, surfaces=surfaces, covariance=True))
-        features = {f.id: f for f in model.features}
-        linked = [KnownRect(lm.id, features[lm.id].type, feature_frame_cad(features[lm.id]))
-                  for lm in snapshot.landmarks_map if lm.id in features and features[lm.id].orientation == "vertical"]
-        saved_T = matrix_from_pose(snapshot.T_cad_map) if snapshot.status == pb.PoseEstimate.LOCALIZED else None
-        log.info("restoring a saved map: %d linked landmarks, %d keyframe views, T_cad_map %s", len(linked),
-                 len(snapshot.views), "saved" if saved_T is not None else "absent")
-
-        def restored(s: SessionSettings) -> Registrar:
-            fallback = model_registrar(model, s.localizer.registration, s.storey_hint, surfaces is not None, s.method)
-            return RestoredRegistrar(model, saved_T, linked, fallback, params=s.localizer,
-                                     with_surfaces=surfaces is not None)
-
-        backend = front_end(session_from_config(cfg, model, surfaces=surfaces, registrar=restored, covariance=True))
-        backend.restored_localized = saved_T is not None
-        if saved_T is not None and snapshot.views:  # views with their poses, as a map carries an earlier one's
-            backend.restored = StoredMap(model.sha256, saved_T, carried=[view_from_wire(v) for v in snapshot.views])
-            backend.places = KeyframePlaces(backend.restored, keep_views=True, config=params.place)
-        if saved_T is not None:  # in an unlocalized map's frame they cannot be placed: dropped
-            backend.carried = [CarriedLandmark(lm.type, lm.id, np.array([[c.x, c.y, c.z] for c in lm.corners])
-                                               @ saved_T[:3, :3].T + saved_T[:3, 3])
-                               for lm in snapshot.landmarks_map if len(lm.corners) == 4]
+        saved = SavedMap.from_snapshot(snapshot, model)
+        backend = front_end(session_from_config(cfg, model, saved=saved, surfaces=surfaces, covariance=True))
+        backend.restored = saved
+        backend.places = KeyframePlaces(saved, keep_views=True, config=params.place)
         return backend
 
     # --- inputs -------------------------------------------------------------------------------------------------
@@ -384,80 +310,25 @@ class FrontEnd:
         return self.session.up_body
 
     def snapshot(self, building: str, sha256: str) -> pb.MapSnapshot:
-        """The map as saved and served: landmarks (odom frame) with their CAD links, T_cad_map, last pose (the
-        saved state adds `saved_views`)."""
-        loc = self.localizer
-        snap = pb.MapSnapshot(building=building, building_sha256=sha256, status=STATUS_TO_WIRE[loc.status],
-                              keyframes=loc.graph.n_keyframes)
-        snap.header.frame_id = "map"
-        T_cad_map = loc.graph.T_cad_map()
-        if T_cad_map is not None:
-            snap.T_cad_map.CopyFrom(pose_from_matrix(T_cad_map))
-        if self.last is not None:
-            snap.header.stamp_ns = self.last.stamp_ns
-            snap.T_map_body.CopyFrom(pose_from_matrix(self.last.T_map_body))
-            snap.storey = _storey_of(self.model, self.last.matches)
-        own = []
-        for j, lm in loc.landmarks.items():
-            f = snap.landmarks_map.add(type=lm.type, id=loc.links.get(j, ""))
-            corners = lm.corners(loc.graph.T_map_rect(j))
-            f.corners.extend(vector3(c) for c in corners)
-            own.append((lm.type, f.id, np.asarray(corners).mean(axis=0)))
-        if T_cad_map is not None:
-            for kind, feature_id, corners_map in carried_landmarks(self.carried, own, np.linalg.inv(T_cad_map)):
-                snap.landmarks_map.add(type=kind, id=feature_id).corners.extend(vector3(c) for c in corners_map)
-        return snap
+        """The map as saved and served (service.saved_map.map_snapshot)."""
+        return map_snapshot(self.localizer, self.last, self.restored, building, sha256)
 
     def supersedes_saved(self) -> bool:
-        """Whether this run's map should replace the saved one it was restarted from: not before this run is
-        localized, where that one was (a restart that is stopped before it finds itself would otherwise lose
-        the saved map, its links to the model and its views)."""
-        return not self.restored_localized or self.localizer.graph.has_anchor
+        """Whether this run's map should replace the saved one it was restarted from (service.saved_map)."""
+        return supersedes(self.localizer, self.restored)
 
-    def saved_views(self) -> list[tuple[np.ndarray, KeyframeView]]:
-        """The keyframe views a saved map keeps for place recognition, (T_map_body, view): this run's, and the
-        restored map's where this run has none near, in this run's map frame, once it is localized."""
-        loc = self.localizer
-        own = [(loc.graph.T_map_body(i), v) for i, v in sorted(loc.views.items())]
-        T_cad_map = loc.graph.T_cad_map()
-        if self.restored is not None and T_cad_map is not None:  # what a later restart can be placed by
-            return own + carried_views(own, T_cad_map, self.restored)
-        return own
+    def saved_views(self) -> list[PlacedView]:
+        """The keyframe views its saved map keeps, (T_map_body, view) (service.saved_map)."""
+        return saved_views(self.localizer, self.restored)
 
 
-@dataclass(frozen=True)
-class CarriedLandmark:
-    """A landmark of an earlier flight's saved map: type, linked CAD feature id ("" if none), corners (4, 3)."""
-
-    type: str
-    id: str
-    corners_cad: np.ndarray
-
-
-SAME_LANDMARK_M = 0.5  # two doors or windows of one building are a frame width apart at least (> 0.6 m)
-
-
-def carried_landmarks(carried: list[CarriedLandmark], own: list[tuple[str, str, np.ndarray]],
-                      T_map_cad: np.ndarray) -> list[tuple[str, str, np.ndarray]]:
-    """The earlier map's landmarks this flight has not seen, as (type, id, corners_map (4, 3)) in this flight's map
-    frame: one linked to a CAD feature this flight also links, or of the same type with its
-    centroid within SAME_LANDMARK_M of one of this flight's (`own`: type, id, centroid_map), is the same one."""
-    out = []
-    own_ids = {i for _, i, _ in own if i}
-    for lm in carried:
-        corners_map = lm.corners_cad @ T_map_cad[:3, :3].T + T_map_cad[:3, 3]
-        centroid = corners_map.mean(axis=0)
-        if (lm.id and lm.id in own_ids) or any(t == lm.type and np.linalg.norm(c - centroid) < SAME_LANDMARK_M
-                                               for t, _, c in own):
-            continue
-        out.append((lm.type, lm.id, corners_map))
-    return out
-
-
-def _storey_of(model: BuildingModel, matches: dict[int, str]) -> str:
-    storeys = {f.id: f.storey for f in model.features}
-    names = [str(storeys[fid]) for fid in matches.values() if storeys.get(fid)]
-    return max(set(names), key=names.count) if names else ""
+def make_front_end(cfg: MacrolocConfig, model: BuildingModel, surfaces: SurfaceIndex | None,
+                   snapshot: pb.MapSnapshot | None = None) -> FrontEnd:
+    """THE factory of the per-frame path, the one `serve` and `replay` build: the session from the config, with
+    covariance (service.session.session_from_config), restored from a saved map where given, the perception chain
+    where [service] perception asks for it (service.frames.configured_pipeline), [perception] detect_every's
+    cadence; `surfaces`: the model's walls ([graph] surface_check), None without."""
+    return FrontEnd.fresh_or_restored(model, snapshot, cfg, surfaces, configured_pipeline(cfg))
 
 
 def plausible(est: Estimate, limits: InputLimits) -> bool:

@@ -13,10 +13,9 @@ import numpy as np
 
 from macroloc.graph.errors import UserInputError
 from macroloc.service.config import MacrolocConfig
-from macroloc.service.frames import FramePipeline, NullPipeline
 from macroloc.service.node import LocalizationService, ServiceParams
 from macroloc.service.ros_sensors import RosSensorTopics
-from macroloc.service.state import MapStore
+from macroloc.service.state import SavedMapFile
 from macroloc.service.systemd import Notifier, notifier_from_environment
 
 if TYPE_CHECKING:
@@ -25,19 +24,6 @@ if TYPE_CHECKING:
     from macroloc.service.ros_transport import RosTransport
 
 log = logging.getLogger(__name__)
-
-
-def make_pipeline(cfg: MacrolocConfig) -> FramePipeline:
-    """The stereo-frame pipeline: the perception chain when service.perception is on and it loads, else none
-    (frames still give a pose from the odometry; sightings then come on the observations key)."""
-    if cfg.service.perception:
-        from macroloc.service.frames import make_perception_pipeline
-
-        pipeline = make_perception_pipeline(detector_model=cfg.perception.detector_model,
-                                            params=cfg.perception.to_params())
-        if pipeline is not None:
-            return pipeline
-    return NullPipeline()
 
 
 def make_ros_transport(cfg: MacrolocConfig, session) -> RosTransport | None:  # noqa: ANN001
@@ -147,12 +133,12 @@ def make_live_view(cfg: MacrolocConfig, model: BuildingModel, building: Path) ->
                            f.pose_rate_hz)
 
 
-def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  # noqa: ANN001
+def build_service(cfg: MacrolocConfig, session, store: SavedMapFile | None = None,  # noqa: ANN001
                   notifier: Notifier | None = None) -> LocalizationService:
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
     from macroloc.graph.geo import read_geo_reference
     from macroloc.service.assets import prepare_building
-    from macroloc.service.front_end import FrontEnd
+    from macroloc.service.front_end import make_front_end
     from macroloc.service.inputs import limits_from_config
 
     if cfg.service.building is None:
@@ -162,9 +148,9 @@ def build_service(cfg: MacrolocConfig, session, store: MapStore | None = None,  
     model = prepared.model
     geo = read_geo_reference(building)
     log.info("geo-reference of %s: %s", building.name, geo.to_json() if geo else "none")
-    store = store or MapStore(cfg.service.state_dir, cfg.service.vehicle)
+    store = store or SavedMapFile(cfg.service.state_dir, cfg.service.vehicle)
     snapshot = store.load(model.sha256)
-    front_end = FrontEnd.fresh_or_restored(model, snapshot, cfg, prepared.surfaces, make_pipeline(cfg))
+    front_end = make_front_end(cfg, model, prepared.surfaces, snapshot)
     planner = prepared.planner
     log.info("%s: ready", building.name)
     s = cfg.service

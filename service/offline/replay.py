@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from queue import Full, Queue
@@ -20,15 +20,20 @@ from typing import Protocol, TypeVar
 
 import numpy as np
 
+from macroloc.graph.errors import UserInputError
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.localizer import Estimate, Localizer
-from macroloc.graph.mapstore import StoredMap
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from macroloc.proto.recording import FlightFrame
+from macroloc.service.front_end import FrontEnd
+from macroloc.service.health import DropCounter
+from macroloc.service.inputs import ClockReset, InputLimits, InputParser
 from macroloc.service.offline.replay_sources import AHEAD_FRAMES, FrameInput, ObservationSource, TruthSource, gravity_at
+from macroloc.service.offline.vehicle import RecordedVehicle
 from macroloc.service.places import KeyframePlaces
+from macroloc.service.saved_map import SavedMap
 from macroloc.service.session import FrameIn, LocalizationSession, SessionSettings, make_session
 
 log = logging.getLogger(__name__)
@@ -119,7 +124,7 @@ def _round(v: float | None, nd: int = 4) -> float | None:
 
 
 def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: ObservationSource | None = None,
-           stored: StoredMap | None = None, sink: FrameSink = null_sink, surfaces: SurfaceIndex | None = None,
+           saved: SavedMap | None = None, sink: FrameSink = null_sink, surfaces: SurfaceIndex | None = None,
            places: KeyframePlaces | None = None, recorder: FrameRecorder | None = None,
            settings: SessionSettings | None = None,
            make: Callable[[np.ndarray], LocalizationSession] | None = None,
@@ -127,9 +132,10 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
     """Run `flight` (a macroloc MCAP recording, or its frames from any reader: service.offline.ros_bag.open_flight)
     through a new localization session (service.session) in `model`; see module doc. `make`: the session for the
     flight's camera (T_body_cam, 4x4), as the CLI and the benchmarks build it (`service.session.session_from_config`);
-    else one from `settings` (the defaults without), with `stored` and `surfaces` where given. `places`: place
-    recognition on the frames (service.places: views kept for the saved map, frames placed in the stored map's
-    views). `recorder`: keeps every frame (e.g. for Foxglove: service.offline.foxglove_out.ReplayRecorder).
+    else one from `settings` (the defaults without), with `saved` (the saved map to start from: service.saved_map)
+    and `surfaces` where given. `places`: place recognition on the frames (service.places: views kept for the
+    saved map, frames placed in the saved map's views). `recorder`: keeps every frame (e.g. for Foxglove:
+    service.offline.foxglove_out.ReplayRecorder).
 
     Three threads, as a SLAM system runs its tracking beside its mapping: one reads the recording and decodes the
     images, one runs the source's `ahead` (the visual odometry), each up to AHEAD_FRAMES frames ahead of the next;
@@ -143,8 +149,9 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
 
     source = source or TruthSource()
     settings = settings or SessionSettings()
-    make = make or (lambda T_body_cam: make_session(model, settings, stored=stored, surfaces=surfaces,
-                                                    T_body_cam=T_body_cam))
+    make = make or (lambda T_body_cam: make_session(
+        model, settings, surfaces=surfaces, T_body_cam=T_body_cam,
+        registrar=None if saved is None else saved.registrar(model, surfaces is not None)(settings)))
     places = places or KeyframePlaces(None, keep_views=False)
     recorder = recorder or NullRecorder()
     trace = ReplayTrace()
@@ -178,6 +185,54 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
     busy_s = time.perf_counter() - start
     recorder.finish(session.localizer)
     return _score(trace, session.localizer, busy_s, busy_at_localized)
+
+
+def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd, vehicle: RecordedVehicle,
+                      limits: InputLimits, cameras: Sequence[str] = ("front",),
+                      sink: FrameSink = null_sink) -> ReplayResult:
+    """Run `flight` through the service's own per-frame path: each recorded frame becomes the messages its vehicle
+    sends (`vehicle`, service.offline.vehicle), parsed as the service parses them (service.inputs, with its `limits`
+    and `cameras`: [inputs], [service] cameras) and handed to its `front_end` in the order sent, on one thread, as a
+    lock-step `macroloc serve` takes them from Zenoh; scored as `replay` scores. A frame's estimate is its stereo
+    frame's (what the service publishes for it last)."""
+    from macroloc.proto.recording import matrix_from_pose, read_flight
+
+    trace = ReplayTrace()
+    t0: int | None = None
+    busy_at_localized: float | None = None
+    resets: list[ClockReset] = []
+    parser = InputParser(list(cameras), DropCounter(), limits,
+                         on_clock_reset=lambda key, stamp_ns: resets.append(ClockReset(key, stamp_ns)))
+    parse = {"imu": parser.imu, "odometry": parser.odometry, "observations": parser.observations,
+             "stereo": lambda payload: parser.stereo(payload, time.monotonic_ns())}
+    frames = read_flight(flight) if isinstance(flight, Path) else flight
+    start = time.perf_counter()
+    for frame in frames:
+        t0 = frame.stamp_ns if t0 is None else t0
+        est: Estimate | None = None
+        keyframe = False
+        for m in vehicle.messages(frame):
+            event = parse[m.key](m.message.SerializeToString())
+            for reset in resets:
+                front_end.handle(reset)
+            resets.clear()
+            if event is None:
+                continue
+            answer = front_end.handle(event)
+            keyframe |= answer is not None and front_end.session.keyframe
+            if m.key == "stereo":
+                est = answer or Estimate(frame.stamp_ns, front_end.status, np.eye(4))
+        est = est or Estimate(frame.stamp_ns, front_end.status, np.eye(4))
+        if busy_at_localized is None and est.status == "localized":
+            busy_at_localized = time.perf_counter() - start
+        sink(est)
+        trace.stamp_ns.append(frame.stamp_ns)
+        _record(trace, (frame.stamp_ns - t0) * 1e-9, est,
+                matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None, keyframe,
+                len(front_end.sightings))
+    if t0 is None:
+        raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
+    return _score(trace, front_end.localizer, time.perf_counter() - start, busy_at_localized)
 
 
 def _read_ahead(frames: Iterable[FlightFrame], source: ObservationSource,

@@ -25,13 +25,13 @@ import zenoh
 
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.rigid import rotation_angle_deg
-from macroloc.perception.gravity import ImuGravity
 from macroloc.proto.keys import Keys, declare_publisher
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
-from macroloc.proto.recording import FlightFrame, matrix_from_pose, pose_from_matrix, read_flight, vector3
+from macroloc.proto.recording import FlightFrame, matrix_from_pose, read_flight, vector3
 from macroloc.service.config import ZenohConfig
 from macroloc.service.offline.replay import WRONG_ROT_DEG, WRONG_TRANS_M
-from macroloc.service.offline.replay_sources import ObservationSource, TruthSource, gravity_at
+from macroloc.service.offline.replay_sources import ObservationSource
+from macroloc.service.offline.vehicle import RecordedVehicle
 from macroloc.service.zenoh_io import session_config
 
 log = logging.getLogger(__name__)
@@ -50,6 +50,8 @@ class ZenohReplayResult:
     wrong_localizations: int = 0  # entries into LOCALIZED with a pose WRONG_TRANS_M / WRONG_ROT_DEG off the truth
     keyframes: int | None = None  # the service's last status: keyframes in its graph
     status_final: str | None = None  # ... and its localization status
+    # the service's last pose of each frame's stamp: (status, T_cad_body or None), for comparing runs (not in JSON)
+    poses_cad: dict[int, tuple[str, np.ndarray | None]] = field(default_factory=dict, repr=False)
 
     def to_json(self) -> dict:
         return {"frames": self.frames, "poses": self.poses, "duration_s": round(self.duration_s, 3),
@@ -140,23 +142,23 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
                       source: ObservationSource | None, speed: float = 1.0, wait_s: float = 30.0,
                       seed: int = 0,
                       odometry_out: Callable[[zenoh.Session], Callable[[pb.Odometry], None]] | None = None,
-                      answered: bool = False) -> ZenohReplayResult:
+                      answered: bool = False, odometry: str = "auto") -> ZenohReplayResult:
     """Publish the recording (a macroloc MCAP, or its frames from any reader:
     service.offline.ros_bag.open_flight) to the service of `vehicle` and score what it sends back (see module doc).
     `seed`: of the simulated odometry's drift, where the vehicle's odometry is simulated. `odometry_out(session)`:
     the vehicle's odometry sender, in place of macroloc's own Odometry message (module doc). `answered`: each
-    frame's pose is waited for (up to 10 s) before the next frame goes out, as a lock-step vehicle does (with
-    `[service] lockstep` and speed 0, a run that does not depend on the machine's load)."""
+    frame's pose is waited for (up to 10 s) before the next frame goes out, as a lock-step vehicle does, and the
+    messages wait where the link is congested instead of being dropped (with `[service] lockstep` and speed 0, a
+    run that does not depend on the machine's load). `odometry`: the vehicle's odometry (service.offline.vehicle:
+    auto, recorded, simulated), chosen as the offline replay's `--odometry`."""
     keys = Keys(vehicle)
-    result = ZenohReplayResult(odometry="source" if source is not None else "none")
-    simulated = TruthSource(seed=seed)  # the vehicle's VIO, for a simulated recording without odometry
-    perception = getattr(source, "params", None)  # the source's [perception] (truth: the defaults)
-    gravity = ImuGravity(None if perception is None else perception.gravity)
+    result = ZenohReplayResult()
+    sender = RecordedVehicle(odometry, source, seed)
     sent_at: dict[int, float] = {}
     truth: dict[int, np.ndarray] = {}
     with zenoh.open(session_config(zenoh_cfg)) as session:
         wait_for_service(session, keys, wait_s)
-        pubs = {name: declare_publisher(session, getattr(keys, name), express=True)
+        pubs = {name: declare_publisher(session, getattr(keys, name), express=True, block=answered)
                 for name in ("stereo", "imu", "odometry", "observations")}
         put_odometry = odometry_out(session) if odometry_out is not None else \
             (lambda odo: pubs["odometry"].put(odo.SerializeToString()))
@@ -171,26 +173,15 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
                 delay = start_wall + (frame.stamp_ns - first_stamp) * 1e-9 / speed - time.perf_counter()
                 if delay > 0:
                     time.sleep(delay)  # the recording's pace
-            for imu in frame.imu:
-                pubs["imu"].put(imu.SerializeToString())
-            if source is not None:  # the vehicle's own chain: gravity's up from the IMU as the session would have it
-                ahead = source.ahead(frame)
-                inputs = source(frame, ahead, gravity_at(gravity, frame, ahead))
-                odo = pb.Odometry(T_map_body=pose_from_matrix(inputs.T_odom_body))
-                odo.header.stamp_ns, odo.header.frame_id = frame.stamp_ns, "map"
-                put_odometry(odo)
-                pubs["observations"].put(_observations(frame.stamp_ns, inputs.sightings).SerializeToString())
-            elif frame.odometry:
-                for odo in frame.odometry:
-                    put_odometry(odo)
-                result.odometry = "recorded"
-            elif frame.ground_truth is not None and result.odometry != "recorded":
-                odo = pb.Odometry(T_map_body=pose_from_matrix(simulated.odometry(frame)))
-                odo.header.stamp_ns, odo.header.frame_id = frame.stamp_ns, "map"
-                put_odometry(odo)
-                result.odometry = "simulated"
-            sent_at[frame.stamp_ns] = time.perf_counter()
-            pubs["stereo"].put(frame.stereo.SerializeToString())
+            for m in sender.messages(frame):
+                if m.key == "stereo":
+                    sent_at[frame.stamp_ns] = time.perf_counter()
+                if m.key == "odometry":
+                    put_odometry(m.message)
+                else:
+                    pubs[m.key].put(m.message.SerializeToString())
+            result.odometry = "source" if source is not None and sender.odometry == "simulated" else \
+                sender.odometry or "none"
             if answered:
                 deadline = time.monotonic() + 10.0
                 while not poses.has(frame.stamp_ns) and time.monotonic() < deadline:
@@ -218,6 +209,9 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
 def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, float]], sent_at: dict[int, float],
            truth: dict[int, np.ndarray], first_stamp: int) -> None:
     result.poses = len(poses)
+    result.poses_cad = {stamp: (pb.PoseEstimate.Status.Name(p.status).lower(),
+                                matrix_from_pose(p.T_cad_body) if p.HasField("T_cad_body") else None)
+                        for stamp, (p, _) in poses.items()}
     latencies = [(arrived - sent_at[stamp]) * 1e3 for stamp, (_, arrived) in poses.items() if stamp in sent_at]
     if latencies:
         result.latency_ms = {"p50": float(np.percentile(latencies, 50)), "p99": float(np.percentile(latencies, 99)),
@@ -243,8 +237,9 @@ def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, fl
 def replay_command(flight: Path | Iterable[FlightFrame], source: ObservationSource | None, connect: list[str],
                    vehicle: str, speed: float, seed: int = 0) -> dict:
     """The CLI's `--over-zenoh` branch: a client-less peer connecting to the service's endpoint(s); the result's
-    JSON document (the CLI prints it)."""
+    JSON document (the CLI prints it). At `speed` 0 the vehicle is lock-step: each frame waits for its answer and
+    nothing is dropped on a congested link (`replay_over_zenoh`'s `answered`)."""
     if speed < 0:
         raise UserInputError("--speed must be >= 0")
     cfg = ZenohConfig(mode="peer", connect=connect or ["tcp/127.0.0.1:7447"], listen=[])
-    return replay_over_zenoh(flight, cfg, vehicle, source, speed, seed=seed).to_json()
+    return replay_over_zenoh(flight, cfg, vehicle, source, speed, seed=seed, answered=speed == 0).to_json()
