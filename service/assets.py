@@ -8,7 +8,7 @@ and `localize` build any part still missing, lazily, through the same functions.
 | part | what | cached as |
 |---|---|---|
 | features | doors and windows (graph.bim.load_building) | `features-*.json` |
-| descriptor tables | registration look-up tables, self-maps (graph.model_index.index_for) | `tables-*`, `selfmaps-*` |
+| descriptor tables | registration tables, self-maps, layout, pairs (model_index.index_for) | `tables-*` .. `pairs-*` |
 | obstacles | the model's solids for planning (load_solids) | `solids-*.npz` |
 | wall voxels | walls as voxels for line-of-sight checks (wall_voxels) | `opaque-voxels-*.npy` |
 | surfaces | what a camera sees, for checking registrations (surfaces_for) | `surfaces-*.npz` |

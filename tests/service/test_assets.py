@@ -27,7 +27,7 @@ def test_prepare_builds_every_part_and_a_second_run_builds_nothing(tmp_path: Pat
     assert [p["name"] for p in doc["parts"]] == ["features", "descriptor tables", "obstacles", "surfaces", "planner",
                                                "planning grids"]
     cached = sorted(p.name.split("-")[0] for p in (tmp_path / "cache").iterdir())
-    assert cached == ["features", "opaque", "seen", "selfmaps", "solids", "surfaces", "tables"]
+    assert cached == ["features", "layout", "opaque", "pairs", "seen", "selfmaps", "solids", "surfaces", "tables"]
 
     import macroloc.graph.bim_ifc as bim_ifc
     import macroloc.graph.building_assets as building_assets
@@ -42,6 +42,8 @@ def test_prepare_builds_every_part_and_a_second_run_builds_nothing(tmp_path: Pat
     model_index._CACHE.clear()
     monkeypatch.setattr(model_index, "build_tables", must_not_run)
     monkeypatch.setattr(model_index, "building_self_maps", must_not_run)
+    monkeypatch.setattr(model_index, "build_layout", must_not_run)
+    monkeypatch.setattr(model_index.ModelIndex, "pairs_of", must_not_run)  # the pair table is read, not built
     assert main(["prepare", str(fzk)]) == 0
 
 
