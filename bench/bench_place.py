@@ -33,6 +33,7 @@ def main() -> None:
     from macroloc.service.offline.replay import replay
     from macroloc.service.offline.replay_sources import TruthSource
     from macroloc.service.places import KeyframePlaces
+    from macroloc.service.saved_map import read_saved_map, write_saved_map
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flight", type=Path)
@@ -50,11 +51,12 @@ def main() -> None:
     model = load_building(args.building)
     surfaces = surfaces_for(args.building, line_of_sight=True)
     first = replay(flight, model, TruthSource(seed=0), surfaces=surfaces, places=KeyframePlaces(None, True))
-    stored = first.localizer.stored_map()
-    path = stored.save(args.out / "place_map.json")
-    again = replay(flight, model, TruthSource(seed=7), stored=stored, surfaces=surfaces,
+    path = write_saved_map(args.out / "place_map.pb", first.localizer, None, None, args.building.name)
+    stored = read_saved_map(path, model)
+    again = replay(flight, model, TruthSource(seed=7), saved=stored, surfaces=surfaces,
                    places=KeyframePlaces(stored, False))
-    print(f"map: {len(stored.keyframes)} keyframes, {len(stored.views)} views, {path.stat().st_size / 1e6:.1f} MB")
+    size_mb = sum(f.stat().st_size for f in path.parent.glob(f"{path.stem}*")) / 1e6
+    print(f"saved map: {first.localizer.graph.n_keyframes} keyframes, {len(stored.views)} views, {size_mb:.1f} MB")
     print(row("first flight: time to localize (flight s, by its doors)", _s(first.time_to_localize_s), "-"))
     print(row("re-flown into its map: time to localize (flight s)", _s(again.time_to_localize_s), "-"))
     proc = again.processing_to_localize_s

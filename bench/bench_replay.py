@@ -23,11 +23,12 @@ BUILDINGS = {"Office_A": ROOT / "data/buildings/office_a.ifc",
              "duplex": ROOT / "data/buildings/duplex.ifc"}
 
 
-def _session(cfg, model, stored=None):  # noqa: ANN001, ANN202
-    """The session the service runs (service.session's one factory), for the flight's camera T_body_cam."""
+def _session(cfg, model, saved=None):  # noqa: ANN001, ANN202
+    """The session the service runs (service.session's one factory), for the flight's camera T_body_cam; `saved`:
+    the saved map to start from (service.saved_map)."""
     from macroloc.service.session import session_from_config
 
-    return lambda T_body_cam: session_from_config(cfg, model, stored=stored, T_body_cam=T_body_cam)
+    return lambda T_body_cam: session_from_config(cfg, model, saved=saved, T_body_cam=T_body_cam)
 
 
 def main() -> None:
@@ -35,6 +36,7 @@ def main() -> None:
     from macroloc.service.config import load_config
     from macroloc.service.offline.replay import replay
     from macroloc.service.offline.replay_sources import TruthSource
+    from macroloc.service.saved_map import saved_map_of
     from macroloc.sim.truth_flight import write_truth_flight
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -61,7 +63,7 @@ def main() -> None:
             reloc = "-"
             if r.localized:
                 again = replay(flight, model, TruthSource(seed=seed + 100),
-                               make=_session(cfg, model, r.localizer.stored_map()))
+                               make=_session(cfg, model, saved_map_of(r.localizer)))
                 reloc = f"{again.processing_to_localize_s:.3f} / {again.time_to_localize_s:.2f}" if again.localized \
                     else "not localized"
             print(f"{name:<11} {seed:>4} {j['time_to_localize_s']!s:>10} {j['ape_rmse_m']!s:>9} "

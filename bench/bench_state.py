@@ -26,9 +26,9 @@ NEW_PER_SAVE = 10  # views made between two saves (5 s of flight at ~1 m/s, one 
 def main() -> None:
     from scipy.spatial.transform import Rotation
 
-    from macroloc.graph.mapstore import KeyframeView, StoredMap, carried_views
+    from macroloc.graph.mapstore import KeyframeView, carried_views
     from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
-    from macroloc.service.state import MapStore, view_to_wire
+    from macroloc.service.state import SavedMapFile, view_to_wire
 
     rng = np.random.default_rng(0)
 
@@ -48,7 +48,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             inline = [_inline_save(Path(tmp) / "map.pb", views[:n], pb, view_to_wire) for _ in range(REPEAT)]
             inline_ms, inline_bytes = float(np.median([ms for ms, _ in inline])), inline[0][1]
-            store = MapStore(Path(tmp), "d1")
+            store = SavedMapFile(Path(tmp), "d1")
             store.save(pb.MapSnapshot(), views[: n - NEW_PER_SAVE])  # the saves before
             log = next(Path(tmp, "d1").glob("views-*.bin"))
             times, written = [], []
@@ -66,9 +66,9 @@ def main() -> None:
     for n in SIZES:
         v = view()
         own = [(pose(), v) for _ in range(n)]
-        earlier = StoredMap("sha", np.eye(4), carried=[(pose(), v) for _ in range(n)])
+        earlier = [(pose(), v) for _ in range(n)]
         t0 = time.perf_counter()
-        kept = carried_views(own, np.eye(4), earlier)
+        kept = carried_views(own, np.eye(4), np.eye(4), earlier)
         print(row(f"{n} + {n} views: carried_views (ms; {len(kept)} kept)",
                   f"{(time.perf_counter() - t0) * 1e3:.0f}", "-"))
 

@@ -204,7 +204,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
 
     from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
     from macroloc.service.serve import build_service
-    from macroloc.service.state import NullMapStore
+    from macroloc.service.state import NullSavedMapFile
     from macroloc.service.zenoh_io import session_config
     from macroloc.sim.agent import RenderedStereoCamera, Sensor, TruthSensor, VehicleAgent
     from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, level_pose
@@ -225,7 +225,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     rng = np.random.default_rng([params.seed, 0xDE40])
     stop = threading.Event()
     with zenoh.open(session_config(cfg.zenoh)) as service_session, _recorder(building, params) as recorder:
-        service = build_service(cfg, service_session, NullMapStore())
+        service = build_service(cfg, service_session, NullSavedMapFile())
         thread = threading.Thread(target=service.run, args=(stop,), name="service", daemon=True)
         thread.start()
         while not service.ready.wait(1.0) and thread.is_alive():

@@ -33,7 +33,7 @@ from macroloc.graph.far_window import FarSightings
 from macroloc.graph.features import BuildingModel, CentroidsByType
 from macroloc.graph.judge import Judge, NullJudge, SurfaceJudge
 from macroloc.graph.landmark_map import LandmarkMap
-from macroloc.graph.mapstore import KeyframeView, StoredLandmark, StoredMap
+from macroloc.graph.mapstore import KeyframeView
 from macroloc.graph.model_index import index_for
 from macroloc.graph.params import LocalizerParams, RegistrationParams
 from macroloc.graph.posegraph import PoseGraph
@@ -118,8 +118,8 @@ class Localizer:
         """One keyframe: odometry pose T_odom_body (4x4, odometry frame z up), sightings, gravity's up (body),
         and optionally 3-D points (N, 3) the camera measured at this keyframe, body frame (stereo depth); without
         them, the newest given to `add_depth` since the last keyframe. `T_cad_body_placed`: this keyframe's pose
-        in the CAD frame as place recognition in a stored map found it (perception.place), when it did; `view`:
-        what place recognition keeps of it, for the map this flight saves (`stored_map`). `dead_reckoned_s`: the
+        in the CAD frame as place recognition in a saved map found it (perception.place), when it did; `view`:
+        what place recognition keeps of it, for the saved map (service.saved_map). `dead_reckoned_s`: the
         seconds since the last keyframe that the odometry lost track and only extrapolated its pose; the odometry
         factor's translation sigma grows by `odometry_dead_reckoned_sigma_mps` for each: an extrapolated pose is
         no measurement (docs/measurements.md, "Dead-reckoned odometry is loosened")."""
@@ -255,7 +255,7 @@ class Localizer:
         return self.graph.add_keyframe(T_prev_curr, sigmas, T_map_body), T_map_body
 
     def _keep(self, i: int, stamp_ns: int, view: KeyframeView | None) -> None:
-        """Keyframe i's stamp and place-recognition view, for the map this flight saves (`stored_map`)."""
+        """Keyframe i's stamp and place-recognition view, for the map this flight saves (service.saved_map)."""
         self.keyframe_stamps_ns.append(stamp_ns)
         if view is not None:
             self.views[i] = view
@@ -281,15 +281,6 @@ class Localizer:
         self.cad_links.seen(reobserved, stamp_ns)
         if far and not self.graph.has_anchor:
             self.far.add(i, [s.type for s in far], np.array([s.corners_body.mean(axis=0) for s in far]))
-
-    def stored_map(self) -> StoredMap:
-        """This flight's map for a later flight to re-localize into (graph.mapstore)."""
-        T_cad_map = self.graph.T_cad_map()
-        keyframes = [(s, self.graph.T_map_body(i)) for i, s in enumerate(self.keyframe_stamps_ns)]
-        poses = {j: self.graph.T_map_rect(j) for j in self.landmarks}
-        landmarks = [StoredLandmark(j, lm.type, poses[j], lm.corners(poses[j]), self.links.get(j))
-                     for j, lm in self.landmarks.items()]
-        return StoredMap(self.model.sha256, T_cad_map, keyframes, landmarks, dict(self.views))
 
     # --- output -----------------------------------------------------------------------------------------------
 

@@ -48,7 +48,7 @@ from macroloc.service.inputs import (
 )
 from macroloc.service.ros_out import NullRosInputs, RosIntakes
 from macroloc.service.ros_sensors import RosSensorInputs, RosSensorTopics
-from macroloc.service.state import MapStore
+from macroloc.service.state import SavedMapFile
 from macroloc.service.systemd import Notifier, NullNotifier
 from macroloc.service.vehicle_out import NullVehicleOutput, VehicleOutput
 from macroloc.service.workqueue import CountingRing, WorkQueue
@@ -84,7 +84,7 @@ class ServiceParams:
 class LocalizationService:
     """One vehicle's service on an open Zenoh session (see module doc)."""
 
-    def __init__(self, session: zenoh.Session, front_end: FrontEnd, planner: Planner, store: MapStore,
+    def __init__(self, session: zenoh.Session, front_end: FrontEnd, planner: Planner, store: SavedMapFile,
                  params: ServiceParams,
                  vehicle_out: VehicleOutput | None = None, ros_inputs: RosIntakes | None = None,
                  notifier: Notifier | None = None, live: LiveView | None = None) -> None:

@@ -1,5 +1,5 @@
 """Place recognition at keyframes, for the replay and the service: views kept for the map this flight saves, and
-keyframes placed in a stored map's views (perception.place) while the localizer is not localized.
+keyframes placed in a saved map's views (service.saved_map, perception.place) while the localizer is not localized.
 
 Both cost image work at keyframes only: a view to keep is ORB and SGBM on the stereo pair; placing a keyframe is ORB
 and a match against every stored view (tried while the status is anything but `localized`, at most every `every_s`
@@ -11,14 +11,18 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from macroloc.graph.mapstore import VIEW_SPACING_DEG, VIEW_SPACING_M, KeyframeView, StoredMap
+from macroloc.graph.mapstore import VIEW_SPACING_DEG, VIEW_SPACING_M, KeyframeView
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.place import PlaceParams, PlaceRecognizer
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+
+if TYPE_CHECKING:
+    from macroloc.service.saved_map import SavedMap
 
 log = logging.getLogger(__name__)
 
@@ -30,13 +34,13 @@ class Placed:
 
 
 class KeyframePlaces:
-    """See module doc. `stored`: the map to place keyframes in (only one with views and a T_cad_map can);
+    """See module doc. `stored`: the saved map to place keyframes in (only one with views and a T_cad_map can);
     `keep_views`: keep views of the keyframes (every `view_every_m` / `view_every_deg`) for the map this flight
     will save."""
 
     MIN_VIEW_POINTS = 20  # a view with fewer (a blank wall, a dark frame) has nothing to place by: not kept
 
-    def __init__(self, stored: StoredMap | None, keep_views: bool, config: PlaceParams | None = None,
+    def __init__(self, stored: SavedMap | None, keep_views: bool, config: PlaceParams | None = None,
                  every_s: float = 1.0, view_every_m: float = VIEW_SPACING_M,
                  view_every_deg: float = VIEW_SPACING_DEG) -> None:
         """`every_s`: placing is tried at most this often (flight time); a view is kept for a keyframe this far
@@ -57,7 +61,7 @@ class KeyframePlaces:
 
     def at_frame(self, frame: pb.StereoFrame, stamp_ns: int, T_odom_body: np.ndarray, T_body_cam: np.ndarray,
                  up_body: np.ndarray | None, status: str) -> Placed:
-        """A keyframe's stereo frame: its place in the stored map (while not localized, at most every `every_s`)
+        """A keyframe's stereo frame: its place in the saved map (while not localized, at most every `every_s`)
         and its view (when kept and due). Only the images that work needs are decoded: none after localizing
         between views. Nothing from a frame without images or calibration (a ground-truth flight's)."""
         info = frame.info
@@ -79,7 +83,7 @@ class KeyframePlaces:
             match = recognizer.place(left, up_body)
             if match is not None:
                 T_cad_body = self.stored.T_cad_map @ match.T_map_body
-                log.info("keyframe placed in the stored map: %d inliers (stored view %d)", match.inliers, match.view)
+                log.info("keyframe placed in the saved map: %d inliers (stored view %d)", match.inliers, match.view)
         view = None
         if describe:
             view = recognizer.describe(left, decode_image(frame.right))

@@ -1,12 +1,15 @@
-"""The saved map: one `MapSnapshot` per vehicle under the state directory, written atomically, and its keyframe
-views in an append-only view log beside it.
+"""The saved map's file (service.saved_map): a `MapSnapshot`, written atomically, and its keyframe views in an
+append-only view log beside it. The service's is `<state_dir>/<vehicle>/map.pb` (`SavedMapFile(state_dir,
+vehicle)`), a replay's the path of `--save-map` (`SavedMapFile.at(path)`); both are read by `read` (a restart
+through `load`, which starts afresh where the file is missing, unreadable or of another building).
 
 A view (perception.place: ~17 KB of ORB features and their points) never changes once made; only its keyframe's
 pose does, as the graph is optimized. So `map.pb` holds each view's pose and its record number in the log
 (`ViewPose`), and a view's bytes are written once, at the first save that holds it: a long mission's save costs
 its new views and the poses, not every view again (3000 views: 53 MB a save otherwise, every 5 s).
 
-Each run writes a log of its own (`views-<time>.bin`), starting with the views it carries from the saved map it
+Each run writes a log of its own (`views-<time>.bin` beside a `map.pb`, `<stem>.views-<time>.bin` beside a map of
+another name), starting with the views it carries from the saved map it
 was restarted from; once `map.pb` names the new log, the others are deleted. A record is a 4-byte little-endian
 length and a `KeyframeView` message (its pose unset). The log is flushed to disk (fsync) before the `map.pb` that
 refers to its records replaces the old one, and `map.pb` itself before the rename: a kill or a power cut at any
@@ -26,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from google.protobuf.message import DecodeError
 
+from macroloc.graph.errors import UserInputError
 from macroloc.graph.mapstore import KeyframeView
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import matrix_from_pose, pose_from_matrix, poses_from_matrices
@@ -33,7 +37,7 @@ from macroloc.proto.recording import matrix_from_pose, pose_from_matrix, poses_f
 log = logging.getLogger(__name__)
 
 RECORD_HEADER = struct.Struct("<I")
-VIEW_LOG_GLOB = "views-*.bin"
+STATE_MAP_NAME = "map.pb"  # the service's saved map, under <state_dir>/<vehicle>/
 
 
 class ViewLog:
@@ -93,15 +97,26 @@ def view_from_wire(msg: pb.KeyframeView) -> tuple[np.ndarray, KeyframeView]:
     return matrix_from_pose(msg.T_map_body), view
 
 
-class MapStore:
-    """state_dir/<vehicle>/map.pb and its view log; a snapshot of another building (by SHA-256) is ignored on
-    load."""
+class SavedMapFile:
+    """A saved map's file and its view log (see module doc): `state_dir/<vehicle>/map.pb`, or any path (`at`)."""
 
     def __init__(self, state_dir: Path, vehicle: str) -> None:
-        self.path = Path(state_dir).expanduser() / vehicle / "map.pb"
+        self.path = Path(state_dir).expanduser() / vehicle / STATE_MAP_NAME
         self._log: ViewLog | None = None  # this run's, from its first save with views
         # id(view) -> (the view, kept alive so that its id is not reused; its record number)
         self._records: dict[int, tuple[KeyframeView, int]] = {}
+
+    @classmethod
+    def at(cls, path: str | Path) -> SavedMapFile:
+        """The saved map at `path` (its view log beside it)."""
+        out = cls(Path(), "")
+        out.path = Path(path).expanduser()
+        return out
+
+    @property
+    def _log_prefix(self) -> str:
+        """Its view logs' names begin so: only its own are replaced, never another saved map's in the folder."""
+        return "views-" if self.path.name == STATE_MAP_NAME else f"{self.path.stem}.views-"
 
     def save(self, snapshot: pb.MapSnapshot, views: Sequence[tuple[np.ndarray, KeyframeView]] = ()) -> Path:
         """Write `snapshot` (its view fields are set here) with the keyframe views (T_map_body, view): the views
@@ -109,7 +124,7 @@ class MapStore:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if views:
             if self._log is None:
-                self._log = ViewLog(self.path.with_name(f"views-{time.time_ns():x}.bin"))
+                self._log = ViewLog(self.path.with_name(f"{self._log_prefix}{time.time_ns():x}.bin"))
             new = list({id(v): v for _, v in views if id(v) not in self._records}.values())
             first = self._log.append(new)
             self._records.update((id(v), (v, first + k)) for k, v in enumerate(new))
@@ -117,32 +132,49 @@ class MapStore:
             poses = poses_from_matrices(np.array([T for T, _ in views]))
             snapshot.view_poses.extend(pb.ViewPose(record=self._records[id(v)][1], T_map_body=pose)
                                        for (_, v), pose in zip(views, poses, strict=True))
-        tmp = self.path.with_name(f"map.pb.tmp{os.getpid()}")
+        tmp = self.path.with_name(f"{self.path.name}.tmp{os.getpid()}")
         with open(tmp, "wb") as f:
             f.write(snapshot.SerializeToString())
             f.flush()
             os.fsync(f.fileno())  # on disk before it replaces the old one: a power cut leaves one or the other
         os.replace(tmp, self.path)  # atomic: a kill mid-write leaves the previous map intact
         _fsync_dir(self.path.parent)
-        for other in self.path.parent.glob(VIEW_LOG_GLOB):  # logs the saved map no longer refers to
+        for other in self.path.parent.glob(f"{self._log_prefix}*.bin"):  # logs the saved map no longer refers to
             if other.name != snapshot.view_log:
                 other.unlink(missing_ok=True)
         return self.path
 
+    def read(self) -> pb.MapSnapshot:
+        """The saved map with its views (`views`, with their poses) read back from the view log. UserInputError
+        where there is none or the file is not a saved map (a JSON map of macroloc before issue 56 is refused in
+        so many words: it is to be saved again)."""
+        if not self.path.is_file():
+            raise UserInputError(f"saved map not found: {self.path}")
+        data = self.path.read_bytes()
+        if data.lstrip()[:1] == b"{":
+            raise UserInputError(f"{self.path} is a JSON map of an earlier macroloc; save the map again with this "
+                                 "version (`replay --save-map` or `serve`)")
+        try:
+            snapshot = pb.MapSnapshot.FromString(data)
+        except DecodeError:
+            raise UserInputError(f"{self.path} is not a saved map") from None
+        if snapshot.view_log:
+            self._read_views(snapshot)
+        return snapshot
+
     def load(self, building_sha256: str) -> pb.MapSnapshot | None:
-        """The saved map with its views (`views`, with their poses) read back from the view log, or None."""
+        """`read`, for a restart: None (start afresh) where there is no saved map, where it is unreadable or was
+        made in another building (by SHA-256)."""
         if not self.path.exists():
             return None
         try:
-            snapshot = pb.MapSnapshot.FromString(self.path.read_bytes())
-        except DecodeError:
-            log.warning("ignoring unreadable saved map %s", self.path)
+            snapshot = self.read()
+        except UserInputError as exc:
+            log.warning("ignoring the saved map: %s", exc)
             return None
         if snapshot.building_sha256 != building_sha256:
             log.warning("ignoring saved map %s: made for another building model", self.path)
             return None
-        if snapshot.view_log:
-            self._read_views(snapshot)
         return snapshot
 
     def _read_views(self, snapshot: pb.MapSnapshot) -> None:
@@ -178,7 +210,7 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-class NullMapStore(MapStore):
+class NullSavedMapFile(SavedMapFile):
     """Saves nothing and loads nothing (tests and benchmarks that must start fresh)."""
 
     def __init__(self) -> None:

@@ -1,5 +1,5 @@
 """`macroloc replay FLIGHT --building BUILDING --json [--report DIR] [--observations truth|perception]
-[--map STORED] [--save-map OUT] [--topic NAME=/ros/topic ...]`: the whole chain offline, as fast as it runs, scored
+[--map SAVED] [--save-map OUT] [--topic NAME=/ros/topic ...]`: the whole chain offline, as fast as it runs, scored
 against ground truth. FLIGHT is a macroloc recording (MCAP) or a ROS 2 bag (service.offline.ros_bag)."""
 
 from __future__ import annotations
@@ -26,13 +26,15 @@ def register(app: typer.Typer) -> None:
                                          "odometry with realistic noise and drift (the graph alone); truth-vo: the "
                                          "same doors/windows, but the stereo visual odometry on the recorded "
                                          "images; perception: the perception chain and the visual odometry."),
-        stored_map: Path | None = typer.Option(None, "--map", help="A stored map (from --save-map) of this "
-                                               "building to re-localize into from the first frames: by its "
-                                               "keyframes' views (place recognition, before any door is seen), "
-                                               "else by its doors."),
-        save_map: Path | None = typer.Option(None, "--save-map", help="Write this flight's map here at the end, "
-                                             "with a view (ORB features with stereo depth) every 0.5 m or 15 deg "
-                                             "of the flight's keyframes, for place recognition."),
+        saved_map: Path | None = typer.Option(None, "--map", help="A saved map of this building to start from, "
+                                              "as a restarted `serve` does (from --save-map, or a service's "
+                                              "<state_dir>/<vehicle>/map.pb): re-localized from the first frames "
+                                              "by its keyframes' views (place recognition, before any door is "
+                                              "seen), else by its T_cad_map and its doors."),
+        save_map: Path | None = typer.Option(None, "--save-map", help="Write this flight's saved map here at the "
+                                             "end (as `serve` saves its own; its view log beside it), with a view "
+                                             "(ORB features with stereo depth) every 0.5 m or 15 deg of the "
+                                             "flight's keyframes, for place recognition."),
         out: Path | None = typer.Option(None, "--out", help="Write the replay for Foxglove here (MCAP of "
                                         "foxglove.* messages: left image with the detections, transforms cad -> map "
                                         "-> body -> cam, estimate and truth poses, the model's doors, windows and "
@@ -69,7 +71,6 @@ def register(app: typer.Typer) -> None:
         from macroloc.cli.commands._io import existing_file, print_json
         from macroloc.graph.bim import load_building
         from macroloc.graph.errors import UserInputError
-        from macroloc.graph.mapstore import StoredMap, carried_views
         from macroloc.service.config import load_config
         from macroloc.service.offline.replay import replay as run_replay
         from macroloc.service.offline.replay_sources import (
@@ -79,6 +80,7 @@ def register(app: typer.Typer) -> None:
             TruthSource,
         )
         from macroloc.service.offline.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
+        from macroloc.service.saved_map import LastEstimate, read_saved_map, write_saved_map
         from macroloc.service.session import session_from_config
 
         if not flight.exists():
@@ -120,7 +122,7 @@ def register(app: typer.Typer) -> None:
 
         with step(f"reading {building.name} (its first time: a minute or more, cached after)"):
             model = load_building(building)
-        stored = StoredMap.load(stored_map, model) if stored_map is not None else None
+        saved = read_saved_map(saved_map, model) if saved_map is not None else None
         perception = cfg.perception.to_params()
         source: ObservationSource = (TruthSource(seed=seed) if observations == "truth" else
                                      TruthFeaturesWithVisualOdometry(seed=seed, params=perception)
@@ -135,7 +137,8 @@ def register(app: typer.Typer) -> None:
                 surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
         from macroloc.service.places import KeyframePlaces
 
-        places = KeyframePlaces(stored, keep_views=save_map is not None, config=perception.place)
+        places = KeyframePlaces(saved, keep_views=save_map is not None, config=perception.place)
+        last = LastEstimate()
         recorder = None
         with contextlib.ExitStack() as stack:
             if out is not None:
@@ -144,19 +147,16 @@ def register(app: typer.Typer) -> None:
 
                 recorder = ReplayRecorder(stack.enter_context(FoxgloveWriter(out)), model, load_wall_mesh(building))
             result = run_replay(frames, model, source, places=places, recorder=recorder, one_thread=one_thread,
-                                make=lambda T_body_cam: session_from_config(cfg, model, stored=stored,
-                                                                            surfaces=surfaces, T_body_cam=T_body_cam,
-                                                                            storey_hint=storey))
+                                sink=last, make=lambda T_body_cam: session_from_config(
+                                    cfg, model, saved=saved, surfaces=surfaces, T_body_cam=T_body_cam,
+                                    storey_hint=storey))
         if save_map is not None:
-            new_map = result.localizer.stored_map()
-            if stored is not None and new_map.T_cad_map is not None:  # the stored map's places this flight missed
-                new_map.carried = carried_views(new_map.placed_views(), new_map.T_cad_map, stored)
-            new_map.save(save_map)
+            write_saved_map(save_map, result.localizer, last.estimate, saved, building.name, replaces=saved_map)
         if report is not None:
             from macroloc.service.offline.plots import load_wall_mesh
             from macroloc.service.offline.replay_report import write_report
 
-            write_report(result, model, report, load_wall_mesh(building), stored, config=cfg.model_dump(mode="json"))
+            write_report(result, model, report, load_wall_mesh(building), saved, config=cfg.model_dump(mode="json"))
         doc = result.to_json()
         if is_bag:
             doc["bag"] = bag_stats.to_json()

@@ -1,5 +1,5 @@
 """Pictures of a replay: the top-down view (the model's walls cut at the flight's height, doors and windows, true and
-estimated trajectories, matched features; a stored map's keyframe views and the keyframes placed in them) and the
+estimated trajectories, matched features; a saved map's keyframe views and the keyframes placed in them) and the
 per-frame figures (position error with its horizontal and height
 parts, tilt and yaw errors, status, sightings, iSAM2 update time), plus result.json, the trajectories for evo
 (TUM: estimate_tum.txt, truth_tum.txt) and the resolved configuration (config.json)."""
@@ -13,14 +13,14 @@ from typing import Any
 import numpy as np
 
 from macroloc.graph.features import BuildingModel
-from macroloc.graph.mapstore import StoredMap
 from macroloc.service.offline.replay import ReplayResult
+from macroloc.service.saved_map import SavedMap
 
 STATUS_LEVEL = {"exploring": 0, "ambiguous": 1, "localized": 2, "degraded": 3, "lost": 4}
 
 
 def write_report(result: ReplayResult, model: BuildingModel, out_dir: Path, wall_mesh: Any = None,
-                 stored: StoredMap | None = None, config: dict | None = None) -> list[Path]:
+                 stored: SavedMap | None = None, config: dict | None = None) -> list[Path]:
     """Write topdown.png, frames.png, result.json, the TUM trajectories (`write_tum`) and `config` (the resolved
     configuration, as config.json) into `out_dir`; returns their paths. `wall_mesh`: the model's
     walls (service.offline.plots.load_wall_mesh), drawn as a floor plan cut at the flight's height; `stored`: the
@@ -68,7 +68,7 @@ def _tum(path: Path, poses: list[tuple[int, np.ndarray]]) -> Path:
 
 
 def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: Any = None,
-             stored: StoredMap | None = None) -> Path:
+             stored: SavedMap | None = None) -> Path:
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
 
@@ -96,7 +96,7 @@ def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: 
     T_cad_map = result.localizer.graph.T_cad_map()
     if result.localizer.placed and T_cad_map is not None:
         xy = np.array([(T_cad_map @ result.localizer.graph.T_map_body(i))[:2, 3] for i in result.localizer.placed])
-        ax.scatter(xy[:, 0], xy[:, 1], s=70, marker="*", c="tab:purple", zorder=5, label="placed in the stored map")
+        ax.scatter(xy[:, 0], xy[:, 1], s=70, marker="*", c="tab:purple", zorder=5, label="placed in the saved map")
     ax.set_aspect("equal")
     ax.set_xlabel("x (m, CAD)")
     ax.set_ylabel("y (m, CAD)")
@@ -108,13 +108,13 @@ def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: 
     return path
 
 
-def _stored_views(ax: Any, stored: StoredMap | None) -> None:
-    """The stored map's keyframe views in the CAD frame, each an arrow along its camera's heading."""
+def _stored_views(ax: Any, stored: SavedMap | None) -> None:
+    """The saved map's keyframe views in the CAD frame, each an arrow along its camera's heading."""
     if stored is None or stored.T_cad_map is None or not stored.placed_views():
         return
     T = np.array([stored.T_cad_map @ T_map_body for T_map_body, _ in stored.placed_views()])
     ax.quiver(T[:, 0, 3], T[:, 1, 3], T[:, 0, 0], T[:, 1, 0], color="tab:gray", alpha=0.6, width=0.002, scale=60,
-              zorder=1, label="stored views")
+              zorder=1, label="saved views")
 
 
 def _frames(result: ReplayResult, path: Path) -> Path:

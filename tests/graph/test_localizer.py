@@ -1,9 +1,9 @@
 """graph.localizer on a synthetic corridor: localizing and tracking, drift corrected by the joint refinement,
-robustness to injected wrong matches, save -> load -> re-localize, border-cut sightings, gravity, lost odometry."""
+robustness to injected wrong matches, a saved map's views carried, border-cut sightings, gravity, lost odometry
+(saving and re-localizing into a saved map: tests/service/test_saved_map.py)."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import replace
 
 import numpy as np
@@ -11,10 +11,8 @@ import pytest
 
 from macroloc.graph.landmarks import feature_frame_cad
 from macroloc.graph.localizer import Localizer, LocalizerParams
-from macroloc.graph.mapstore import StoredMap
 from macroloc.graph.params import RegistrationParams
 from macroloc.graph.posegraph import PoseGraph
-from macroloc.graph.registrar import FirstOfRegistrar, StoredMapRegistrar
 from tests.graph.corridor_flight import UP, fly, model_registrar, position_error, tilt_deg
 from tests.graph.scenes import (
     drifting_odometry,
@@ -86,60 +84,9 @@ def test_without_the_robust_loss_wrong_matches_would_drag_it(corridor, monkeypat
     assert max(position_error(loc, poses, i) for i in range(60)) > 0.3
 
 
-def test_save_load_relocalize_round_trip(corridor, tmp_path) -> None:
-    poses = straight_flight(40)
-    first = fly(corridor, poses, poses, sigma_m=0.01)
-    path = first.stored_map().save(tmp_path / "map.json")
-    stored = StoredMap.load(path, corridor)
-    assert len(stored.known_rects(corridor)) == len(first.links) > 3
-    # a new flight over the same place, its odometry frame somewhere else
-    T_odom_cad = make_T(rot_z(-1.2), np.array([-4.0, 7.0, 0.0]))
-    registrar = FirstOfRegistrar([StoredMapRegistrar(stored.known_rects(corridor), min_landmarks=2),
-                                  model_registrar(corridor)])
-    loc = Localizer(corridor, PoseGraph(), registrar, LocalizerParams())
-    rng = np.random.default_rng(5)
-    for k, T in enumerate(poses[:6]):
-        est = loc.add_keyframe(k, T_odom_cad @ T, sightings_from(corridor, T, rng=rng, sigma_m=0.01), UP)
-        if est.status == "localized":
-            break
-    assert est.status == "localized" and k <= 4  # two landmarks, each seen twice
-    assert est.T_cad_body is not None
-    assert np.linalg.norm(est.T_cad_body[:3, 3] - poses[k][:3, 3]) < 0.1
-
-
-def test_keyframe_views_survive_save_and_load(corridor, tmp_path) -> None:
-    from macroloc.graph.errors import UserInputError
-    from macroloc.graph.mapstore import KeyframeView
-
-    poses = straight_flight(5)
-    loc = Localizer(corridor, PoseGraph(), model_registrar(corridor), LocalizerParams())
-    rng = np.random.default_rng(2)
-    views = {k: KeyframeView(rng.uniform(-5, 5, (7 + k, 3)), rng.integers(0, 256, (7 + k, 32), dtype=np.uint8))
-             for k in (0, 3)}
-    for k, T in enumerate(poses):
-        loc.add_keyframe(k, T, [], UP, view=views.get(k))
-    path = loc.stored_map().save(tmp_path / "map.json")
-    stored = StoredMap.load(path, corridor)
-    assert sorted(stored.views) == [0, 3]
-    for k, (T_map_body, view) in zip((0, 3), stored.placed_views(), strict=True):
-        assert np.allclose(T_map_body, loc.graph.T_map_body(k))
-        assert np.array_equal(view.descriptors, views[k].descriptors)
-        assert np.allclose(view.points_body, views[k].points_body, atol=1e-5)  # stored as float32
-    doc = json.loads(path.read_text())
-    doc.pop("carried_views")
-    for kf in doc["keyframes"]:  # a version 1 map: no views
-        kf.pop("view", None)
-    path.write_text(json.dumps(doc))
-    assert StoredMap.load(path, corridor).views == {}
-    doc["keyframes"][0]["view"] = {"points_body": "AAAA", "descriptors": "not base64!"}
-    path.write_text(json.dumps(doc))
-    with pytest.raises(UserInputError, match="is not a macroloc map"):
-        StoredMap.load(path, corridor)
-
-
-def test_an_earlier_maps_views_are_carried_where_the_new_map_has_none(corridor, tmp_path) -> None:
+def test_an_earlier_maps_views_are_carried_where_the_new_map_has_none() -> None:
     """carried_views: the earlier map's views moved into the new map's frame (both linked to the CAD frame),
-    less those near one of the new map's own; they survive save and load and are placed by, after its own."""
+    less those near one of the new map's own; none from an earlier map that was not localized."""
     from macroloc.graph.mapstore import KeyframeView, carried_views
 
     rng = np.random.default_rng(4)
@@ -150,28 +97,13 @@ def test_an_earlier_maps_views_are_carried_where_the_new_map_has_none(corridor, 
     T_cad_earlier, T_cad_new = make_T(rot_z(0.3), np.array([2.0, 1.0, 0.0])), make_T(rot_z(-1.0), np.array([5.0, 0, 0]))
     seen = make_T(rot_z(0.2), np.array([1.0, 2.0, 1.4]))  # a place both flights saw (CAD frame), and one only the first
     missed = make_T(rot_z(2.0), np.array([9.0, -3.0, 1.4]))
-    earlier = StoredMap(corridor.sha256, T_cad_earlier, [(0, np.linalg.inv(T_cad_earlier) @ seen),
-                                                         (1, np.linalg.inv(T_cad_earlier) @ missed)], [],
-                        {0: view(), 1: view()})
+    earlier = [(np.linalg.inv(T_cad_earlier) @ seen, view()), (np.linalg.inv(T_cad_earlier) @ missed, view())]
     turned = seen @ make_T(rot_z(np.radians(10.0)), np.array([0.3, 0.0, 0.0]))  # within 0.5 m and 15 deg of it
     own = [(np.linalg.inv(T_cad_new) @ turned, view())]
-    carried = carried_views(own, T_cad_new, earlier)
+    carried = carried_views(own, T_cad_new, T_cad_earlier, earlier)
     assert len(carried) == 1 and np.allclose(T_cad_new @ carried[0][0], missed)
-    assert carried[0][1] is earlier.views[1]
-    assert len(carried_views(own, T_cad_new, replace(earlier, T_cad_map=None))) == 0
-    new = StoredMap(corridor.sha256, T_cad_new, [(0, own[0][0])], [], {0: own[0][1]}, carried)
-    loaded = StoredMap.load(new.save(tmp_path / "map.json"), corridor)
-    poses = [T for T, _ in loaded.placed_views()]
-    assert len(poses) == 2 and np.allclose(poses[0], own[0][0]) and np.allclose(poses[1], carried[0][0])
-    assert np.array_equal(loaded.placed_views()[1][1].descriptors, earlier.views[1].descriptors)
-
-
-def test_a_map_from_another_building_is_refused(corridor, tmp_path) -> None:
-    from macroloc.graph.errors import UserInputError
-
-    path = StoredMap("another-sha", None).save(tmp_path / "map.json")
-    with pytest.raises(UserInputError):
-        StoredMap.load(path, corridor)
+    assert carried[0][1] is earlier[1][1]
+    assert len(carried_views(own, T_cad_new, None, earlier)) == 0
 
 
 def test_status_degrades_when_support_falls_away(corridor) -> None:

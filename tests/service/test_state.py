@@ -8,7 +8,7 @@ import numpy as np
 
 from macroloc.graph.mapstore import KeyframeView
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
-from macroloc.service.state import MapStore, ViewLog, view_from_wire, view_to_wire
+from macroloc.service.state import SavedMapFile, ViewLog, view_from_wire, view_to_wire
 from tests.graph.scenes import make_T, rot_z
 
 SHA = "sha-of-the-building"
@@ -38,7 +38,7 @@ def _logs(tmp_path: Path) -> list[Path]:
 
 
 def test_views_are_written_once_and_their_poses_at_every_save(tmp_path: Path) -> None:
-    store = MapStore(tmp_path, "d1")
+    store = SavedMapFile(tmp_path, "d1")
     views = _views(3)
     store.save(_snapshot(), views)
     (log,) = _logs(tmp_path)
@@ -52,39 +52,39 @@ def test_views_are_written_once_and_their_poses_at_every_save(tmp_path: Path) ->
     assert log.stat().st_size - size_3 < size_3 / 2  # one view more, not four
     assert store.path.stat().st_size < 2 * map_size_3  # map.pb holds poses, not the views' bytes
     assert map_size_3 < 600
-    loaded = MapStore(tmp_path, "d1").load(SHA)
+    loaded = SavedMapFile(tmp_path, "d1").load(SHA)
     assert loaded is not None and not loaded.view_poses and not loaded.view_log
     _same(loaded, more)
 
 
 def test_a_restarted_store_writes_a_log_of_its_own_and_drops_the_old_one(tmp_path: Path) -> None:
-    first = MapStore(tmp_path, "d1")
+    first = SavedMapFile(tmp_path, "d1")
     views = _views(3)
     first.save(_snapshot(), views)
     (old,) = _logs(tmp_path)
-    loaded = MapStore(tmp_path, "d1").load(SHA)
+    loaded = SavedMapFile(tmp_path, "d1").load(SHA)
     assert loaded is not None
     carried = [view_from_wire(v) for v in loaded.views][1:]  # the restarted run carries two of them
-    second = MapStore(tmp_path, "d1")
+    second = SavedMapFile(tmp_path, "d1")
     second.save(_snapshot(), carried)
     (new,) = _logs(tmp_path)
     assert new != old and len(ViewLog.read(new)) == 2
-    again = MapStore(tmp_path, "d1").load(SHA)
+    again = SavedMapFile(tmp_path, "d1").load(SHA)
     assert again is not None
     _same(again, views[1:])
 
 
 def test_a_save_without_views_drops_the_log(tmp_path: Path) -> None:
-    store = MapStore(tmp_path, "d1")
+    store = SavedMapFile(tmp_path, "d1")
     store.save(_snapshot(), _views(2))
-    MapStore(tmp_path, "d1").save(_snapshot())
+    SavedMapFile(tmp_path, "d1").save(_snapshot())
     assert _logs(tmp_path) == []
-    loaded = MapStore(tmp_path, "d1").load(SHA)
+    loaded = SavedMapFile(tmp_path, "d1").load(SHA)
     assert loaded is not None and len(loaded.views) == 0
 
 
 def test_a_half_written_record_and_a_missing_log_lose_only_their_views(tmp_path: Path, caplog) -> None:  # noqa: ANN001
-    store = MapStore(tmp_path, "d1")
+    store = SavedMapFile(tmp_path, "d1")
     views = _views(3)
     store.save(_snapshot(), views)
     (log,) = _logs(tmp_path)
@@ -92,12 +92,12 @@ def test_a_half_written_record_and_a_missing_log_lose_only_their_views(tmp_path:
     records = ViewLog.read(log)
     log.write_bytes(data[: len(data) - len(records[-1]) // 2])  # a kill in the middle of the last record
     assert len(ViewLog.read(log)) == 2
-    loaded = MapStore(tmp_path, "d1").load(SHA)
+    loaded = SavedMapFile(tmp_path, "d1").load(SHA)
     assert loaded is not None
     _same(loaded, views[:2])
     assert "1 of 3 keyframe views missing" in caplog.text
     log.unlink()
-    loaded = MapStore(tmp_path, "d1").load(SHA)
+    loaded = SavedMapFile(tmp_path, "d1").load(SHA)
     assert loaded is not None and len(loaded.views) == 0 and loaded.status == pb.PoseEstimate.LOCALIZED
 
 
@@ -108,21 +108,21 @@ def test_a_map_saved_with_its_views_inline_still_loads(tmp_path: Path) -> None:
     snap.views.extend(view_to_wire(v, T) for T, v in views)
     (tmp_path / "d1").mkdir()
     (tmp_path / "d1" / "map.pb").write_bytes(snap.SerializeToString())
-    loaded = MapStore(tmp_path, "d1").load(SHA)
+    loaded = SavedMapFile(tmp_path, "d1").load(SHA)
     assert loaded is not None
     _same(loaded, views)
 
 
 def test_a_map_of_another_building_is_ignored(tmp_path: Path) -> None:
-    MapStore(tmp_path, "d1").save(_snapshot(), _views(1))
-    assert MapStore(tmp_path, "d1").load("another-building") is None
+    SavedMapFile(tmp_path, "d1").save(_snapshot(), _views(1))
+    assert SavedMapFile(tmp_path, "d1").load("another-building") is None
 
 
 def test_a_failed_append_leaves_no_half_record_behind(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
     """A write that fails (a full disk) is undone: the next save's records keep the numbers map.pb gives them."""
     import macroloc.service.state as state
 
-    store = MapStore(tmp_path, "d1")
+    store = SavedMapFile(tmp_path, "d1")
     views = _views(3)
     store.save(_snapshot(), views[:1])
     (log,) = _logs(tmp_path)
@@ -141,6 +141,6 @@ def test_a_failed_append_leaves_no_half_record_behind(tmp_path: Path, monkeypatc
             raise AssertionError("the failed write was not reported")
     assert log.stat().st_size == size
     store.save(_snapshot(), views)
-    loaded = MapStore(tmp_path, "d1").load(SHA)
+    loaded = SavedMapFile(tmp_path, "d1").load(SHA)
     assert loaded is not None
     _same(loaded, views)

@@ -54,7 +54,7 @@ def test_replay_prints_the_contract_writes_a_report_and_a_map(flight: Path, fzk_
     monkeypatch.setattr(matplotlib.axes.Axes, "add_collection",
                         lambda self, c, *a, **k: (drawn.append(c), add_collection(self, c, *a, **k))[1])
     rc, doc, err = run(["replay", str(flight), "--building", str(fzk_path), "--json", "--report",
-                        str(tmp_path / "report"), "--save-map", str(tmp_path / "map.json")], capsys)
+                        str(tmp_path / "report"), "--save-map", str(tmp_path / "map.pb")], capsys)
     assert rc == 0, err
     assert doc is not None and set(doc) >= KEYS
     assert doc["frames"] == 14 * 30
@@ -64,8 +64,9 @@ def test_replay_prints_the_contract_writes_a_report_and_a_map(flight: Path, fzk_
         assert (tmp_path / "report" / name).stat().st_size > 0
     walls = [c for c in drawn if c.get_label() == "walls"]
     assert len(walls) == 1 and len(walls[0].get_segments()) >= 20  # FZK-Haus: its outer and inner walls
-    stored = json.loads((tmp_path / "map.json").read_text())
-    assert any(lm["feature"] for lm in stored["landmarks"])
+    from macroloc.service.state import SavedMapFile
+
+    assert any(lm.id for lm in SavedMapFile.at(tmp_path / "map.pb").read().landmarks_map)
     report = tmp_path / "report"
     assert json.loads((report / "config.json").read_text())["graph"]  # the resolved configuration of the run
     assert _evo_ape_rmse_m(report / "truth_tum.txt", report / "estimate_tum.txt") == \
@@ -86,9 +87,9 @@ def _evo_ape_rmse_m(truth: Path, estimate: Path) -> float:
     return float(match.group(1))
 
 
-def test_a_second_flight_relocalizes_into_the_stored_map(flight: Path, fzk_path: Path, tmp_path: Path,
-                                                         capsys: pytest.CaptureFixture[str]) -> None:
-    map_path = tmp_path / "map.json"
+def test_a_second_flight_relocalizes_into_the_saved_map(flight: Path, fzk_path: Path, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    map_path = tmp_path / "map.pb"
     assert run(["replay", str(flight), "--building", str(fzk_path), "--json", "--save-map", str(map_path)],
                capsys)[0] == 0
     rc, doc, err = run(["replay", str(flight), "--building", str(fzk_path), "--json", "--map", str(map_path),
@@ -99,7 +100,7 @@ def test_a_second_flight_relocalizes_into_the_stored_map(flight: Path, fzk_path:
 
 @pytest.mark.parametrize("argv_tail, message", [
     (["--observations", "sonar"], "--observations"),
-    (["--map", "/nonexistent/map.json"], "stored map not found"),
+    (["--map", "/nonexistent/map.pb"], "saved map not found"),
     (["--storey", "Level 9"], "storey 'Level 9' has no doors or windows"),
 ])
 def test_bad_input_is_one_line_and_exit_2(flight: Path, fzk_path: Path, argv_tail: list[str], message: str,
@@ -107,6 +108,17 @@ def test_bad_input_is_one_line_and_exit_2(flight: Path, fzk_path: Path, argv_tai
     rc, _, err = run(["replay", str(flight), "--building", str(fzk_path), "--json", *argv_tail], capsys)
     assert rc == 2
     assert len(err.strip().splitlines()) == 1 and message in err
+
+
+def test_an_old_json_map_is_one_line_and_exit_2(flight: Path, fzk_path: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A map `replay --save-map` wrote before issue 56 (JSON) is refused, in one line that says to save it again."""
+    old = tmp_path / "map.json"
+    old.write_text(json.dumps({"version": 2, "building_sha256": "sha", "T_cad_map": None, "keyframes": [],
+                               "landmarks": []}))
+    rc, _, err = run(["replay", str(flight), "--building", str(fzk_path), "--json", "--map", str(old)], capsys)
+    assert rc == 2
+    assert len(err.strip().splitlines()) == 1 and "JSON map of an earlier macroloc; save the map again" in err
 
 
 def test_a_missing_recording_is_exit_2(fzk_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -172,15 +184,18 @@ def test_the_backend_hands_depth_to_the_next_keyframe() -> None:
 def test_a_map_with_views_relocalizes_at_the_first_frame(rendered_office_flight: Path, office_path: Path,
                                                           tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                           monkeypatch: pytest.MonkeyPatch) -> None:
-    """Place recognition in the stored map's keyframe views: localized at the first frame, before any door is in
+    """Place recognition in the saved map's keyframe views: localized at the first frame, before any door is in
     range; the same map without its views waits for the doors, as a fresh flight does."""
-    map_path = tmp_path / "map.json"
+    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+    from macroloc.service.state import SavedMapFile
+
+    map_path = tmp_path / "flight.pb"
     rc, first, err = run(["replay", str(rendered_office_flight), "--building", str(office_path), "--json", "--save-map",
                           str(map_path)], capsys)
     assert rc == 0 and first is not None and first["localized"], err
     import matplotlib.axes
 
-    drawn: list[str] = []  # the report's floor plan shows the stored views and where the flight was placed
+    drawn: list[str] = []  # the report's floor plan shows the saved views and where the flight was placed
     for name in ("quiver", "scatter"):
         original = getattr(matplotlib.axes.Axes, name)
         monkeypatch.setattr(matplotlib.axes.Axes, name, lambda self, *a, _f=original, **k: (
@@ -189,16 +204,15 @@ def test_a_map_with_views_relocalizes_at_the_first_frame(rendered_office_flight:
                           str(map_path), "--seed", "7", "--report", str(tmp_path / "report")], capsys)
     assert rc == 0 and again is not None, err
     assert again["time_to_localize_s"] == 0.0 and again["wrong_localizations"] == 0
-    assert {"stored views", "placed in the stored map"} <= set(drawn)
+    assert {"saved views", "placed in the saved map"} <= set(drawn)
     # placed where the map's keyframes are: as accurate as the flight that made the map (this 7 s map is itself
     # 0.106 m off: its first doors come in range at 5.5 s, and before them only the odometry holds it along the
     # corridor); the re-localized flight 0.121 m
     assert again["ape_rmse_m"] < first["ape_rmse_m"] + 0.03
-    doc = json.loads(map_path.read_text())
-    assert sum("view" in kf for kf in doc["keyframes"]) >= 5
-    for kf in doc["keyframes"]:
-        kf.pop("view", None)
-    map_path.write_text(json.dumps(doc))
+    assert len(SavedMapFile.at(map_path).read().views) >= 5
+    blind = pb.MapSnapshot.FromString(map_path.read_bytes())
+    blind.ClearField("view_poses")
+    map_path.write_bytes(blind.SerializeToString())
     rc, blind, err = run(["replay", str(rendered_office_flight), "--building", str(office_path), "--json", "--map",
                           str(map_path), "--seed", "7"], capsys)
     assert rc == 0 and blind is not None, err
@@ -246,14 +260,15 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
 def test_only_a_localized_map_with_views_is_placed_in_carried_ones_included() -> None:
     from dataclasses import replace
 
-    from macroloc.graph.mapstore import KeyframeView, StoredMap
+    from macroloc.graph.mapstore import KeyframeView
     from macroloc.service.places import KeyframePlaces
+    from macroloc.service.saved_map import SavedMap
 
     view = KeyframeView(np.ones((30, 3)), np.zeros((30, 32), np.uint8))
-    carried_only = StoredMap("sha", np.eye(4), [(0, np.eye(4))], [], {}, [(np.eye(4), view)])
-    assert KeyframePlaces(carried_only, keep_views=False).active
-    assert not KeyframePlaces(replace(carried_only, carried=[]), keep_views=False).active
-    assert not KeyframePlaces(replace(carried_only, T_cad_map=None), keep_views=False).active
+    with_views = SavedMap("sha", np.eye(4), views=[(np.eye(4), view)])
+    assert KeyframePlaces(with_views, keep_views=False).active
+    assert not KeyframePlaces(replace(with_views, views=[]), keep_views=False).active
+    assert not KeyframePlaces(replace(with_views, T_cad_map=None), keep_views=False).active
     assert KeyframePlaces(None, keep_views=True).active and not KeyframePlaces(None, keep_views=False).active
 
 

@@ -10,7 +10,7 @@ import numpy as np
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import FlightWriter, pose_from_matrix, vector3
-from macroloc.service.state import MapStore
+from macroloc.service.state import SavedMapFile
 from tests.service.helpers import free_port, loopback, running_service, service_config, yaw_T
 
 
@@ -75,7 +75,7 @@ def test_a_restarted_service_is_placed_by_its_saved_maps_views(rendered_office_f
     first = fly(0)
     assert first.localized and first.time_to_localize_s is not None and first.time_to_localize_s > 3.0
     state = tmp_path / "t1"
-    saved = MapStore(tmp_path, "t1").load(office_model.sha256)
+    saved = SavedMapFile(tmp_path, "t1").load(office_model.sha256)
     assert saved is not None and saved.status == pb.PoseEstimate.LOCALIZED and len(saved.views) >= 5
     shutil.copytree(state, tmp_path / "kept")  # map.pb and its view log
     blind = pb.MapSnapshot.FromString((state / "map.pb").read_bytes())
@@ -88,3 +88,34 @@ def test_a_restarted_service_is_placed_by_its_saved_maps_views(rendered_office_f
     again = fly(7)
     assert again.localized and again.time_to_localize_s is not None and again.time_to_localize_s < 0.5
     assert again.ape_rmse_m is not None and again.ape_rmse_m < 0.15
+
+
+def test_one_saved_map_serve_s_re_localizes_a_replay_and_a_replay_s_the_service(
+        rendered_office_flight, office_path, office_model, tmp_path, capsys) -> None:  # noqa: ANN001
+    """One saved map for both (service.saved_map): the map `serve` saved under its state_dir, given to `replay
+    --map`, localizes the replay at its first frame; a replay's `--save-map`, put where `serve` keeps its map,
+    localizes the restarted service at its first frames (placed by the map's keyframe views: this flight's first
+    doors come in range at 5.5 s)."""
+    import json
+
+    from macroloc.cli.main import main
+    from macroloc.service.offline.replay_sources import TruthSource
+    from macroloc.service.offline.replay_zenoh import replay_over_zenoh
+
+    def serve(state_dir: Path, seed: int):  # noqa: ANN202 - ZenohReplayResult
+        port = free_port()
+        with running_service(service_config(office_path, state_dir, port)):
+            return replay_over_zenoh(rendered_office_flight, loopback(connect=[f"tcp/127.0.0.1:{port}"]), "t1",
+                                     TruthSource(seed=seed), speed=1.0)
+
+    def replay(*tail: str) -> dict:
+        assert main(["replay", str(rendered_office_flight), "--building", str(office_path), "--json", *tail]) == 0
+        return json.loads(capsys.readouterr().out)
+
+    assert serve(tmp_path / "served", 0).localized
+    by_serve = replay("--map", str(tmp_path / "served" / "t1" / "map.pb"), "--seed", "7")
+    assert by_serve["time_to_localize_s"] == 0.0 and by_serve["wrong_localizations"] == 0
+    assert replay("--save-map", str(tmp_path / "replayed" / "t1" / "map.pb"))["localized"]
+    by_replay = serve(tmp_path / "replayed", 7)
+    assert by_replay.localized and by_replay.time_to_localize_s is not None and by_replay.time_to_localize_s < 0.5
+    assert by_replay.wrong_localizations == 0
