@@ -32,10 +32,15 @@ MODES = {"default": [], "hard": ["--sigma", "0.10", "--drop", "0.3", "--fp", "0.
 VARIANTS = ("gravity", "full", "nogravity")
 
 
+CONFIG: list[str] = []  # `--config FILE`: added to every `localize` call (e.g. [localize] decision = "posterior")
+
+
 def in_process_cli(argv: list[str], timeout: float | None = None) -> tuple[int, str, str, float]:
     """`macroloc ARGS` in this process: (exit code, stdout, stderr, wall seconds); argv[0] is the program."""
     from macroloc.cli.main import main
 
+    if CONFIG and len(argv) > 1 and argv[1] == "localize":
+        argv = [*argv, "--config", *CONFIG]
     out, err = io.StringIO(), io.StringIO()
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -94,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="8101,8202")
     ap.add_argument("--n", type=int, default=200)
     ap.add_argument("--out", type=Path, default=Path("out/eval_shared"))
+    ap.add_argument("--config", default=None, help="a config file every localize call reads (e.g. the posterior "
+                    "rule: [localize] decision = \"posterior\")")
     argv = sys.argv[1:] if argv is None else argv
     split = argv.index("--") if "--" in argv else len(argv)
     args = ap.parse_args(argv[:split])
@@ -103,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     sys.path.insert(0, str(args.eval_dir.resolve()))
     harness = importlib.import_module("score_localize")
     harness.run_cli = in_process_cli
+    CONFIG[:] = [args.config] if args.config else []
     if args.matrix:
         return 1 if matrix(harness, args.bim_dir, [int(x) for x in args.seeds.split(",")], args.n, args.out) else 0
     run_harness(harness, argv[split + 1:])

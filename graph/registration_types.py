@@ -29,6 +29,7 @@ class RegistrationResult:
     alternatives: list[np.ndarray] = field(default_factory=list)
     diagnostics: dict = field(default_factory=dict)
     candidates: list[tuple[np.ndarray, int]] = field(default_factory=list)  # distinct poses, inliers; best first
+    posterior: dict | None = None  # graph.posterior's over the poses found (`Posterior.to_json`), where computed
 
     def to_json(self) -> dict:
         return {
@@ -41,6 +42,7 @@ class RegistrationResult:
             **({} if self.total_ms is None else {"total_ms": round(self.total_ms, 3)}),
             "alternatives": [np.round(T, 6).tolist() for T in self.alternatives],
             "diagnostics": self.diagnostics,
+            **({} if self.posterior is None else {"posterior": self.posterior}),
         }
 
 

@@ -26,6 +26,7 @@ from macroloc.graph.features import FEATURE_TYPES
 from macroloc.graph.model_index import TYPE_SEPARATION_M, ModelIndex
 from macroloc.graph.observations import Observation, ObservationSet
 from macroloc.graph.params import RobustParams
+from macroloc.graph.posterior import pose_posterior
 from macroloc.graph.rectangle import unordered_edges
 from macroloc.graph.registration_types import RegistrationResult, majority_storey
 from macroloc.graph.rigid import (
@@ -606,6 +607,14 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
     if abs(noise.centroid_rms_m - prior.centroid_rms_m) > 0.05 * prior.centroid_rms_m:  # else the same verdicts
         verdicts = _verify_all(candidates, prep, index, noise, params)
     k_best = int(np.argmax([v.loglik for v in verdicts]))
+    post = pose_posterior(np.stack([p.T for p in candidates]), prep.shapes, index, params.observation,
+                          lambda A, B, anchor: _distinct_T(A, B, anchor, params))
+    # The posterior is over the poses found. Without gravity the search can miss the truth, and three rectangles
+    # fit a wrong pose (docs/measurements.md, "Issue 58"): there, below min_inliers_without_gravity, today's rule.
+    by_posterior = params.decision == "posterior" and (
+        prep.gravity_known or (len(post.kept) > 0 and int(post.explained[0]) >= params.min_inliers_without_gravity))
+    if by_posterior and post.named:  # the posterior's best pose is the answer's
+        k_best = post.named[0]
     best, v_best = candidates[k_best], verdicts[k_best]
     n_best = v_best.n_inliers
     margin = rival_margin(v_best, prep, index, noise, params)
@@ -614,8 +623,9 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
                 rivals_scored=len(candidates))
     all_rects = bool(v_best.inlier.any() and prep.shapes.has_rect[v_best.inlier].all())
     min_inliers = params.min_inliers if prep.gravity_known or all_rects else params.min_inliers_without_gravity
-    if n_best < max(min_inliers, params.min_inlier_fraction * n):
-        return RegistrationResult("not_localized", None, [], n_best, None, diagnostics=diag)
+    post_json = post.to_json([candidates[k].T @ prep.T_mp_m for k in post.kept])
+    if n_best < max(min_inliers, params.min_inlier_fraction * n) or (by_posterior and post.status == "not_localized"):
+        return RegistrationResult("not_localized", None, [], n_best, None, diagnostics=diag, posterior=post_json)
     anchor = prep.centroids[v_best.inlier]
     scored = sorted(zip(verdicts, candidates, strict=True), key=lambda vp: -vp[0].loglik)
     apart = _distinct_T(np.stack([p.T for _, p in scored]), best.T, anchor, params)
@@ -625,6 +635,8 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
         if v.loglik >= v_best.loglik - margin(v.n_inliers) \
                 and (not close or _distinct_T(np.stack([q.T for _, q in close]), p.T, anchor, params).all()):
             close.append((v, p))
+    if by_posterior:  # the poses that share the posterior's mass, or none
+        close = [(verdicts[k], candidates[k]) for k in post.named[1:]]
     diag.update(rival_loglik=round(rivals[0][0].loglik, 2) if rivals else None,
                 rival_inliers=rivals[0][0].n_inliers if rivals else 0)
     pairs = [(int(i), int(v_best.match[i])) for i in np.flatnonzero(v_best.inlier)]
@@ -647,9 +659,9 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
         # No matches: they would name one of the competing poses' features as if it were known.
         return RegistrationResult("ambiguous", T_cad_map, [], n_best, storey,
                                   alternatives=[p.T @ prep.T_mp_m for _, p in close], diagnostics=diag,
-                                  candidates=candidate_poses)
+                                  candidates=candidate_poses, posterior=post_json)
     return RegistrationResult("localized", T_cad_map, matches, n_best, storey, diagnostics=diag,
-                              candidates=candidate_poses)
+                              candidates=candidate_poses, posterior=post_json)
 
 
 @dataclass(frozen=True)
