@@ -145,6 +145,9 @@ class ServiceConfig(_Section):
     status_period_s: float = Field(1.0, description="period of status and diagnostics messages, s")
     save_period_s: float = Field(5.0, description="period of saving the map to state_dir, s (and at exit)")
     perception: bool = Field(True, description="run the perception chain on stereo frames (else decode only)")
+    odometry: Literal["vehicle", "visual"] = Field(
+        "vehicle", description="where the odometry comes from: 'vehicle' (its odometry key, or the ROS/PX4 topic of "
+        "[ros]/[px4]) or 'visual' (the stereo visual odometry on the frames and the IMU: service.visual_odometry)")
     log_json: bool = Field(False, description="structured logs: one JSON object per line on stderr")
     stall_after_s: float = Field(5.0, gt=0, description="a worker busy this long on one event is stalled: the "
                                  "liveliness token is withdrawn and systemd's watchdog no longer fed, s")

@@ -1,10 +1,10 @@
 """Stereo frames to sightings inside the service: the perception chain behind the `FramePipeline` seam.
 
-`PerceptionPipeline` decodes a wire `StereoFrame`, runs `perception.pipeline.Perception` (detector -> LSD ->
-SGBM -> 3D corners) and returns the doors/windows with corners in the body frame, using the frame's own
-CameraInfo (intrinsics, baseline, T_body_cam); every few frames it also measures stereo depth points for the
-localizer's surface check (graph.surfaces). `configured_pipeline` picks it when the detector's weights load, and
-the decode-only pipeline otherwise (logged).
+`PerceptionPipeline` runs `perception.pipeline.Perception` (detector -> LSD -> SGBM -> 3D corners) on a wire
+`StereoFrame`'s decoded pair and returns the doors/windows with corners in the body frame, using the frame's own
+CameraInfo (intrinsics, baseline, T_body_cam). `StereoDepth` measures the depth points of the localizer's surface
+check (graph.surfaces) for the front end (service.front_end). `configured_pipeline` picks the chain when the
+detector's weights load, and the null pipeline otherwise (logged).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -23,19 +23,23 @@ from macroloc.perception.params import DepthPointsParams, PerceptionParams
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import decode_image, matrix_from_pose
 
+if TYPE_CHECKING:
+    from macroloc.perception.stereo import FrameDisparity
+
 log = logging.getLogger(__name__)
 
 
 class FramePipeline(Protocol):
-    """Stereo frame (and gravity's up at it, body frame, when known) -> sightings (doors/windows, corners in the
-    body frame). Perception plugs in here. `points_body`: the last frame's stereo depth points (body frame, metres)
-    when it measured them, else None; `measure_depth`: the last frame's, measured when called (for a keyframe:
-    StereoDepth.deferred), or None."""
+    """Stereo frame (its decoded images, and gravity's up at it, body frame, when known) -> sightings (doors/windows,
+    corners in the body frame). Perception plugs in here. `disparity`: the frame's one SGBM
+    (perception.stereo.FrameDisparity) that the front end's depth points and visual odometry share, where the
+    pipeline has one."""
 
-    points_body: np.ndarray | None
-    measure_depth: Callable[[], np.ndarray] | None
+    @property
+    def disparity(self) -> FrameDisparity | None: ...
 
-    def __call__(self, frame: pb.StereoFrame, up_body: np.ndarray | None = None) -> list[Sighting]: ...
+    def __call__(self, frame: pb.StereoFrame, up_body: np.ndarray | None = None,
+                 images: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> list[Sighting]: ...
 
 
 def gravity_cam(up_body: np.ndarray | None, T_body_cam: np.ndarray) -> np.ndarray | None:
@@ -48,10 +52,10 @@ class NullPipeline:
     """Sees nothing in the frames (perception off or unavailable): a frame still gets its pose from odometry,
     and sightings come on the observations key (e.g. from the vehicle's own detector)."""
 
-    points_body: np.ndarray | None = None
-    measure_depth: Callable[[], np.ndarray] | None = None
+    disparity: FrameDisparity | None = None
 
-    def __call__(self, frame: pb.StereoFrame, up_body: np.ndarray | None = None) -> list[Sighting]:
+    def __call__(self, frame: pb.StereoFrame, up_body: np.ndarray | None = None,
+                 images: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> list[Sighting]:
         return []
 
 
@@ -118,41 +122,42 @@ class StereoDepth:
 class PerceptionPipeline:
     """StereoFrame -> sightings (corners in the body frame, metres) through the perception chain."""
 
-    def __init__(self, perception, default_T_body_cam: np.ndarray,  # noqa: ANN001 - perception.Perception
-                 depth: DepthPointsParams | None = None) -> None:
-        """Frames also give stereo depth points (SGBM over the whole frame) for the walls' checks, as `depth` says
-        ([perception.depth]: by default `measure_depth`, for the session to call where the frame becomes a
-        keyframe; every 16th pixel). Where the chain's matcher is a shared FrameDisparity, the depth points take
-        the frame's disparity from it (one SGBM)."""
+    def __init__(self, perception, default_T_body_cam: np.ndarray) -> None:  # noqa: ANN001 - perception.Perception
+        """`disparity`: the chain's matcher where it is a shared FrameDisparity (one SGBM a frame for the chain,
+        the depth points and the visual odometry), else None."""
         from macroloc.perception.stereo import FrameDisparity
 
         self.perception = perception
         self.default_T_body_cam = default_T_body_cam
-        shared = perception.matcher if isinstance(perception.matcher, FrameDisparity) else None
-        self.depth = StereoDepth.configured(depth or DepthPointsParams(), shared)
-        self.points_body: np.ndarray | None = None  # the last frame's depth points, when it measured them
-        self.measure_depth: Callable[[], np.ndarray] | None = None  # the last frame's, measured when called
+        self.disparity = perception.matcher if isinstance(perception.matcher, FrameDisparity) else None
 
-    def __call__(self, frame: pb.StereoFrame, up_body: np.ndarray | None = None) -> list[Sighting]:
+    def __call__(self, frame: pb.StereoFrame, up_body: np.ndarray | None = None,
+                 images: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> list[Sighting]:
         """Frames come checked (service.inputs: sizes from the headers, equal left and right and camera info);
         a frame without camera info cannot be perceived and gives no sightings. `up_body`: gravity's up (the
-        session's), which tells the chain which way is down, as in a replay."""
-        from macroloc.perception.calib import StereoRig
+        session's), which tells the chain which way is down; `images()`: the frame's decoded pair (decoded here
+        without)."""
         from macroloc.perception.pipeline import StereoPair
 
         info = frame.info
         if not frame.HasField("info") or info.fx <= 0 or info.baseline_m <= 0:
-            self.points_body, self.measure_depth = None, None
             return []
-        left, right = decode_image(frame.left), decode_image(frame.right)
-        rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
+        left, right = images() if images is not None else (decode_image(frame.left), decode_image(frame.right))
+        rig = stereo_rig(frame)
         T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam
-        self.points_body = self.depth(left, right, rig, T_body_cam)  # first: the chain's band reuses its SGBM
-        self.measure_depth = self.depth.deferred(left, right, rig, T_body_cam)
         result = self.perception.process(StereoPair(left, right, rig, gravity_cam(up_body, T_body_cam),
                                                     frame.header.stamp_ns))
         return [Sighting(f.type, apply(T_body_cam, f.corners_cam), truncated=f.truncated)
                 for f in result.features]
+
+
+def stereo_rig(frame: pb.StereoFrame):  # noqa: ANN201 - perception.calib.StereoRig
+    """The stereo rig a frame's CameraInfo describes (the images' size from the frame: service.inputs checked that
+    they agree with the info's)."""
+    from macroloc.perception.calib import StereoRig
+
+    info = frame.info
+    return StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
 
 
 def make_perception_pipeline(threads: int | None = None, detector_model: Path | None = None,
@@ -171,7 +176,7 @@ def make_perception_pipeline(threads: int | None = None, detector_model: Path | 
         p = params or PerceptionParams()
         chain = Perception.create(detector_model, threads=threads or plan.onnxruntime,
                                   disparity=FrameDisparity(SgbmMatcher(p.stereo)), params=p)
-        return PerceptionPipeline(chain, forward_stereo_T_body_cam(), depth=p.depth)
+        return PerceptionPipeline(chain, forward_stereo_T_body_cam())
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception
         log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)
         return None

@@ -39,9 +39,16 @@ from macroloc.graph.mapstore import PlacedView
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.perception.params import DepthPointsParams, PlaceParams
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
-from macroloc.proto.recording import matrix_from_pose, pose_from_matrix
+from macroloc.proto.recording import FlightFrame, matrix_from_pose, pose_from_matrix, vector3
 from macroloc.service.frame_answers import ODOMETRY_MATCH_NS, OdometryBuffer
-from macroloc.service.frames import FramePipeline, NullPipeline, configured_pipeline, depth_points_body
+from macroloc.service.frames import (
+    FramePipeline,
+    NullPipeline,
+    StereoDepth,
+    configured_pipeline,
+    depth_points_body,
+    stereo_rig,
+)
 from macroloc.service.inputs import (
     ClockReset,
     ImuIn,
@@ -55,6 +62,7 @@ from macroloc.service.inputs import (
 from macroloc.service.places import KeyframePlaces, Placed
 from macroloc.service.saved_map import STATUS_TO_WIRE, SavedMap, map_snapshot, saved_views, supersedes
 from macroloc.service.session import FrameIn, LocalizationSession, session_from_config
+from macroloc.service.visual_odometry import VisualOdometry
 
 if TYPE_CHECKING:
     from macroloc.service.config import MacrolocConfig
@@ -82,6 +90,11 @@ class FrontEndParams:
     depth: DepthPointsParams = field(default_factory=DepthPointsParams)
     place: PlaceParams | None = None
 
+    @classmethod
+    def configured(cls, cfg: MacrolocConfig) -> FrontEndParams:
+        chain = cfg.perception.to_params()
+        return cls(cfg.perception.detect_every, chain.depth, chain.place)
+
 
 class FrontEnd:
     """See module doc: the vehicle's events into frames of its `LocalizationSession` (service.session): odometry by
@@ -91,15 +104,21 @@ class FrontEnd:
 
     def __init__(self, model: BuildingModel, session: LocalizationSession,
                  T_body_cam: np.ndarray | None = None, pipeline: FramePipeline | None = None,
-                 params: FrontEndParams | None = None) -> None:
-        """`T_body_cam`: the left camera in the body frame, for sightings sent in the cam_left frame and stereo
-        frames whose CameraInfo carries none; `pipeline`: the perception chain on stereo frames (none: frames give
-        a pose from the odometry only, sightings come as observations)."""
+                 params: FrontEndParams | None = None, visual: VisualOdometry | None = None) -> None:
+        """`T_body_cam`: the left camera in the body frame, for sightings sent in the cam_left frame; `pipeline`:
+        the perception chain on stereo frames (none: frames give a pose from the odometry only, sightings come as
+        observations), whose frames also give stereo depth points ([perception.depth], on its SGBM); `visual`: the
+        odometry strategy where the vehicle sends none (service.visual_odometry: the stereo frames and the IMU),
+        whose own depth points then serve."""
         self.model = model
         self.session = session
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
         self.pipeline: FramePipeline = pipeline or NullPipeline()
         self.params = params or FrontEndParams()
+        self.visual = visual
+        self.stereo_depth = StereoDepth.configured(self.params.depth, self.pipeline.disparity) \
+            if not isinstance(self.pipeline, NullPipeline) else None  # stereo depth comes with the chain
+        self._imu: list[pb.Imu] = []  # the IMU's samples since the last stereo frame, for the visual odometry
         self.places = KeyframePlaces(None, keep_views=True, config=self.params.place)  # `fresh_or_restored`'s
         self.sightings: list[Sighting] = []  # the last stereo frame's perceived doors and windows, body frame
         self._stereo_frames = 0  # stereo frames taken, for the cadence
@@ -120,10 +139,12 @@ class FrontEnd:
 
         cfg = cfg or MacrolocConfig()
         chain = cfg.perception.to_params()
-        params = FrontEndParams(cfg.perception.detect_every, chain.depth, chain.place)
+        params = FrontEndParams.configured(cfg)
+        shared = pipeline.disparity if pipeline is not None else None
+        visual = VisualOdometry(shared, chain) if cfg.service.odometry == "visual" else None  # type: ignore[arg-type]
 
         def front_end(session: LocalizationSession) -> FrontEnd:
-            return cls(model, session, T_body_cam, pipeline, params)
+            return cls(model, session, T_body_cam, pipeline, params, visual)
 
         if snapshot is None:
             return front_end(session_from_config(cfg, model, surfaces=surfaces, covariance=True))
@@ -136,25 +157,35 @@ class FrontEnd:
     # --- inputs -------------------------------------------------------------------------------------------------
 
     def imu(self, ev: ImuIn) -> None:
-        """A specific force sample, to the session: with the next odometry sample it gives up in the body frame."""
+        """A specific force sample, to the session: with the next odometry sample it gives up in the body frame;
+        kept for the visual odometry's next frame where it runs."""
         self.session.imu(np.asarray(ev.accel_mps2, float))
+        if self.visual is not None:
+            imu = pb.Imu(accel_mps2=vector3(ev.accel_mps2), gyro_radps=vector3(ev.gyro_radps))
+            imu.header.stamp_ns = ev.stamp_ns
+            self._imu.append(imu)
 
     def odometry(self, ev: OdometryIn) -> Estimate:
         """An odometry sample: to the session (gravity's up), then the sightings that waited for it, then its own
         frame (no sightings)."""
-        self.session.odometry(ev.stamp_ns, ev.T_map_body)
-        self._odometry.add(ev.stamp_ns, ev.T_map_body)
+        self._odometry_pose(ev.stamp_ns, ev.T_map_body)
+        return self.session.frame(FrameIn(ev.stamp_ns, ev.T_map_body, []))
+
+    def _odometry_pose(self, stamp_ns: int, T_odom_body: np.ndarray) -> None:
+        """An odometry pose (the vehicle's, or the visual odometry's of a stereo frame): to the session (gravity's
+        up) and the buffer, then the sightings that waited for it, each a frame at its own stamp."""
+        self.session.odometry(stamp_ns, T_odom_body)
+        self._odometry.add(stamp_ns, T_odom_body)
         if self._pending:  # sightings waiting for this odometry (keys arrive through separate channels)
             pending, self._pending = self._pending, []
             for p in pending:
-                T_odom_body = self.odometry_at(p.stamp_ns)
-                if T_odom_body is not None:
-                    self.session.frame(FrameIn(p.stamp_ns, T_odom_body, p.to_body(T_odom_body)))
-                elif p.stamp_ns < ev.stamp_ns - ODOMETRY_MATCH_NS:
+                T_odom_at = self.odometry_at(p.stamp_ns)
+                if T_odom_at is not None:
+                    self.session.frame(FrameIn(p.stamp_ns, T_odom_at, p.to_body(T_odom_at)))
+                elif p.stamp_ns < stamp_ns - ODOMETRY_MATCH_NS:
                     self.unmatched += 1
                 else:
                     self._pending.append(p)
-        return self.session.frame(FrameIn(ev.stamp_ns, ev.T_map_body, []))
 
     def new_time_base(self) -> None:
         """The vehicle's clock was reset: forget what is kept by stamp (the odometry buffer, sightings waiting
@@ -180,37 +211,52 @@ class FrontEnd:
         return self._sightings_frame(ev.stamp_ns, to_body)
 
     def stereo(self, ev: StereoIn) -> Estimate | None:
-        """A stereo frame (see module doc): perceived where the cadence says, its depth points and place, then a
-        frame of the session at the odometry pose of its stamp. Without that pose, its sightings wait for it (its
-        depth and place are dropped) and the answer is the pose tracked at the last estimate's (None before
-        any). `sightings` holds what it perceived."""
+        """A stereo frame (see module doc), its images decoded once, where the work needs them: its odometry where
+        the visual odometry runs, perceived where the cadence says, its depth points and place, then a frame of the
+        session at the odometry pose of its stamp. Without that pose, its sightings wait for it (its depth and
+        place are dropped) and the answer is the pose tracked at the last estimate's (None before any).
+        `sightings` holds what it perceived."""
         frame, stamp_ns = ev.frame, ev.stamp_ns
+        flight_frame = FlightFrame(stamp_ns, frame, imu=self._imu)  # its `images()` decode the pair once
+        self._imu = []
+        calibrated = frame.HasField("info") and frame.info.fx > 0 and frame.info.baseline_m > 0 and \
+            bool(frame.left.data) and bool(frame.right.data)
+        T_body_cam = matrix_from_pose(frame.info.T_body_cam) if frame.info.HasField("T_body_cam") else \
+            forward_stereo_T_body_cam()
+        points_body: np.ndarray | None = None
+        measure_depth: Callable[[], np.ndarray] | None = None
+        dead_reckoned_s = 0.0
+        if self.visual is not None and calibrated:  # its pose first: gravity's up comes with it
+            self._odometry_pose(stamp_ns, self.visual(flight_frame, *flight_frame.images()))
+            v = self.visual
+            points_body, measure_depth, dead_reckoned_s = v.points_body, v.measure_depth, v.dead_reckoned_s
+        elif self.stereo_depth is not None and calibrated:
+            left, right = flight_frame.images()
+            points_body = self.stereo_depth(left, right, stereo_rig(frame), T_body_cam)
+            measure_depth = self.stereo_depth.deferred(left, right, stereo_rig(frame), T_body_cam)
         due = self._stereo_frames % self.params.perceive_every == 0
         self._stereo_frames += 1
         up_body = self.up_body  # the session's, from the IMU: which way is down for the chain
-        self.sightings = self.pipeline(frame, up_body) if due else []
-        points_body = self.pipeline.points_body if due else None  # the chain's own stereo depth, when it measured
-        measure_depth = self.pipeline.measure_depth if due else None  # ... or will for a keyframe
-        T_odom_body = self.odometry_at(stamp_ns)
+        self.sightings = self.pipeline(frame, up_body, flight_frame.images) if due else []
         if frame.HasField("depth") and self.localizer.surfaces is not None:  # the vehicle's depth image
             d = self.params.depth
             points_body, measure_depth = depth_points_body(frame, d.depth_image_stride_px, d.max_range_m), None
+        T_odom_body = self.odometry_at(stamp_ns)
         if T_odom_body is None:
             if self.sightings:
                 sightings = self.sightings
                 self._sightings_frame(stamp_ns, lambda _: sightings)
             return None if self.last is None else self.session.pose_at(stamp_ns, self.last.T_map_body)
-        placed = self._place(frame, stamp_ns, T_odom_body, up_body)
+        placed = self._place(flight_frame, T_odom_body, T_body_cam, up_body)
         return self.session.frame(FrameIn(stamp_ns, T_odom_body, self.sightings, points_body=points_body,
-                                          placed=placed, measure_depth=measure_depth))
+                                          dead_reckoned_s=dead_reckoned_s, placed=placed,
+                                          measure_depth=measure_depth))
 
-    def _place(self, frame: pb.StereoFrame, stamp_ns: int, T_odom_body: np.ndarray,
+    def _place(self, frame: FlightFrame, T_odom_body: np.ndarray, T_body_cam: np.ndarray,
                up_body: np.ndarray | None) -> Placed | None:
         """Place recognition on the frame (service.places): its pose in the saved map while not localized, its view
         to keep for the next one; None where neither applies (no calibration, or nothing due)."""
-        info = frame.info
-        T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
-        placed = self.places.at_frame(frame, stamp_ns, T_odom_body, T_body_cam, up_body, self.status)
+        placed = self.places.at_frame(frame, T_odom_body, T_body_cam, up_body, self.status)
         return placed if placed.T_cad_body is not None or placed.view is not None else None
 
     def handle(self, event: object) -> Estimate | None:

@@ -20,6 +20,7 @@ from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.perception.calib import StereoRig
 from macroloc.perception.place import PlaceParams, PlaceRecognizer
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import FlightFrame
 
 if TYPE_CHECKING:
     from macroloc.service.saved_map import SavedMap
@@ -59,23 +60,22 @@ class KeyframePlaces:
     def active(self) -> bool:
         return self.stored is not None or self.keep_views
 
-    def at_frame(self, frame: pb.StereoFrame, stamp_ns: int, T_odom_body: np.ndarray, T_body_cam: np.ndarray,
+    def at_frame(self, frame: FlightFrame, T_odom_body: np.ndarray, T_body_cam: np.ndarray,
                  up_body: np.ndarray | None, status: str) -> Placed:
-        """A keyframe's stereo frame: its place in the saved map (while not localized, at most every `every_s`)
-        and its view (when kept and due). Only the images that work needs are decoded: none after localizing
-        between views. Nothing from a frame without images or calibration (a ground-truth flight's)."""
-        info = frame.info
-        if not self.active or info.fx <= 0 or not frame.left.data or not frame.right.data:
+        """A keyframe's stereo frame: its place in the stored map (while not localized, at most every `every_s`)
+        and its view (when kept and due). The frame's images are decoded only where that work needs them (once:
+        `FlightFrame.images`): none after localizing between views. Nothing from a frame without images or
+        calibration (a ground-truth flight's)."""
+        stereo, stamp_ns = frame.stereo, frame.stamp_ns
+        if not self.active or stereo.info.fx <= 0 or not stereo.left.data or not stereo.right.data:
             return Placed(None, None)
         place = self.stored is not None and status != "localized" and \
             (self._last_try_ns is None or (stamp_ns - self._last_try_ns) * 1e-9 >= self.every_s)
         describe = self.keep_views and self._view_due(T_odom_body)
         if not place and not describe:
             return Placed(None, None)
-        from macroloc.proto.recording import decode_image
-
-        recognizer = self._recognizer_for(frame, T_body_cam)
-        left = decode_image(frame.left)
+        recognizer = self._recognizer_for(stereo, T_body_cam)
+        left, right = frame.images()
         T_cad_body = None
         if place:
             assert self.stored is not None and self.stored.T_cad_map is not None
@@ -83,10 +83,10 @@ class KeyframePlaces:
             match = recognizer.place(left, up_body)
             if match is not None:
                 T_cad_body = self.stored.T_cad_map @ match.T_map_body
-                log.info("keyframe placed in the saved map: %d inliers (stored view %d)", match.inliers, match.view)
+                log.info("keyframe placed in the stored map: %d inliers (stored view %d)", match.inliers, match.view)
         view = None
         if describe:
-            view = recognizer.describe(left, decode_image(frame.right))
+            view = recognizer.describe(left, right)
             self._T_odom_viewed = T_odom_body
             if len(view.descriptors) < self.MIN_VIEW_POINTS:
                 view = None

@@ -166,8 +166,7 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
             session = make(source.T_body_cam(frame))
         inputs: FrameInput = source(frame, ahead, gravity_at(session, frame, ahead))
         t0 = frame.stamp_ns if t0 is None else t0
-        placed = places.at_frame(frame.stereo, inputs.stamp_ns, inputs.T_odom_body, inputs.T_body_cam,
-                                 inputs.up_body, session.status)
+        placed = places.at_frame(frame, inputs.T_odom_body, inputs.T_body_cam, inputs.up_body, session.status)
         est = session.frame(FrameIn(inputs.stamp_ns, inputs.T_odom_body, inputs.sightings, inputs.up_body,
                                     inputs.points_body, inputs.dead_reckoned_s, placed, inputs.measure_depth))
         if busy_at_localized is None and est.status == "localized":

@@ -11,6 +11,8 @@ The vehicle's odometry (`odometry`), chosen the same way on both sides:
 - `auto`: `recorded` where the first frame carries odometry (and no sightings are sent), else `simulated` where it
   carries ground truth, else none (the service then takes the odometry from elsewhere, e.g. a ROS topic).
 
+- `none` (of `auto` only) or `visual` where the caller lets the service's front end run its visual odometry.
+
 Its doors and windows (`sightings`): none (the service perceives the stereo frames itself), or an
 `ObservationSource`'s (ground truth with realistic errors), sent as `ObservedFeatures` in the body frame.
 """
@@ -28,7 +30,7 @@ from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import FlightFrame, pose_from_matrix, vector3
 from macroloc.service.offline.replay_sources import ObservationSource, TruthSource
 
-ODOMETRY_CHOICES = ("auto", "recorded", "simulated")  # what a user chooses (`--odometry`); `none` comes of auto only
+ODOMETRY_CHOICES = ("auto", "recorded", "simulated", "visual")  # a user's (`--odometry`); `none` comes of auto only
 
 
 @dataclass(frozen=True)
@@ -42,11 +44,15 @@ class VehicleMessage:
 class RecordedVehicle:
     """See module doc. Deterministic for a seed; one instance per flight (the simulated odometry drifts on)."""
 
-    def __init__(self, odometry: str = "auto", sightings: ObservationSource | None = None, seed: int = 0) -> None:
+    def __init__(self, odometry: str = "auto", sightings: ObservationSource | None = None, seed: int = 0,
+                 depth_camera: bool = False) -> None:
+        """`depth_camera`: the stereo frames carry the recording's ground-truth depth image, as a vehicle with a
+        depth camera sends it (the service then takes its points for the walls' checks: service.front_end)."""
         if odometry not in ODOMETRY_CHOICES:
             raise UserInputError(f"--odometry must be one of {', '.join(ODOMETRY_CHOICES)}, not {odometry!r}")
         self.choice = odometry
         self.sightings = sightings
+        self.depth_camera = depth_camera
         self._simulated = TruthSource(seed=seed)  # the vehicle's VIO, for a simulated recording without odometry
         self.odometry: str | None = None  # what it sends, once the first frame has told: recorded, simulated, none
 
@@ -61,7 +67,7 @@ class RecordedVehicle:
             # with its own sightings, the source's drifted odometry goes with them unless `recorded` is asked for
             recorded = bool(frame.odometry) and (self.choice == "recorded" or
                                                  (self.choice == "auto" and self.sightings is None))
-            self.odometry = "recorded" if recorded else \
+            self.odometry = "visual" if self.choice == "visual" else "recorded" if recorded else \
                 "simulated" if frame.ground_truth is not None or self.choice == "simulated" else "none"
         inputs = self.sightings(frame, None, None) if self.sightings is not None else None
         if self.odometry == "recorded":
@@ -76,14 +82,21 @@ class RecordedVehicle:
             yield VehicleMessage("odometry", odo)
         if inputs is not None:
             yield VehicleMessage("observations", observed_features(frame.stamp_ns, inputs.sightings))
-        yield VehicleMessage("stereo", frame.stereo)
+        if self.depth_camera and frame.ground_truth is not None and frame.ground_truth.HasField("depth"):
+            stereo = pb.StereoFrame()
+            stereo.CopyFrom(frame.stereo)
+            stereo.depth.CopyFrom(frame.ground_truth.depth)
+            yield VehicleMessage("stereo", stereo)
+        else:
+            yield VehicleMessage("stereo", frame.stereo)
 
 
 def observed_features(stamp_ns: int, sightings: list[Sighting]) -> pb.ObservedFeatures:
-    """Sightings (corners in the body frame) as the vehicle sends them."""
+    """Sightings (corners in the body frame) as the vehicle sends them, with their ground-truth ids where known."""
     msg = pb.ObservedFeatures()
     msg.header.stamp_ns = stamp_ns
     msg.header.frame_id = "body"
     for s in sightings:
-        msg.features.add(type=s.type).corners.extend(vector3(c) for c in s.corners_body)
+        # the ground truth's id where the sightings are the simulator's (for scoring the links only)
+        msg.features.add(type=s.type, id=s.truth_id or "").corners.extend(vector3(c) for c in s.corners_body)
     return msg

@@ -1,4 +1,4 @@
-"""The service's frame pipeline (service/frames.py): stereo depth points for the surface check."""
+"""The service's frame pipeline and stereo depth points for the surface check (service/frames.py)."""
 
 from __future__ import annotations
 
@@ -28,48 +28,45 @@ def _plane_frame() -> pb.StereoFrame:
     return pb.StereoFrame(left=encode_image(left), right=encode_image(right), info=info)
 
 
-def test_by_default_a_frame_s_depth_points_are_measured_only_when_asked_for() -> None:
-    """[perception.depth] at_keyframes (the default): no frame measures depth points as it is perceived; each
-    leaves `measure_depth`, which the session calls where the frame becomes a keyframe, and which measures that
-    frame's (not a later one's: the images are the frame's own)."""
-    pytest.importorskip("onnxruntime")
-    from macroloc.common.geometry import forward_stereo_T_body_cam
-    from macroloc.perception.pipeline import Perception
-    from macroloc.service.frames import PerceptionPipeline
+def _plane_rig():  # noqa: ANN202 - StereoRig
+    from macroloc.perception.calib import StereoRig
 
-    pipeline = PerceptionPipeline(Perception.create(None), forward_stereo_T_body_cam())
-    pipeline(_plane_frame())
-    first = pipeline.measure_depth
+    return StereoRig(480.0, 480.0, 319.5, 239.5, 0.12, 640, 480)
+
+
+def test_by_default_a_frame_s_depth_points_are_measured_only_when_asked_for() -> None:
+    """[perception.depth] at_keyframes (the default): no frame measures depth points as it comes; each leaves a
+    measurement, which the session calls where the frame becomes a keyframe, and which measures that frame's (not
+    a later one's: the images are the frame's own)."""
+    from macroloc.common.geometry import forward_stereo_T_body_cam
+    from macroloc.perception.params import DepthPointsParams
+    from macroloc.service.frames import StereoDepth
+
+    depth, T_body_cam = StereoDepth.configured(DepthPointsParams()), forward_stereo_T_body_cam()
+    near_left, near_right = textured_pair(24)
     far_left, far_right = textured_pair(12, seed=1)  # the plane twice as far
-    far = _plane_frame()
-    far.left.CopyFrom(encode_image(far_left))
-    far.right.CopyFrom(encode_image(far_right))
-    pipeline(far)
-    assert pipeline.points_body is None and first is not None and pipeline.measure_depth is not None
-    near_points, far_points = first(), pipeline.measure_depth()
+    assert depth(near_left, near_right, _plane_rig(), T_body_cam) is None
+    first = depth.deferred(near_left, near_right, _plane_rig(), T_body_cam)
+    assert depth(far_left, far_right, _plane_rig(), T_body_cam) is None
+    second = depth.deferred(far_left, far_right, _plane_rig(), T_body_cam)
+    assert first is not None and second is not None
+    near_points, far_points = first(), second()
     assert len(near_points) > 500 and len(far_points) > 500
     assert np.median(near_points[:, 0]) == pytest.approx(2.5, abs=0.05)  # 2.4 m + the camera's 0.10 m
     assert np.median(far_points[:, 0]) == pytest.approx(4.9, abs=0.1)
 
 
 def test_every_third_frame_measures_depth_points_of_the_plane() -> None:
-    pytest.importorskip("onnxruntime")
     from macroloc.common.geometry import forward_stereo_T_body_cam
     from macroloc.perception.params import DepthPointsParams
-    from macroloc.perception.pipeline import Perception
-    from macroloc.service.frames import PerceptionPipeline
+    from macroloc.service.frames import StereoDepth
 
-    pipeline = PerceptionPipeline(Perception.create(None), forward_stereo_T_body_cam(),
-                                  depth=DepthPointsParams(at_keyframes=False))
+    depth = StereoDepth.configured(DepthPointsParams(at_keyframes=False))
     left, right = textured_pair(24)
-    info = pb.CameraInfo(width=640, height=480, fx=480.0, fy=480.0, cx=319.5, cy=239.5, baseline_m=0.12,
-                         T_body_cam=pose_from_matrix(forward_stereo_T_body_cam()))
-    frame = pb.StereoFrame(left=encode_image(left), right=encode_image(right), info=info)
     measured = []
     for _ in range(4):
-        pipeline(frame)
-        measured.append(pipeline.points_body)
-        assert pipeline.measure_depth is None
+        measured.append(depth(left, right, _plane_rig(), forward_stereo_T_body_cam()))
+        assert depth.deferred(left, right, _plane_rig(), forward_stereo_T_body_cam()) is None
     assert measured[1] is None and measured[2] is None and measured[3] is not None
     points = measured[0]
     assert points is not None and len(points) > 500
@@ -101,7 +98,9 @@ def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_ch
     pytest.importorskip("onnxruntime")
     from macroloc.service.config import load_config
     from macroloc.service.frames import make_perception_pipeline
-    from macroloc.service.offline.replay_sources import PerceptionSource, VisualOdometry
+    from macroloc.service.front_end import FrontEnd, FrontEndParams
+    from macroloc.service.offline.replay_sources import PerceptionSource
+    from macroloc.service.visual_odometry import VisualOdometry
 
     cfg = load_config(None, perception={"stereo": {"num_disparities": 64}, "lines": {"margin": 0.2},
                                         "plausibility": {"max_side_angle_deg": 9.0}, "wall_plane": {"iterations": 8},
@@ -115,8 +114,10 @@ def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_ch
     import cv2
 
     assert cv2.getNumThreads() == 1  # the service keeps a core for its answers (perception.threads.SERVICE_THREADS)
-    assert pipeline.depth.every == 2 and pipeline.depth.stride_px == 8 and pipeline.depth.range_m == (0.3, 6.0)
-    assert not pipeline.depth.at_keyframes
+    front_end = FrontEnd(None, None, pipeline=pipeline, params=FrontEndParams.configured(cfg))  # type: ignore[arg-type]
+    depth = front_end.stereo_depth
+    assert depth is not None and depth.every == 2 and depth.stride_px == 8 and depth.range_m == (0.3, 6.0)
+    assert not depth.at_keyframes and depth.matcher is pipeline.disparity  # the chain's SGBM, shared
     for chain in (pipeline.perception, PerceptionSource(params=params).perception):
         assert chain.matcher.config.num_disparities == 64 and chain.lines.margin == 0.2
         assert chain.plausibility.max_side_angle_deg == 9.0 and chain.wall is not None and chain.wall.iterations == 8

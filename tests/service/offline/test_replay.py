@@ -336,7 +336,7 @@ def test_the_visual_odometry_says_how_long_it_only_extrapolated() -> None:
     interval as dead-reckoned, for the graph to trust that stretch of odometry less; tracked again, none."""
     from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
     from macroloc.proto.recording import FlightFrame, encode_image, pose_from_matrix
-    from macroloc.service.offline.replay_sources import VisualOdometry
+    from macroloc.service.visual_odometry import VisualOdometry
     from tests.perception.helpers import RIG, fronto_parallel_pair
 
     left, right = fronto_parallel_pair(2.0)
@@ -361,7 +361,7 @@ def test_the_visual_odometry_dead_reckons_the_height_on_the_imu_while_it_has_los
     IMU reads a climb at 1 m/s^2: the height follows it (0.5 m), where the last velocity would have kept it."""
     from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
     from macroloc.proto.recording import FlightFrame, encode_image, pose_from_matrix, vector3
-    from macroloc.service.offline.replay_sources import VisualOdometry
+    from macroloc.service.visual_odometry import VisualOdometry
     from tests.perception.helpers import RIG, fronto_parallel_pair
 
     left, right = fronto_parallel_pair(2.0)
@@ -399,7 +399,7 @@ def test_a_session_keyframe_s_depth_points_re_key_the_visual_odometry_on_their_s
     from macroloc.perception.params import PerceptionParams
     from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
     from macroloc.proto.recording import FlightFrame, encode_image, pose_from_matrix
-    from macroloc.service.offline.replay_sources import VisualOdometry
+    from macroloc.service.visual_odometry import VisualOdometry
     from tests.perception.helpers import RIG, fronto_parallel_pair
 
     left, right = fronto_parallel_pair(2.0)
