@@ -128,7 +128,7 @@ class FrontEnd:
         self.restored: SavedMap | None = None  # the saved map this run started from (service.saved_map)
 
     @classmethod
-    def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | None,
+    def fresh_or_restored(cls, model: BuildingModel, snapshot: pb.MapSnapshot | SavedMap | None,
                           cfg: MacrolocConfig | None = None,
                           surfaces: SurfaceIndex | None = None, pipeline: FramePipeline | None = None,
                           T_body_cam: np.ndarray | None = None) -> FrontEnd:
@@ -148,7 +148,7 @@ class FrontEnd:
 
         if snapshot is None:
             return front_end(session_from_config(cfg, model, surfaces=surfaces, covariance=True))
-        saved = SavedMap.from_snapshot(snapshot, model)
+        saved = snapshot if isinstance(snapshot, SavedMap) else SavedMap.from_snapshot(snapshot, model)
         backend = front_end(session_from_config(cfg, model, saved=saved, surfaces=surfaces, covariance=True))
         backend.restored = saved
         backend.places = KeyframePlaces(saved, keep_views=True, config=params.place)
@@ -369,7 +369,7 @@ class FrontEnd:
 
 
 def make_front_end(cfg: MacrolocConfig, model: BuildingModel, surfaces: SurfaceIndex | None,
-                   snapshot: pb.MapSnapshot | None = None) -> FrontEnd:
+                   snapshot: pb.MapSnapshot | SavedMap | None = None) -> FrontEnd:
     """THE factory of the per-frame path, the one `serve` and `replay` build: the session from the config, with
     covariance (service.session.session_from_config), restored from a saved map where given, the perception chain
     where [service] perception asks for it (service.frames.configured_pipeline), [perception] detect_every's

@@ -1,10 +1,11 @@
-"""`macroloc replay FLIGHT --building BUILDING --json [--report DIR] [--observations truth|perception]
-[--map SAVED] [--save-map OUT] [--topic NAME=/ros/topic ...]`: the whole chain offline, as fast as it runs, scored
-against ground truth. FLIGHT is a macroloc recording (MCAP) or a ROS 2 bag (service.offline.ros_bag)."""
+"""`macroloc replay FLIGHT --building BUILDING --json [--report DIR] [--observations truth|truth-vo|perception]
+[--odometry auto|recorded|simulated|visual] [--map SAVED] [--save-map OUT] [--topic NAME=/ros/topic ...]`: the
+service's per-frame path offline, as fast as it runs, scored against ground truth (service.offline.run.replay_offline,
+or with --over-zenoh service.offline.replay_zenoh). FLIGHT is a macroloc recording (MCAP) or a ROS 2 bag
+(service.offline.ros_bag)."""
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 
 import typer
@@ -56,12 +57,18 @@ def register(app: typer.Typer) -> None:
         vehicle: str = typer.Option("drone1", "--vehicle", help="With --over-zenoh: the service's vehicle name."),
         speed: float = typer.Option(1.0, "--speed", help="With --over-zenoh: 1 = real time, 2 = twice as fast, "
                                     "0 = as fast as possible."),
-        one_thread: bool = typer.Option(False, "--one-thread", help="Everything on one thread, in turn. By "
-                                        "default one thread reads and decodes the recording and another runs "
-                                        "the visual odometry, a few frames ahead of the localizer (the results "
-                                        "are the same; processing_fps is higher with two cores free)."),
+        odometry: str = typer.Option("auto", "--odometry", help="The vehicle's odometry: auto (the recording's "
+                                     "own where it has one; else with --observations truth the ground truth with a "
+                                     "VIO's drift, with perception the service's stereo visual odometry), recorded, "
+                                     "simulated (the ground truth with a VIO's drift, seeded by --seed) or visual "
+                                     "(the service's stereo visual odometry, [service] odometry = \"visual\"). The "
+                                     "same choice with and without --over-zenoh."),
     ) -> None:
-        """Replay a recorded flight through the localizer and score it against ground truth.
+        """Replay a recorded flight through the service's own per-frame path and score it against ground truth.
+
+        Each recorded frame becomes the messages its vehicle sends (IMU, odometry, doors and windows where it sends
+        them, the stereo frame), which the service's front end takes as `macroloc serve` does; with --over-zenoh
+        they go to a running service instead (lock-step at --speed 0: the same keyframes and poses).
 
         Prints frames, processing_fps, localized, time_to_localize_s (flight time of the first `localized`),
         ape_rmse_m / ape_max_m (CAD frame, no alignment, frames after localization), rpe_1s_rmse_m,
@@ -69,95 +76,38 @@ def register(app: typer.Typer) -> None:
         (flight time `localized` while that far off, e.g. after a drift) and status_final.
         """
         from macroloc.cli.commands._io import existing_file, print_json
-        from macroloc.graph.bim import load_building
         from macroloc.graph.errors import UserInputError
+        from macroloc.proto.recording import stereo_frame_count
         from macroloc.service.config import load_config
-        from macroloc.service.offline.replay import replay as run_replay
-        from macroloc.service.offline.replay_sources import (
-            ObservationSource,
-            PerceptionSource,
-            TruthFeaturesWithVisualOdometry,
-            TruthSource,
-        )
         from macroloc.service.offline.ros_bag import BagStats, RosTopics, is_ros_bag, open_flight
-        from macroloc.service.saved_map import LastEstimate, read_saved_map, write_saved_map
-        from macroloc.service.session import session_from_config
+        from macroloc.service.offline.run import ReplayOptions
+        from macroloc.service.progress import track
 
+        options = ReplayOptions(observations, odometry, seed, storey).checked()
         if not flight.exists():
             raise UserInputError(f"recording not found: {flight}")
         is_bag = is_ros_bag(flight)
         if not is_bag:
             existing_file(flight, "recording")
-        if observations not in ("truth", "truth-vo", "perception"):
-            raise UserInputError(f"--observations must be truth, truth-vo or perception, not {observations!r}")
         if is_bag and observations != "perception":
             raise UserInputError("a ROS 2 bag holds no ground-truth doors and windows: use --observations perception")
         cfg = load_config(config)
+        if observations == "perception" and cfg.perception.detector_model is not None:
+            existing_file(cfg.perception.detector_model, "detector model (perception.detector_model)")
         bag_stats = BagStats()
-        from macroloc.proto.recording import stereo_frame_count
-        from macroloc.service.progress import track
-
         frames = track(open_flight(flight, RosTopics.parse(topic or []), cfg.camera, bag_stats),
                        f"replay {flight.name}", total=None if is_bag else stereo_frame_count(flight))
-        if over_zenoh:  # the service perceives the frames itself unless truth observations are sent along
-            import json
-            import sys
-
+        if over_zenoh:
             from macroloc.service.offline.replay_zenoh import replay_command
 
-            if out is not None:
-                raise UserInputError("--out records an in-process replay; with --over-zenoh, record the service")
+            if out is not None or save_map is not None or saved_map is not None or report is not None:
+                raise UserInputError("--out, --map, --save-map and --report are the in-process replay's; with "
+                                     "--over-zenoh the service keeps its own map (serve --state-dir)")
+            doc = replay_command(frames, options, connect or [], vehicle, speed)
+        else:
+            from macroloc.service.offline.run import replay_offline
 
-            doc = replay_command(frames, TruthSource(seed=seed) if observations == "truth" else None, connect or [],
-                                 vehicle, speed, seed)
-            if json_out:
-                print_json(doc)
-            else:
-                sys.stdout.write(json.dumps(doc, indent=2) + "\n")
-            return
-        detector = cfg.perception.detector_model
-        if observations == "perception" and detector is not None:
-            existing_file(detector, "detector model (perception.detector_model)")
-        from macroloc.service.progress import step
-
-        with step(f"reading {building.name} (its first time: a minute or more, cached after)"):
-            model = load_building(building)
-        saved = read_saved_map(saved_map, model) if saved_map is not None else None
-        perception = cfg.perception.to_params()
-        source: ObservationSource = (TruthSource(seed=seed) if observations == "truth" else
-                                     TruthFeaturesWithVisualOdometry(seed=seed, params=perception)
-                                     if observations == "truth-vo"
-                                     else PerceptionSource(cfg.perception.detect_every, detector, perception))
-        storey = model.checked_storey(storey if storey is not None else cfg.graph.storey_hint)
-        surfaces = None
-        if cfg.graph.surface_check:
-            from macroloc.graph.building_assets import surfaces_for
-
-            with step(f"preparing {building.name}'s surfaces (its first time: minutes, cached after)"):
-                surfaces = surfaces_for(building, line_of_sight=cfg.graph.line_of_sight)
-        from macroloc.service.places import KeyframePlaces
-
-        places = KeyframePlaces(saved, keep_views=save_map is not None, config=perception.place)
-        last = LastEstimate()
-        recorder = None
-        with contextlib.ExitStack() as stack:
-            if out is not None:
-                from macroloc.service.offline.foxglove_out import FoxgloveWriter, ReplayRecorder
-                from macroloc.service.offline.plots import load_wall_mesh
-
-                recorder = ReplayRecorder(stack.enter_context(FoxgloveWriter(out)), model, load_wall_mesh(building))
-            result = run_replay(frames, model, source, places=places, recorder=recorder, one_thread=one_thread,
-                                sink=last, make=lambda T_body_cam: session_from_config(
-                                    cfg, model, saved=saved, surfaces=surfaces, T_body_cam=T_body_cam,
-                                    storey_hint=storey))
-        if save_map is not None:
-            write_saved_map(save_map, result.localizer, last.estimate, saved, building.name, replaces=saved_map)
-        if report is not None:
-            from macroloc.service.offline.plots import load_wall_mesh
-            from macroloc.service.offline.replay_report import write_report
-
-            write_report(result, model, report, load_wall_mesh(building), saved, config=cfg.model_dump(mode="json"))
-        doc = result.to_json()
+            doc = replay_offline(frames, building, cfg, options, saved_map, save_map, out, report).to_json()
         if is_bag:
             doc["bag"] = bag_stats.to_json()
         if json_out:

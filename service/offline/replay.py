@@ -22,14 +22,14 @@ import numpy as np
 
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.features import BuildingModel
-from macroloc.graph.localizer import Estimate, Localizer
+from macroloc.graph.localizer import Estimate, Localizer, Sighting
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from macroloc.proto.recording import FlightFrame
 from macroloc.service.front_end import FrontEnd
 from macroloc.service.health import DropCounter
-from macroloc.service.inputs import ClockReset, InputLimits, InputParser
+from macroloc.service.inputs import ClockReset, InputLimits, InputParser, ObservationsIn
 from macroloc.service.offline.replay_sources import AHEAD_FRAMES, FrameInput, ObservationSource, TruthSource, gravity_at
 from macroloc.service.offline.vehicle import RecordedVehicle
 from macroloc.service.places import KeyframePlaces
@@ -56,7 +56,7 @@ class FrameRecorder(Protocol):
     """Keeps each frame with its inputs and estimate (service.offline.foxglove_out.ReplayRecorder), and the end
     state."""
 
-    def frame(self, frame: FlightFrame, inputs: FrameInput, estimate: Estimate) -> None: ...
+    def frame(self, frame: FlightFrame, inputs: FrameInput | FrameSeen, estimate: Estimate) -> None: ...
 
     def finish(self, localizer: Localizer) -> None: ...
 
@@ -64,7 +64,7 @@ class FrameRecorder(Protocol):
 class NullRecorder:
     """Records nothing."""
 
-    def frame(self, frame: FlightFrame, inputs: FrameInput, estimate: Estimate) -> None:
+    def frame(self, frame: FlightFrame, inputs: FrameInput | FrameSeen, estimate: Estimate) -> None:
         pass
 
     def finish(self, localizer: Localizer) -> None:
@@ -188,14 +188,16 @@ def replay(flight: Path | Iterable[FlightFrame], model: BuildingModel, source: O
 
 def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd, vehicle: RecordedVehicle,
                       limits: InputLimits, cameras: Sequence[str] = ("front",),
-                      sink: FrameSink = null_sink) -> ReplayResult:
+                      sink: FrameSink = null_sink, recorder: FrameRecorder | None = None) -> ReplayResult:
     """Run `flight` through the service's own per-frame path: each recorded frame becomes the messages its vehicle
     sends (`vehicle`, service.offline.vehicle), parsed as the service parses them (service.inputs, with its `limits`
     and `cameras`: [inputs], [service] cameras) and handed to its `front_end` in the order sent, on one thread, as a
     lock-step `macroloc serve` takes them from Zenoh; scored as `replay` scores. A frame's estimate is its stereo
-    frame's (what the service publishes for it last)."""
+    frame's (what the service publishes for it last). `recorder` keeps each frame with what was seen in it (the
+    doors the vehicle sent and those the service perceived) and its estimate."""
     from macroloc.proto.recording import matrix_from_pose, read_flight
 
+    recorder = recorder or NullRecorder()
     trace = ReplayTrace()
     t0: int | None = None
     busy_at_localized: float | None = None
@@ -210,6 +212,7 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
         t0 = frame.stamp_ns if t0 is None else t0
         est: Estimate | None = None
         keyframe = False
+        sent: list[Sighting] = []  # the doors and windows the vehicle sent with the frame, body frame
         for m in vehicle.messages(frame):
             event = parse[m.key](m.message.SerializeToString())
             for reset in resets:
@@ -219,19 +222,41 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
                 continue
             answer = front_end.handle(event)
             keyframe |= answer is not None and front_end.session.keyframe
+            if isinstance(event, ObservationsIn) and event.frame_id == "body":
+                sent += [Sighting(o.type, o.corners) for o in event.features if o.corners is not None]
             if m.key == "stereo":
                 est = answer or Estimate(frame.stamp_ns, front_end.status, np.eye(4))
         est = est or Estimate(frame.stamp_ns, front_end.status, np.eye(4))
         if busy_at_localized is None and est.status == "localized":
             busy_at_localized = time.perf_counter() - start
         sink(est)
+        seen = [*sent, *front_end.sightings]
+        recorder.frame(frame, FrameSeen(_T_body_cam(frame), seen), est)
         trace.stamp_ns.append(frame.stamp_ns)
         _record(trace, (frame.stamp_ns - t0) * 1e-9, est,
-                matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None, keyframe,
-                len(front_end.sightings))
+                matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None, keyframe, len(seen))
     if t0 is None:
         raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
-    return _score(trace, front_end.localizer, time.perf_counter() - start, busy_at_localized)
+    busy_s = time.perf_counter() - start
+    recorder.finish(front_end.localizer)
+    return _score(trace, front_end.localizer, busy_s, busy_at_localized)
+
+
+@dataclass(frozen=True)
+class FrameSeen:
+    """What a replayed frame's recorder draws: the left camera in the body frame (4x4) and the doors and windows
+    seen (corners in the body frame)."""
+
+    T_body_cam: np.ndarray
+    sightings: list[Sighting]
+
+
+def _T_body_cam(frame: FlightFrame) -> np.ndarray:
+    from macroloc.common.geometry import forward_stereo_T_body_cam
+    from macroloc.proto.recording import matrix_from_pose
+
+    info = frame.stereo.info
+    return matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
 
 
 def _read_ahead(frames: Iterable[FlightFrame], source: ObservationSource,

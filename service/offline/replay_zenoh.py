@@ -13,12 +13,14 @@ the recording's ground truth (CAD frame, no alignment), with the frame-in -> pos
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import zenoh
@@ -32,6 +34,9 @@ from macroloc.service.config import ZenohConfig
 from macroloc.service.offline.replay import WRONG_ROT_DEG, WRONG_TRANS_M
 from macroloc.service.offline.replay_sources import ObservationSource
 from macroloc.service.offline.vehicle import RecordedVehicle
+
+if TYPE_CHECKING:
+    from macroloc.service.offline.run import ReplayOptions
 from macroloc.service.zenoh_io import session_config
 
 log = logging.getLogger(__name__)
@@ -142,7 +147,8 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
                       source: ObservationSource | None, speed: float = 1.0, wait_s: float = 30.0,
                       seed: int = 0,
                       odometry_out: Callable[[zenoh.Session], Callable[[pb.Odometry], None]] | None = None,
-                      answered: bool = False, odometry: str = "auto") -> ZenohReplayResult:
+                      answered: bool = False, odometry: str = "auto",
+                      sender: RecordedVehicle | None = None) -> ZenohReplayResult:
     """Publish the recording (a macroloc MCAP, or its frames from any reader:
     service.offline.ros_bag.open_flight) to the service of `vehicle` and score what it sends back (see module doc).
     `seed`: of the simulated odometry's drift, where the vehicle's odometry is simulated. `odometry_out(session)`:
@@ -150,10 +156,11 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
     frame's pose is waited for (up to 10 s) before the next frame goes out, as a lock-step vehicle does, and the
     messages wait where the link is congested instead of being dropped (with `[service] lockstep` and speed 0, a
     run that does not depend on the machine's load). `odometry`: the vehicle's odometry (service.offline.vehicle:
-    auto, recorded, simulated), chosen as the offline replay's `--odometry`."""
+    auto, recorded, simulated, visual), chosen as the offline replay's `--odometry`; `sender`: the vehicle whole
+    instead (service.offline.run.vehicle_for), `source`, `seed` and `odometry` then unused."""
     keys = Keys(vehicle)
     result = ZenohReplayResult()
-    sender = RecordedVehicle(odometry, source, seed)
+    sender = sender or RecordedVehicle(odometry, source, seed)
     sent_at: dict[int, float] = {}
     truth: dict[int, np.ndarray] = {}
     with zenoh.open(session_config(zenoh_cfg)) as session:
@@ -180,7 +187,7 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
                     put_odometry(m.message)
                 else:
                     pubs[m.key].put(m.message.SerializeToString())
-            result.odometry = "source" if source is not None and sender.odometry == "simulated" else \
+            result.odometry = "source" if sender.sightings is not None and sender.odometry == "simulated" else \
                 sender.odometry or "none"
             if answered:
                 deadline = time.monotonic() + 10.0
@@ -234,12 +241,20 @@ def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, fl
         before = status
 
 
-def replay_command(flight: Path | Iterable[FlightFrame], source: ObservationSource | None, connect: list[str],
-                   vehicle: str, speed: float, seed: int = 0) -> dict:
+def replay_command(flight: Iterable[FlightFrame], options: ReplayOptions, connect: list[str], vehicle: str,
+                   speed: float) -> dict:
     """The CLI's `--over-zenoh` branch: a client-less peer connecting to the service's endpoint(s); the result's
-    JSON document (the CLI prints it). At `speed` 0 the vehicle is lock-step: each frame waits for its answer and
-    nothing is dropped on a congested link (`replay_over_zenoh`'s `answered`)."""
+    JSON document (the CLI prints it). The vehicle sends what the offline replay's would
+    (service.offline.run.vehicle_for); `visual` odometry is the service's to run ([service] odometry). At `speed` 0
+    the vehicle is lock-step: each frame waits for its answer and nothing is dropped on a congested link
+    (`replay_over_zenoh`'s `answered`)."""
+    from macroloc.service.offline.run import vehicle_for
+
     if speed < 0:
         raise UserInputError("--speed must be >= 0")
+    frames = iter(flight)
+    first = next(frames, None)
+    sender = vehicle_for(options.checked(), first, visual_if_none=False)
     cfg = ZenohConfig(mode="peer", connect=connect or ["tcp/127.0.0.1:7447"], listen=[])
-    return replay_over_zenoh(flight, cfg, vehicle, source, speed, seed=seed, answered=speed == 0).to_json()
+    return replay_over_zenoh(itertools.chain([first] if first is not None else [], frames), cfg, vehicle,
+                             None, speed, answered=speed == 0, sender=sender).to_json()

@@ -9,27 +9,29 @@ What a replay's `observations` mean, as settings of the vehicle and the service:
   and stereo frames with its depth camera's image; the service perceives nothing.
 - `truth-vo`: the same without odometry and depth image; the service runs its stereo visual odometry
   (`[service] odometry = "visual"`) and measures stereo depth with it.
-- `perception`: the vehicle sends the IMU, its odometry where the recording has it (`auto`; else the service runs
-  its visual odometry) and the stereo frames; the service perceives them (`[perception] detect_every`).
+- `perception`: the vehicle sends the IMU, its odometry (`auto`: the recording's where it has some, else the
+  ground truth's with a VIO's drift, else none and the service runs its visual odometry) and the stereo frames;
+  the service perceives them (`[perception] detect_every`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 from macroloc.graph.errors import UserInputError
-from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import FlightFrame
 from macroloc.service.assets import prepare_building
 from macroloc.service.config import MacrolocConfig
 from macroloc.service.front_end import FrontEnd, make_front_end
 from macroloc.service.inputs import limits_from_config
-from macroloc.service.offline.replay import FrameSink, ReplayResult, null_sink, replay_as_service
+from macroloc.service.offline.replay import FrameRecorder, FrameSink, ReplayResult, null_sink, replay_as_service
 from macroloc.service.offline.replay_sources import TruthSource
 from macroloc.service.offline.vehicle import ODOMETRY_CHOICES, RecordedVehicle
+from macroloc.service.saved_map import read_saved_map, write_saved_map
 
 log = logging.getLogger(__name__)
 
@@ -61,10 +63,17 @@ class ReplayOptions:
 
 @dataclass
 class Replayed:
-    """A replay's result and the front end it ran (its localizer, what a saved map is written from)."""
+    """A replay's result and the front end it ran (its localizer and newest estimate, what a saved map is written
+    from: `save_map`)."""
 
     result: ReplayResult
     front_end: FrontEnd
+
+    def save_map(self, path: Path, building: Path, replaces: Path | None = None) -> Path | None:
+        """This run's saved map at `path`, as the service saves its own (service.saved_map.write_saved_map; None
+        where it keeps the map it started from, `replaces`, because it did not localize)."""
+        f = self.front_end
+        return write_saved_map(path, f.localizer, f.last, f.restored, building.name, replaces=replaces)
 
 
 def service_config_for(cfg: MacrolocConfig, options: ReplayOptions, odometry: str) -> MacrolocConfig:
@@ -76,36 +85,40 @@ def service_config_for(cfg: MacrolocConfig, options: ReplayOptions, odometry: st
     return cfg.model_copy(update={"service": service, "graph": graph})
 
 
-def vehicle_for(options: ReplayOptions, has_odometry: bool) -> RecordedVehicle:
-    """The recorded vehicle of a replay (module doc); `has_odometry`: whether the recording carries the vehicle's."""
+def vehicle_for(options: ReplayOptions, first: FlightFrame | None, visual_if_none: bool = True) -> RecordedVehicle:
+    """The recorded vehicle of a replay (module doc), from the recording's `first` frame: `auto` odometry is the
+    recording's own where it has some, else the ground truth's with a VIO's drift where it has ground truth, else
+    (`visual_if_none`: offline, where the service is configured here) the service's visual odometry."""
     truth = options.observations in ("truth", "truth-vo")
     odometry = options.odometry
-    if options.observations == "truth-vo" or (options.observations == "perception" and odometry == "auto"
-                                              and not has_odometry):
+    nothing_recorded = first is not None and not first.odometry and first.ground_truth is None
+    if options.observations == "truth-vo" or (odometry == "auto" and visual_if_none and nothing_recorded):
         odometry = "visual"
     sightings = TruthSource(seed=options.seed) if truth else None
     return RecordedVehicle(odometry, sightings, options.seed, depth_camera=options.observations == "truth")
 
 
 def replay_flight(flight: Path | Iterable[FlightFrame], building: Path, cfg: MacrolocConfig,
-                  options: ReplayOptions | None = None, saved: pb.MapSnapshot | None = None,
-                  sink: FrameSink = null_sink) -> Replayed:
+                  options: ReplayOptions | None = None, saved_map: Path | None = None,
+                  sink: FrameSink = null_sink, recorder: FrameRecorder | None = None) -> Replayed:
     """Replay `flight` (a macroloc MCAP, or frames from any reader: service.offline.ros_bag.open_flight) in
-    `building` as `macroloc serve` with `cfg` would run it (module doc), started from the `saved` map where given;
-    `sink` sees every frame's estimate."""
+    `building` as `macroloc serve` with `cfg` would run it (module doc), started from the saved map at `saved_map`
+    where given (service.saved_map: a replay's `--save-map` or a service's `map.pb`); `sink` sees every frame's
+    estimate, `recorder` every frame (e.g. service.offline.foxglove_out.ReplayRecorder)."""
     options = (options or ReplayOptions()).checked()
     frames = iter(_frames(flight))
     first = next(frames, None)
     if first is None:
         raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
-    vehicle = vehicle_for(options, bool(first.odometry))
+    vehicle = vehicle_for(options, first)
     run_cfg = service_config_for(cfg, options, vehicle.choice)
     prepared = prepare_building(building, run_cfg.graph, run_cfg.planning)
     model = prepared.model
+    saved = read_saved_map(saved_map, model) if saved_map is not None else None
     front_end = make_front_end(run_cfg, model, prepared.surfaces, saved)
     log.info("replay: %s observations, odometry %s", options.observations, vehicle.choice)
     result = replay_as_service(_chain(first, frames), front_end, vehicle, limits_from_config(run_cfg.inputs, model),
-                               run_cfg.service.cameras, sink)
+                               run_cfg.service.cameras, sink, recorder)
     return Replayed(result, front_end)
 
 
@@ -118,3 +131,32 @@ def _frames(flight: Path | Iterable[FlightFrame]) -> Iterable[FlightFrame]:
 def _chain(first: FlightFrame, rest: Iterable[FlightFrame]) -> Iterable[FlightFrame]:
     yield first
     yield from rest
+
+
+def replay_offline(flight: Path | Iterable[FlightFrame], building: Path, cfg: MacrolocConfig,
+                   options: ReplayOptions | None = None, saved_map: Path | None = None,
+                   save_map: Path | None = None, out: Path | None = None, report: Path | None = None) -> ReplayResult:
+    """`macroloc replay` without --over-zenoh: `replay_flight`, then what the files ask for: `save_map` (this
+    run's saved map), `out` (the replay for Foxglove, written as it runs: service.offline.foxglove_out) and
+    `report` (a top-down picture, per-frame figures and result.json: service.offline.replay_report)."""
+    from macroloc.graph.bim import load_building
+
+    recorder = None
+    with contextlib.ExitStack() as stack:
+        if out is not None:
+            from macroloc.service.offline.foxglove_out import FoxgloveWriter, ReplayRecorder
+            from macroloc.service.offline.plots import load_wall_mesh
+
+            recorder = ReplayRecorder(stack.enter_context(FoxgloveWriter(out)), load_building(building),
+                                      load_wall_mesh(building))
+        replayed = replay_flight(flight, building, cfg, options, saved_map, recorder=recorder)
+    if save_map is not None:
+        replayed.save_map(save_map, building, replaces=saved_map)
+    if report is not None:
+        from macroloc.service.offline.plots import load_wall_mesh
+        from macroloc.service.offline.replay_report import write_report
+
+        f = replayed.front_end
+        write_report(replayed.result, f.model, report, load_wall_mesh(building), f.restored,
+                     config=cfg.model_dump(mode="json"))
+    return replayed.result

@@ -287,18 +287,23 @@ def test_a_storey_hint_that_is_not_in_the_building_is_refused_at_start(office_pa
 
 
 def test_the_service_takes_the_configured_perception_parameters(office_path, tmp_path) -> None:
-    """[perception.*] reach the running service: its depth images' sampling, its place recognition, its gravity."""
+    """[perception.*] reach the running service's front end: its depth images' sampling, its place recognition,
+    its gravity, the chain's cadence; [service] odometry its odometry."""
     from macroloc.service.serve import build_service
 
     cfg = service_config(office_path, tmp_path, free_port())
     perception = cfg.perception.model_validate({"place": {"min_inliers": 55}, "depth": {"depth_image_stride_px": 12},
-                                               "gravity": {"window_s": 1.5}})
-    cfg = cfg.model_copy(update={"perception": perception})
+                                               "gravity": {"window_s": 1.5}, "detect_every": 2})
+    cfg = cfg.model_copy(update={"perception": perception,
+                                 "service": cfg.service.model_copy(update={"odometry": "visual"})})
     with zenoh.open(session_config(loopback())) as session:
         service = build_service(cfg, session)
-    assert service.params.place.min_inliers == 55 and service.places.config == service.params.place
-    assert service.params.depth.depth_image_stride_px == 12
-    assert service.front_end.session.gravity.params.window_s == 1.5
+    front_end = service.front_end
+    assert front_end.params.place is not None and front_end.params.place.min_inliers == 55
+    assert front_end.places.config == front_end.params.place
+    assert front_end.params.depth.depth_image_stride_px == 12 and front_end.params.perceive_every == 2
+    assert front_end.session.gravity.params.window_s == 1.5
+    assert front_end.visual is not None
 
 
 def test_maps_accumulate_across_restarts(office_path, office_model, start_pose, tmp_path) -> None:
