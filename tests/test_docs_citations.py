@@ -16,7 +16,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 MEASUREMENTS = ROOT / "docs" / "measurements.md"
-SCANNED = ("graph", "perception", "service", "common", "sim", "bench")
+SCANNED = ("graph", "perception", "proto", "service", "common", "sim", "cli", "bench")
 
 CITATION = re.compile(r'docs/measurements\.md[,:]\s*"(?P<title>[^"]+)"')
 SEAM = re.compile(r'(?<!")"[ \t]*\n[ \t]*"(?!")')  # adjacent string literals: "... " \n "..."
