@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,6 +60,7 @@ class ModelIndex:
     _layout: Layout | None = field(default=None, repr=False)
     _pair_rows: dict[float, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
     cache_key: str | None = field(default=None, repr=False)  # its assets' names on disk (index_for); None: none
+    _assets: dict[str, dict[str, np.ndarray]] = field(default_factory=dict, repr=False)
 
     @classmethod
     def build(cls, features: list[MacroFeature], tables: DescriptorTables | None = None) -> ModelIndex:
@@ -121,6 +123,27 @@ class ModelIndex:
     def _set_pairs(self, max_m: float, i: np.ndarray, j: np.ndarray) -> None:
         v = self.centroids[j] - self.centroids[i]
         self._pairs[max_m] = FeaturePairs(i, j, v, np.linalg.norm(v[:, :2], axis=1), v[:, 2])
+
+    def asset(self, name: str, build: Callable[[ModelIndex], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+        """Arrays that another module derives from this building alone (`build`; `name`: what and its version,
+        e.g. "posterior-v1"): memoised, and cached on disk where the index has a `cache_key`, so that a one-shot
+        command reads them instead of computing them in every process. Call it before a registration's timed
+        block (graph.robust.prepare)."""
+        if name not in self._assets:
+            path = None if self.cache_key is None else _cache_path(f"{name}-{self.cache_key}")
+            arrays = None
+            if path is not None:
+                try:
+                    with np.load(path) as z:
+                        arrays = {k: z[k] for k in z.files}
+                except (OSError, KeyError, ValueError):
+                    arrays = None
+            if arrays is None:
+                arrays = build(self)
+                if path is not None:
+                    _save(path, **arrays)
+            self._assets[name] = arrays
+        return self._assets[name]
 
     def pairs_of(self, max_m: float, rows: np.ndarray) -> np.ndarray:
         """Indices into `pairs_within(max_m)` of the pairs whose first feature is one of `rows` (by a CSR look-up:

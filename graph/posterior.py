@@ -118,24 +118,27 @@ class _BuildingTables:
     alike_logw: np.ndarray
 
 
-_TABLES: dict[int, tuple[ModelIndex, _BuildingTables]] = {}  # per index (the index held: its id stays its own)
-_TABLES_MAX = 16  # buildings and storey indices kept
+TABLES_VERSION = 1  # bump when _building_arrays changes: the disk cache is keyed by it
 
 
 def _tables(index: ModelIndex) -> _BuildingTables:
-    """`_BuildingTables` of the index, computed once (the few most recent indices kept)."""
-    cached = _TABLES.get(id(index))
-    if cached is not None and cached[0] is index:
-        return cached[1]
+    """`_BuildingTables` of the index: computed once per building (and storey index), held by the index and cached
+    on disk (`ModelIndex.asset`); `prepare` builds them before a registration's timed block."""
+    a = index.asset(f"posterior-v{TABLES_VERSION}", _building_arrays)
+    return _BuildingTables(float(a["wall_m"]), a["alike"], a["alike_logw"])
+
+
+def prepare(index: ModelIndex) -> None:
+    """Build (or read) what the model needs of the index's building alone, ahead of a registration."""
+    _tables(index)
+
+
+def _building_arrays(index: ModelIndex) -> dict[str, np.ndarray]:
     short = np.minimum(index.len_u, index.len_v)
     long_ = np.maximum(index.len_u, index.len_v)
     table, counts = np.unique(np.round(np.column_stack([index.centroids[:, 2], short, long_]), 2), axis=0,
                               return_counts=True)
-    tables = _BuildingTables(_measured_wall_m(index), table, np.log(counts / counts.sum()))
-    if len(_TABLES) >= _TABLES_MAX:
-        _TABLES.clear()
-    _TABLES[id(index)] = (index, tables)
-    return tables
+    return {"wall_m": np.array(_measured_wall_m(index)), "alike": table, "alike_logw": np.log(counts / counts.sum())}
 
 
 def wall_per_feature_m(index: ModelIndex, model: ObservationModel) -> float:

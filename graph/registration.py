@@ -26,6 +26,7 @@ from macroloc.graph.observations import Observation, ObservationSet
 from macroloc.graph.registration_types import RegistrationResult, corner_correspondences, majority_storey
 from macroloc.graph.rigid import make_T, weighted_rigid_fit
 from macroloc.graph.robust import RobustParams, register_robust
+from macroloc.graph.robust import prepare as prepare_robust
 
 __all__ = ["METHODS", "PaperParams", "RegistrationResult", "corner_correspondences", "descriptor_matches",
            "hypothesis_count", "majority_storey", "register", "register_paper"]
@@ -63,7 +64,7 @@ def register(model: BuildingModel, obs: ObservationSet, method: str = "robust",
                                  f"({', '.join(sorted(set(index.storeys.tolist())))})")
         index = index.for_storey(obs.storey_hint)
     if isinstance(chosen, RobustParams):
-        index.prepare_pairs(chosen.pair_max_baseline_m)
+        prepare_robust(index, chosen)
     t0 = time.perf_counter()
     if isinstance(chosen, PaperParams):
         result = register_paper(index, obs.observations, chosen)

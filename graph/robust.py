@@ -27,6 +27,7 @@ from macroloc.graph.model_index import TYPE_SEPARATION_M, ModelIndex
 from macroloc.graph.observations import Observation, ObservationSet
 from macroloc.graph.params import RobustParams
 from macroloc.graph.posterior import pose_posterior
+from macroloc.graph.posterior import prepare as prepare_posterior
 from macroloc.graph.rectangle import unordered_edges
 from macroloc.graph.registration_types import RegistrationResult, majority_storey
 from macroloc.graph.rigid import (
@@ -471,6 +472,13 @@ def _polish(R: np.ndarray, t: np.ndarray, centroids: np.ndarray, gravity_known: 
         ok &= sv[:, 1] > 1e-3 * np.maximum(sv[:, 0], 1e-12)  # collinear matches leave a rotation free
     t_new = b_bar - np.einsum("hij,hj->hi", R_new, a_bar)
     return np.where(ok[:, None, None], R_new, R), np.where(ok[:, None], t_new, t)
+
+
+def prepare(index: ModelIndex, params: RobustParams) -> None:
+    """Build (or read from the disk cache) what `register_robust` needs of the index's building alone, so that its
+    timed block builds none of it: the pair table of `params.pair_max_baseline_m` and the posterior's tables."""
+    index.prepare_pairs(params.pair_max_baseline_m)
+    prepare_posterior(index)
 
 
 def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustParams) -> RegistrationResult:

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 import macroloc.graph.model_index as model_index
+import macroloc.graph.posterior as posterior
 import macroloc.graph.registration as registration
+import macroloc.graph.robust as robust
 from macroloc.graph.evaluation import ScenarioParams, make_scenario
 from macroloc.graph.model_index import ModelIndex, index_for
 from macroloc.graph.observations import ObservationSet
@@ -26,7 +28,7 @@ def _must_not_run(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
 
 def _state(index: ModelIndex) -> list:
     """What an index has built lazily, for it and its storeys."""
-    return [(sorted(i._pairs), sorted(i._pair_rows), i._layout is None, i._self_maps is None)
+    return [(sorted(i._pairs), sorted(i._pair_rows), i._layout is None, i._self_maps is None, sorted(i._assets))
             for i in (index, *index._by_storey.values())]
 
 
@@ -42,8 +44,9 @@ def test_the_timed_block_builds_nothing_of_the_building(duplex_model, fresh_cach
                                                         monkeypatch: pytest.MonkeyPatch, hint: bool,
                                                         overrides: dict) -> None:
     """Between the two clock readings of `register` (elapsed_ms) no per-building asset is built or read: no
-    descriptor tables, layout, self-maps, pair table or its row look-up, of the building or of the hinted storey
-    (with another pair baseline than the default, its table is prepared before the clock starts too)."""
+    descriptor tables, layout, self-maps, pair table or its row look-up, the posterior's tables (graph.posterior),
+    of the building or of the hinted storey (with another pair baseline than the default, its table is prepared
+    before the clock starts too)."""
     s = make_scenario(duplex_model, 3, 58, ScenarioParams(variant="gravity", k_choices=(10,)))
     obs = ObservationSet(s.obs.observations, s.obs.gravity_map, s.storey if hint else None)
     index = index_for(duplex_model)
@@ -70,6 +73,8 @@ def test_the_timed_block_builds_nothing_of_the_building(duplex_model, fresh_cach
     monkeypatch.setattr(ModelIndex, "build", classmethod(refuse_while_timed("ModelIndex.build",
                                                                             ModelIndex.build.__func__)))
     monkeypatch.setattr(ModelIndex, "_set_pairs", refuse_while_timed("the pair table", ModelIndex._set_pairs))
+    monkeypatch.setattr(posterior, "_building_arrays", refuse_while_timed("the posterior's tables",
+                                                                          posterior._building_arrays))
     result = registration.register(duplex_model, obs, **overrides)
     assert len(snapshots) == 2 and not timed["on"]
     assert snapshots[0] == snapshots[1], "the registration built a per-building asset in its timed block"
@@ -80,22 +85,31 @@ def test_the_timed_block_builds_nothing_of_the_building(duplex_model, fresh_cach
 
 def test_a_second_process_reads_every_asset_from_the_disk_cache(duplex_model, fresh_cache: Path,
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    """index_for writes the building's assets (and a storey's, for_storey) to the cache; with the memory cleared
-    (a new process) they are read back, none rebuilt, and equal to what was built."""
+    """index_for writes the building's assets (and a storey's, for_storey; the posterior's tables with
+    graph.robust.prepare) to the cache; with the memory cleared (a new process) they are read back, none rebuilt,
+    and equal to what was built."""
     storey = str(duplex_model.features[0].storey)
     built = index_for(duplex_model)
     built_storey = built.for_storey(storey)
     max_m = RobustParams().pair_max_baseline_m
+    for index in (built, built_storey):
+        robust.prepare(index, RobustParams())
     assert built._pairs[max_m] is not None and built._layout is not None
     names = sorted(p.name.split("-")[0] for p in fresh_cache.iterdir())
-    assert names == ["layout", "layout", "pairs", "pairs", "selfmaps", "selfmaps", "tables", "tables"]
+    assert names == sorted(["layout", "pairs", "posterior", "selfmaps", "tables"] * 2)
     model_index._CACHE.clear()
     for name in BUILDERS:
         monkeypatch.setattr(model_index, name, _must_not_run)
     monkeypatch.setattr(ModelIndex, "pairs_of", _must_not_run)  # where a pair table and its rows are built
+    monkeypatch.setattr(posterior, "_building_arrays", _must_not_run)
     read = index_for(duplex_model)
     read_storey = read.for_storey(storey)
+    for index in (read, read_storey):
+        robust.prepare(index, RobustParams())
     for a, b in ((built, read), (built_storey, read_storey)):
+        ta, tb = posterior._tables(a), posterior._tables(b)
+        assert ta.wall_m == tb.wall_m and np.array_equal(ta.alike, tb.alike)
+        assert np.array_equal(ta.alike_logw, tb.alike_logw)
         for field in ("i", "j", "v", "d_xy", "dz"):
             got, want = getattr(b._pairs[max_m], field), getattr(a._pairs[max_m], field)
             assert got.dtype == want.dtype and np.array_equal(got, want)
