@@ -23,7 +23,7 @@ The posterior is over the distinct poses the search found (a uniform prior over 
 "none of them" (every observation a false detection): P(T_k) = L_k / sum L. Decision (`decide`): `localized`
 when the best pose's posterior is at least 1 - epsilon; `ambiguous` when two or more distinct poses hold at
 least 1 - epsilon between them (each listed with its probability); `not_localized` otherwise.
-Frames: observations in map', features in CAD, metres, radians. Pure: numpy and scipy only.
+Frames: observations in map', features in CAD, metres, radians. Pure: numpy only (the model's k-d tree aside).
 """
 
 from __future__ import annotations
@@ -32,7 +32,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
 
 from macroloc.graph.model_index import ModelIndex
 from macroloc.graph.params import ObservationModel
@@ -255,15 +254,38 @@ def features_in_view(T: np.ndarray, matched: np.ndarray, shapes: ObservedShapes,
     return cand[_within_hull(p[:, :2], c[:, :2], model.view_margin_m)]
 
 
+def _hull_ccw(points: np.ndarray) -> np.ndarray:
+    """The convex hull's vertices (H, 2), counter-clockwise, of points (P, 2) (Andrew's monotone chain; fewer than
+    3 where they are collinear)."""
+    p = np.unique(np.round(points, 9), axis=0)  # sorted by x, then y
+    if len(p) < 3:
+        return p
+
+    def half(pts: np.ndarray) -> list[np.ndarray]:
+        out: list[np.ndarray] = []
+        for q in pts:
+            while len(out) >= 2 and _turn(out[-2], out[-1], q) <= 1e-12:
+                out.pop()
+            out.append(q)
+        return out
+
+    lower, upper = half(p), half(p[::-1])
+    return np.array(lower[:-1] + upper[:-1])
+
+
+def _turn(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """z of (a - o) x (b - o): > 0 where o -> a -> b turns left."""
+    return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+
+
 def _within_hull(points: np.ndarray, query: np.ndarray, margin: float) -> np.ndarray:
     """Whether each query point (M, 2) lies within `margin` of the convex hull of points (P, 2) (a segment or a
     point where they are collinear or one)."""
-    if len(points) >= 3:
-        try:
-            hull = ConvexHull(points)
-            return np.all(query @ hull.equations[:, :2].T + hull.equations[:, 2] <= margin, axis=1)
-        except QhullError:  # collinear: the segment below
-            pass
+    hull = _hull_ccw(points)
+    if len(hull) >= 3:
+        edge = np.roll(hull, -1, axis=0) - hull
+        normal = np.column_stack([edge[:, 1], -edge[:, 0]]) / np.linalg.norm(edge, axis=1)[:, None]  # outward
+        return np.all(query @ normal.T - np.einsum("ec,ec->e", normal, hull) <= margin, axis=1)
     a = points[np.argmin(points @ (points[-1] - points[0]))]
     b = points[np.argmax(points @ (points[-1] - points[0]))]
     ab = b - a

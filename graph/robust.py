@@ -507,8 +507,9 @@ def register_robust(index: ModelIndex, obs_set: ObservationSet, params: RobustPa
                        key=lambda p: -p.score)
         noise = _prior_noise(poses[0], prep, index, params)
         verdicts = _verify_all(poses[: params.refine_top], prep, index, noise, params)
-        if max(v.n_inliers for v in verdicts[:3]) >= params.early_stop_fraction * n:
-            break  # well supported; its symmetric rivals come from the same seeds
+        if max(v.n_inliers for v in verdicts[:3]) >= params.early_stop_fraction * n and params.decision != "posterior":
+            break  # well supported; its symmetric rivals come from the same seeds (the posterior, over the poses
+            #        found, asks for every seed: docs/measurements.md, "Issue 58")
     images: list[_Pose] = []
     if poses:
         ref = poses[int(np.argmax([v.loglik for v in verdicts]))]
