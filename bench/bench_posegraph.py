@@ -23,7 +23,7 @@ from macroloc.graph.features import BuildingModel, MacroFeature
 from macroloc.graph.landmarks import feature_frame_cad
 from macroloc.graph.localizer import Localizer, Sighting
 from macroloc.graph.posegraph import IsamSettings
-from macroloc.graph.registrar import StoredMapRegistrar
+from macroloc.graph.registrar import SavedMapRegistrar
 from macroloc.graph.relocalize import KnownRect
 from macroloc.service.session import make_localizer
 
@@ -88,7 +88,7 @@ def run(n_keyframes: int, settings: IsamSettings | None = None, step_cpu_ms: np.
     run here: the bench has no depth): a factor between the anchor and every keyframe."""
     model = loop_building(size_m=size_m)
     known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features]
-    loc = make_localizer(model, isam=settings, registrar=StoredMapRegistrar(known))  # the session's factory
+    loc = make_localizer(model, isam=settings, registrar=SavedMapRegistrar(known))  # the session's factory
     rng = np.random.default_rng(1)
     update_ms, step_ms, cpu_ms = np.zeros(n_keyframes), np.zeros(n_keyframes), np.zeros(n_keyframes)
     T_odom_cad = np.eye(4)

@@ -1,5 +1,5 @@
 """Issue 5's flight figures with `--observations truth`: time to localize, APE after localization, wrong
-localizations, per building and seed; re-localization into a stored map.
+localizations, per building and seed; re-localization into a saved map.
 
     python -m bench.bench_replay [--seeds 0,1,2] [--duration 60] [--start open|random] [--out /tmp/macroloc-flights]
 

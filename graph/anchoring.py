@@ -5,7 +5,7 @@ While not localized, the confirmed landmarks are registered to the model (the re
 landmark was confirmed since the last attempt, or, with the surface check, when `surface_retry_s` passed and more
 depth points came in: the walls decide as they are seen. With no landmark yet, candidate poses are resected from
 the doors seen beyond the sighting range (graph.far_window). The registrar's answer and candidates are weighed
-against the walls (graph.judge); where the walls confirm none of them, the next registrar's are (a stored map's
+against the walls (graph.judge); where the walls confirm none of them, the next registrar's are (a saved map's
 few poses first, the whole model's after: `FirstOfRegistrar`). A pose taken anchors the graph, the anchoring
 keyframe is fitted to the walls (graph.surface_fit), and the registration's matches and then every landmark near
 a CAD feature are linked (graph.cad_links).
@@ -55,7 +55,7 @@ class Anchoring:
         self.inliers = 0
         self.rivals: list[np.ndarray] = []  # T_cad_map of the poses the last 'ambiguous' registration left apart
         self.registrations: list[tuple[int, str]] = []  # (stamp_ns, status) of every registration attempt
-        self.placed: list[int] = []  # keyframes placed in a stored map (place recognition) and taken
+        self.placed: list[int] = []  # keyframes placed in a saved map (place recognition) and taken
         self._registered_with = 0
         self._registered_at: tuple[int, int] = (0, 0)  # (stamp_ns, depth points) of the last registration
         self._held = True  # whether the pose was held (`held`) when last asked
@@ -101,7 +101,7 @@ class Anchoring:
         choice = self._choose(result, stamp_ns)
         # the walls confirm none of the candidates: the next registrar's, unless two of these fit the walls alike
         # and the next one's candidates hold them (`Alignment.fallback_holds_these`): it cannot tell them apart
-        # either. Otherwise a fuller registrar may (the model's doors that a stored map lacks), or may answer
+        # either. Otherwise a fuller registrar may (the model's doors that a saved map lacks), or may answer
         # 'localized' by itself.
         while choice.T_cad_map is None and not (choice.rivals_fit and result.fallback_holds_these) \
                 and result.fallback is not None:
@@ -184,15 +184,15 @@ class Anchoring:
         self.graph.add_cad_pose(i, T_cad_map @ self.graph.T_map_body(i), information)
 
     def place(self, i: int, stamp_ns: int, T_cad_body: np.ndarray) -> None:
-        """Keyframe i placed in a stored map (its pose there times the map's T_cad_map): before the graph is
+        """Keyframe i placed in a saved map (its pose there times the map's T_cad_map): before the graph is
         anchored, it anchors it, unless the walls contradict it (`SurfaceJudge.contradicts`); then (and once
         anchored) it enters the graph as a measured T_cad_body, robustly, and counts as a CAD-linked sighting for
-        the status: the stored map's keyframes were linked to the model."""
+        the status: the saved map's keyframes were linked to the model."""
         if not self.graph.has_anchor:
             T_cad_map = T_cad_body @ np.linalg.inv(self.graph.T_map_body(i))
             if self.can_check_surfaces() and self.judge.contradicts(T_cad_map, *self.depth.points_map()):
                 return
-            log.info("localized by place recognition in the stored map")
+            log.info("localized by place recognition in the saved map")
             self.graph.add_anchor(np.linalg.inv(T_cad_map))
             self.fitter.anchored_at(i)
             self.registrations.append((stamp_ns, "localized"))

@@ -7,7 +7,7 @@ the keyframe's depth to the walls and the floor while the pose is held to the mo
 again by the walls or the doors), and return the pose in the CAD frame with its status.
 
 Its components: the landmark map (graph.landmark_map: sightings into landmarks), the anchoring (graph.anchoring:
-registration attempts through the registrar, graph.registrar, and keyframes placed in a stored map), the
+registration attempts through the registrar, graph.registrar, and keyframes placed in a saved map), the
 landmarks' links to the model (graph.cad_links), the keyframes' fits to the walls (graph.surface_fit), the recent
 keyframes' depth points (graph.depth_window), the walls' and the doors' recovery of a pose no longer held
 (graph.recovery) and far sightings (graph.far_window: bearings of doors beyond the sighting range, and the
@@ -39,7 +39,7 @@ from macroloc.graph.params import LocalizerParams, RegistrationParams
 from macroloc.graph.posegraph import PoseGraph
 from macroloc.graph.prior import PosePrior
 from macroloc.graph.recovery import DoorRecovery, NullRecovery, WallRecovery
-from macroloc.graph.registrar import ModelRegistrar, Registrar, StoredMapRegistrar
+from macroloc.graph.registrar import ModelRegistrar, Registrar, SavedMapRegistrar
 from macroloc.graph.relocalize import KnownRect
 from macroloc.graph.rigid import apply, levelled
 from macroloc.graph.sightings import Landmark, Sighting
@@ -191,7 +191,7 @@ class Localizer:
 
     @property
     def placed(self) -> list[int]:
-        """The keyframes placed in a stored map (place recognition) and taken."""
+        """The keyframes placed in a saved map (place recognition) and taken."""
         return self.anchoring.placed
 
     @property
@@ -315,8 +315,8 @@ def model_registrar(model: BuildingModel, params: RegistrationParams, storey_hin
 
 
 def stored_registrar(model: BuildingModel, known: list[KnownRect], params: RegistrationParams,
-                     with_surfaces: bool = False) -> StoredMapRegistrar:
-    """The registrar against a stored map's CAD-linked features (re-localization): localized from two agreeing
+                     with_surfaces: bool = False) -> SavedMapRegistrar:
+    """The registrar against a saved map's CAD-linked features (re-localization): localized from two agreeing
     landmarks; with the surface check, candidate poses from `verified_min_landmarks` on, for the walls."""
-    return StoredMapRegistrar(known, min_landmarks=2, model=model,
+    return SavedMapRegistrar(known, min_landmarks=2, model=model,
                               candidates_from=params.verified_min_landmarks if with_surfaces else None)

@@ -37,7 +37,7 @@ saw into one clique with the anchor, which each sighting re-eliminates, and the 
 (the building's area). Its CAD links are removed from iSAM2 first, so the anchor keeps no linear prior from doors
 out of sight (a prior on the anchor would fix its linearisation point for the rest of the mission, and the links
 come back below); the information lost is that of the door's own links while it is out of sight, never counted
-twice. Its last estimate and marginal covariance are kept: `T_map_rect(j)` reads them, so the stored map and
+twice. Its last estimate and marginal covariance are kept: `T_map_rect(j)` reads them, so the saved map and
 registration still see every door. Seen again (or linked again), it re-enters as a variable at that estimate with
 its links; a door never linked re-enters with a prior of that covariance instead, which treats it as independent
 of the window (the approximation of a localization map's landmarks). The window rule is the localizer's, not the

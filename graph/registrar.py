@@ -3,7 +3,7 @@
 `ModelRegistrar` asks the registration (`graph.registration.register`: the robust method's rectangle-seeded
 hypotheses, or the paper's descriptor matching + RANSAC) to place the map's landmarks in the whole building
 model, with the method's typed parameters (`RobustParams`, `PaperParams`).
-`StoredMapRegistrar` re-localizes into a stored map: only the landmarks a previous flight linked to the
+`SavedMapRegistrar` re-localizes into a saved map: only the landmarks a previous flight linked to the
 model are candidates, so a couple of sightings settle it.
 """
 
@@ -98,12 +98,12 @@ class ModelRegistrar:
         return _one_rectangle(self.model, landmark, corners_map, self.storey_hint, robust.size_tolerance_m)
 
 
-class StoredMapRegistrar:
-    """Re-localization against the CAD-linked landmarks of a stored map (T_cad_rect of each). With
+class SavedMapRegistrar:
+    """Re-localization against the CAD-linked landmarks of a saved map (T_cad_rect of each). With
     `candidates_from` below `min_landmarks` (the localizer checks poses against the walls), fewer landmarks, or
-    more that the stored map explains more than one way (a nearly symmetric building), come back as candidate
-    poses: one per stored feature a landmark may be, from either side (one landmark: only features of its size,
-    with `model`). The stored map holds a few of the building's doors, so the walls choose among a few poses, not
+    more that the saved map explains more than one way (a nearly symmetric building), come back as candidate
+    poses: one per saved feature a landmark may be, from either side (one landmark: only features of its size,
+    with `model`). The saved map holds a few of the building's doors, so the walls choose among a few poses, not
     among every alike door of the building."""
 
     def __init__(self, known: list[KnownRect], min_landmarks: int = 3, candidates_from: int | None = None,
@@ -121,18 +121,18 @@ class StoredMapRegistrar:
                                 candidates_from=self.candidates_from if self._offer else None)
 
     def _one_landmark(self, landmark: ObservedRect, corners_map: np.ndarray | None) -> Alignment:
-        """As `ModelRegistrar._one_landmark`, among the stored features only."""
+        """As `ModelRegistrar._one_landmark`, among the saved features only."""
         assert self._model is not None
         return _one_rectangle(self._model, landmark, corners_map, among={k.id for k in self.known})
 
 
 class FirstOfRegistrar:
     """Tries each registrar in turn (when the map holds enough landmarks for it); the first 'localized' answer
-    wins. A stored map first, the whole model after: re-localization falls back to a fresh localization when
-    the new flight starts outside the stored map, or when the stored map's few landmarks leave it ambiguous.
+    wins. A saved map first, the whole model after: re-localization falls back to a fresh localization when
+    the new flight starts outside the saved map, or when the saved map's few landmarks leave it ambiguous.
     A 'localized' answer, or an 'ambiguous' one with candidate poses, is returned with the later registrars'
     answer as its `fallback`: the localizer asks for that only where the walls refuse the answer or confirm none
-    of the candidates, so a stored map's few candidates are checked first and the whole model is searched only
+    of the candidates, so a saved map's few candidates are checked first and the whole model is searched only
     when they fail. Without candidates, the first 'ambiguous' answer is returned."""
 
     def __init__(self, registrars: list[Registrar]) -> None:

@@ -6,7 +6,7 @@ by how many observed centroids land within `inlier_m` of a known centroid of the
 compatible wall normal. A second, clearly different hypothesis with nearly as much support makes the answer
 `ambiguous` (a symmetric building), never a guess.
 
-This is what re-localizes a new flight into a stored map (its known rectangles are the landmarks that
+This is what re-localizes a new flight into a saved map (its known rectangles are the landmarks that
 flight linked to the model), and a stand-in registration against a whole model while
 `graph.registration` is absent.
 """
@@ -55,7 +55,7 @@ class Alignment:
     # surface check chooses among them (graph.surfaces)
     candidates: list[tuple[np.ndarray, int]] = field(default_factory=list)
     # where the surface check confirms none of the candidates: the next registrar's answer, asked only then
-    # (graph.registrar.FirstOfRegistrar: a stored map's few candidates first, the whole model's after)
+    # (graph.registrar.FirstOfRegistrar: a saved map's few candidates first, the whole model's after)
     fallback: Callable[[], Alignment] | None = None
     # the fallback's candidates would hold these (it cannot tell apart what these leave apart)
     fallback_holds_these: bool = False

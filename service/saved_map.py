@@ -17,7 +17,7 @@ What a run starts from (`SavedMap`, `SavedMap.registrar`): where the saved map w
 frames are placed in them by place recognition (service.places) from the first frame on, before any door is
 seen. Otherwise `RestoredRegistrar` first checks the saved T_cad_map against the first sightings (the vehicle's
 odometry usually outlives a service restart), then the landmarks the saved map linked to the model
-(`StoredMapRegistrar`), then the whole model.
+(`SavedMapRegistrar`), then the whole model.
 
 Other "maps" of the code, not this one: the localizer's `LandmarkMap` (this run's landmarks, in memory) and the
 map frame (the odometry's frame, "map" in `T_map_body`).

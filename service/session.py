@@ -6,7 +6,7 @@ odometry pose: with the IMU samples since the previous one it gives gravity's up
 perception.gravity.ImuGravity) and `frame(FrameIn)` (one frame: odometry pose, sightings, depth points,
 seconds dead-reckoned, a place-recognition result), which returns the `Estimate`. It owns what makes the figures:
 gravity's up, the keyframe rule (`graph.keyframes.KeyframeRule`), the depth hand-over to the next keyframe, the
-dead-reckoned seconds summed until a keyframe takes them, the hand-off of a frame placed in a stored map (or whose
+dead-reckoned seconds summed until a keyframe takes them, the hand-off of a frame placed in a saved map (or whose
 view is kept: always a keyframe), and a fresh graph where an update fails. The drivers only assemble frames: the
 replay from a recording (service.offline.replay), the service from its wire events (service.front_end: odometry by
 stamp, sightings waiting for their odometry). Both read `up_body` for the perception chain and place recognition,
@@ -47,7 +47,7 @@ class FrameIn:
     points_body: (N, 3) depth points, body frame, measured at this frame; up_body: gravity's up, body frame, where
     the driver knows it otherwise than from the IMU (the simulator's truth), else None: the session's own
     (`LocalizationSession.up_body`); dead_reckoned_s: seconds since the previous frame the odometry only
-    extrapolated; placed: the frame's pose in a stored map and/or its view to keep (service.places); measure_depth:
+    extrapolated; placed: the frame's pose in a saved map and/or its view to keep (service.places); measure_depth:
     this frame's depth points (N, 3, body frame), measured when called: called only where the frame becomes a
     keyframe."""
 
@@ -201,7 +201,7 @@ class LocalizationSession:
         return est
 
     def _restart(self, stamp_ns: int, why: str) -> Estimate:
-        """The pose graph cannot go on: a fresh one (this flight's landmarks are lost; a stored map's place
+        """The pose graph cannot go on: a fresh one (this flight's landmarks are lost; a saved map's place
         recognition stays), LOST for this stamp, localized again from what comes next."""
         self.restarts += 1
         log.error("pose graph restarted (%d so far): %s", self.restarts, why)

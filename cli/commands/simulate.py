@@ -18,7 +18,7 @@ def register(app: typer.Typer) -> None:
         appearance_seed: int | None = typer.Option(None, "--appearance-seed", help="Seed of the building's look "
                                                    "alone (textures, furniture, lights; default: --seed). The same "
                                                    "look with another --seed: the same building flown along "
-                                                   "another path, e.g. to re-localize into a stored map."),
+                                                   "another path, e.g. to re-localize into a saved map."),
         duration: float | None = typer.Option(None, "--duration", help="Flight duration, s (config sim.duration_s)."),
         storey: str | None = typer.Option(None, "--storey", help="Storey to fly (default: most doors/windows)."),
         speed: float | None = typer.Option(None, "--speed", help="Cruise speed, m/s (config sim.speed_mps)."),

@@ -7,7 +7,7 @@ import numpy as np
 from macroloc.graph.landmarks import feature_frame_cad
 from macroloc.graph.localizer import Localizer, LocalizerParams
 from macroloc.graph.posegraph import PoseGraph
-from macroloc.graph.registrar import StoredMapRegistrar
+from macroloc.graph.registrar import SavedMapRegistrar
 from macroloc.graph.relocalize import KnownRect
 from tests.graph.scenes import (
     sightings_from,
@@ -16,9 +16,9 @@ from tests.graph.scenes import (
 UP = np.array([0.0, 0.0, 1.0])
 
 
-def model_registrar(model, min_landmarks: int = 3) -> StoredMapRegistrar:
+def model_registrar(model, min_landmarks: int = 3) -> SavedMapRegistrar:
     """Registration by rectangle alignment against every feature of the model (no ground truth used)."""
-    return StoredMapRegistrar([KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features], min_landmarks)
+    return SavedMapRegistrar([KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features], min_landmarks)
 
 
 def fly(model, poses, odometry, registrar=None, seed: int = 0, sigma_m: float = 0.0,

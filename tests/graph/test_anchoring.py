@@ -15,7 +15,7 @@ from macroloc.graph.judge import NullJudge
 from macroloc.graph.landmark_map import LandmarkMap
 from macroloc.graph.params import LocalizerParams, StatusParams
 from macroloc.graph.posegraph import PoseGraph
-from macroloc.graph.registrar import Registrar, StoredMapRegistrar
+from macroloc.graph.registrar import Registrar, SavedMapRegistrar
 from macroloc.graph.rigid import apply
 from macroloc.graph.sightings import Sighting
 from macroloc.graph.surface_fit import NullFitter
@@ -83,7 +83,7 @@ def _dead_reckoned(a: Anchoring, n: int = 10) -> int:
 def test_registration_waits_for_min_landmarks_and_a_new_one(corridor: BuildingModel) -> None:
     """Without the surface check a registration is tried once the registrar's `min_landmarks` landmarks are
     confirmed, and, failing, again only when one more is confirmed."""
-    a = _anchoring(corridor, registrar=StoredMapRegistrar([], min_landmarks=3))  # an empty stored map: never localized
+    a = _anchoring(corridor, registrar=SavedMapRegistrar([], min_landmarks=3))  # an empty stored map: never localized
     n_confirmed = []
     for T in straight_flight(30):
         _keyframe(a, T, sightings_from(corridor, T))

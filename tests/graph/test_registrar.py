@@ -10,7 +10,7 @@ import pytest
 
 from macroloc.graph.features import BuildingModel, MacroFeature
 from macroloc.graph.landmarks import feature_frame_cad
-from macroloc.graph.registrar import FirstOfRegistrar, ModelRegistrar, StoredMapRegistrar
+from macroloc.graph.registrar import FirstOfRegistrar, ModelRegistrar, SavedMapRegistrar
 from macroloc.graph.relocalize import KnownRect, ObservedRect
 from macroloc.graph.rigid import apply
 from tests.graph.helpers import random_building
@@ -104,13 +104,13 @@ def test_one_landmark_offers_every_alike_feature_from_either_side() -> None:
 
 
 def test_a_stored_map_localizes_from_its_linked_features_only() -> None:
-    """The stored map's features are the only candidates: landmarks it holds are 'localized' from `min_landmarks`
+    """The saved map's features are the only candidates: landmarks it holds are 'localized' from `min_landmarks`
     on; landmarks elsewhere in the building are 'not_localized'."""
     landmarks, corners = _seen(LOWER[:5])
-    result = StoredMapRegistrar(_known(LOWER[:5]), min_landmarks=2)(landmarks, corners)
+    result = SavedMapRegistrar(_known(LOWER[:5]), min_landmarks=2)(landmarks, corners)
     assert result.status == "localized" and _is_truth(result.T_cad_map)
     assert result.matches == [(k, f.id) for k, f in enumerate(LOWER[:5])]
-    assert StoredMapRegistrar(_known(LOWER[10:15]), min_landmarks=2)(landmarks, corners).status == "not_localized"
+    assert SavedMapRegistrar(_known(LOWER[10:15]), min_landmarks=2)(landmarks, corners).status == "not_localized"
 
 
 def test_one_landmark_in_a_stored_map_offers_only_its_stored_features() -> None:
@@ -119,18 +119,18 @@ def test_one_landmark_in_a_stored_map_offers_only_its_stored_features() -> None:
     landmarks, corners = _seen(LOWER[:1])
     stored = _known(LOWER[:5])
     n_stored_doors = sum(k.type == "door" for k in stored)
-    result = StoredMapRegistrar(stored, min_landmarks=2, candidates_from=1, model=ONE_STOREY)(landmarks, corners)
+    result = SavedMapRegistrar(stored, min_landmarks=2, candidates_from=1, model=ONE_STOREY)(landmarks, corners)
     assert result.status == "ambiguous" and len(result.candidates) == 2 * n_stored_doors
     assert n_stored_doors < sum(f.type == "door" for f in LOWER)
     assert any(_is_truth(T) for T, _ in result.candidates)
-    assert StoredMapRegistrar(stored, min_landmarks=2, model=ONE_STOREY)(landmarks, corners).status == "not_localized"
+    assert SavedMapRegistrar(stored, min_landmarks=2, model=ONE_STOREY)(landmarks, corners).status == "not_localized"
 
 
 def test_first_of_falls_back_to_the_model_where_the_stored_map_does_not_localize() -> None:
-    """The first 'localized' answer wins: a stored map without the landmarks' features gives none, so the whole
+    """The first 'localized' answer wins: a saved map without the landmarks' features gives none, so the whole
     model's answer is returned; the chain answers from the fewest landmarks any of its registrars does."""
     landmarks, corners = _seen(LOWER[:5])
-    stored = StoredMapRegistrar(_known(LOWER[10:15]), min_landmarks=2)
+    stored = SavedMapRegistrar(_known(LOWER[10:15]), min_landmarks=2)
     chain = FirstOfRegistrar([stored, ModelRegistrar(ONE_STOREY, min_landmarks=4, candidates_from=1)])
     assert (chain.min_landmarks, chain.candidates_from) == (2, 1)
     result = chain(landmarks, corners)
@@ -138,11 +138,11 @@ def test_first_of_falls_back_to_the_model_where_the_stored_map_does_not_localize
 
 
 def test_first_of_returns_the_stored_answer_with_the_models_as_its_fallback() -> None:
-    """A stored map's 'localized' answer comes back first, with the later registrars' answer as its `fallback`
+    """A saved map's 'localized' answer comes back first, with the later registrars' answer as its `fallback`
     (asked only on demand); the last registrar's answer has no fallback."""
     landmarks, corners = _seen(LOWER[:5])
     model = ModelRegistrar(TWO_STOREYS, min_landmarks=4, storey_hint="L2")
-    result = FirstOfRegistrar([StoredMapRegistrar(_known(LOWER[:5]), min_landmarks=2), model])(landmarks, corners)
+    result = FirstOfRegistrar([SavedMapRegistrar(_known(LOWER[:5]), min_landmarks=2), model])(landmarks, corners)
     assert result.status == "localized" and _is_truth(result.T_cad_map)
     assert result.fallback is not None and not result.fallback_holds_these
     later = result.fallback()
@@ -153,21 +153,21 @@ def test_first_of_passes_over_an_ambiguous_answer_without_candidates() -> None:
     """An 'ambiguous' answer without candidates does not stop the chain: a later 'localized' one wins; where none
     follows, the first 'ambiguous' answer is returned."""
     landmarks, corners = _seen(LOWER[:5])
-    two_of_them = StoredMapRegistrar(_known(LOWER[:2]), min_landmarks=2)
+    two_of_them = SavedMapRegistrar(_known(LOWER[:2]), min_landmarks=2)
     alone = two_of_them(landmarks, corners)
     assert alone.status == "ambiguous" and not alone.candidates
     result = FirstOfRegistrar([two_of_them, ModelRegistrar(ONE_STOREY, min_landmarks=4)])(landmarks, corners)
     assert result.status == "localized" and _is_truth(result.T_cad_map)
-    elsewhere = StoredMapRegistrar(_known(LOWER[10:15]), min_landmarks=2)
+    elsewhere = SavedMapRegistrar(_known(LOWER[10:15]), min_landmarks=2)
     result = FirstOfRegistrar([two_of_them, elsewhere])(landmarks, corners)
     assert result.status == "ambiguous" and result.matches == alone.matches
 
 
 def test_first_of_one_landmark_candidates_are_held_by_the_models() -> None:
-    """A stored map's candidates from one landmark each explain every landmark, too few for the model to answer
+    """A saved map's candidates from one landmark each explain every landmark, too few for the model to answer
     by itself: its candidates would hold these (`fallback_holds_these`); the fallback offers the model's."""
     landmarks, corners = _seen(LOWER[:1])
-    stored = StoredMapRegistrar(_known(LOWER[:5]), min_landmarks=2, candidates_from=1, model=ONE_STOREY)
+    stored = SavedMapRegistrar(_known(LOWER[:5]), min_landmarks=2, candidates_from=1, model=ONE_STOREY)
     model = ModelRegistrar(ONE_STOREY, min_landmarks=4, candidates_from=1)
     result = FirstOfRegistrar([stored, model])(landmarks, corners)
     assert result.status == "ambiguous" and result.candidates and result.fallback_holds_these
