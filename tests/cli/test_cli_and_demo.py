@@ -65,6 +65,11 @@ def test_the_demo_runs_with_a_config_file_under_its_own_settings(tmp_path: Path)
 
 
 def test_serve_stops_cleanly_on_sigterm_and_saves_the_map(office_path: Path, tmp_path: Path) -> None:
+    from macroloc.service.assets import prepare_building
+    from macroloc.service.config import load_config
+
+    cfg = load_config(None)
+    prepare_building(office_path, cfg.graph, cfg.planning)  # the session's cache, which serve reads: ready at once
     port = free_port()
     proc = subprocess.Popen([MACROLOC, "serve", "--building", str(office_path), "--vehicle", "cli",
                              "--listen", f"tcp/127.0.0.1:{port}", "--state-dir", str(tmp_path), "--log-json"],
