@@ -9,12 +9,14 @@ features + 5 m, as bench.bench_scale's tiling), written as an IFC file the CLI r
 IfcDoor / IfcWindow sharing the original's shape, placed absolutely, contained in the original's storey). Its
 requests come from `graph.evaluation.make_scenario` (seed 58: K 20/25/30, gravity given, default noise), written as
 OBS.json files; each is answered by a fresh `python -m macroloc.cli.main localize CAMPUS --observations OBS --json`
-process (the `macroloc` command's entry point), after one
-warm-up call (which builds the per-building caches on disk, as `macroloc prepare` would). Printed: the
-features, `elapsed_ms` (the registration alone) p50 / p95 beside the target (p95 <= 50 ms), `total_ms` (the
-command from its start, after Python's start-up and the imports of the command module) and the wall time per
-call (the whole process), and the statuses. `--profile`: one call's parts, timed in a fresh process
-(start-up, imports, reading the observations, loading the building, the per-building index, the registration).
+process (the `macroloc` command's entry point), after one warm-up call (which builds the per-building caches on
+disk, as `macroloc prepare` would). Printed: the features, `elapsed_ms` (the registration alone) p50 / p95 beside
+the target (p95 <= 50 ms), `total_ms` (the command from its start, after Python's start-up and the imports of the
+command module) and the wall time per call (the whole process), and the statuses. `--profile`: one call's parts,
+timed in a fresh process (start-up, imports, reading the observations, loading the building, the per-building
+index, the registration). `--cpu`: each request's registration again in a fresh process, its CPU time.
+`--baseline-pythonpath`: other code (a tree of links `macroloc/<folder>` to another worktree's folders, e.g. today's
+code) run on each request right before this code's, and the answers compared.
 Wall figures depend on the machine's load (2 cores shared here): compare runs made one after the other.
 """
 
