@@ -177,7 +177,7 @@ class ModelIndex:
             return self
         if storey not in self._by_storey:
             features = [f for f in self.features if str(f.storey) == storey]
-            if self.cache_key is None:
+            if self.cache_key is None or not features:  # none: nothing to cache (no self-maps, layout of none)
                 self._by_storey[storey] = ModelIndex.build(features)
             else:  # its own assets, cached on disk as the whole building's are
                 tag = hashlib.sha256(storey.encode()).hexdigest()[:12]

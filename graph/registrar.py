@@ -23,6 +23,7 @@ from macroloc.graph.observations import Observation, ObservationSet
 from macroloc.graph.registration import PaperParams, register
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect, align_rectangles
 from macroloc.graph.robust import RobustParams, single_rectangle_poses
+from macroloc.graph.robust import prepare as prepare_robust
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +63,9 @@ class ModelRegistrar:
         self.params = self._method_params(inlier_threshold_m, early_stop_fraction)
         self._known = [KnownRect(f.id, f.type, feature_frame_cad(f)) for f in model.features
                        if f.orientation == "vertical" and (storey_hint is None or f.storey == storey_hint)]
-        index_for(model)  # the per-building preprocessing (cached): done here, before the first frame
+        index = index_for(model)  # the per-building preprocessing (cached): done here, before the first frame
+        if isinstance(self.params, RobustParams) and (storey_hint is None or storey_hint in set(index.storeys)):
+            prepare_robust(index.for_storey(storey_hint), self.params)  # the robust method's own (pairs, ...)
 
     def _method_params(self, inlier_threshold_m: float | None, early_stop_fraction: float | None
                        ) -> RobustParams | PaperParams:

@@ -120,3 +120,9 @@ def test_a_second_process_reads_every_asset_from_the_disk_cache(duplex_model, fr
             assert np.array_equal(getattr(b._layout, field), getattr(a._layout, field))
         assert np.array_equal(b.self_maps().lands, a.self_maps().lands)
         assert np.array_equal(b.tables.dist_samples_m, a.tables.dist_samples_m)
+
+
+def test_a_storey_without_features_is_an_empty_index(duplex_model, fresh_cache: Path) -> None:
+    """A storey hint that names no storey of the building (the flight's one-rectangle candidates ask for it) gives
+    an index of no features, as before its assets were cached: nothing to cache, nothing raised."""
+    assert len(index_for(duplex_model).for_storey("no such storey").features) == 0
