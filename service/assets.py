@@ -23,8 +23,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from macroloc.graph.bim import BuildingModel, cache_dir
-from macroloc.graph.building_assets import BuildingSolids
+from macroloc.graph.bim import BuildingModel, cache_dir, load_building
+from macroloc.graph.building_assets import BuildingSolids, load_solids, surfaces_for
+from macroloc.graph.model_index import index_for
 from macroloc.graph.planning import Planner
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.service.config import GraphConfig, PlanningConfig
@@ -54,10 +55,6 @@ def prepare_building(building: Path, graph: GraphConfig, planning: PlanningConfi
 
     Surfaces and wall voxels come from IFC models only: for a mesh model registrations go unchecked (logged).
     """
-    from macroloc.graph.bim import load_building
-    from macroloc.graph.building_assets import load_solids, surfaces_for
-    from macroloc.graph.model_index import index_for
-
     parts: list[PreparedPart] = []
 
     def timed(name: str, build: Callable[[], object]) -> object:

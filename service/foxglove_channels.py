@@ -9,7 +9,30 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
+import cv2
 import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.Color_pb2 import Color
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
+from foxglove_schemas_protobuf.Log_pb2 import Log
+from foxglove_schemas_protobuf.Point2_pb2 import Point2
+from foxglove_schemas_protobuf.Point3_pb2 import Point3
+from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
+from foxglove_schemas_protobuf.Pose_pb2 import Pose
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
+from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+from google.protobuf.timestamp_pb2 import Timestamp
+from scipy.spatial.transform import Rotation
 
 from macroloc.graph.features import BuildingModel
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
@@ -24,27 +47,18 @@ STATUS_LEVEL = {"localized": 2, "exploring": 2, "ambiguous": 3, "degraded": 3, "
 
 
 def _stamp(stamp_ns: int) -> Any:
-    from google.protobuf.timestamp_pb2 import Timestamp
-
     ts = Timestamp()
     ts.FromNanoseconds(int(stamp_ns))
     return ts
 
 
 def _pose(T: np.ndarray) -> Any:
-    from foxglove_schemas_protobuf.Pose_pb2 import Pose
-    from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
-    from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
-    from scipy.spatial.transform import Rotation
-
     q = Rotation.from_matrix(T[:3, :3]).as_quat()  # scipy: x, y, z, w
     return Pose(position=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]), orientation=Quaternion(x=q[0], y=q[1], z=q[2],
                                                                                             w=q[3]))
 
 
 def _colour(rgb: tuple[float, float, float], alpha: float) -> Any:
-    from foxglove_schemas_protobuf.Color_pb2 import Color
-
     return Color(r=rgb[0], g=rgb[1], b=rgb[2], a=alpha)
 
 
@@ -57,10 +71,6 @@ class FoxgloveChannels:
 
     def image(self, frame: pb.StereoFrame, stamp_ns: int) -> None:
         """The left image (JPEG: the recorded bytes where they are JPEG) and its camera."""
-        import cv2
-        from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
-        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-
         left = frame.left
         data = left.data if left.encoding == pb.Image.JPEG else \
             cv2.imencode(".jpg", decode_image(left), [cv2.IMWRITE_JPEG_QUALITY, 85])[1].tobytes()
@@ -77,9 +87,6 @@ class FoxgloveChannels:
                    T_cad_map: np.ndarray | None = None, T_cad_body: np.ndarray | None = None) -> None:
         """cad -> map (when known), map -> body, body -> cam; where there is no map (a simulated flight), cad ->
         body (`T_cad_body`, its truth)."""
-        from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
-        from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
-
         def tf(parent: str, child: str, T: np.ndarray) -> Any:
             p = _pose(T)
             return FrameTransform(timestamp=_stamp(stamp_ns), parent_frame_id=parent, child_frame_id=child,
@@ -95,21 +102,12 @@ class FoxgloveChannels:
         self.write("/tf", FrameTransforms(transforms=[tf(*link) for link in links]), stamp_ns)
 
     def pose(self, topic: str, stamp_ns: int, T_cad_body: np.ndarray) -> None:
-        from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
-
         self.write(topic, PoseInFrame(timestamp=_stamp(stamp_ns), frame_id="cad", pose=_pose(T_cad_body)), stamp_ns)
 
     def model(self, stamp_ns: int, model: BuildingModel, matched: set[str] | None = None,
               wall_segments_xy: np.ndarray | None = None, wall_z_m: float = 0.0) -> None:
         """The doors and windows as boxes (their corners' rectangle, 5 cm thick), matched ones opaque; the walls as
         lines cut at `wall_z_m` (`wall_segments_xy`: (S, 2, 2), CAD frame)."""
-        from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
-        from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
-        from foxglove_schemas_protobuf.Point3_pb2 import Point3
-        from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
-        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-        from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
-
         matched = matched or set()
         entities = []
         for f in model.features:
@@ -130,11 +128,6 @@ class FoxgloveChannels:
                   ) -> None:
         """(key, type, position) of each landmark, as spheres; positions in `frame_id` (the CAD frame, or "map"
         before the flight is localized)."""
-        from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
-        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-        from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
-        from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
-
         entities = []
         for key, kind, p in positions_cad:
             T = np.eye(4)
@@ -147,11 +140,6 @@ class FoxgloveChannels:
 
     def links(self, stamp_ns: int, pairs_cad: list[tuple[np.ndarray, np.ndarray]]) -> None:
         """(landmark position, linked model feature's centroid), both (3,) in the CAD frame: one line each."""
-        from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
-        from foxglove_schemas_protobuf.Point3_pb2 import Point3
-        from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
-        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-
         points = [Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for pair in pairs_cad for p in pair]
         line = LinePrimitive(type=LinePrimitive.LINE_LIST, pose=_pose(np.eye(4)), thickness=0.04, points=points,
                              color=_colour((0.1, 0.7, 0.3), 1.0))
@@ -162,11 +150,6 @@ class FoxgloveChannels:
         """The position covariance of a pose as an ellipsoid of 2 sigma along each principal axis (diameter 4
         sigma). `covariance`: 6x6 [rot; trans] in the body's tangent space (graph.localizer.Estimate's), so the
         position block is rotated into the CAD frame: R_cad_body C_tt R_cad_body^T."""
-        from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
-        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-        from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
-        from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
-
         R = T_cad_body[:3, :3]
         C_cad = R @ np.asarray(covariance, float)[3:, 3:] @ R.T
         variances, axes = np.linalg.eigh(0.5 * (C_cad + C_cad.T))
@@ -182,17 +165,11 @@ class FoxgloveChannels:
 
     def poses(self, topic: str, stamp_ns: int, Ts_cad: list[np.ndarray]) -> None:
         """Several 4x4 poses in the CAD frame as one PosesInFrame (the plan's waypoints, the rival hypotheses)."""
-        from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
-
         self.write(topic, PosesInFrame(timestamp=_stamp(stamp_ns), frame_id="cad", poses=[_pose(T) for T in Ts_cad]),
                    stamp_ns)
 
     def detections(self, stamp_ns: int, info: pb.CameraInfo, corners_cam: list[tuple[str, np.ndarray]]) -> None:
         """Each sighting's corners (4, 3) in the left camera frame, projected as a closed outline."""
-        from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
-        from foxglove_schemas_protobuf.Point2_pb2 import Point2
-        from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
-
         outlines = []
         for kind, c in corners_cam:
             if np.any(c[:, 2] <= 0.05):
@@ -205,8 +182,6 @@ class FoxgloveChannels:
         self.write("/camera/left/detections", ImageAnnotations(points=outlines), stamp_ns)
 
     def status(self, stamp_ns: int, status: str) -> None:
-        from foxglove_schemas_protobuf.Log_pb2 import Log
-
         self.write("/status", Log(timestamp=_stamp(stamp_ns), level=STATUS_LEVEL.get(status, 2),  # type: ignore[arg-type]
                                   message=f"status: {status}", name="macroloc"), stamp_ns)
 

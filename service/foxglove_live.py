@@ -40,14 +40,17 @@ from collections.abc import Callable
 from typing import Any, Protocol, cast
 
 import numpy as np
+from mcap_protobuf.schema import build_file_descriptor_set
 
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.localizer import Estimate
 from macroloc.graph.sightings import Sighting
+from macroloc.graph.wall_mesh import wall_segments_xy
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import matrix_from_pose
+from macroloc.service.foxglove_channels import FoxgloveChannels
 
 log = logging.getLogger(__name__)
 
@@ -173,9 +176,8 @@ class FoxgloveLive:
 
     def __init__(self, model: BuildingModel, walls: Callable[[], Any], host: str, port: int, image_rate_hz: float,
                  queue_size: int, pose_rate_hz: float = 10.0, clock_s: Callable[[], float] = time.monotonic) -> None:
-        import foxglove
+        import foxglove  # the optional extra (macroloc[foxglove]): imported only where a live view is asked for
 
-        from macroloc.service.foxglove_channels import FoxgloveChannels
 
         self.model, self._load_walls, self._clock_s = model, walls, clock_s
         self._image_period_s = 1.0 / image_rate_hz if image_rate_hz > 0 else float("inf")
@@ -329,8 +331,6 @@ class FoxgloveLive:
 
     def _send_model(self, stamp_ns: int = 0) -> None:
         """The doors, windows and the walls cut at the flight's height (else the features' median height)."""
-        from macroloc.graph.wall_mesh import wall_segments_xy
-
         if not self._walls_loaded:
             self._wall_mesh, self._walls_loaded = self._load_walls(), True
         z_m = self._pose_z_m if self._pose_z_m is not None else \
@@ -341,8 +341,6 @@ class FoxgloveLive:
 
 def _protobuf_schema(foxglove: Any, name: str) -> Any:
     """foxglove-sdk's Schema of a Foxglove protobuf message: its FileDescriptorSet (what MCAP writers store)."""
-    from mcap_protobuf.schema import build_file_descriptor_set
-
     cls = getattr(importlib.import_module(f"foxglove_schemas_protobuf.{name}_pb2"), name)
     return foxglove.Schema(name=cls.DESCRIPTOR.full_name, encoding="protobuf",
                            data=build_file_descriptor_set(cls).SerializeToString())

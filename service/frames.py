@@ -19,7 +19,18 @@ import numpy as np
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.localizer import Sighting
 from macroloc.graph.rigid import apply
+from macroloc.perception.calib import StereoRig
 from macroloc.perception.params import DepthPointsParams, PerceptionParams
+from macroloc.perception.pipeline import Perception, StereoPair
+from macroloc.perception.stereo import (
+    FrameDisparity,
+    SgbmMatcher,
+    SgbmParams,
+    back_project,
+    depth_from_disparity,
+    depth_grid,
+)
+from macroloc.perception.threads import SERVICE_THREADS, set_threads
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import decode_image, matrix_from_pose
 
@@ -81,8 +92,6 @@ class StereoDepth:
         """`disparity`: the frame's shared SGBM (perception.stereo.FrameDisparity) where the perception chain or
         the odometry match the same frames; None: its own, with `num_disparities`. `range_m`: the points kept.
         `every` 0: no depth points on either schedule."""
-        from macroloc.perception.stereo import SgbmMatcher, SgbmParams
-
         self.matcher = disparity or SgbmMatcher(SgbmParams(num_disparities=num_disparities))
         self.every = every
         self.stride_px = stride_px
@@ -113,8 +122,6 @@ class StereoDepth:
 
     def measure(self, left: np.ndarray, right: np.ndarray, rig, T_body_cam: np.ndarray) -> np.ndarray:  # noqa: ANN001 - StereoRig
         """The pair's depth points (N, 3), body frame, metres."""
-        from macroloc.perception.stereo import back_project, depth_from_disparity, depth_grid
-
         depth_m = depth_from_disparity(self.matcher.disparity_px(left, right), rig)
         return apply(T_body_cam, back_project(*depth_grid(depth_m, self.stride_px, *self.range_m), rig))
 
@@ -125,8 +132,6 @@ class PerceptionPipeline:
     def __init__(self, perception, default_T_body_cam: np.ndarray) -> None:  # noqa: ANN001 - perception.Perception
         """`disparity`: the chain's matcher where it is a shared FrameDisparity (one SGBM a frame for the chain,
         the depth points and the visual odometry), else None."""
-        from macroloc.perception.stereo import FrameDisparity
-
         self.perception = perception
         self.default_T_body_cam = default_T_body_cam
         self.disparity = perception.matcher if isinstance(perception.matcher, FrameDisparity) else None
@@ -137,8 +142,6 @@ class PerceptionPipeline:
         a frame without camera info cannot be perceived and gives no sightings. `up_body`: gravity's up (the
         session's), which tells the chain which way is down; `images()`: the frame's decoded pair (decoded here
         without)."""
-        from macroloc.perception.pipeline import StereoPair
-
         info = frame.info
         if not frame.HasField("info") or info.fx <= 0 or info.baseline_m <= 0:
             return []
@@ -154,8 +157,6 @@ class PerceptionPipeline:
 def stereo_rig(frame: pb.StereoFrame):  # noqa: ANN201 - perception.calib.StereoRig
     """The stereo rig a frame's CameraInfo describes (the images' size from the frame: service.inputs checked that
     they agree with the info's)."""
-    from macroloc.perception.calib import StereoRig
-
     info = frame.info
     return StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
 
@@ -167,10 +168,6 @@ def make_perception_pipeline(threads: int | None = None, detector_model: Path | 
     `threads`: the detector's, instead of the plan's; `params`: the chain's ([perception.*]: the frame's SGBM,
     the sides, the plausibility limits, the wall plane)."""
     try:
-        from macroloc.perception.pipeline import Perception
-        from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
-        from macroloc.perception.threads import SERVICE_THREADS, set_threads
-
         plan = set_threads(SERVICE_THREADS)
         log.info("threads: %s", plan.describe())
         p = params or PerceptionParams()

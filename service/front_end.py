@@ -36,10 +36,12 @@ from macroloc.graph.features import BuildingModel
 from macroloc.graph.geo import GeoReference
 from macroloc.graph.localizer import Estimate, Localizer, Sighting
 from macroloc.graph.mapstore import PlacedView
+from macroloc.graph.prior import PosePrior, storey_band_m
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.perception.params import DepthPointsParams, PlaceParams
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import FlightFrame, matrix_from_pose, pose_from_matrix, vector3
+from macroloc.service.config import MacrolocConfig
 from macroloc.service.frame_answers import ODOMETRY_MATCH_NS, OdometryBuffer
 from macroloc.service.frames import (
     FramePipeline,
@@ -135,8 +137,6 @@ class FrontEnd:
         """The backend on a session from the config (service.session.session_from_config; the defaults, with the
         environment's MACROLOC_* over them, without one), with covariance; `surfaces`: the model's walls, to check
         registrations against the frames' depth (graph.surfaces)."""
-        from macroloc.service.config import MacrolocConfig
-
         cfg = cfg or MacrolocConfig()
         chain = cfg.perception.to_params()
         params = FrontEndParams.configured(cfg)
@@ -291,8 +291,6 @@ class FrontEnd:
         """The operator's prior (graph.prior) to the localizer: a pose becomes T_cad_map = T_cad_body times the inverse
         of the odometry's T_map_body at its stamp (the newest where there is none at it: an operator's prior is
         coarse); a storey, its band of heights. Returns why it was refused (a drop kind), else None."""
-        from macroloc.graph.prior import PosePrior, storey_band_m
-
         band = None
         if ev.storey is not None:
             if ev.storey not in self.model.storey_elevations_m:

@@ -14,6 +14,7 @@ attitude by R w_b in the world frame, so cov_ros = J cov_gtsam J^T with J = [[0,
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 R_NED_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # swap x/y, flip z
 R_FLU_FRD = np.diag([1.0, -1.0, -1.0])  # flip y and z
@@ -42,8 +43,6 @@ def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
 
 
 def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     w, x, y, z = np.asarray(quat_wxyz, float)
     return Rotation.from_quat([x, y, z, w]).as_matrix()
 

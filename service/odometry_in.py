@@ -38,10 +38,10 @@ import numpy as np
 from macroloc.graph.rigid import rotation_angle_rad
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import pose_from_matrix
-from macroloc.proto.ros_types import from_cdr
+from macroloc.proto.ros_types import from_cdr, stamp_ns_of
 from macroloc.service.inputs import InputParser, OdometryIn
 from macroloc.service.ned import T_enu_flu_from_T_ned_frd, matrix_from_quat_wxyz
-from macroloc.service.ros_in import odometry_message
+from macroloc.service.ros_in import odometry_message, transform_matrix
 
 log = logging.getLogger(__name__)
 
@@ -109,9 +109,6 @@ class TfOdometry:
     def __call__(self, payload: bytes) -> tuple[pb.Odometry, None] | None:
         """A tf2_msgs/msg/TFMessage CDR payload as a wire Odometry (T_map_body = T_odom_base_link, the last such
         link in the message), or None where the message holds no such link."""
-        from macroloc.proto.ros_types import stamp_ns_of
-        from macroloc.service.ros_in import transform_matrix
-
         links = [t for t in from_cdr(payload, TF_MESSAGE).transforms if t.header.frame_id.lstrip("/") ==
                  self.odom_frame and t.child_frame_id.lstrip("/") == self.base_frame]
         if not links:

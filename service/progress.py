@@ -8,6 +8,9 @@ import contextlib
 from collections.abc import Iterable, Iterator
 from typing import TypeVar
 
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
 T = TypeVar("T")
 
 _quiet = False
@@ -22,7 +25,6 @@ def set_quiet(quiet: bool) -> None:
 def _console():  # noqa: ANN202 - rich.console.Console, or None where nothing is shown
     if _quiet:
         return None
-    from rich.console import Console
 
     console = Console(stderr=True)
     return console if console.is_terminal else None
@@ -34,7 +36,6 @@ def track(items: Iterable[T], description: str, total: float | None = None) -> I
     if console is None:
         yield from items
         return
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     columns = [SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TimeElapsedColumn()]

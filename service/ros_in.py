@@ -13,7 +13,9 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.errors import UserInputError
@@ -47,8 +49,6 @@ def image_array(msg: Any) -> np.ndarray:
 
 def compressed_image_array(msg: Any) -> np.ndarray:
     """A sensor_msgs/CompressedImage (jpeg, png) as (H, W) uint8 mono or (H, W, 3) uint8 BGR."""
-    import cv2
-
     image = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise UserInputError(f"a compressed image (format {msg.format!r}) cannot be decoded")
@@ -86,8 +86,6 @@ def odometry_message(msg: Any, seq: int = 0) -> pb.Odometry:
 
 def transform_matrix(transform: Any) -> np.ndarray:
     """A geometry_msgs/Transform (of a TransformStamped: T_parent_child) as a 4x4 matrix."""
-    from scipy.spatial.transform import Rotation
-
     t, q = transform.translation, transform.rotation
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()  # scipy: x, y, z, w
@@ -178,16 +176,12 @@ class StereoRectifier:
 
     @staticmethod
     def _maps_of(c: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
-        import cv2
-
         size = (c.width, c.height)
         if c.distortion_model == "equidistant":
             return cv2.fisheye.initUndistortRectifyMap(c.K, c.D[:4], c.R, c.P[:, :3], size, cv2.CV_16SC2)
         return cv2.initUndistortRectifyMap(c.K, c.D, c.R, c.P[:, :3], size, cv2.CV_16SC2)
 
     def __call__(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        import cv2
-
         if not self.remap:
             return left, right
         return tuple(cv2.remap(img, m1, m2, cv2.INTER_LINEAR)  # type: ignore[return-value]

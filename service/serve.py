@@ -12,11 +12,41 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from macroloc.graph.errors import UserInputError
+from macroloc.graph.geo import read_geo_reference
+from macroloc.graph.wall_mesh import load_wall_mesh
+from macroloc.service.assets import prepare_building
 from macroloc.service.config import MacrolocConfig
+from macroloc.service.foxglove_live import NullLiveView, start_live_view
+from macroloc.service.front_end import make_front_end
+from macroloc.service.inputs import limits_from_config
 from macroloc.service.node import LocalizationService, ServiceParams
-from macroloc.service.ros_sensors import RosSensorTopics
+from macroloc.service.odometry_in import (
+    PX4_ODOMETRY,
+    ROS_ODOMETRY,
+    TF_MESSAGE,
+    SegmentRule,
+    TfOdometry,
+    VehicleOdometryInput,
+    px4_odometry,
+    ros_odometry,
+)
+from macroloc.service.px4 import Px4Keys, Px4Messages, Px4Output, ResetCounter
+from macroloc.service.ros_out import (
+    AllRosIntakes,
+    NullRosInputs,
+    RosFrames,
+    RosInputs,
+    RosIntakes,
+    RosKeys,
+    RosOutput,
+    RosPriorInputs,
+)
+from macroloc.service.ros_sensors import CAMERA_INFO, COMPRESSED, IMAGE, IMU, RosSensorTopics
+from macroloc.service.ros_transport import make_ros_transport as make
 from macroloc.service.state import SavedMapFile
 from macroloc.service.systemd import Notifier, notifier_from_environment
+from macroloc.service.vehicle_out import NullVehicleOutput, VehicleOutput, VehicleOutputs
+from macroloc.service.zenoh_io import describe_exposure, open_session, session_config
 
 if TYPE_CHECKING:
     from macroloc.graph.features import BuildingModel
@@ -29,8 +59,6 @@ log = logging.getLogger(__name__)
 def make_ros_transport(cfg: MacrolocConfig, session) -> RosTransport | None:  # noqa: ANN001
     """Where ROS 2 and PX4 topics travel on Zenoh ([ros] middleware: service.ros_transport), as one rmw_zenoh node
     named macroloc in the namespace /<[ros] namespace>/<vehicle>; None where neither [ros] nor [px4] is enabled."""
-    from macroloc.service.ros_transport import make_ros_transport as make
-
     if not (cfg.ros.enabled or cfg.px4.enabled or cfg.px4.take_odometry):
         return None
     node_namespace = "/" + "/".join(p for p in (cfg.ros.namespace.strip("/"), cfg.service.vehicle) if p)
@@ -41,29 +69,6 @@ def make_vehicle_io(cfg: MacrolocConfig, transport: RosTransport | None, T_enu_c
     """The ROS 2 / PX4 outputs and the ROS inputs the config enables ([ros], [px4]) on the transport
     (`make_ros_transport`); null objects otherwise. `T_enu_cad`: the model's geo-reference (graph.geo), which makes
     PX4's pose frame true NED. The outputs close the transport after themselves."""
-    from macroloc.service.odometry_in import (
-        PX4_ODOMETRY,
-        ROS_ODOMETRY,
-        TF_MESSAGE,
-        SegmentRule,
-        TfOdometry,
-        VehicleOdometryInput,
-        px4_odometry,
-        ros_odometry,
-    )
-    from macroloc.service.px4 import Px4Keys
-    from macroloc.service.ros_out import (
-        AllRosIntakes,
-        NullRosInputs,
-        RosFrames,
-        RosInputs,
-        RosIntakes,
-        RosKeys,
-        RosOutput,
-        RosPriorInputs,
-    )
-    from macroloc.service.vehicle_out import NullVehicleOutput, VehicleOutput, VehicleOutputs
-
     outputs: list[VehicleOutput] = []
     inputs: list[RosIntakes] = []
     if transport is None:
@@ -87,8 +92,6 @@ def make_vehicle_io(cfg: MacrolocConfig, transport: RosTransport | None, T_enu_c
             inputs.append(VehicleOdometryInput(transport.subscription(keys.tf, TF_MESSAGE),
                                                TfOdometry(r.frame_odom, r.frame_base_link), rule))
     if x.enabled:
-        from macroloc.service.px4 import Px4Messages, Px4Output, ResetCounter
-
         reset = ResetCounter(x.reset_jump_m, float(np.deg2rad(x.reset_jump_deg)))
         outputs.append(Px4Output(transport, Px4Keys(x.namespace), Px4Messages(T_enu_cad, reset), x.offboard_rate_hz,
                                  x.reach_m))
@@ -102,9 +105,6 @@ def make_vehicle_io(cfg: MacrolocConfig, transport: RosTransport | None, T_enu_c
 def ros_sensor_topics(cfg: MacrolocConfig, transport: RosTransport | None) -> RosSensorTopics:
     """The Zenoh keys of the ROS sensor topics [ros] names (under the namespace) on the transport, their
     subscriptions announced; none unless [ros] is enabled."""
-    from macroloc.service.ros_out import RosKeys
-    from macroloc.service.ros_sensors import CAMERA_INFO, COMPRESSED, IMAGE, IMU
-
     r = cfg.ros
     if not r.enabled or transport is None:
         return RosSensorTopics()
@@ -123,9 +123,6 @@ def ros_sensor_topics(cfg: MacrolocConfig, transport: RosTransport | None) -> Ro
 def make_live_view(cfg: MacrolocConfig, model: BuildingModel, building: Path) -> LiveView:
     """The operator's live view ([foxglove]: Foxglove's WebSocket server on host:port, service.foxglove_live); none
     where [foxglove] port is 0 (the default)."""
-    from macroloc.graph.wall_mesh import load_wall_mesh
-    from macroloc.service.foxglove_live import NullLiveView, start_live_view
-
     f = cfg.foxglove
     if not f.port:
         return NullLiveView()
@@ -136,11 +133,6 @@ def make_live_view(cfg: MacrolocConfig, model: BuildingModel, building: Path) ->
 def build_service(cfg: MacrolocConfig, session, store: SavedMapFile | None = None,  # noqa: ANN001
                   notifier: Notifier | None = None) -> LocalizationService:
     """Everything `serve` runs, on an open session (tests pass their own session and store)."""
-    from macroloc.graph.geo import read_geo_reference
-    from macroloc.service.assets import prepare_building
-    from macroloc.service.front_end import make_front_end
-    from macroloc.service.inputs import limits_from_config
-
     if cfg.service.building is None:
         raise UserInputError("no building model: set service.building in the config or pass --building")
     building = Path(cfg.service.building)
@@ -170,8 +162,6 @@ def build_service(cfg: MacrolocConfig, session, store: SavedMapFile | None = Non
 def serve(cfg: MacrolocConfig, stop: threading.Event | None = None,
           on_ready: Callable[[LocalizationService], None] | None = None) -> None:
     """Run the service until SIGTERM/SIGINT (or `stop`); the map is saved on the way out."""
-    from macroloc.service.zenoh_io import describe_exposure, open_session, session_config
-
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):

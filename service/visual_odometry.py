@@ -14,9 +14,16 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from macroloc.graph.rigid import rotation_aligning
+from macroloc.perception.calib import StereoRig
+from macroloc.perception.inertial import InertialDeadReckoning
+from macroloc.perception.odometry import StereoOdometry
+from macroloc.perception.params import PerceptionParams
+from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
 from macroloc.proto.recording import FlightFrame, matrix_from_pose
+from macroloc.service.frames import StereoDepth
 
 if TYPE_CHECKING:
     from macroloc.perception.calib import StereoRig
@@ -36,11 +43,6 @@ class VisualOdometry:
         """`disparity`: the frame's one SGBM, shared by the odometry's keyframes, the depth points and (given to
         it too) the perception chain; None: a new one (`params.stereo`) for the odometry and the depth points.
         `params`: the odometry's and the dead reckoning's (their defaults without)."""
-        from macroloc.perception.inertial import InertialDeadReckoning
-        from macroloc.perception.params import PerceptionParams
-        from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
-        from macroloc.service.frames import StereoDepth
-
         self._params = p = params or PerceptionParams()
         self._disparity = disparity or FrameDisparity(SgbmMatcher(p.stereo))
         self._odometry: StereoOdometry | None = None
@@ -54,8 +56,6 @@ class VisualOdometry:
         self._last_stamp_ns: int | None = None
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        from macroloc.perception.odometry import StereoOdometry
-
         info = frame.stereo.info
         T_body_cam = matrix_from_pose(info.T_body_cam)
         if self._odometry is None:
@@ -115,7 +115,6 @@ def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:
     (each held from the previous sample's stamp to its own); None without samples or a previous stamp."""
     if not samples or last_ns is None:
         return None
-    from scipy.spatial.transform import Rotation
 
     R = np.eye(3)
     t_prev = last_ns
@@ -129,8 +128,6 @@ def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:
 
 def _rig(info) -> StereoRig:  # noqa: ANN001 - pb.CameraInfo
     """The stereo rig a recorded frame's CameraInfo describes."""
-    from macroloc.perception.calib import StereoRig
-
     return StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
 
 
