@@ -2,9 +2,10 @@
 
 For each scenario of `../shared/eval/scenarios.py` (its own generator, its ambiguity oracle, its scoring
 `score_localize.score_run`, all unchanged) the registration runs twice in this process, once per rule
-(`RobustParams.decision`: "margin", today's, and "posterior"), and every pose the posterior lists is checked
-against the truth: right when it puts every true observed feature within 0.5 m of where the true transform puts
-it (the harness's line between a correct answer and a wrong one). Prints:
+(`RobustParams.decision`: "margin", today's, and "posterior"), and every pose the posterior lists (in the
+posterior rule's run: its search seeds from every rectangle) is checked against the truth: right when it puts
+every true observed feature within 0.5 m of where the true transform puts it (the harness's line between a correct
+answer and a wrong one). Prints:
 
 * the reliability table: per bin of stated probability, the poses stated, the mean stated probability and the
   fraction right (the best pose of each scenario; and every listed pose);
@@ -76,7 +77,7 @@ def run(args: argparse.Namespace) -> dict:
                 rec.update(ambiguous_truth=full, near_ambiguous=amb and not full, building=Path(ifc).stem,
                            oracle=check)
                 records[rule].append(rec)
-                if rule == "margin" and result.posterior is not None:
+                if rule == "posterior" and result.posterior is not None:  # the rule's own search (every seed)
                     for k, pose in enumerate(result.posterior["poses"]):
                         right = pose_error_m(np.array(pose["T_cad_map"]), truth_doc) < RIGHT_M
                         stated.append((pose["probability"], right, k == 0))
