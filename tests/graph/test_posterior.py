@@ -10,12 +10,21 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import ConvexHull
 
 from macroloc.graph.features import BuildingModel, MacroFeature
 from macroloc.graph.model_index import ModelIndex
 from macroloc.graph.observations import Observation, ObservationSet
 from macroloc.graph.params import ObservationModel, RobustParams
-from macroloc.graph.posterior import Sigmas, decide, pose_evidence, posterior
+from macroloc.graph.posterior import (
+    Sigmas,
+    _within_hull,  # the in-view test's kernel, tested directly
+    decide,
+    pose_evidence,
+    posterior,
+)
 from macroloc.graph.rectangle import opening_rectangle
 from macroloc.graph.registration import register
 from macroloc.graph.rigid import apply, invert, make_T
@@ -165,3 +174,21 @@ def test_the_duplex_stays_ambiguous_at_any_number_of_observations(duplex_model, 
         assert r.status == "ambiguous", (k, r.posterior)
         probs = [q["probability"] for q in r.posterior["poses"]]
         assert probs[0] < 1.0 - MODEL.epsilon and len(probs) >= 2 and sum(probs) >= 1.0 - MODEL.epsilon
+
+
+@given(st.integers(0, 2**32 - 1))
+@settings(max_examples=30, deadline=None)
+def test_in_view_is_within_the_margin_of_the_hull_as_qhull_gives_it(seed: int) -> None:
+    """The in-view test's hull (a monotone chain) gives qhull's half-planes: the same points within the margin."""
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(int(rng.integers(3, 30)), 2)) * 5.0
+    query = rng.normal(size=(300, 2)) * 7.0
+    hull = ConvexHull(points)
+    expected = np.all(query @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0.5, axis=1)
+    assert (_within_hull(points, query, 0.5) == expected).all()
+
+
+def test_in_view_of_collinear_observations_is_a_strip_about_their_segment() -> None:
+    line = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    assert list(_within_hull(line, np.array([[1.0, 0.4], [1.0, 0.6], [2.4, 0.0], [2.6, 0.0]]), 0.5)) == [
+        True, False, True, False]
