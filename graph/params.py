@@ -326,7 +326,7 @@ class ObservationModel(Parameters):
     description (docs/measurements.md, "Issue 58: the posterior", has the measurements)."""
 
     corner_sigma_floor_m: float = param(
-        0.05, "a corner's noise per axis at least (the harness's default, ../shared/eval/README.md: N(0, 0.05^2) per "
+        0.05, "a corner's noise per axis at least (the shared scoring harness's default: N(0, 0.05^2) per "
         "coordinate); where the rectangles' own closure shows more (the hard noise: 0.10) that is taken, m", gt=0)
     cad_sigma_m: float = param(
         0.03, "the model's centroid vs the built one, per axis, beside the noise: the registration's noise floor "
