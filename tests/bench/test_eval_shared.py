@@ -19,7 +19,7 @@ def test_an_answer_is_the_clis_json_with_the_registration_time_apart(tmp_path: P
                                                                      office_model) -> None:
     import numpy as np
 
-    from tests.service.test_cli_localize import obs_doc, random_T
+    from tests.cli.test_cli_localize import obs_doc, random_T
 
     obs = tmp_path / "OBS.json"
     obs.write_text(json.dumps(obs_doc(office_model, random_T(np.random.default_rng(3), yaw_only=True), "Level 2")))
