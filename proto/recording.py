@@ -23,10 +23,16 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+import cv2
 import numpy as np
+from mcap.reader import make_reader
+from mcap.writer import CompressionType
+from mcap_protobuf.writer import Writer
+from scipy.spatial.transform import Rotation
 
 from macroloc.graph.errors import UserInputError
 from macroloc.perception.image_header import DEFAULT_MAX_PIXELS as DEFAULT_MAX_IMAGE_PIXELS
+from macroloc.perception.image_header import ImageHeaderError, check_encoded
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 
 log = logging.getLogger(__name__)
@@ -54,8 +60,6 @@ def pose_from_matrix(T_a_b: np.ndarray) -> pb.Pose:
 
 def poses_from_matrices(T_a_b: np.ndarray) -> list[pb.Pose]:
     """`pose_from_matrix` of each of N transforms (N, 4, 4), the rotations converted at once."""
-    from scipy.spatial.transform import Rotation
-
     T = np.asarray(T_a_b, float).reshape(-1, 4, 4)
     if len(T) == 0:
         return []
@@ -66,8 +70,6 @@ def poses_from_matrices(T_a_b: np.ndarray) -> list[pb.Pose]:
 
 def matrix_from_pose(pose: pb.Pose) -> np.ndarray:
     """The 4x4 transform T_a_b of a Pose (inverse of `pose_from_matrix`)."""
-    from scipy.spatial.transform import Rotation
-
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat([pose.qx, pose.qy, pose.qz, pose.qw]).as_matrix()  # scipy: x, y, z, w
     T[:3, 3] = (pose.position.x, pose.position.y, pose.position.z)
@@ -84,8 +86,6 @@ def encode_image(image: np.ndarray, encoding: str = "png", png_level: int = 1, j
     image: (H, W, 3) uint8 BGR, (H, W) uint8 mono, or (H, W) float32 depth in metres (always RAW_DEPTH_F32).
     encoding: "png" | "jpeg" | "raw" (RAW_BGR8 / RAW_MONO8).
     """
-    import cv2
-
     h, w = image.shape[:2]
     if image.dtype == np.float32:
         return pb.Image(width=w, height=h, encoding=pb.Image.RAW_DEPTH_F32, data=image.astype("<f4").tobytes())
@@ -109,10 +109,6 @@ def decode_image(image: pb.Image, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) ->
     Nothing is decoded that is larger than `max_pixels` or whose size differs from the declared one: raw data
     must hold exactly the declared pixels, and a PNG/JPEG's header (read first, perception.image_header) must
     declare them; UserInputError otherwise (a recording's image, or the service's after its input checks)."""
-    import cv2
-
-    from macroloc.perception.image_header import ImageHeaderError, check_encoded
-
     h, w = image.height, image.width
     if not (w > 0 and h > 0 and w * h <= max_pixels):
         raise UserInputError(f"image of {w}x{h} pixels declared: not positive or over the cap of {max_pixels}")
@@ -168,9 +164,6 @@ class FlightWriter:
     """Writes a flight recording. Use as a context manager; `metadata` may be set any time before closing."""
 
     def __init__(self, path: str | Path, metadata: FlightMetadata | None = None, compress: bool = True) -> None:
-        from mcap.writer import CompressionType
-        from mcap_protobuf.writer import Writer
-
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.metadata = metadata or FlightMetadata()
@@ -265,7 +258,6 @@ class FlightFrame:
 
 
 def _open_reader(path: str | Path):  # noqa: ANN202 - mcap's reader type
-    from mcap.reader import make_reader
 
     path = Path(path)
     if not path.is_file():

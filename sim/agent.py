@@ -27,10 +27,15 @@ from macroloc.proto.recording import (
     TOPIC_GROUND_TRUTH,
     TOPIC_STEREO,
     FlightWriter,
+    add_features_in_view,
+    depth_image_mm,
+    encode_image,
     matrix_from_pose,
     pose_from_matrix,
     vector3,
 )
+from macroloc.sim.groundtruth import features_in_view
+from macroloc.sim.simulator import SimulationParams, Simulator
 from macroloc.sim.vehicle import DriftingOdometry, KinematicDrone, yaw_of
 
 if TYPE_CHECKING:
@@ -118,8 +123,6 @@ class RenderedStereoCamera:
     def __init__(self, building: Path, seed: int, ground_truth: bool = False) -> None:
         """`ground_truth`: also give each frame's GroundTruth (key "ground_truth": the true pose, the doors and
         windows in view and the depth), for a recording; it is not published."""
-        from macroloc.sim.simulator import SimulationParams, Simulator
-
         self.ground_truth = ground_truth
         self.sim = Simulator(building, SimulationParams(seed=seed))
         cam = self.sim.params.camera
@@ -128,8 +131,6 @@ class RenderedStereoCamera:
         self._k = 0
 
     def measure(self, stamp_ns: int, T_cad_body: np.ndarray) -> list[tuple[str, Any]]:
-        from macroloc.proto.recording import encode_image
-
         self._k += 1
         left, right = self.sim.renderer.render_stereo(T_cad_body @ self.sim.T_body_cam, self.sim.lighting,
                                                       frame_seed=float(self._k))
@@ -143,9 +144,6 @@ class RenderedStereoCamera:
 
     def _truth(self, stamp_ns: int, T_cad_body: np.ndarray, left: Any) -> pb.GroundTruth:  # noqa: ANN401 - a render
         """The frame's ground truth as `macroloc simulate` records it (its depth in 1 mm steps)."""
-        from macroloc.proto.recording import add_features_in_view, depth_image_mm
-        from macroloc.sim.groundtruth import features_in_view
-
         truth = pb.GroundTruth(header=pb.Header(stamp_ns=stamp_ns, frame_id="cam_left", seq=self._k),
                                T_cad_body=pose_from_matrix(T_cad_body), T_body_cam=self.info.T_body_cam,
                                depth=depth_image_mm(left.depth_m))

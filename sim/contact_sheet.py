@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from macroloc.sim.groundtruth import FeatureInView
@@ -12,8 +13,6 @@ COLOURS_BGR = {"door": (40, 200, 40), "window": (230, 140, 30)}
 def annotate(image_bgr: np.ndarray, features: list[FeatureInView], label: str = "") -> np.ndarray:
     """A copy of the image with each feature's box (green door, blue window), id prefix and corners
     (filled = visible, hollow = occluded or outside)."""
-    import cv2
-
     out = image_bgr.copy()
     for f in features:
         colour = COLOURS_BGR.get(f.type, (0, 0, 255))
@@ -31,8 +30,6 @@ def annotate(image_bgr: np.ndarray, features: list[FeatureInView], label: str = 
 
 def contact_sheet(tiles_bgr: list[np.ndarray], columns: int = 4, tile_width: int = 320) -> np.ndarray:
     """(rows * h, columns * tile_width, 3) uint8 grid of the tiles, each resized to `tile_width`."""
-    import cv2
-
     if not tiles_bgr:
         return np.zeros((10, 10, 3), np.uint8)
     h0, w0 = tiles_bgr[0].shape[:2]

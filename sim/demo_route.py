@@ -30,6 +30,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from macroloc.graph.errors import UserInputError
+from macroloc.graph.planning import GoalSpec, PlanningError
+from macroloc.sim.agent import TruthSensor, ray_free
+from macroloc.sim.vehicle import level_pose
 
 if TYPE_CHECKING:  # the service's planner, imported where used: sim/ imports only service's wire and config at its top
     from macroloc.graph.features import BuildingModel, MacroFeature
@@ -52,8 +55,6 @@ class DemoGoal:
 
     def spec(self) -> GoalSpec:
         """The goal as the service's planner takes it."""
-        from macroloc.graph.planning import GoalSpec
-
         pos = None if self.position_cad is None else np.asarray(self.position_cad, float)
         return GoalSpec(position_cad=pos, feature_id=self.feature_id, space_name=self.space_name)
 
@@ -152,8 +153,6 @@ def ranked_storeys(planner: Planner, only: str | None = None) -> list[tuple[str,
 def _route_on_storey(planner: Planner, name: str, floor_z: float, rng: np.random.Generator, seed: int,
                      stats: StoreyTried, min_goal_m: float, max_goal_m: float, user_goal: DemoGoal | None,
                      wanted: int) -> Route | None:
-    from macroloc.sim.agent import TruthSensor
-
     z = floor_z + planner.flight_height_m
     grid, free = planner.free_cells(z)
     sensor = TruthSensor(planner.model, grid, seed, drop_fraction=0.0)
@@ -190,8 +189,6 @@ def _take_off_points(features: list[MacroFeature], free: np.ndarray, grid: Occup
 
 def _turn_view(sensor: Any, xyz: np.ndarray) -> int:  # noqa: ANN401 - sim.agent.TruthSensor
     """Doors and windows a turn on the spot at xyz shows (ground truth: in range, in view, in line of sight)."""
-    from macroloc.sim.vehicle import level_pose
-
     yaws = np.linspace(-np.pi, np.pi, TURN_HEADINGS)
     return len(set().union(*(sensor.visible(level_pose(xyz, yaw)) for yaw in yaws)))
 
@@ -231,14 +228,10 @@ def _goals(planner: Planner, storey: str, start_xyz: np.ndarray, free: np.ndarra
 
 def _in_view(free: np.ndarray, grid: OccupancyGrid, a_xyz: np.ndarray, b_xy: np.ndarray) -> bool:
     """Whether the straight line from a to b (CAD, m) runs through free cells only: b is in a's room."""
-    from macroloc.sim.agent import ray_free
-
     return ray_free(free, grid.cell_of(a_xyz), grid.cell_of(b_xy))
 
 
 def _connected(planner: Planner, start_xyz: np.ndarray, goal: DemoGoal) -> bool:
-    from macroloc.graph.planning import PlanningError
-
     try:
         planner.plan(start_xyz, goal.spec())
     except PlanningError:

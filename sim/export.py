@@ -11,12 +11,16 @@ edges) and its box is at least `min_box_px` on each side.
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from macroloc.sim.flight import FlightParams
 from macroloc.sim.groundtruth import FeatureInView
+from macroloc.sim.simulator import SimulationParams, Simulator
 
 log = logging.getLogger(__name__)
 
@@ -59,8 +63,6 @@ class YoloExporter:
 
     def add(self, index: int, left_bgr: np.ndarray, features: list[FeatureInView]) -> bool:
         """Write frame `index` when it is one of every `every_n`; returns whether it was written."""
-        import cv2
-
         if index % self.every_n:
             return False
         h, w = left_bgr.shape[:2]
@@ -79,11 +81,6 @@ def render_training_frames(building: Path, out_dir: Path, seeds: tuple[int, ...]
                            every: int = 6, prefix: str | None = None) -> dict[str, int]:
     """Seeded flights through `building`, every `every`-th frame written to `out_dir` as a left image with YOLO
     labels; only those frames are rendered. Returns the counts {"images", "door", "window"}."""
-    import time
-
-    from macroloc.sim.flight import FlightParams
-    from macroloc.sim.simulator import SimulationParams, Simulator
-
     totals = {"images": 0, "door": 0, "window": 0}
     for seed in seeds:
         t0 = time.time()

@@ -15,8 +15,11 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d, minimum_filter1d
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 from scipy.spatial.transform import Rotation, Slerp
 
 from macroloc.graph.errors import BuildingError
@@ -78,8 +81,6 @@ class FreeSpace:
     @classmethod
     def from_scene(cls, scene: SceneGeometry, floor_z_m: float, params: FlightParams,
                    ceiling_z_m: float | None = None) -> FreeSpace:
-        import cv2
-
         cell = params.cell_m
         lo, hi = scene.bounds_cad[0, :2] - 1.0, scene.bounds_cad[1, :2] + 1.0
         shape = (int(np.ceil((hi[1] - lo[1]) / cell)), int(np.ceil((hi[0] - lo[0]) / cell)))
@@ -107,8 +108,6 @@ class FreeSpace:
 
 def _rasterise(triangles: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, int], fill: bool) -> np.ndarray:
     """Cells touched by the triangles' xy projections (vertical faces become their footprint lines)."""
-    import cv2
-
     img = np.zeros(shape, np.uint8)
     if len(triangles) == 0:
         return img.astype(bool)
@@ -150,8 +149,6 @@ def _covered(scene: SceneGeometry, floor_z: float, ceiling_z: float | None, lo: 
 
 
 def _hull_mask(points_xy: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
-    import cv2
-
     img = np.zeros(shape, np.uint8)
     if len(points_xy) >= 3:
         pts = np.round((points_xy - lo) / cell).astype(np.int32)
@@ -164,8 +161,6 @@ def _hull_mask(points_xy: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[
 
 def plan_route(space: FreeSpace, length_m: float, rng: np.random.Generator) -> np.ndarray:
     """(N, 2) CAD x, y of a collision-free polyline at least `length_m` long (when the space allows), metres."""
-    from scipy.sparse.csgraph import dijkstra
-
     graph, cells = _grid_graph(space)
     index = -np.ones(space.safe.shape, int)
     index[cells[:, 0], cells[:, 1]] = np.arange(len(cells))
@@ -194,7 +189,6 @@ def plan_route(space: FreeSpace, length_m: float, rng: np.random.Generator) -> n
 
 
 def _grid_graph(space: FreeSpace):  # noqa: ANN202 - (csr_matrix, (N, 2) cells)
-    from scipy.sparse import coo_matrix
 
     cells = np.argwhere(space.safe)
     index = -np.ones(space.safe.shape, int)
@@ -307,7 +301,6 @@ def _speed_profile(path_xy: np.ndarray, step: float, params: FlightParams) -> np
     heading = np.arctan2(seg[:, 1], seg[:, 0])
     turn = np.abs(np.angle(np.exp(1j * np.diff(heading))))  # rad between successive segments (pi: a U-turn)
     kappa = np.r_[0.0, turn / step, 0.0]  # curvature, 1/m (a cross-product formula misses reversals)
-    from scipy.ndimage import maximum_filter1d
 
     kappa = gaussian_filter1d(maximum_filter1d(kappa, max(3, int(0.6 / step))), 3)  # keep the peaks of turns
     v = np.minimum(params.speed_mps, np.sqrt(params.lateral_accel_mps2 / np.maximum(kappa, 1e-6)))
@@ -397,7 +390,6 @@ def duck_under_doors(traj: Trajectory, features: list[MacroFeature], floor_z_m: 
     floor_limit = floor_z_m + params.min_height_m + softness
     limit = np.maximum(np.minimum(limit, traj.positions_cad[:, 2]), floor_limit)
     window = int(params.rate_hz)  # widen, then smooth: the descent starts about a second early
-    from scipy.ndimage import minimum_filter1d
 
     smooth_limit = gaussian_filter1d(minimum_filter1d(limit, window), window / 4)
     z = traj.positions_cad[:, 2]

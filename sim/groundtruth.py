@@ -17,9 +17,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from macroloc.graph.features import MacroFeature
+from macroloc.sim.materials import feature_instance_map
 from macroloc.sim.render import CameraModel
 from macroloc.sim.scene import SceneGeometry
 
@@ -39,8 +41,6 @@ class FeatureInView:
 
 def feature_half_depths(scene: SceneGeometry, features: list[MacroFeature]) -> np.ndarray:
     """(F,) half thickness of each feature's geometry along its normal, metres (0.05 when it has none)."""
-    from macroloc.sim.materials import feature_instance_map
-
     inst = feature_instance_map(features)
     out = np.full(len(features), 0.05)
     for e, gid in enumerate(scene.element_ids):
@@ -107,8 +107,6 @@ def features_in_view(features: list[MacroFeature], half_depths: np.ndarray, T_ca
 
 def _projected_area(px: np.ndarray, z: np.ndarray, camera: CameraModel) -> float:
     """Pixels of the projected opening rectangle inside the image (0 if a corner is behind the camera)."""
-    import cv2
-
     if (z <= camera.near_m).any():
         return 0.0
     poly = px.astype(np.float32).reshape(-1, 1, 2)

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from importlib import resources
 from typing import Any
 
+import moderngl
 import numpy as np
 
 log = logging.getLogger(__name__)
@@ -148,8 +149,6 @@ class StereoRenderer:
     triangle list in the CAD frame, and `texture_layers` (L, S, S, 3) uint8 RGB tiles of 1 m."""
 
     def __init__(self, vertices: np.ndarray, texture_layers: np.ndarray, camera: CameraModel) -> None:
-        import moderngl
-
         self.camera = camera
         self.ctx = moderngl.create_standalone_context(backend="egl")  # type: ignore[arg-type]  # stubs lag
         self.prog: Any = self.ctx.program(vertex_shader=_shader("scene.vert.glsl"),
@@ -214,8 +213,6 @@ class StereoRenderer:
 
     def _render(self, T_cad_cam: np.ndarray, lighting: Lighting, frame_seed: float,
                 with_truth: bool) -> RenderOutput:
-        import moderngl
-
         T_cam_cad = np.linalg.inv(np.asarray(T_cad_cam, dtype=np.float64))
         self._set_uniforms(T_cam_cad, np.asarray(T_cad_cam)[:3, 3], lighting, frame_seed)
         sky = lighting.sky_rgb
@@ -260,8 +257,6 @@ class StereoRenderer:
     def _draw_culled(self, ranges: np.ndarray, vao) -> None:  # noqa: ANN001 - moderngl.VertexArray
         """The closed solids' cells with back faces culled (they are hidden behind the solid's own front), then
         the double-sided rest; each group nearest first."""
-        import moderngl
-
         closed = ranges[:, 2] > 0
         if self.cull_back_faces:
             self.ctx.enable(moderngl.CULL_FACE)
@@ -273,8 +268,6 @@ class StereoRenderer:
 
     def _draw_indirect(self, ranges: np.ndarray, vao) -> None:  # noqa: ANN001 - moderngl.VertexArray
         """One glMultiDrawArraysIndirect call for the (first, count) vertex ranges, in their order."""
-        import moderngl
-
         if len(ranges) == 0:
             return
         # moderngl strides indirect commands by 5 uint32 (the indexed layout) also for arrays:

@@ -16,9 +16,14 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import ifcopenshell.geom
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from macroloc.graph.bim import IFC_SUFFIXES, MESH_SUFFIXES, cache_dir, cache_key, file_sha256
+from macroloc.graph.bim_ifc import geometry_settings, open_ifc
+from macroloc.graph.bim_mesh import model_mesh_file, read_nodes, world_includes
 from macroloc.graph.errors import BuildingError
 
 log = logging.getLogger(__name__)
@@ -117,9 +122,6 @@ def orient_closed_solids(triangles: np.ndarray, tri_element: np.ndarray,
     solid with negative signed volume is inside out and gets flipped. Everything else (single-sided panes, open
     shells, degenerate triangles) stays as it was and is reported not closed: it must be drawn from both sides.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     T = len(triangles)
     if T == 0:
         return triangles, np.zeros(0, bool)
@@ -155,10 +157,6 @@ def orient_closed_solids(triangles: np.ndarray, tri_element: np.ndarray,
 
 
 def _read_ifc(path: Path, sha: str) -> SceneGeometry:
-    import ifcopenshell.geom
-
-    from macroloc.graph.bim_ifc import geometry_settings, open_ifc
-
     ifc = open_ifc(path)
     iterator = ifcopenshell.geom.iterator(geometry_settings(), ifc, max(1, min(2, os.cpu_count() or 1)))
     if not iterator.initialize():
@@ -222,8 +220,6 @@ MESH_NAME_CLASSES = (("sign", OTHER), ("door", DOOR), ("window", WINDOW), ("glas
 def _read_mesh(path: Path, sha: str) -> SceneGeometry:
     """A mesh file (through graph.bim_mesh's reader: names, node transforms, declared unit) or a Gazebo
     `.world` (its models placed at their poses): one element per node, class from the node's names."""
-    from macroloc.graph.bim_mesh import model_mesh_file, world_includes
-
     parts: list[tuple[str, list[str], np.ndarray, np.ndarray]] = []
     if path.suffix.lower() == ".world":
         for name, uri, T_cad_model in world_includes(path):
@@ -253,8 +249,6 @@ def _read_mesh(path: Path, sha: str) -> SceneGeometry:
 
 def _mesh_nodes(path: Path) -> list[tuple[str, list[str], np.ndarray, np.ndarray]]:
     """[(node name, its names, (N, 3) vertices in metres, (M, 3) faces)] of one mesh file."""
-    from macroloc.graph.bim_mesh import read_nodes
-
     nodes, unit_m, _ = read_nodes(path)
     scale = unit_m if unit_m else 1.0  # metres per file unit (the hospital's DAE files: centimetres)
     return [(n.name, n.names, n.vertices * scale, n.faces) for n in nodes]

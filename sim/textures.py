@@ -10,6 +10,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 TEXTURE_SIZE_PX = 256
@@ -22,8 +23,6 @@ DOOR_LAYERS = (WOOD_GRAIN, PAINTED, WOOD_GRAIN, METAL)
 
 def value_noise(rng: np.random.Generator, size: int, cells: int, aspect: float = 1.0) -> np.ndarray:
     """(size, size) float32 smooth noise in [-1, 1] from a random (cells x cells*aspect) grid, bicubic, tileable."""
-    import cv2
-
     ny, nx = max(2, cells), max(2, int(round(cells * aspect)))
     grid = rng.uniform(-1, 1, (ny, nx)).astype(np.float32)
     grid = np.pad(grid, 2, mode="wrap")  # wrap so the tile repeats without a seam
@@ -114,8 +113,6 @@ def facade_crops(folder: Path, seed: int, n_doors: int = 8, n_windows: int = 8,
     """(doors (D, size, size, 3), windows (W, size, size, 3)) uint8 RGB crops along the labelled boxes of the
     facade photos in `folder` (images/, labels/ in YOLO format), train split only (n % 5 != 0), seeded.
     A crop is stretched to the square tile; the renderer maps it across the opening, so it gets its shape back."""
-    import cv2
-
     rng = np.random.default_rng([seed, 0xFACE])
     images = sorted(p for p in (folder / "images").glob("*.jpg")
                     if (n := facade_photo_number(p)) is not None and n % HELD_OUT_EVERY != 0)

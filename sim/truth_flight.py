@@ -17,9 +17,15 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+import ifcopenshell.geom
 import numpy as np
+import trimesh
 
+from macroloc.graph.bim import cache_dir, cache_key, load_building
+from macroloc.graph.bim_ifc import geometry_settings, open_ifc
 from macroloc.graph.features import BuildingModel, MacroFeature
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.proto.recording import FlightMetadata, FlightWriter, pose_from_matrix, vector3
 from macroloc.sim.render import CameraModel  # the simulator's camera: one camera model for rendered and truth flights
 
 log = logging.getLogger(__name__)
@@ -50,11 +56,6 @@ class FloorPlan:
 
 def wall_mesh(path: Path):  # noqa: ANN201 - trimesh.Trimesh
     """Walls, columns and curtain walls of an IFC file as one trimesh (CAD frame, metres)."""
-    import ifcopenshell.geom
-    import trimesh
-
-    from macroloc.graph.bim_ifc import geometry_settings, open_ifc
-
     ifc = open_ifc(path)
     elements = [e for t in WALL_TYPES for e in ifc.by_type(t)]
     verts, faces, n = [], [], 0
@@ -73,10 +74,6 @@ def wall_mesh(path: Path):  # noqa: ANN201 - trimesh.Trimesh
 
 def floor_plan(path: Path, model: BuildingModel, storey: str) -> FloorPlan:
     """The storey's wall cuts, cached beside the feature cache (by file hash and storey)."""
-    import trimesh
-
-    from macroloc.graph.bim import cache_dir, cache_key
-
     # cache_key hashes the storey name with SHA-256: Python's hash() of a str changes from process to process
     cached = cache_dir() / f"floorplan-{cache_key(model.sha256, {'storey': storey})}.npz"
     floor_z = storey_floor_z(model, storey)
@@ -293,10 +290,6 @@ def write_truth_flight(building: Path, out: Path, seed: int = 0, duration_s: flo
     hovers and turns once on the spot for `spin_s` seconds, then flies at `speed_mps`. `start`: "random" (any
     waypoint) or "open" (one of the three waypoints with the most features in line of sight: taking off in a
     corridor or hall rather than in a closet)."""
-    from macroloc.graph.bim import load_building
-    from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
-    from macroloc.proto.recording import FlightMetadata, FlightWriter, pose_from_matrix, vector3
-
     camera = camera or CameraModel()
     model = load_building(building)
     storey = storey or default_storey(model)
