@@ -21,11 +21,6 @@ the old chain's depth points every third frame, the new chain's on the frames th
 session's keyframe rule on the odometry's poses: [perception.depth] at_keyframes), where the new chain's odometry
 also re-keys ([perception.odometry] rekey_at_session_keyframes; its cost counted in "depth"). A stage's mean is
 over all frames, skipped ones counting 0.
-
-`--two-threads` (with `--schedule`): then the new chain alone, on a fresh copy, over the same frames twice: on one
-thread, and as the replay runs it (service.offline.replay): the odometry, with the keyframe rule on its poses, on
-a second thread up to AHEAD_FRAMES frames ahead of the rest. Frames/s by the wall clock from the first frame to
-the last, and CPU ms a frame (the process's, both threads); each pass repeated `--passes` times, the median.
 """
 
 from __future__ import annotations
@@ -81,11 +76,11 @@ def make_chains(rig, sgbm_scale: float = 1.0, vo: str | None = None,  # type: ig
     from macroloc.perception.stereo import FrameDisparity, SgbmMatcher, SgbmParams
     from macroloc.perception.threads import THREADS
     from macroloc.service.frames import StereoDepth
-    from macroloc.service.offline.replay_sources import KEPT_MATCHES
 
     old = Chain("old", StereoOdometry(rig, OLD_ODOMETRY), StereoDepth(), Perception.create(threads=2),
                 join_segments_python)
-    shared = FrameDisparity(SgbmMatcher(SgbmParams(num_disparities=128, scale=sgbm_scale)), keep=KEPT_MATCHES)
+    shared = FrameDisparity(SgbmMatcher(SgbmParams(num_disparities=128, scale=sgbm_scale)))  # one thread, as the
+    #   service's front end: each frame's consumers in turn
     config = VisualOdometryParams() if vo is None else VisualOdometryParams(tracker=vo)
     new = Chain("new", StereoOdometry(rig, config, disparity=shared),
                 StereoDepth(disparity=shared, at_keyframes=at_keyframes),
@@ -156,48 +151,6 @@ def run_frame(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes, R_p
     chain.features.append([f if isinstance(f, ObservedFeature) else None for f in out])
 
 
-def pipeline_pass(chain: Chain, fr, rig, boxes, n: int, two_threads: bool) -> tuple[float, float]:  # type: ignore[no-untyped-def]
-    """(frames/s by the wall clock, CPU ms a frame) of `chain` as scheduled, on one thread or two (see above)."""
-    from macroloc.service.offline.replay import _read_ahead
-    from macroloc.service.offline.replay_sources import AHEAD_FRAMES
-
-    schedule = Schedule()
-
-    class Ahead:  # the odometry and the keyframe rule: depend on the frames before only
-        runs_ahead = True
-        uses_images = False  # decoded already
-
-        def ahead(self, i: int) -> tuple[np.ndarray, bool]:
-            R = None if i == 0 else fr.T_cad_cam[i - 1][:3, :3].T @ fr.T_cad_cam[i][:3, :3]
-            T = chain.odometry.track(fr.left[i], fr.right[i], R).T_odom_cam
-            return T, schedule.keyframe(T)
-
-    c0, w0 = time.process_time(), time.perf_counter()
-    for i, (_, due) in _read_ahead(iter(range(n)), Ahead(), AHEAD_FRAMES if two_threads else 0):  # type: ignore[arg-type]
-        left, right = fr.left[i], fr.right[i]
-        if due:
-            chain.depth.measure(left, right, rig, np.eye(4))
-        if i % schedule.detect_every == 0:
-            run_perception(chain, left, right, rig, boxes[i])
-    return n / (time.perf_counter() - w0), (time.process_time() - c0) * 1e3 / n
-
-
-def run_perception(chain: Chain, left: np.ndarray, right: np.ndarray, rig, boxes) -> None:  # type: ignore[no-untyped-def]
-    """The new chain's detector (timed, its boxes not used) and what follows it on the given boxes."""
-    from macroloc.perception.detector import Detection
-    from macroloc.perception.lines import refine_box
-    from macroloc.perception.pipeline import StereoPair
-    from macroloc.perception.stereo import to_gray
-
-    p, pair = chain.perception, StereoPair(left, right, rig)
-    p.detector.detect(left)
-    dets = [Detection(t, 1.0, b) for t, b in boxes]
-    sides = [refine_box(to_gray(left), d.box_xyxy, p.lines) for d in dets]
-    depth_m = p._depth_m(pair, dets, sides)
-    for d, s in zip(dets, sides, strict=True):
-        p._reconstruct(d, s, depth_m, pair)
-
-
 def drift(poses: list[np.ndarray], T_cad_cam: np.ndarray) -> tuple[float, float]:
     """(final position error, RMSE over the frames) of the odometry's path against the truth, metres."""
     T0 = T_cad_cam[0]
@@ -236,9 +189,6 @@ def main(argv: list[str] | None = None) -> None:
                     help="the new chain's odometry tracker (default: VisualOdometryParams's)")
     ap.add_argument("--schedule", action="store_true",
                     help="the detector every third frame, the new chain's depth points at keyframes (see above)")
-    ap.add_argument("--two-threads", action="store_true",
-                    help="with --schedule: the new chain on one thread and on two (odometry ahead), frames/s")
-    ap.add_argument("--passes", type=int, default=3, help="--two-threads: passes of each, the median reported")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     from bench.chain_frames import load, render
@@ -278,15 +228,6 @@ def main(argv: list[str] | None = None) -> None:
                        "vo_drift_final_rmse_m": [round(v, 4) for v in drift(c.poses, fr.T_cad_cam[:n])],
                        "sgbm_per_frame": round(getattr(c.depth.matcher, "computed", -1) / n, 2)}
     out["accuracy"] = accuracy(old, new, truth[:n])
-    if args.two_threads and args.schedule:
-        passes: dict[str, list[tuple[float, float]]] = {"one_thread": [], "two_threads": []}
-        for _ in range(max(1, args.passes)):  # alternating: both see the same load
-            for name in passes:
-                fresh = make_chains(rig, args.sgbm_scale, args.vo, at_keyframes=True)[1]
-                passes[name].append(pipeline_pass(fresh, fr, rig, boxes, n, name == "two_threads"))
-        out["pipeline"] = {name: {"fps_wall": round(float(np.median([f for f, _ in v])), 1),
-                                  "cpu_ms_a_frame": round(float(np.median([c for _, c in v])), 1),
-                                  "passes": len(v)} for name, v in passes.items()}
     if args.json:
         print(json.dumps(out))
         return
@@ -306,11 +247,6 @@ def main(argv: list[str] | None = None) -> None:
     print(f"odometry drift (final, RMSE m): old {o['vo_drift_final_rmse_m']}, new {w['vo_drift_final_rmse_m']}")
     print(f"SGBM runs a frame, new chain (one FrameDisparity): {w['sgbm_per_frame']}")
     print("accuracy:", json.dumps(out["accuracy"]))
-    if "pipeline" in out:
-        for name, v in out["pipeline"].items():
-            print(f"new chain alone, {name.replace('_', ' ')}: {v['fps_wall']:.1f} frames/s wall, "
-                  f"{v['cpu_ms_a_frame']:.1f} ms CPU a frame (median of {v['passes']} passes; target >= 30 frames/s)")
-
 
 if __name__ == "__main__":
     main()

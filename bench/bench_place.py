@@ -26,14 +26,12 @@ def main() -> None:
 
     from macroloc.cli.main import main as cli
     from macroloc.graph.bim import load_building
-    from macroloc.graph.building_assets import surfaces_for
     from macroloc.perception.calib import StereoRig
     from macroloc.perception.place import PlaceRecognizer
     from macroloc.proto.recording import decode_image, matrix_from_pose, read_flight
-    from macroloc.service.offline.replay import replay
-    from macroloc.service.offline.replay_sources import TruthSource
-    from macroloc.service.places import KeyframePlaces
-    from macroloc.service.saved_map import read_saved_map, write_saved_map
+    from macroloc.service.config import load_config
+    from macroloc.service.offline.run import ReplayOptions, replay_flight
+    from macroloc.service.saved_map import read_saved_map
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flight", type=Path)
@@ -48,13 +46,15 @@ def main() -> None:
             with contextlib.redirect_stdout(io.StringIO()):
                 cli(["simulate", str(args.building), "--out", str(flight), "--duration", "20", "--seed", "1",
                      "--json"])
-    model = load_building(args.building)
-    surfaces = surfaces_for(args.building, line_of_sight=True)
-    first = replay(flight, model, TruthSource(seed=0), surfaces=surfaces, places=KeyframePlaces(None, True))
-    path = write_saved_map(args.out / "place_map.pb", first.localizer, None, None, args.building.name)
-    stored = read_saved_map(path, model)
-    again = replay(flight, model, TruthSource(seed=7), saved=stored, surfaces=surfaces,
-                   places=KeyframePlaces(stored, False))
+    cfg = load_config(None)  # the service's front end (its keyframe views kept, the walls checked), as `serve`'s
+    replayed = replay_flight(flight, args.building, cfg, ReplayOptions(seed=0))
+    first = replayed.result
+    path = replayed.save_map(args.out / "place_map.pb", args.building)
+    if path is None:
+        print("the first flight did not localize: no saved map to fly into")
+        return
+    stored = read_saved_map(path, load_building(args.building))
+    again = replay_flight(flight, args.building, cfg, ReplayOptions(seed=7), saved_map=path).result
     size_mb = sum(f.stat().st_size for f in path.parent.glob(f"{path.stem}*")) / 1e6
     print(f"saved map: {first.localizer.graph.n_keyframes} keyframes, {len(stored.views)} views, {size_mb:.1f} MB")
     print(row("first flight: time to localize (flight s, by its doors)", _s(first.time_to_localize_s), "-"))

@@ -4,8 +4,10 @@ localizations, per building and seed; re-localization into a saved map.
     python -m bench.bench_replay [--seeds 0,1,2] [--duration 60] [--start open|random] [--out /tmp/macroloc-flights]
 
 Flights are ground-truth-only recordings (sim.truth_flight: a take-off turn on the spot, then a random
-walk through the storey's free space); a rendered simulator flight can be replayed the same way with
-`macroloc replay FLIGHT --building B --json`.
+walk through the storey's free space), replayed as the service runs them (service.offline.run.replay_flight: the
+service's front end from the default config); re-localization: the flight again, with another noise seed, from the
+map the first run saved. A rendered simulator flight can be replayed the same way with `macroloc replay FLIGHT
+--building B --json`.
 """
 
 from __future__ import annotations
@@ -23,20 +25,9 @@ BUILDINGS = {"Office_A": ROOT / "data/buildings/office_a.ifc",
              "duplex": ROOT / "data/buildings/duplex.ifc"}
 
 
-def _session(cfg, model, saved=None):  # noqa: ANN001, ANN202
-    """The session the service runs (service.session's one factory), for the flight's camera T_body_cam; `saved`:
-    the saved map to start from (service.saved_map)."""
-    from macroloc.service.session import session_from_config
-
-    return lambda T_body_cam: session_from_config(cfg, model, saved=saved, T_body_cam=T_body_cam)
-
-
 def main() -> None:
-    from macroloc.graph.bim import load_building
     from macroloc.service.config import load_config
-    from macroloc.service.offline.replay import replay
-    from macroloc.service.offline.replay_sources import TruthSource
-    from macroloc.service.saved_map import saved_map_of
+    from macroloc.service.offline.run import ReplayOptions, replay_flight
     from macroloc.sim.truth_flight import write_truth_flight
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -46,24 +37,24 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("/tmp/macroloc-flights"))
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
-    cfg = load_config(None)  # the session the service runs (service.session), from the default config
+    cfg = load_config(None)  # the service's front end (service.front_end.make_front_end), default config
     print(f"{'building':<11} {'seed':>4} {'localize s':>10} {'APE rmse':>9} {'APE max':>8} {'wrong':>5} "
           f"{'links':>5} {'bad links':>9} {'final':>10} {'relocalize (proc s / flight s)':>32}")
     for name, path in BUILDINGS.items():
         if not path.exists():
             print(f"{name}: {path} absent, skipped")
             continue
-        model = load_building(path)
         for seed in seeds:
             flight = args.out / f"{path.stem}-{args.start}-{int(args.duration)}s-{seed}.mcap"
             if not flight.exists():
                 write_truth_flight(path, flight, seed=seed, duration_s=args.duration, start=args.start)
-            r = replay(flight, model, TruthSource(seed=seed), make=_session(cfg, model))
+            first = replay_flight(flight, path, cfg, ReplayOptions(seed=seed))
+            r = first.result
             j = r.to_json()
             reloc = "-"
-            if r.localized:
-                again = replay(flight, model, TruthSource(seed=seed + 100),
-                               make=_session(cfg, model, saved_map_of(r.localizer)))
+            saved = first.save_map(flight.with_suffix(".map.pb"), path) if r.localized else None
+            if saved is not None:  # re-flown into its saved map, with another noise seed
+                again = replay_flight(flight, path, cfg, ReplayOptions(seed=seed + 100), saved_map=saved).result
                 reloc = f"{again.processing_to_localize_s:.3f} / {again.time_to_localize_s:.2f}" if again.localized \
                     else "not localized"
             print(f"{name:<11} {seed:>4} {j['time_to_localize_s']!s:>10} {j['ape_rmse_m']!s:>9} "

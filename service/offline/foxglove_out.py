@@ -106,7 +106,7 @@ class ReplayRecorder:
         self.last_stamp_ns = 0
 
     def frame(self, frame: FlightFrame, inputs: Any, estimate: Any) -> None:
-        """One frame: image, detections, transforms, poses, status (`inputs`: service.offline.replay_sources.FrameInput,
+        """One frame: image, detections, transforms, poses, status (`inputs`: service.offline.replay.FrameSeen,
         `estimate`: graph.localizer.Estimate)."""
         w, s = self.writer, frame.stamp_ns
         T_body_cam = inputs.T_body_cam

@@ -1,7 +1,7 @@
 """`macroloc replay FLIGHT.mcap --over-zenoh`: play a recording into a running service, as a vehicle would.
 
 Each recorded frame goes out on the service's input keys at the recording's pace (times `speed`; 0 = as fast
-as possible): the IMU samples since the previous frame, the stereo frame, and, with an `ObservationSource`
+as possible): the IMU samples since the previous frame, the stereo frame, and, with a `TruthSource`
 (ground truth with realistic errors: the service's perception is then not needed), the odometry and the
 doors/windows seen (body frame) with the frame's stamp. The service's poses are collected and scored against
 the recording's ground truth (CAD frame, no alignment), with the frame-in -> pose-out latency.
@@ -29,10 +29,10 @@ from macroloc.graph.errors import UserInputError
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.proto.keys import Keys, declare_publisher
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
-from macroloc.proto.recording import FlightFrame, matrix_from_pose, read_flight, vector3
+from macroloc.proto.recording import FlightFrame, matrix_from_pose, read_flight
 from macroloc.service.config import ZenohConfig
 from macroloc.service.offline.replay import WRONG_ROT_DEG, WRONG_TRANS_M
-from macroloc.service.offline.replay_sources import ObservationSource
+from macroloc.service.offline.replay_sources import TruthSource
 from macroloc.service.offline.vehicle import RecordedVehicle
 
 if TYPE_CHECKING:
@@ -134,17 +134,8 @@ def wait_for_service(session: zenoh.Session, keys: Keys, timeout_s: float) -> No
                          "reachable with these Zenoh settings?)")
 
 
-def _observations(stamp_ns: int, sightings: list) -> pb.ObservedFeatures:  # noqa: ANN001 - list[Sighting]
-    msg = pb.ObservedFeatures()
-    msg.header.stamp_ns = stamp_ns
-    msg.header.frame_id = "body"
-    for s in sightings:
-        msg.features.add(type=s.type).corners.extend(vector3(c) for c in s.corners_body)
-    return msg
-
-
 def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConfig, vehicle: str,
-                      source: ObservationSource | None, speed: float = 1.0, wait_s: float = 30.0,
+                      source: TruthSource | None, speed: float = 1.0, wait_s: float = 30.0,
                       seed: int = 0,
                       odometry_out: Callable[[zenoh.Session], Callable[[pb.Odometry], None]] | None = None,
                       answered: bool = False, odometry: str = "auto",
@@ -166,7 +157,7 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
     with zenoh.open(session_config(zenoh_cfg)) as session:
         wait_for_service(session, keys, wait_s)
         pubs = {name: declare_publisher(session, getattr(keys, name), express=True, block=answered)
-                for name in ("stereo", "imu", "odometry", "observations")}
+                for name in ("stereo", "imu", "odometry", "observations", "initialpose")}
         put_odometry = odometry_out(session) if odometry_out is not None else \
             (lambda odo: pubs["odometry"].put(odo.SerializeToString()))
         poses = PoseCollector(session, keys.pose)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from macroloc.graph.errors import UserInputError
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import FlightFrame
 from macroloc.service.assets import prepare_building
 from macroloc.service.config import MacrolocConfig
@@ -85,32 +86,37 @@ def service_config_for(cfg: MacrolocConfig, options: ReplayOptions, odometry: st
     return cfg.model_copy(update={"service": service, "graph": graph})
 
 
-def vehicle_for(options: ReplayOptions, first: FlightFrame | None, visual_if_none: bool = True) -> RecordedVehicle:
+def vehicle_for(options: ReplayOptions, first: FlightFrame | None, visual_if_none: bool = True,
+                prior: pb.PoseEstimate | None = None) -> RecordedVehicle:
     """The recorded vehicle of a replay (module doc), from the recording's `first` frame: `auto` odometry is the
     recording's own where it has some, else the ground truth's with a VIO's drift where it has ground truth, else
-    (`visual_if_none`: offline, where the service is configured here) the service's visual odometry."""
+    (`visual_if_none`: offline, where the service is configured here) the service's visual odometry. `prior`: an
+    operator's prior the vehicle sends after the first frame (service.offline.vehicle)."""
     truth = options.observations in ("truth", "truth-vo")
     odometry = options.odometry
     nothing_recorded = first is not None and not first.odometry and first.ground_truth is None
     if options.observations == "truth-vo" or (odometry == "auto" and visual_if_none and nothing_recorded):
         odometry = "visual"
     sightings = TruthSource(seed=options.seed) if truth else None
-    return RecordedVehicle(odometry, sightings, options.seed, depth_camera=options.observations == "truth")
+    return RecordedVehicle(odometry, sightings, options.seed, depth_camera=options.observations == "truth",
+                           prior=prior)
 
 
 def replay_flight(flight: Path | Iterable[FlightFrame], building: Path, cfg: MacrolocConfig,
                   options: ReplayOptions | None = None, saved_map: Path | None = None,
-                  sink: FrameSink = null_sink, recorder: FrameRecorder | None = None) -> Replayed:
+                  sink: FrameSink = null_sink, recorder: FrameRecorder | None = None,
+                  prior: pb.PoseEstimate | None = None) -> Replayed:
     """Replay `flight` (a macroloc MCAP, or frames from any reader: service.offline.ros_bag.open_flight) in
     `building` as `macroloc serve` with `cfg` would run it (module doc), started from the saved map at `saved_map`
     where given (service.saved_map: a replay's `--save-map` or a service's `map.pb`); `sink` sees every frame's
-    estimate, `recorder` every frame (e.g. service.offline.foxglove_out.ReplayRecorder)."""
+    estimate, `recorder` every frame (e.g. service.offline.foxglove_out.ReplayRecorder); `prior`: an operator's
+    prior (a PoseEstimate, frame cad, as on `initialpose`) the vehicle sends after the first frame."""
     options = (options or ReplayOptions()).checked()
     frames = iter(_frames(flight))
     first = next(frames, None)
     if first is None:
         raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
-    vehicle = vehicle_for(options, first)
+    vehicle = vehicle_for(options, first, prior=prior)
     run_cfg = service_config_for(cfg, options, vehicle.choice)
     prepared = prepare_building(building, run_cfg.graph, run_cfg.planning)
     model = prepared.model

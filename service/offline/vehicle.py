@@ -13,8 +13,11 @@ The vehicle's odometry (`odometry`), chosen the same way on both sides:
 
 - `none` (of `auto` only) or `visual` where the caller lets the service's front end run its visual odometry.
 
-Its doors and windows (`sightings`): none (the service perceives the stereo frames itself), or an
-`ObservationSource`'s (ground truth with realistic errors), sent as `ObservedFeatures` in the body frame.
+Its doors and windows (`sightings`): none (the service perceives the stereo frames itself), or a `TruthSource`'s
+(ground truth with realistic errors), sent as `ObservedFeatures` in the body frame.
+
+An operator's prior (`prior`, a PoseEstimate in the CAD frame as Nav2's /initialpose becomes it): sent once on
+`initialpose`, after the first frame's messages (the service takes a pose prior against the odometry it has).
 """
 
 from __future__ import annotations
@@ -28,14 +31,15 @@ from macroloc.graph.errors import UserInputError
 from macroloc.graph.localizer import Sighting
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import FlightFrame, pose_from_matrix, vector3
-from macroloc.service.offline.replay_sources import ObservationSource, TruthSource
+from macroloc.service.offline.replay_sources import TruthSource
 
 ODOMETRY_CHOICES = ("auto", "recorded", "simulated", "visual")  # a user's (`--odometry`); `none` comes of auto only
 
 
 @dataclass(frozen=True)
 class VehicleMessage:
-    """One message as the vehicle puts it: `key` is the input key's leaf (stereo, imu, odometry, observations)."""
+    """One message as the vehicle puts it: `key` is the input key's leaf (stereo, imu, odometry, observations,
+    initialpose)."""
 
     key: str
     message: Message
@@ -44,10 +48,11 @@ class VehicleMessage:
 class RecordedVehicle:
     """See module doc. Deterministic for a seed; one instance per flight (the simulated odometry drifts on)."""
 
-    def __init__(self, odometry: str = "auto", sightings: ObservationSource | None = None, seed: int = 0,
-                 depth_camera: bool = False) -> None:
+    def __init__(self, odometry: str = "auto", sightings: TruthSource | None = None, seed: int = 0,
+                 depth_camera: bool = False, prior: pb.PoseEstimate | None = None) -> None:
         """`depth_camera`: the stereo frames carry the recording's ground-truth depth image, as a vehicle with a
-        depth camera sends it (the service then takes its points for the walls' checks: service.front_end)."""
+        depth camera sends it (the service then takes its points for the walls' checks: service.front_end).
+        `prior`: the operator's prior, sent once after the first frame (module doc)."""
         if odometry not in ODOMETRY_CHOICES:
             raise UserInputError(f"--odometry must be one of {', '.join(ODOMETRY_CHOICES)}, not {odometry!r}")
         self.choice = odometry
@@ -55,6 +60,7 @@ class RecordedVehicle:
         self.depth_camera = depth_camera
         self._simulated = TruthSource(seed=seed)  # the vehicle's VIO, for a simulated recording without odometry
         self.odometry: str | None = None  # what it sends, once the first frame has told: recorded, simulated, none
+        self.prior = prior  # sent with the first frame, then None
 
     def messages(self, frame: FlightFrame) -> Iterator[VehicleMessage]:
         """The frame's messages, in the order sent (module doc)."""
@@ -69,7 +75,7 @@ class RecordedVehicle:
                                                  (self.choice == "auto" and self.sightings is None))
             self.odometry = "visual" if self.choice == "visual" else "recorded" if recorded else \
                 "simulated" if frame.ground_truth is not None or self.choice == "simulated" else "none"
-        inputs = self.sightings(frame, None, None) if self.sightings is not None else None
+        inputs = self.sightings(frame) if self.sightings is not None else None
         if self.odometry == "recorded":
             yield from (VehicleMessage("odometry", odo) for odo in frame.odometry)
         elif self.odometry == "simulated":
@@ -89,6 +95,9 @@ class RecordedVehicle:
             yield VehicleMessage("stereo", stereo)
         else:
             yield VehicleMessage("stereo", frame.stereo)
+        if self.prior is not None:
+            prior, self.prior = self.prior, None
+            yield VehicleMessage("initialpose", prior)
 
 
 def observed_features(stamp_ns: int, sightings: list[Sighting]) -> pb.ObservedFeatures:

@@ -91,15 +91,14 @@ def test_depth_points_reach_a_wall_nearer_than_the_chains_search() -> None:
     assert np.mean(np.abs(z_m[64] - 0.70) < 0.1) < 0.05, "the chain's search range would have measured it too"
 
 
-def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_chains() -> None:
+def test_the_configured_chain_parameters_reach_the_service_s_chain_and_odometry() -> None:
     """[perception.*] reach the components that use them: the frame's SGBM, the sides, the plausibility limits
-    and the wall plane in the service's chain and the replay's, the odometry in the replay's (gravity is the
-    session's: test_session)."""
+    and the wall plane in the service's chain (the replay's too: it runs the service's front end), the depth
+    points and the visual odometry's settings (gravity is the session's: test_session)."""
     pytest.importorskip("onnxruntime")
     from macroloc.service.config import load_config
     from macroloc.service.frames import make_perception_pipeline
     from macroloc.service.front_end import FrontEnd, FrontEndParams
-    from macroloc.service.offline.replay_sources import PerceptionSource
     from macroloc.service.visual_odometry import VisualOdometry
 
     cfg = load_config(None, perception={"stereo": {"num_disparities": 64}, "lines": {"margin": 0.2},
@@ -118,9 +117,9 @@ def test_the_configured_chain_parameters_reach_the_service_s_and_the_replay_s_ch
     depth = front_end.stereo_depth
     assert depth is not None and depth.every == 2 and depth.stride_px == 8 and depth.range_m == (0.3, 6.0)
     assert not depth.at_keyframes and depth.matcher is pipeline.disparity  # the chain's SGBM, shared
-    for chain in (pipeline.perception, PerceptionSource(params=params).perception):
-        assert chain.matcher.config.num_disparities == 64 and chain.lines.margin == 0.2
-        assert chain.plausibility.max_side_angle_deg == 9.0 and chain.wall is not None and chain.wall.iterations == 8
+    chain = pipeline.perception
+    assert chain.matcher.config.num_disparities == 64 and chain.lines.margin == 0.2
+    assert chain.plausibility.max_side_angle_deg == 9.0 and chain.wall is not None and chain.wall.iterations == 8
     odometry = VisualOdometry(params=params)
     assert odometry._params.odometry.tracker == "klt"
     assert odometry._depth.every == 2 and odometry._depth.stride_px == 8 and not odometry._depth.at_keyframes

@@ -20,60 +20,48 @@ def duplex_flight(duplex_path, tmp_path_factory):
                               duration_s=12.0, storey="Level 2")
 
 
-class _PriorAfterFirstFrame:
-    """Gives the replay's session a prior made from the first frame's truth and estimate (an operator after
-    take-off)."""
-
-    def __init__(self, sessions: list, make_prior) -> None:  # noqa: ANN001
-        self.sessions, self.make_prior, self.given = sessions, make_prior, False
-
-    def frame(self, frame, inputs, est) -> None:  # noqa: ANN001
-        if not self.given:
-            T_cad_body = matrix_from_pose(frame.ground_truth.T_cad_body)
-            self.sessions[-1].localizer.set_prior(self.make_prior(T_cad_body, est.T_map_body))
-            self.given = True
-
-    def finish(self, localizer) -> None:  # noqa: ANN001
-        pass
-
-
-def _replay(flight, model, make_prior=None):  # noqa: ANN001, ANN202
+def _replay(flight, building, make_prior=None):  # noqa: ANN001, ANN202
+    """The flight replayed as the service runs it (service.offline.run.replay_flight); `make_prior`: the operator's
+    prior (a PoseEstimate, as on `initialpose`) from the first frame's true pose, sent after that frame (an operator
+    after take-off)."""
+    from macroloc.proto.recording import read_flight
     from macroloc.service.config import load_config
-    from macroloc.service.offline.replay import replay
-    from macroloc.service.offline.replay_sources import TruthSource
-    from macroloc.service.session import session_from_config
+    from macroloc.service.offline.run import ReplayOptions, replay_flight
 
-    cfg, sessions = load_config(None), []
+    prior = None
+    if make_prior is not None:
+        first = next(iter(read_flight(flight)))
+        prior = make_prior(matrix_from_pose(first.ground_truth.T_cad_body), first.stamp_ns)
+    return replay_flight(flight, building, load_config(None), ReplayOptions(seed=1), prior=prior)
 
-    def make(T_body_cam):  # noqa: ANN001, ANN202
-        sessions.append(session_from_config(cfg, model, T_body_cam=T_body_cam))
-        return sessions[-1]
 
-    recorder = None if make_prior is None else _PriorAfterFirstFrame(sessions, make_prior)
-    return replay(flight, model, TruthSource(seed=1), make=make, recorder=recorder)
+def _pose_estimate(T_cad_body: np.ndarray, stamp_ns: int, storey: str = "") -> pb.PoseEstimate:
+    m = pb.PoseEstimate(storey=storey, T_cad_body=pose_from_matrix(T_cad_body))
+    m.header.frame_id, m.header.stamp_ns = "cad", stamp_ns
+    return m
 
 
 def test_a_right_prior_settles_the_symmetric_duplex_and_a_wrong_one_never_localizes_wrongly(duplex_flight,
-                                                                                          duplex_model) -> None:
-    from macroloc.graph.prior import PosePrior, storey_band_m
+                                                                                          duplex_path) -> None:
+    def right(T_cad_body, stamp_ns):  # noqa: ANN001, ANN202
+        return _pose_estimate(T_cad_body, stamp_ns)
 
-    def right(T_cad_body, T_map_body):  # noqa: ANN001, ANN202
-        return PosePrior(T_cad_map=T_cad_body @ np.linalg.inv(T_map_body))
-
-    def wrong(T_cad_body, T_map_body):  # noqa: ANN001, ANN202 - 10 m sideways, on the storey below
+    def wrong(T_cad_body, stamp_ns):  # noqa: ANN001, ANN202 - 10 m sideways, on the storey below
         T = T_cad_body.copy()
         T[:3, 3] += (10.0 * np.cos(0.3), 10.0 * np.sin(0.3), -3.1)
-        return PosePrior(T_cad_map=T @ np.linalg.inv(T_map_body), storey="Level 1",
-                         storey_band_m=storey_band_m(duplex_model, "Level 1"))
+        return _pose_estimate(T, stamp_ns, storey="Level 1")
 
-    none = _replay(duplex_flight, duplex_model)
-    assert not none.localized and none.status_final == "ambiguous"  # the building cannot tell its halves apart
-    taken = _replay(duplex_flight, duplex_model, right)
-    assert taken.localized and taken.wrong_localizations == 0 and taken.localizer.anchoring.by_prior
-    assert taken.ape.max is not None and taken.ape.max < 0.5
-    refused = _replay(duplex_flight, duplex_model, wrong)
-    assert refused.wrong_localizations == 0 and not refused.localizer.anchoring.by_prior
-    assert refused.status_final == "ambiguous"
+    none = _replay(duplex_flight, duplex_path)
+    assert not none.result.localized and none.result.status_final == "ambiguous"  # its halves look alike
+    taken = _replay(duplex_flight, duplex_path, right)
+    assert taken.front_end.localizer.anchoring.prior is not None  # the service took the message
+    assert taken.result.localized and taken.result.wrong_localizations == 0
+    assert taken.front_end.localizer.anchoring.by_prior
+    assert taken.result.ape.max is not None and taken.result.ape.max < 0.5
+    refused = _replay(duplex_flight, duplex_path, wrong)
+    assert refused.front_end.localizer.anchoring.prior is not None
+    assert refused.result.wrong_localizations == 0 and not refused.front_end.localizer.anchoring.by_prior
+    assert refused.result.status_final == "ambiguous"
 
 
 def _parser():  # noqa: ANN202

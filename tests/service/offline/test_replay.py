@@ -144,23 +144,28 @@ def test_a_correct_entry_that_drifts_away_counts_as_wrong_while_localized() -> N
     assert _wrong_while_localized_s(trace) == pytest.approx(1.9)
 
 
-def test_truth_depth_points_come_from_the_true_depth_image() -> None:
-    """`--observations truth` measures depth points on a grid of the true depth image (with stereo noise), in
-    the body frame: what the surface check of registrations reads (graph.surfaces)."""
+def test_a_truth_flight_s_depth_camera_image_gives_the_service_points_on_a_grid() -> None:
+    """`--observations truth`: the vehicle sends the recording's true depth image with its stereo frame (a depth
+    camera's), and the service reads points on a grid of it in the body frame (service.frames.depth_points_body):
+    what the surface check of registrations reads (graph.surfaces)."""
     from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
-    from macroloc.proto.recording import encode_image, pose_from_matrix
-    from macroloc.service.offline.replay_sources import TruthSource
+    from macroloc.proto.recording import FlightFrame, encode_image, pose_from_matrix
+    from macroloc.service.frames import depth_points_body
+    from macroloc.service.offline.vehicle import RecordedVehicle
 
-    gt = pb.GroundTruth(depth=encode_image(np.full((480, 640), 2.0, np.float32)))
-    gt.T_body_cam.CopyFrom(pose_from_matrix(np.eye(4)))
-    info = pb.CameraInfo(fx=480.0, fy=480.0, cx=319.5, cy=239.5)
-    points = TruthSource(seed=1)._points(gt, info, np.eye(4))
-    assert points is not None and points.shape == (24 * 32, 3)
-    assert np.abs(points[:, 2] - 2.0).max() < 0.1  # noise 0.005 z^2 = 2 cm
-    rays = points[:, :2] / points[:, 2:]  # (u - cx) / fx, (v - cy) / fy of the grid's pixels, 10 to 630 / 470
-    assert np.allclose(rays[0], (np.array([10, 10]) - [319.5, 239.5]) / 480.0)
-    assert np.allclose(rays[-1], (np.array([630, 470]) - [319.5, 239.5]) / 480.0)
-    assert TruthSource()._points(pb.GroundTruth(), info, np.eye(4)) is None
+    info = pb.CameraInfo(width=640, height=480, fx=480.0, fy=480.0, cx=319.5, cy=239.5, baseline_m=0.1,
+                         T_body_cam=pose_from_matrix(np.eye(4)))
+    gt = pb.GroundTruth(depth=encode_image(np.full((480, 640), 2.0, np.float32)),
+                        T_cad_body=pose_from_matrix(np.eye(4)), T_body_cam=pose_from_matrix(np.eye(4)))
+    frame = FlightFrame(0, pb.StereoFrame(header=pb.Header(stamp_ns=0), info=info), ground_truth=gt)
+    stereo, = [m.message for m in RecordedVehicle(depth_camera=True).messages(frame) if m.key == "stereo"]
+    points = depth_points_body(stereo, 20, 6.0)
+    assert points.shape == (24 * 32, 3) and np.allclose(points[:, 2], 2.0)
+    rays = points[:, :2] / points[:, 2:]  # (u - cx) / fx, (v - cy) / fy of the grid's pixels, 0 to 620 / 460
+    assert np.allclose(rays[0], (np.array([0, 0]) - [319.5, 239.5]) / 480.0)
+    assert np.allclose(rays[-1], (np.array([620, 460]) - [319.5, 239.5]) / 480.0)
+    without, = [m.message for m in RecordedVehicle(depth_camera=False).messages(frame) if m.key == "stereo"]
+    assert len(depth_points_body(without, 20, 6.0)) == 0
 
 
 def test_the_backend_hands_depth_to_the_next_keyframe() -> None:
@@ -290,44 +295,49 @@ def test_the_graph_section_reaches_the_localizer(tmp_path: Path) -> None:
 
 
 def test_the_vehicles_recorded_odometry_places_each_frame() -> None:
-    """A recording with the vehicle's own odometry (`macroloc demo --record`): each frame's pose is the sample of
-    its stamp (else the newest before it), as the service takes it; up comes from the IMU against that odometry;
-    a first frame with none before it is the user's error, in one line."""
+    """A recording with the vehicle's own odometry (`macroloc demo --record`): the vehicle sends every recorded
+    sample (`--odometry recorded`), the service places each frame at the sample of its stamp and takes gravity's
+    up from the IMU against that odometry; a recording whose first frame carries none is refused, in one line."""
     from macroloc.graph.errors import UserInputError
     from macroloc.graph.rigid import rot_z
-    from macroloc.perception.gravity import ImuGravity
     from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
     from macroloc.proto.recording import FlightFrame, encode_image, pose_from_matrix, vector3
-    from macroloc.service.offline.replay_sources import OdometryStep, VehicleOdometry, gravity_at
+    from macroloc.service.front_end import FrontEnd
+    from macroloc.service.inputs import InputLimits
+    from macroloc.service.offline.replay import replay_as_service
+    from macroloc.service.offline.vehicle import RecordedVehicle
+    from tests.graph.scenes import corridor_model
 
     image = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
     info = pb.CameraInfo(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5, baseline_m=0.1,
                          T_body_cam=pose_from_matrix(np.eye(4)))
 
-    def T_map_body(stamp_ns: int) -> np.ndarray:  # the vehicle's odometry: level, moving along x and turning
+    def T_map_body(stamp_ns: int) -> np.ndarray:  # the vehicle's odometry: level, 1 m/s along x, turning 0.2 rad/s
         T = np.eye(4)
-        T[:3, :3], T[0, 3] = rot_z(0.001 * stamp_ns), 0.01 * stamp_ns
+        T[:3, :3], T[0, 3] = rot_z(0.2 * stamp_ns * 1e-9), 1.0 * stamp_ns * 1e-9
         return T
 
     def frame(stamp_ns: int, odometry_at: list[int]) -> FlightFrame:
-        f_body = T_map_body(stamp_ns)[:3, :3].T @ [0.0, 0.0, 9.81]  # hovering: the specific force is gravity's
-        imu = [pb.Imu(header=pb.Header(stamp_ns=stamp_ns), accel_mps2=vector3(f_body))]
-        stereo = pb.StereoFrame(header=pb.Header(stamp_ns=stamp_ns), left=encode_image(image, "raw"),
-                                right=encode_image(image, "raw"), info=info)
-        odometry = [pb.Odometry(header=pb.Header(stamp_ns=s), T_map_body=pose_from_matrix(T_map_body(s)))
-                    for s in odometry_at]
+        imu = [pb.Imu(header=pb.Header(stamp_ns=s), accel_mps2=vector3(T_map_body(s)[:3, :3].T @ [0.0, 0.0, 9.81]),
+                      gyro_radps=vector3(np.array([0.0, 0.0, 0.2]))) for s in (stamp_ns - 25_000_000, stamp_ns)]
+        stereo = pb.StereoFrame(header=pb.Header(stamp_ns=stamp_ns), camera_id="front",
+                                left=encode_image(image, "raw"), right=encode_image(image, "raw"), info=info)
+        odometry = [pb.Odometry(header=pb.Header(stamp_ns=s, frame_id="map"),
+                                T_map_body=pose_from_matrix(T_map_body(s))) for s in odometry_at]
         return FlightFrame(stamp_ns, stereo, imu=imu, odometry=odometry)
 
-    with pytest.raises(UserInputError, match="no vehicle odometry"):
-        VehicleOdometry()(frame(100, [110]), image, image)  # only a sample after the frame's stamp
-    source = VehicleOdometry()
-    first = frame(100, [50, 100])
-    T_odom_body = source(first, image, image)
-    assert np.allclose(T_odom_body, T_map_body(100))
-    up_body = gravity_at(ImuGravity(), first, OdometryStep(T_odom_body, None, None, 0.0))  # as the session takes it
-    assert up_body is not None and np.allclose(up_body, T_map_body(100)[:3, :3].T @ [0, 0, 1.0])
-    assert np.allclose(source(frame(200, []), image, image), T_map_body(100))  # none since: the last one
-    assert np.allclose(source(frame(300, [250, 290, 310]), image, image), T_map_body(290))  # 310: after it
+    with pytest.raises(UserInputError, match="carries no vehicle odometry"):
+        list(RecordedVehicle("recorded").messages(frame(100_000_000, [])))
+    frames = [frame(k * 100_000_000, [k * 100_000_000 - 50_000_000, k * 100_000_000]) for k in range(1, 21)]
+    estimates = []
+    front_end = FrontEnd.fresh_or_restored(corridor_model(), None)
+    replay_as_service(frames, front_end, RecordedVehicle("recorded"), InputLimits(), sink=estimates.append)
+    assert len(estimates) == len(frames)
+    for f, est in zip(frames, estimates, strict=True):
+        assert est.stamp_ns == f.stamp_ns and np.allclose(est.T_map_body, T_map_body(f.stamp_ns))
+    up_body = front_end.session.up_body
+    assert up_body is not None and np.allclose(up_body, T_map_body(frames[-1].stamp_ns)[:3, :3].T @ [0, 0, 1.0],
+                                               atol=1e-3)
 
 
 def test_the_visual_odometry_says_how_long_it_only_extrapolated() -> None:
@@ -420,108 +430,3 @@ def test_a_session_keyframe_s_depth_points_re_key_the_visual_odometry_on_their_s
     points = odometry.measure_depth()
     assert len(points) > 0 and odometry._disparity.computed == matched + 1  # one SGBM for the frame
     assert (vo._ref_left is pairs[2][0]) == rekey
-
-
-class _Counting:
-    """A source whose `ahead` records the thread it ran on and fails at frame `fail_at`."""
-
-    runs_ahead = True
-    uses_images = False
-
-    def __init__(self, fail_at: int | None = None) -> None:
-        self.fail_at = fail_at
-        self.threads: set[str] = set()
-
-    def ahead(self, frame: int) -> int:
-        import threading
-
-        self.threads.add(threading.current_thread().name)
-        if frame == self.fail_at:
-            raise ValueError(f"frame {frame}")
-        return frame * 10
-
-
-def test_the_frames_read_ahead_come_in_order_and_an_error_in_its_turn() -> None:
-    from macroloc.service.offline.replay import _read_ahead
-
-    source = _Counting(fail_at=7)
-    got = []
-    with pytest.raises(ValueError, match="frame 7"):
-        for frame, ahead in _read_ahead(iter(range(20)), source, 3):  # type: ignore[arg-type]
-            got.append((frame, ahead))
-    assert got == [(k, 10 * k) for k in range(7)]
-    assert source.threads == {"replay-ahead"}
-    alone = _Counting()
-    assert list(_read_ahead(iter(range(5)), alone, 0)) == [(k, 10 * k) for k in range(5)]  # type: ignore[arg-type]
-    assert alone.threads == {"MainThread"}
-
-
-def test_a_caller_that_stops_early_stops_the_reading_thread() -> None:
-    import threading
-
-    from macroloc.service.offline.replay import _read_ahead
-
-    read = []
-
-    def frames():  # noqa: ANN202
-        for k in range(10_000):
-            read.append(k)
-            yield k
-
-    reader = _read_ahead(frames(), _Counting(), 2)
-    assert next(reader) == (0, 0)
-    reader.close()  # the caller's loop left: the thread is joined
-    assert not any(t.name in ("replay-read", "replay-ahead") for t in threading.enumerate())
-    assert len(read) < 10
-
-
-def test_perception_replayed_on_two_threads_gives_what_one_thread_gives(rendered_office_flight: Path,
-                                                                         office_model) -> None:  # noqa: ANN001
-    """The odometry run ahead on the reading thread: every frame's estimate, the keyframes and the SGBMs
-    computed (one a frame, shared by the odometry, the chain and the depth points) are those of one thread."""
-    from macroloc.service.offline.replay import replay
-    from macroloc.service.offline.replay_sources import PerceptionSource
-
-    runs = {}
-    for one_thread in (True, False):
-        source = PerceptionSource()
-        runs[one_thread] = (replay(rendered_office_flight, office_model, source, one_thread=one_thread),
-                            source.disparity.computed)
-    (one, sgbm_one), (two, sgbm_two) = runs[True], runs[False]
-    assert sgbm_one == sgbm_two > 0
-    assert one.trace.keyframe == two.trace.keyframe and sum(one.trace.keyframe) > 5
-    assert one.trace.n_sightings == two.trace.n_sightings and sum(one.trace.n_sightings) > 0
-    assert one.trace.status == two.trace.status
-    for a, b in zip(one.trace.T_est, two.trace.T_est, strict=True):
-        assert (a is None and b is None) or np.array_equal(a, b)
-
-
-def test_a_frame_s_match_made_ahead_is_found_when_its_turn_comes(rendered_office_flight: Path) -> None:
-    """The odometry re-keyed on every frame (a whole-frame SGBM each): run AHEAD_FRAMES frames ahead of the
-    session, the first frame's depth points still take that frame's match instead of matching it again."""
-    import itertools
-    from dataclasses import replace
-
-    from macroloc.perception.params import PerceptionParams
-    from macroloc.proto.recording import read_flight
-    from macroloc.service.offline.replay_sources import AHEAD_FRAMES, PerceptionSource
-
-    params = PerceptionParams()
-    source = PerceptionSource(params=replace(params, odometry=replace(params.odometry, rekey_translation_m=0.0)))
-    frames = list(itertools.islice(read_flight(rendered_office_flight), AHEAD_FRAMES + 1))
-    steps = [source.ahead(frame) for frame in frames]
-    matched = source.disparity.computed
-    assert matched == AHEAD_FRAMES + 1 and steps[0].measure_depth is not None
-    steps[0].measure_depth()
-    assert source.disparity.computed == matched
-
-
-def test_one_thread_replays_the_same_flight_to_the_same_figures(flight: Path, fzk_path: Path,
-                                                                 capsys: pytest.CaptureFixture[str]) -> None:
-    figures = []
-    for tail in ([], ["--one-thread"]):
-        rc, doc, err = run(["replay", str(flight), "--building", str(fzk_path), "--json", *tail], capsys)
-        assert rc == 0 and doc is not None, err
-        figures.append({k: v for k, v in doc.items() if k not in ("processing_fps", "processing_to_localize_s",
-                                                                     "isam_update_ms_mean")})
-    assert figures[0] == figures[1] and figures[0]["localized"]
