@@ -116,8 +116,8 @@ class FrameDisparity:
     be overwritten in place between calls.
 
     It keeps the whole-frame disparity of the last `keep` pairs matched: 1 where one thread takes the frames in
-    turn; more where the odometry runs some frames ahead of the chain on another thread (the replay's pipeline,
-    service.offline.replay), so that a frame's match is still there when the chain comes to it. Calls from
+    turn (the service's front end); more where a caller runs the odometry some frames ahead of the chain on another
+    thread, so that a frame's match is still there when the chain comes to it. Calls from
     different threads are safe (each thread matches with its own OpenCV matcher)."""
 
     def __init__(self, matcher: SgbmMatcher | None = None, keep: int = 1) -> None:

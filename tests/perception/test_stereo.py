@@ -111,7 +111,7 @@ def test_a_frame_is_matched_once_for_all_who_ask() -> None:
 
 
 def test_the_last_pairs_matched_are_kept_for_a_thread_that_comes_later() -> None:
-    """keep=3: a frame matched by one thread (the replay's odometry, ahead) is found by another (the chain) up to
+    """keep=3: a frame matched by one thread (an odometry run ahead) is found by another (the chain) up to
     two frames later; the first matched is dropped by a fourth. Two threads matching at once get what one
     thread gets."""
     import threading
