@@ -32,11 +32,14 @@ from types import TracebackType
 from typing import Any
 
 import numpy as np
+from mcap.writer import CompressionType
+from mcap_protobuf.writer import Writer
 
 from macroloc.graph.features import BuildingModel
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import FlightFrame, matrix_from_pose
 from macroloc.service.foxglove_channels import FoxgloveChannels
+from macroloc.service.offline.plots import wall_segments_xy
 
 log = logging.getLogger(__name__)
 
@@ -45,9 +48,6 @@ class FoxgloveWriter(FoxgloveChannels):
     """An MCAP file of Foxglove messages (see module doc). Use as a context manager."""
 
     def __init__(self, path: Path) -> None:
-        from mcap.writer import CompressionType
-        from mcap_protobuf.writer import Writer
-
         path.parent.mkdir(parents=True, exist_ok=True)
         self.path = path
         self._file = open(path, "wb")  # noqa: SIM115 - closed in close()
@@ -84,8 +84,6 @@ class SimulationChannels:
     def frame(self, stereo: pb.StereoFrame, T_cad_body: np.ndarray, T_body_cam: np.ndarray) -> None:
         c, s = self.channels, stereo.header.stamp_ns
         if self._first:
-            from macroloc.service.offline.plots import wall_segments_xy
-
             z = float(T_cad_body[2, 3])
             walls = wall_segments_xy(self.wall_mesh, z) if self.wall_mesh is not None else None
             c.model(s, self.model, set(), walls, z)
@@ -129,8 +127,6 @@ class ReplayRecorder:
         self.last_stamp_ns = s
 
     def _model(self, stamp_ns: int, matched: set[str], T_cad_body: np.ndarray | None) -> None:
-        from macroloc.service.offline.plots import wall_segments_xy
-
         if self._wall_z is None:  # the flight's height at its start, else the doors' and windows' middle height
             self._wall_z = float(T_cad_body[2, 3]) if T_cad_body is not None else \
                 float(np.median([f.centroid_cad[2] for f in self.model.features]))

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from macroloc.graph.descriptor import build_tables, kde_density
 from macroloc.graph.features import BuildingModel, MacroFeature
 from macroloc.graph.wall_mesh import load_wall_mesh, wall_segments_xy  # noqa: F401 (their old home)
 
@@ -26,7 +27,9 @@ WALL_COLOUR = "0.75"
 WALL_CUT_ABOVE_FLOOR_M = 1.2  # walls are cut this high above a storey's floor (through doors and windows)
 
 
-def _pyplot():
+def _pyplot():  # noqa: ANN202 - matplotlib.pyplot
+    """pyplot on the Agg backend: imported where a picture is drawn (the backend must be chosen before pyplot is
+    imported, and pyplot takes about half a second)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -164,8 +167,6 @@ def plot_floor_plans(model: BuildingModel, out_png: str | Path, wall_mesh: Any =
 
 def _kde_panel(ax: Any, samples: np.ndarray, edges: np.ndarray, scale: float, unit: str, what: str,
                domain: tuple[float, float] = (-np.inf, np.inf)) -> None:
-    from macroloc.graph.descriptor import kde_density
-
     x = np.asarray(samples, dtype=float) * scale  # metres -> m, radians -> degrees: for a person to read
     if len(x) == 0:
         ax.text(0.5, 0.5, "no samples", transform=ax.transAxes, ha="center")
@@ -187,8 +188,6 @@ def _kde_panel(ax: Any, samples: np.ndarray, edges: np.ndarray, scale: float, un
 def plot_kde_bins(model: BuildingModel, out_png: str | Path) -> Path:
     """The descriptor's look-up tables: histogram of the model's 5-NN distances and angles, their KDE and the
     bin edges at its local minima (paper Figures 6 and 13), two panels; returns the PNG path."""
-    from macroloc.graph.descriptor import build_tables
-
     plt = _pyplot()
     tables = build_tables(model.centroids_cad())
     fig, (ax_d, ax_a) = plt.subplots(1, 2, figsize=(12, 4))

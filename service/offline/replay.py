@@ -19,11 +19,12 @@ from typing import Protocol
 
 import numpy as np
 
+from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.localizer import Estimate, Localizer, Sighting
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
-from macroloc.proto.recording import FlightFrame
+from macroloc.proto.recording import FlightFrame, matrix_from_pose, read_flight
 from macroloc.service.front_end import FrontEnd
 from macroloc.service.health import DropCounter
 from macroloc.service.inputs import ClockReset, InputLimits, InputParser, ObservationsIn
@@ -125,8 +126,6 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
     odometry's where the stereo frame gives none, e.g. a truth flight's frames without images, which the parser
     drops), as replay_zenoh scores a lock-step `serve`'s. `recorder` keeps each frame with what was seen in it
     (the doors the vehicle sent and those the service perceived) and its estimate."""
-    from macroloc.proto.recording import matrix_from_pose, read_flight
-
     recorder = recorder or NullRecorder()
     trace = ReplayTrace()
     t0: int | None = None
@@ -182,9 +181,6 @@ class FrameSeen:
 
 
 def _T_body_cam(frame: FlightFrame) -> np.ndarray:
-    from macroloc.common.geometry import forward_stereo_T_body_cam
-    from macroloc.proto.recording import matrix_from_pose
-
     info = frame.stereo.info
     return matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
 

@@ -11,8 +11,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from macroloc.graph.features import BuildingModel
+from macroloc.service.offline.plots import WALL_COLOUR, wall_segments_xy
 from macroloc.service.offline.replay import ReplayResult
 from macroloc.service.saved_map import SavedMap
 
@@ -25,7 +27,7 @@ def write_report(result: ReplayResult, model: BuildingModel, out_dir: Path, wall
     configuration, as config.json) into `out_dir`; returns their paths. `wall_mesh`: the model's
     walls (service.offline.plots.load_wall_mesh), drawn as a floor plan cut at the flight's height; `stored`: the
     map the flight re-localized into, whose keyframe views are drawn with the keyframes placed in them."""
-    import matplotlib
+    import matplotlib  # here, not at the top: the backend is chosen before pyplot is imported (see _topdown)
 
     matplotlib.use("Agg")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -55,8 +57,6 @@ def write_tum(result: ReplayResult, out_dir: Path) -> list[Path]:
 
 
 def _tum(path: Path, poses: list[tuple[int, np.ndarray]]) -> Path:
-    from scipy.spatial.transform import Rotation
-
     lines = []
     for stamp_ns, T in poses:
         q = Rotation.from_matrix(T[:3, :3]).as_quat()  # scipy: x, y, z, w (TUM's order)
@@ -72,7 +72,6 @@ def _topdown(result: ReplayResult, model: BuildingModel, path: Path, wall_mesh: 
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
 
-    from macroloc.service.offline.plots import WALL_COLOUR, wall_segments_xy
 
     tr = result.trace
     true_xyz = np.array([T[:3, 3] for T in tr.T_true])

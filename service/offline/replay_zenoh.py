@@ -37,6 +37,7 @@ from macroloc.service.offline.vehicle import RecordedVehicle
 
 if TYPE_CHECKING:
     from macroloc.service.offline.run import ReplayOptions
+from macroloc.service.offline.run import vehicle_for
 from macroloc.service.zenoh_io import session_config
 
 log = logging.getLogger(__name__)
@@ -239,8 +240,6 @@ def replay_command(flight: Iterable[FlightFrame], options: ReplayOptions, connec
     (service.offline.run.vehicle_for); `visual` odometry is the service's to run ([service] odometry). At `speed` 0
     the vehicle is lock-step: each frame waits for its answer and nothing is dropped on a congested link
     (`replay_over_zenoh`'s `answered`)."""
-    from macroloc.service.offline.run import vehicle_for
-
     if speed < 0:
         raise UserInputError("--speed must be >= 0")
     frames = iter(flight)

@@ -21,8 +21,12 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from mcap.reader import make_reader
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
 from macroloc.graph.errors import UserInputError
-from macroloc.proto.recording import FlightFrame
+from macroloc.proto.recording import FlightFrame, read_flight
 from macroloc.service.config import CameraConfig
 from macroloc.service.offline.ros_bag_frames import TF_STATIC, BagStats, FrameAssembler, RosTopics
 
@@ -52,7 +56,6 @@ def is_ros_bag(path: Path) -> bool:
         return True
     if path.suffix.lower() != ".mcap" or not path.is_file():
         return False
-    from mcap.reader import make_reader
 
     with open(path, "rb") as fh:
         try:
@@ -69,15 +72,11 @@ def open_flight(path: Path, topics: dict[str, str] | None = None, camera: Camera
         return read_ros_bag(path, topics or {}, camera, stats)
     if topics:
         raise UserInputError(f"--topic applies to ROS 2 bags; {path} is a macroloc recording")
-    from macroloc.proto.recording import read_flight
 
     return read_flight(path)
 
 
 def _open_reader(path: Path):  # noqa: ANN202 - rosbags' AnyReader
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
         reader.open()

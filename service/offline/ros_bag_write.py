@@ -15,7 +15,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+from scipy.spatial.transform import Rotation
 
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import decode_image, matrix_from_pose, read_flight
@@ -39,9 +43,6 @@ def write_ros_bag(flight: Path, out: Path, storage: str = "sqlite3", topics: Bag
                   compressed: bool = False, distortion: np.ndarray | None = None, max_frames: int | None = None
                   ) -> Path:
     """Write the recording `flight` as a ROS 2 bag folder `out` (storage "sqlite3" or "mcap"); returns `out`."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
-
     ts = get_typestore(Stores.LATEST)
     tp = topics or BagTopics()
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
@@ -88,8 +89,6 @@ class _Distorter:
     distorted pixel samples the pinhole image where its undistorted ray lands."""
 
     def __init__(self, info: pb.CameraInfo, D: np.ndarray) -> None:
-        import cv2
-
         K = _K(info)
         u, v = np.meshgrid(np.arange(info.width, dtype=np.float32), np.arange(info.height, dtype=np.float32))
         pts = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
@@ -97,8 +96,6 @@ class _Distorter:
         self.map_x, self.map_y = undist[..., 0].astype(np.float32), undist[..., 1].astype(np.float32)
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
-        import cv2
-
         return cv2.remap(image, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
@@ -119,8 +116,6 @@ class _Messages:
 
     def image(self, image: pb.Image, stamp_ns: int, frame_id: str, compressed: bool,
               distorter: _Distorter | None) -> Any:
-        import cv2
-
         if compressed and distorter is None and image.encoding in (pb.Image.JPEG, pb.Image.PNG):
             fmt = "jpeg" if image.encoding == pb.Image.JPEG else "png"
             return self.T["sensor_msgs/msg/CompressedImage"](header=self.header(stamp_ns, frame_id), format=fmt,
@@ -180,8 +175,6 @@ class _Messages:
                 twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)))
 
     def tf_static(self, T_body_cam: np.ndarray, stamp_ns: int) -> Any:
-        from scipy.spatial.transform import Rotation
-
         T = self.T
         q = Rotation.from_matrix(T_body_cam[:3, :3]).as_quat()  # x, y, z, w
         t = T_body_cam[:3, 3]

@@ -22,14 +22,18 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+from macroloc.graph.bim import load_building
 from macroloc.graph.errors import UserInputError
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
-from macroloc.proto.recording import FlightFrame
+from macroloc.proto.recording import FlightFrame, read_flight
 from macroloc.service.assets import prepare_building
 from macroloc.service.config import MacrolocConfig
 from macroloc.service.front_end import FrontEnd, make_front_end
 from macroloc.service.inputs import limits_from_config
+from macroloc.service.offline.foxglove_out import FoxgloveWriter, ReplayRecorder
+from macroloc.service.offline.plots import load_wall_mesh
 from macroloc.service.offline.replay import FrameRecorder, FrameSink, ReplayResult, null_sink, replay_as_service
+from macroloc.service.offline.replay_report import write_report
 from macroloc.service.offline.replay_sources import TruthSource
 from macroloc.service.offline.vehicle import ODOMETRY_CHOICES, RecordedVehicle
 from macroloc.service.saved_map import read_saved_map, write_saved_map
@@ -129,8 +133,6 @@ def replay_flight(flight: Path | Iterable[FlightFrame], building: Path, cfg: Mac
 
 
 def _frames(flight: Path | Iterable[FlightFrame]) -> Iterable[FlightFrame]:
-    from macroloc.proto.recording import read_flight
-
     return read_flight(flight) if isinstance(flight, Path) else flight
 
 
@@ -145,23 +147,15 @@ def replay_offline(flight: Path | Iterable[FlightFrame], building: Path, cfg: Ma
     """`macroloc replay` without --over-zenoh: `replay_flight`, then what the files ask for: `save_map` (this
     run's saved map), `out` (the replay for Foxglove, written as it runs: service.offline.foxglove_out) and
     `report` (a top-down picture, per-frame figures and result.json: service.offline.replay_report)."""
-    from macroloc.graph.bim import load_building
-
     recorder = None
     with contextlib.ExitStack() as stack:
         if out is not None:
-            from macroloc.service.offline.foxglove_out import FoxgloveWriter, ReplayRecorder
-            from macroloc.service.offline.plots import load_wall_mesh
-
             recorder = ReplayRecorder(stack.enter_context(FoxgloveWriter(out)), load_building(building),
                                       load_wall_mesh(building))
         replayed = replay_flight(flight, building, cfg, options, saved_map, recorder=recorder)
     if save_map is not None:
         replayed.save_map(save_map, building, replaces=saved_map)
     if report is not None:
-        from macroloc.service.offline.plots import load_wall_mesh
-        from macroloc.service.offline.replay_report import write_report
-
         f = replayed.front_end
         write_report(replayed.result, f.model, report, load_wall_mesh(building), f.restored,
                      config=cfg.model_dump(mode="json"))
