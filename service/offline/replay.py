@@ -140,7 +140,7 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
     for frame in frames:
         t0 = frame.stamp_ns if t0 is None else t0
         est: Estimate | None = None
-        keyframe = False
+        keyframe, update_ms = False, 0.0  # whether one of the frame's messages made a keyframe; its iSAM2 update
         sent: list[Sighting] = []  # the doors and windows the vehicle sent with the frame, body frame
         for m in vehicle.messages(frame):
             event = parse[m.key](m.message.SerializeToString())
@@ -150,7 +150,8 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
             if event is None:
                 continue
             answer = front_end.handle(event)
-            keyframe |= answer is not None and front_end.session.keyframe
+            if answer is not None and front_end.session.keyframe:
+                keyframe, update_ms = True, max(update_ms, answer.update_ms)
             if isinstance(event, ObservationsIn) and event.frame_id == "body":
                 sent += [Sighting(o.type, o.corners) for o in event.features if o.corners is not None]
             if answer is not None and answer.stamp_ns == frame.stamp_ns:
@@ -163,7 +164,8 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
         recorder.frame(frame, FrameSeen(_T_body_cam(frame), seen), est)
         trace.stamp_ns.append(frame.stamp_ns)
         _record(trace, (frame.stamp_ns - t0) * 1e-9, est,
-                matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None, keyframe, len(seen))
+                matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None, keyframe, len(seen),
+                update_ms)
     if t0 is None:
         raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
     busy_s = time.perf_counter() - start
@@ -186,13 +188,13 @@ def _T_body_cam(frame: FlightFrame) -> np.ndarray:
 
 
 def _record(trace: ReplayTrace, t_s: float, est: Estimate, T_true: np.ndarray | None, is_kf: bool,
-            n_sightings: int) -> None:
+            n_sightings: int, update_ms: float) -> None:
     trace.t_s.append(t_s)
     trace.status.append(est.status)
     trace.T_true.append(T_true if T_true is not None else np.full((4, 4), np.nan))
     trace.T_est.append(est.T_cad_body)
     trace.keyframe.append(is_kf)
-    trace.update_ms.append(est.update_ms if is_kf else 0.0)
+    trace.update_ms.append(update_ms if is_kf else 0.0)
     trace.n_sightings.append(n_sightings)
 
 
