@@ -97,6 +97,7 @@ class ReplayResult:
     position_sigma_final_m: float | None  # sqrt of the largest translation variance of the last keyframe (marginals)
     trace: ReplayTrace
     localizer: Localizer
+    dropped: dict[str, int] = field(default_factory=dict)  # inputs the service's checks refused, by key/kind
 
     def to_json(self) -> dict:
         return {"frames": self.frames, "processing_fps": round(self.processing_fps, 1), "localized": self.localized,
@@ -108,7 +109,8 @@ class ReplayResult:
                 "status_final": self.status_final, "keyframes": self.keyframes, "landmarks": self.landmarks,
                 "cad_links": self.cad_links, "wrong_links": self.wrong_links,
                 "isam_update_ms_mean": round(self.isam_update_ms_mean, 3),
-                "position_sigma_final_m": _round(self.position_sigma_final_m)}
+                "position_sigma_final_m": _round(self.position_sigma_final_m),
+                "dropped": {k: n for k, n in sorted(self.dropped.items()) if n}}
 
 
 def _round(v: float | None, nd: int = 4) -> float | None:
@@ -131,7 +133,8 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
     t0: int | None = None
     busy_at_localized: float | None = None
     resets: list[ClockReset] = []
-    parser = InputParser(list(cameras), DropCounter(), limits,
+    drops = DropCounter()
+    parser = InputParser(list(cameras), drops, limits,
                          on_clock_reset=lambda key, stamp_ns: resets.append(ClockReset(key, stamp_ns)))
     parse = {"imu": parser.imu, "odometry": parser.odometry, "observations": parser.observations,
              "initialpose": parser.prior, "stereo": lambda payload: parser.stereo(payload, time.monotonic_ns())}
@@ -170,7 +173,9 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
         raise UserInputError(f"recording {flight if isinstance(flight, Path) else 'given'} holds no stereo frames")
     busy_s = time.perf_counter() - start
     recorder.finish(front_end.localizer)
-    return _score(trace, front_end.localizer, busy_s, busy_at_localized)
+    result = _score(trace, front_end.localizer, busy_s, busy_at_localized)
+    result.dropped = drops.counts()
+    return result
 
 
 @dataclass(frozen=True)

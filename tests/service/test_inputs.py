@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -176,9 +178,10 @@ def test_a_goal_stamped_beyond_the_clock_is_refused_as_every_input_is() -> None:
     assert drops.counts() == {"goal/future_stamp": 2}
 
 
-def test_replaying_a_recording_that_holds_a_bomb_is_one_line_and_exit_2(office_path, tmp_path, capsys) -> None:
-    """The offline path: `macroloc replay` decodes recorded images (here through the visual odometry); a frame
-    whose PNG decodes to 20000 x 20000 pixels ends the replay with one line, before it is decoded."""
+def test_a_replayed_recording_s_bomb_is_refused_before_decoding_and_counted(office_path, tmp_path, capsys) -> None:
+    """The offline path is the service's: `macroloc replay` hands recorded frames to the service's parser, which
+    refuses a frame whose PNG would decode to 20000 x 20000 pixels before decoding it (here the visual odometry
+    would have decoded it), as it refuses one sent on the wire; the replay goes on and its JSON counts it."""
     from macroloc.cli.main import main
     from macroloc.proto.recording import FlightWriter
 
@@ -190,9 +193,10 @@ def test_replaying_a_recording_that_holds_a_bomb_is_one_line_and_exit_2(office_p
         writer.write_stereo(frame)
         writer.write_ground_truth(pb.GroundTruth(header=pb.Header(stamp_ns=10**8), T_cad_body=pose_from_matrix(
             np.eye(4)), T_body_cam=pose_from_matrix(np.eye(4))))
-    rc = main(["replay", str(flight), "--building", str(office_path), "--observations", "truth-vo"])
-    err = capsys.readouterr().err
-    assert rc == 2 and len(err.strip().splitlines()) == 1 and "refused before decoding" in err, err
+    rc = main(["replay", str(flight), "--building", str(office_path), "--observations", "truth-vo", "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert rc == 0 and doc["frames"] == 1 and not doc["localized"]
+    assert sum(n for kind, n in doc["dropped"].items() if kind.startswith("stereo/image")) == 1, doc["dropped"]
 
 
 def test_no_pose_outside_the_model_or_not_finite_goes_out() -> None:
