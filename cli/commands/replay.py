@@ -61,8 +61,8 @@ def register(app: typer.Typer) -> None:
                                      "own where it has one; else with --observations truth the ground truth with a "
                                      "VIO's drift, with perception the service's stereo visual odometry), recorded, "
                                      "simulated (the ground truth with a VIO's drift, seeded by --seed) or visual "
-                                     "(the service's stereo visual odometry, the config's service.odometry = visual). The "
-                                     "same choice with and without --over-zenoh."),
+                                     "(the service's stereo visual odometry, the config's service.odometry = "
+                                     "visual). The same choice with and without --over-zenoh."),
     ) -> None:
         """Replay a recorded flight through the service's own per-frame path and score it against ground truth.
 
