@@ -272,7 +272,7 @@ def run_demo(building: Path = DEFAULT_BUILDING, params: DemoParams | None = None
     return result
 
 
-def _outcome(result: DemoResult, backend, wrong_m: float) -> tuple[str, list[list[float]]]:  # noqa: ANN001
+def _outcome(result: DemoResult, front_end, wrong_m: float) -> tuple[str, list[list[float]]]:  # noqa: ANN001
     """reached | not reached | localized wrongly | ambiguous | not localized, and (ambiguous) where each rival
     pose puts the vehicle (x, y CAD, m): its newest keyframe's pose in the map frame carried into the CAD frame by
     each rival T_cad_map. Wrongly: the estimate was last more than `wrong_m` (graph.anchor.cad_link_m, the
@@ -282,7 +282,7 @@ def _outcome(result: DemoResult, backend, wrong_m: float) -> tuple[str, list[lis
         if result.pose_error_m > wrong_m:
             return "localized wrongly", []
         return ("reached" if result.reached else "not reached"), []
-    loc = backend.localizer
+    loc = front_end.localizer
     if loc.status != "ambiguous" or not loc.rivals:
         return "not localized", []
     T_map_body = loc.graph.T_map_body(loc.graph.n_keyframes - 1)

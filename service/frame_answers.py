@@ -19,7 +19,7 @@ ODOMETRY_MATCH_NS = 60_000_000  # a stamp takes the odometry sample within 60 ms
 
 
 class OdometryBuffer:
-    """The newest odometry poses by stamp; thread-safe (the worker's backend keeps one, the intake threads another)."""
+    """The newest odometry poses by stamp; thread-safe (the front end keeps one, the intake threads another)."""
 
     def __init__(self, size: int = 512, match_ns: int = ODOMETRY_MATCH_NS) -> None:
         self._poses: OrderedDict[int, np.ndarray] = OrderedDict()

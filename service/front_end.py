@@ -134,7 +134,7 @@ class FrontEnd:
                           cfg: MacrolocConfig | None = None,
                           surfaces: SurfaceIndex | None = None, pipeline: FramePipeline | None = None,
                           T_body_cam: np.ndarray | None = None) -> FrontEnd:
-        """The backend on a session from the config (service.session.session_from_config; the defaults, with the
+        """The front end on a session from the config (service.session.session_from_config; the defaults, with the
         environment's MACROLOC_* over them, without one), with covariance; `surfaces`: the model's walls, to check
         registrations against the frames' depth (graph.surfaces)."""
         cfg = cfg or MacrolocConfig()
@@ -149,10 +149,10 @@ class FrontEnd:
         if snapshot is None:
             return front_end(session_from_config(cfg, model, surfaces=surfaces, covariance=True))
         saved = snapshot if isinstance(snapshot, SavedMap) else SavedMap.from_snapshot(snapshot, model)
-        backend = front_end(session_from_config(cfg, model, saved=saved, surfaces=surfaces, covariance=True))
-        backend.restored = saved
-        backend.places = KeyframePlaces(saved, keep_views=True, config=params.place)
-        return backend
+        restored = front_end(session_from_config(cfg, model, saved=saved, surfaces=surfaces, covariance=True))
+        restored.restored = saved
+        restored.places = KeyframePlaces(saved, keep_views=True, config=params.place)
+        return restored
 
     # --- inputs -------------------------------------------------------------------------------------------------
 

@@ -1,4 +1,4 @@
-"""The composition root of `macroloc serve`: config -> model, saved map, backend, planner, session, service."""
+"""The composition root of `macroloc serve`: config -> model, saved map, front end, planner, service."""
 
 from __future__ import annotations
 

@@ -235,7 +235,7 @@ def _can_connect(port: int) -> bool:
 
 
 def test_reset_counter_increments_exactly_at_a_re_localization_in_a_flight(office_model) -> None:
-    """A flight through the service's backend: localized, then the pose graph fails (an odometry sample at
+    """A flight through the service's front end: localized, then the pose graph fails (an odometry sample at
     x = 1e300 let through past the edge checks) and restarts LOST, then the vehicle flies on and is localized
     again. VehicleOdometry's reset_counter is 0 throughout the first localization and 1 from the first pose after
     the re-localization on, while T_cad_map itself barely moved (same odometry frame)."""

@@ -200,18 +200,18 @@ def test_an_ambiguous_flight_names_its_rival_poses() -> None:
     T_map_body = np.eye(4)
     T_map_body[:3, 3] = [1.0, 1.0, 0.0]
     graph = SimpleNamespace(n_keyframes=3, T_map_body=lambda i: T_map_body)
-    backend = SimpleNamespace(localizer=SimpleNamespace(status="ambiguous", rivals=rivals, graph=graph))
+    front_end = SimpleNamespace(localizer=SimpleNamespace(status="ambiguous", rivals=rivals, graph=graph))
     result = DemoResult(0, False, False, float("nan"), float("nan"), 0.0, float("nan"), "", "", "", 0.0)
-    outcome, rivals_xy = _outcome(result, backend, 0.5)
+    outcome, rivals_xy = _outcome(result, front_end, 0.5)
     assert outcome == "ambiguous" and rivals_xy == [[3.0, 1.0], [-1.0, -1.0]]
     result.outcome, result.rivals_xy = outcome, rivals_xy
     assert "2 poses" in outcome_line(result)
-    backend.localizer.status = "exploring"
-    assert _outcome(result, backend, 0.5) == ("not localized", [])
+    front_end.localizer.status = "exploring"
+    assert _outcome(result, front_end, 0.5) == ("not localized", [])
     result.localized, result.pose_error_m = True, 2.7  # the duplex's mirror image, taken (seen with perception)
-    assert _outcome(result, backend, 0.5)[0] == "localized wrongly"
+    assert _outcome(result, front_end, 0.5)[0] == "localized wrongly"
     result.pose_error_m = 0.02
-    assert _outcome(result, backend, 0.5)[0] == "not reached"
+    assert _outcome(result, front_end, 0.5)[0] == "not reached"
 
 
 @pytest.mark.slow
