@@ -91,7 +91,7 @@ class RegistrationParams(Parameters):
 @dataclass(frozen=True)
 class AnchorParams(Parameters):
     """Holding the graph to the model once localized: landmarks linked to CAD features, keyframes placed in a
-    stored map."""
+    saved map."""
 
     cad_link_m: float = param(0.5, "once localized, a landmark this close to a CAD feature is linked, m")
     cad_link_max_turn_deg: float = param(
@@ -99,9 +99,9 @@ class AnchorParams(Parameters):
         "only: a door's plane from its corners can be far off on a door seen obliquely, and would turn the flight to "
         "fit it)", ge=0)
     placed_sigma_m: float = param(
-        0.15, "a keyframe placed in a stored map (place recognition): its position sigma in the model, m (the stored "
+        0.15, "a keyframe placed in a saved map (place recognition): its position sigma in the model, m (the saved "
         "keyframe's error and PnP's together)", gt=0)
-    placed_sigma_deg: float = param(  # the CAD frame, the stored keyframe's error and PnP's together
+    placed_sigma_deg: float = param(  # the CAD frame, the saved keyframe's error and PnP's together
         2.0, "... its orientation sigma, deg", gt=0)
 
 

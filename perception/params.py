@@ -189,7 +189,7 @@ class DepthPointsParams(Parameters):
 
 @dataclass(frozen=True)
 class PlaceParams(Parameters):
-    """Place recognition of keyframes in a stored map's views (perception.place)."""
+    """Place recognition of keyframes in a saved map's views (perception.place)."""
 
     n_features: int = param(1000, "ORB features of the image to place", ge=1)
     stored_features: int = param(

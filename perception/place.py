@@ -1,4 +1,4 @@
-"""Visual place recognition in a stored map: a new flight placed where an earlier one flew, before it sees a door.
+"""Visual place recognition in a saved map: a new flight placed where an earlier one flew, before it sees a door.
 
 A stored keyframe keeps a `KeyframeView` (graph.mapstore): up to `stored_features` ORB features of its left image
 with a reliable stereo depth (SGBM's sub-pixel disparity at the keypoint, perception.stereo.keypoint_points), as 3D
@@ -6,12 +6,12 @@ points in its body frame. To place a new keyframe, its ORB features are matched 
 `vote_features` strongest against each view's `vote_per_view` strongest, in faiss' exact binary index: the two
 nearest descriptors within `vote_distance` vote for their views); the `top_views` views with the most such matches
 are matched again one by one with Lowe's ratio test (per view: across views, the same corner seen twice would fail
-it), and PnP-RANSAC on their 3D points, in the stored map's frame, gives the camera's pose there. A pose is kept
+it), and PnP-RANSAC on their 3D points, in the saved map's frame, gives the camera's pose there. A pose is kept
 only with `min_inliers` inliers and at most `max_tilt_deg` between its up and the IMU's: both frames are levelled by
 gravity, so a pose tilted from it is a wrong one. And where the matches left over put the camera in a second place,
 with half as many inliers or more (twin rooms that look alike), there is no answer: never a guess.
 
-The answer is T_map_body in the stored map's frame; times the stored map's T_cad_map it is the body's pose in
+The answer is T_map_body in the saved map's frame; times the saved map's T_cad_map it is the body's pose in
 the CAD frame (the localizer checks it against the walls before anchoring with it).
 
 Frames: `map` = the stored flight's map frame (z up); `body` and `cam` as in graph.localizer / perception.
@@ -33,13 +33,13 @@ from macroloc.perception.stereo import SgbmMatcher, SgbmParams, keypoint_points,
 
 @dataclass(frozen=True)
 class PlaceMatch:
-    T_map_body: np.ndarray  # 4x4, the stored map's frame
+    T_map_body: np.ndarray  # 4x4, the saved map's frame
     inliers: int
     view: int  # index (into the views given) of the view with the most inliers
 
 
 class PlaceRecognizer:
-    """Describes keyframes for a stored map and places new ones in it (see module doc)."""
+    """Describes keyframes for a saved map and places new ones in it (see module doc)."""
 
     def __init__(self, rig: StereoRig, T_body_cam: np.ndarray, config: PlaceParams | None = None) -> None:
         self.rig = rig
@@ -71,7 +71,7 @@ class PlaceRecognizer:
     # --- placing ----------------------------------------------------------------------------------------------
 
     def use(self, views: list[tuple[np.ndarray, KeyframeView]]) -> None:
-        """The stored views to place new keyframes among: (T_map_body, view) each (StoredMap.placed_views)."""
+        """The stored views to place new keyframes among: (T_map_body, view) each (SavedMap.placed_views)."""
         self._views = [(np.asarray(T, float), v) for T, v in views if len(v.descriptors)]
         n = self.config.vote_per_view
         self._database = BinaryIndex(np.vstack([v.descriptors[:n] for _, v in self._views]) if self._views
@@ -83,7 +83,7 @@ class PlaceRecognizer:
         return bool(self._views)
 
     def place(self, left: np.ndarray, up_body: np.ndarray | None = None) -> PlaceMatch | None:
-        """The body's pose in the stored map from its left image, or None (too few consistent matches, a pose tilted
+        """The body's pose in the saved map from its left image, or None (too few consistent matches, a pose tilted
         from gravity, or two places alike)."""
         c = self.config
         if not self._views:

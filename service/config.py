@@ -213,7 +213,7 @@ class PerceptionConfig(_Section):
     depth: DepthPointsParams = Field(default_factory=lambda: _PERCEPTION.depth,
                                      description="[perception.depth]: the depth points for the walls' checks")
     place: PlaceParams = Field(default_factory=lambda: _PERCEPTION.place,
-                               description="[perception.place]: keyframes placed in a stored map's views")
+                               description="[perception.place]: keyframes placed in a saved map's views")
     inertial: InertialParams = Field(default_factory=lambda: _PERCEPTION.inertial,
                                      description="[perception.inertial]: the IMU's dead reckoning in a replay")
     proposals: ProposalParams = Field(default_factory=lambda: _PERCEPTION.proposals,

@@ -62,7 +62,7 @@ class KeyframePlaces:
 
     def at_frame(self, frame: FlightFrame, T_odom_body: np.ndarray, T_body_cam: np.ndarray,
                  up_body: np.ndarray | None, status: str) -> Placed:
-        """A keyframe's stereo frame: its place in the stored map (while not localized, at most every `every_s`)
+        """A keyframe's stereo frame: its place in the saved map (while not localized, at most every `every_s`)
         and its view (when kept and due). The frame's images are decoded only where that work needs them (once:
         `FlightFrame.images`): none after localizing between views. Nothing from a frame without images or
         calibration (a ground-truth flight's)."""
@@ -83,7 +83,7 @@ class KeyframePlaces:
             match = recognizer.place(left, up_body)
             if match is not None:
                 T_cad_body = self.stored.T_cad_map @ match.T_map_body
-                log.info("keyframe placed in the stored map: %d inliers (stored view %d)", match.inliers, match.view)
+                log.info("keyframe placed in the saved map: %d inliers (stored view %d)", match.inliers, match.view)
         view = None
         if describe:
             view = recognizer.describe(left, right)
