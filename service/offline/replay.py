@@ -203,25 +203,44 @@ def _record(trace: ReplayTrace, t_s: float, est: Estimate, T_true: np.ndarray | 
     trace.n_sightings.append(n_sightings)
 
 
+@dataclass(frozen=True)
+class TraceScore:
+    """What a trace's poses score against its truth, the same for a replay and for a service's poses
+    (service.offline.replay_zenoh): the first frame with a pose in the model (`localized`, `degraded` or `lost`),
+    APE and RPE over the frames with one (CAD frame, no alignment), wrong entries and time."""
+
+    first: int | None
+    ape: ErrorStats
+    rpe_1s: ErrorStats
+    wrong_localizations: int
+    wrong_while_localized_s: float
+
+    @classmethod
+    def of(cls, trace: ReplayTrace) -> TraceScore:
+        t = np.array(trace.t_s)
+        localized_mask = np.array([s in ("localized", "degraded", "lost") and T is not None
+                                   for s, T in zip(trace.status, trace.T_est, strict=True)], dtype=bool)
+        first = int(np.argmax(localized_mask)) if localized_mask.any() else None
+        idx = np.flatnonzero(localized_mask)
+        P_true = np.array([trace.T_true[k] for k in idx]).reshape(-1, 4, 4)
+        P_est = np.array([trace.T_est[k] for k in idx]).reshape(-1, 4, 4)
+        ape = ErrorStats.of(ape_translation(P_true, P_est)) if len(idx) else ErrorStats.of(np.zeros(0))
+        rate = max(1, int(round(1.0 / np.median(np.diff(t))))) if len(t) > 1 else 1
+        rpe = ErrorStats.of(rpe_translation(P_true, P_est, delta=rate)) if len(idx) else ErrorStats.of(np.zeros(0))
+        return cls(first, ape, rpe, _wrong_localizations(trace), _wrong_while_localized_s(trace))
+
+
 def _score(trace: ReplayTrace, localizer: Localizer, busy_s: float, busy_at_localized: float | None) -> ReplayResult:
     t = np.array(trace.t_s)
-    localized_mask = np.array([s in ("localized", "degraded", "lost") and T is not None
-                               for s, T in zip(trace.status, trace.T_est, strict=True)])
-    first = int(np.argmax(localized_mask)) if localized_mask.any() else None
-    idx = np.flatnonzero(localized_mask)
-    P_true = np.array([trace.T_true[k] for k in idx]).reshape(-1, 4, 4)
-    P_est = np.array([trace.T_est[k] for k in idx]).reshape(-1, 4, 4)
-    ape = ErrorStats.of(ape_translation(P_true, P_est)) if len(idx) else ErrorStats.of(np.zeros(0))
-    rate = max(1, int(round(1.0 / np.median(np.diff(t))))) if len(t) > 1 else 1
-    rpe = ErrorStats.of(rpe_translation(P_true, P_est, delta=rate)) if len(idx) else ErrorStats.of(np.zeros(0))
+    score = TraceScore.of(trace)
     kf_ms = [m for m, k in zip(trace.update_ms, trace.keyframe, strict=True) if k]
     links = localizer.links
     truth_of = _truth_ids(localizer)
     return ReplayResult(
-        frames=len(t), processing_fps=len(t) / max(busy_s, 1e-9), localized=first is not None,
-        time_to_localize_s=None if first is None else float(t[first]),
-        processing_to_localize_s=busy_at_localized, ape=ape, rpe_1s=rpe,
-        wrong_localizations=_wrong_localizations(trace), wrong_while_localized_s=_wrong_while_localized_s(trace),
+        frames=len(t), processing_fps=len(t) / max(busy_s, 1e-9), localized=score.first is not None,
+        time_to_localize_s=None if score.first is None else float(t[score.first]),
+        processing_to_localize_s=busy_at_localized, ape=score.ape, rpe_1s=score.rpe_1s,
+        wrong_localizations=score.wrong_localizations, wrong_while_localized_s=score.wrong_while_localized_s,
         status_final=trace.status[-1],
         keyframes=localizer.graph.n_keyframes, landmarks=len(localizer.landmarks), cad_links=len(links),
         wrong_links=sum(1 for j, fid in links.items() if truth_of.get(j) not in (None, fid)),

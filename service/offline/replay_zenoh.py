@@ -26,12 +26,11 @@ import numpy as np
 import zenoh
 
 from macroloc.graph.errors import UserInputError
-from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.proto.keys import Keys, declare_publisher
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import FlightFrame, matrix_from_pose, read_flight
 from macroloc.service.config import ZenohConfig
-from macroloc.service.offline.replay import WRONG_ROT_DEG, WRONG_TRANS_M
+from macroloc.service.offline.replay import ReplayTrace, TraceScore
 from macroloc.service.offline.replay_sources import TruthSource
 from macroloc.service.offline.vehicle import RecordedVehicle
 
@@ -45,26 +44,39 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class ZenohReplayResult:
+    """The service's poses of each frame's stamp scored as the offline replay scores its own
+    (service.offline.replay.TraceScore), and what the service's status, map and last pose say."""
+
     frames: int = 0
     poses: int = 0
     duration_s: float = 0.0  # wall clock of the playback
     localized: bool = False
-    time_to_localize_s: float | None = None  # recording time of the first LOCALIZED pose
-    ape_rmse_m: float | None = None  # localized poses vs ground truth, CAD frame, no alignment
+    time_to_localize_s: float | None = None  # recording time of the first pose in the model
+    ape_rmse_m: float | None = None  # poses in the model vs ground truth, CAD frame, no alignment
+    ape_max_m: float | None = None
+    rpe_1s_rmse_m: float | None = None
     latency_ms: dict[str, float] = field(default_factory=dict)  # frame published -> its pose received
     odometry: str = "none"  # what the vehicle's odometry was: source, recorded, simulated or none
     wrong_localizations: int = 0  # entries into LOCALIZED with a pose WRONG_TRANS_M / WRONG_ROT_DEG off the truth
+    wrong_while_localized_s: float = 0.0  # flight time LOCALIZED that far off
     keyframes: int | None = None  # the service's last status: keyframes in its graph
+    landmarks: int | None = None  # ... its landmarks
     status_final: str | None = None  # ... and its localization status
+    cad_links: int | None = None  # the service's map at the end: landmarks linked to a CAD feature
+    position_sigma_final_m: float | None = None  # the last pose's covariance: largest position sigma
     # the service's last pose of each frame's stamp: (status, T_cad_body or None), for comparing runs (not in JSON)
     poses_cad: dict[int, tuple[str, np.ndarray | None]] = field(default_factory=dict, repr=False)
 
     def to_json(self) -> dict:
         return {"frames": self.frames, "poses": self.poses, "duration_s": round(self.duration_s, 3),
+                "processing_fps": round(self.frames / self.duration_s, 1) if self.duration_s > 0 else None,
                 "odometry": self.odometry,
                 "localized": self.localized, "time_to_localize_s": self.time_to_localize_s,
-                "ape_rmse_m": self.ape_rmse_m, "wrong_localizations": self.wrong_localizations,
-                "keyframes": self.keyframes, "status_final": self.status_final,
+                "ape_rmse_m": self.ape_rmse_m, "ape_max_m": self.ape_max_m, "rpe_1s_rmse_m": self.rpe_1s_rmse_m,
+                "wrong_localizations": self.wrong_localizations,
+                "wrong_while_localized_s": round(self.wrong_while_localized_s, 3),
+                "keyframes": self.keyframes, "landmarks": self.landmarks, "cad_links": self.cad_links,
+                "status_final": self.status_final, "position_sigma_final_m": self.position_sigma_final_m,
                 "latency_ms": {k: round(v, 3) for k, v in self.latency_ms.items()}}
 
 
@@ -198,7 +210,12 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
         time.sleep(0.3)  # a status sent after the last event (every [service] status_period_s)
         if last_status.status is not None:
             result.keyframes = last_status.status.keyframes
+            result.landmarks = last_status.status.landmarks
             result.status_final = pb.PoseEstimate.Status.Name(last_status.status.status).lower()
+        for reply in session.get(keys.map, timeout=5.0):  # the service's map: its landmarks linked to the model
+            if reply.ok is not None:
+                snapshot = pb.MapSnapshot.FromString(reply.ok.payload.to_bytes())
+                result.cad_links = sum(1 for lm in snapshot.landmarks_map if lm.id)
         for pub in pubs.values():
             pub.undeclare()
     _score(result, poses.poses, sent_at, truth, first_stamp or 0)
@@ -215,22 +232,31 @@ def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, fl
     if latencies:
         result.latency_ms = {"p50": float(np.percentile(latencies, 50)), "p99": float(np.percentile(latencies, 99)),
                              "n": float(len(latencies))}
-    localized = sorted(s for s, (p, _) in poses.items() if p.status == pb.PoseEstimate.LOCALIZED)
-    result.localized = bool(localized)
-    if localized:
-        result.time_to_localize_s = round((localized[0] - first_stamp) * 1e-9, 3)
-        errors = [np.linalg.norm(matrix_from_pose(poses[s][0].T_cad_body)[:3, 3] - truth[s][:3, 3])
-                  for s in localized if s in truth]
-        if errors:
-            result.ape_rmse_m = round(float(np.sqrt(np.mean(np.square(errors)))), 4)
-    before = pb.PoseEstimate.EXPLORING
-    for stamp in sorted(poses):  # as replay's: entries into LOCALIZED at a wrong pose
-        status = poses[stamp][0].status
-        if status == pb.PoseEstimate.LOCALIZED and before != status and stamp in truth:
-            d = np.linalg.inv(truth[stamp]) @ matrix_from_pose(poses[stamp][0].T_cad_body)
-            result.wrong_localizations += int(np.linalg.norm(d[:3, 3]) > WRONG_TRANS_M or
-                                              rotation_angle_deg(d[:3, :3]) > WRONG_ROT_DEG)
-        before = status
+    frames = sorted(sent_at)  # each frame's last pose at its stamp, as the offline replay records its own
+    trace = ReplayTrace()
+    for stamp in frames:
+        pose = poses.get(stamp)
+        trace.t_s.append((stamp - first_stamp) * 1e-9)
+        trace.status.append("exploring" if pose is None else pb.PoseEstimate.Status.Name(pose[0].status).lower())
+        trace.T_est.append(matrix_from_pose(pose[0].T_cad_body) if pose is not None and pose[0].HasField("T_cad_body")
+                           else None)
+        trace.T_true.append(truth.get(stamp, np.full((4, 4), np.nan)))
+    if not frames:
+        return
+    score = TraceScore.of(trace)
+    result.localized = score.first is not None
+    if score.first is not None:
+        result.time_to_localize_s = round(trace.t_s[score.first], 3)
+    if score.ape.n:
+        result.ape_rmse_m, result.ape_max_m = round(score.ape.rmse, 4), round(score.ape.max, 4)
+    if score.rpe_1s.n:
+        result.rpe_1s_rmse_m = round(score.rpe_1s.rmse, 4)
+    result.wrong_localizations, result.wrong_while_localized_s = score.wrong_localizations, \
+        score.wrong_while_localized_s
+    last = poses.get(frames[-1])
+    if last is not None and len(last[0].covariance) == 36:  # 6x6, [rot; trans]: the lower right 3x3
+        cov = np.asarray(last[0].covariance, float).reshape(6, 6)
+        result.position_sigma_final_m = round(float(np.sqrt(np.max(np.linalg.eigvalsh(cov[3:, 3:])))), 4)
 
 
 def replay_command(flight: Iterable[FlightFrame], options: ReplayOptions, connect: list[str], vehicle: str,

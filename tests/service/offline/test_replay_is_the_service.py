@@ -60,3 +60,9 @@ def test_a_perceived_flight_gives_the_same_estimates_offline_and_through_the_ser
             compared += 1
     assert served.localized and offline.localized and compared > 20
     assert served.time_to_localize_s == pytest.approx(offline.time_to_localize_s, abs=1e-3)
+    # the over-Zenoh JSON carries the offline one's figures, scored alike
+    ours, theirs = offline.to_json(), served.to_json()
+    for key in ("ape_rmse_m", "ape_max_m", "rpe_1s_rmse_m", "wrong_while_localized_s", "position_sigma_final_m"):
+        assert theirs[key] == pytest.approx(ours[key], abs=1e-3), key
+    for key in ("localized", "wrong_localizations", "keyframes", "landmarks", "cad_links", "status_final"):
+        assert theirs[key] == ours[key], key
