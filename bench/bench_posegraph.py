@@ -25,7 +25,7 @@ from macroloc.graph.localizer import Localizer, Sighting
 from macroloc.graph.posegraph import IsamSettings
 from macroloc.graph.registrar import SavedMapRegistrar
 from macroloc.graph.relocalize import KnownRect
-from macroloc.service.session import make_localizer
+from macroloc.service.localizer_loop import make_localizer
 
 LOOP_X_M, LOOP_Y_M, STEP_M = 40.0, 20.0, 0.3
 WALL_FIT_INFORMATION = np.diag(np.r_[np.full(3, 0.02**-2), np.full(3, 0.03**-2)])  # [rot; trans] a wall fit's

@@ -12,7 +12,7 @@ from macroloc.graph.rigid import rotation_angle_rad
 
 @dataclass(frozen=True)
 class KeyframeRule(Parameters):
-    """Which frames become keyframes, for every driver of the localizer (service.session): a new keyframe after
+    """Which frames become keyframes, for every driver of the localizer (service.localizer_loop): a new keyframe after
     enough motion, turn or time since the last one, for every frame (measured in docs/measurements.md, "One keyframe
     rule for replay and service"), with two options the service used to add (`while_exploring`,
     `without_sightings_m`)."""

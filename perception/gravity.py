@@ -66,7 +66,7 @@ class GravityEstimator:
 class ImuGravity:
     """Gravity's up from the IMU and the odometry as they arrive: `imu` adds specific forces, `odometry` takes those
     that came since the previous pose, with the pose, into the `GravityEstimator`. The rule for what `up_body` holds
-    after a pose (the service and a replay alike, through service.session.LocalizationSession):
+    after a pose (the service and a replay alike, through service.localizer_loop.LocalizerLoop):
     - samples came, and the estimator gives up: that up;
     - samples came, and it gives none (each sample a knock or a free fall, or the odometry jumped): None, up unknown
       (the localizer then adds no roll/pitch prior) until a later pose gives one;

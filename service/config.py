@@ -270,7 +270,7 @@ class GraphConfig(_Section):
         "a wall or column of the model; turn off for a model whose glass partitions are modelled as walls")
     keyframes: KeyframeRule = Field(default_factory=KeyframeRule,
                                     description="[graph.keyframes]: which frames become keyframes, the service and "
-                                    "replay alike (service/session.py)")
+                                    "replay alike (service/localizer_loop.py)")
     odometry: OdometryFactorParams = Field(default_factory=lambda: _LOCALIZER.odometry,
                                            description="[graph.odometry]: the odometry between keyframes")
     landmarks: LandmarkParams = Field(default_factory=lambda: _LOCALIZER.landmarks,

@@ -2,7 +2,7 @@
 arrival).
 
 A frame's pose goes out as soon as the frame arrives, from its intake thread: the odometry at its stamp
-(`OdometryBuffer`) moved by the newest keyframe's estimate (`service.session.PoseSnapshot`): what the session
+(`OdometryBuffer`) moved by the newest keyframe's estimate (`service.localizer_loop.PoseSnapshot`): what the session
 gives any frame between keyframes, without waiting for the worker, which perceives the frame and updates the
 pose graph meanwhile (a frame's perception and a keyframe's registration take longer than a camera period on two
 cores). In lock-step the worker answers each frame itself, after perceiving it (service.node).

@@ -114,7 +114,7 @@ class StereoDepth:
 
     def deferred(self, left: np.ndarray, right: np.ndarray, rig,  # noqa: ANN001 - StereoRig
                  T_body_cam: np.ndarray) -> Callable[[], np.ndarray] | None:
-        """`at_keyframes`: this frame's points, measured when called (service.session calls it for a keyframe);
+        """`at_keyframes`: this frame's points, measured when called (service.localizer_loop calls it for a keyframe);
         else None. The images must not change until then."""
         if not self.at_keyframes or not self.every:
             return None

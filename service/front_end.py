@@ -4,15 +4,15 @@ offline replay hands it the same events made from a recording (service.offline.r
 path the service runs.
 
 `FrontEnd.handle(event)` takes the typed events of service.inputs, in the order the vehicle sent them:
-- `ImuIn`: a specific force sample, to the session (gravity's up with the next odometry pose: perception.gravity).
-- `OdometryIn`: the vehicle's odometry pose: buffered by stamp, to the session, then the sightings that waited for
+- `ImuIn`: a specific force sample, to the loop (gravity's up with the next odometry pose: perception.gravity).
+- `OdometryIn`: the vehicle's odometry pose: buffered by stamp, to the loop, then the sightings that waited for
   it, then a frame of its own (no sightings).
 - `ObservationsIn`: doors/windows sent by the vehicle (body, left-camera or odometry frame): a frame at the
   odometry pose of their stamp, kept pending until that pose arrives.
 - `StereoIn`: a stereo frame, once each: decoded, its camera geometry taken from its CameraInfo, perceived (every
   `perceive_every`-th frame: the cadence, the same in serve and replay), its depth points (the vehicle's depth image
   where the frame carries one and the model's walls are known, else the pipeline's stereo depth, measured when it
-  becomes a keyframe), place recognition (service.places), then the session's update at the odometry pose of its
+  becomes a keyframe), place recognition (service.places), then the loop's update at the odometry pose of its
   stamp.
 - `PriorIn` (the operator's prior, graph.prior) and `ClockReset` (the vehicle's clock restarted).
 
@@ -61,9 +61,9 @@ from macroloc.service.inputs import (
     PriorIn,
     StereoIn,
 )
+from macroloc.service.localizer_loop import FrameIn, LocalizerLoop, loop_from_config
 from macroloc.service.places import KeyframePlaces, Placed
 from macroloc.service.saved_map import STATUS_TO_WIRE, SavedMap, map_snapshot, saved_views, supersedes
-from macroloc.service.session import FrameIn, LocalizationSession, session_from_config
 from macroloc.service.visual_odometry import VisualOdometry
 
 if TYPE_CHECKING:
@@ -99,12 +99,12 @@ class FrontEndParams:
 
 
 class FrontEnd:
-    """See module doc: the vehicle's events into frames of its `LocalizationSession` (service.session): odometry by
+    """See module doc: the vehicle's events into frames of its `LocalizerLoop` (service.localizer_loop): odometry by
     stamp, sightings waiting for the odometry of their stamp, stereo frames perceived; the IMU and each odometry
-    sample go to the session as they come (it estimates gravity's up). One thread only (the service's worker, the
+    sample go to the localizer loop as they come (it estimates gravity's up). One thread only (the service's worker, the
     replay's loop)."""
 
-    def __init__(self, model: BuildingModel, session: LocalizationSession,
+    def __init__(self, model: BuildingModel, loop: LocalizerLoop,
                  T_body_cam: np.ndarray | None = None, pipeline: FramePipeline | None = None,
                  params: FrontEndParams | None = None, visual: VisualOdometry | None = None) -> None:
         """`T_body_cam`: the left camera in the body frame, for sightings sent in the cam_left frame; `pipeline`:
@@ -113,7 +113,7 @@ class FrontEnd:
         odometry strategy where the vehicle sends none (service.visual_odometry: the stereo frames and the IMU),
         whose own depth points then serve."""
         self.model = model
-        self.session = session
+        self.loop = loop
         self.T_body_cam = np.eye(4) if T_body_cam is None else T_body_cam
         self.pipeline: FramePipeline = pipeline or NullPipeline()
         self.params = params or FrontEndParams()
@@ -134,22 +134,22 @@ class FrontEnd:
                           cfg: MacrolocConfig | None = None,
                           surfaces: SurfaceIndex | None = None, pipeline: FramePipeline | None = None,
                           T_body_cam: np.ndarray | None = None) -> FrontEnd:
-        """The front end on a session from the config (service.session.session_from_config; the defaults, with the
-        environment's MACROLOC_* over them, without one), with covariance; `surfaces`: the model's walls, to check
-        registrations against the frames' depth (graph.surfaces)."""
+        """The front end on a localizer loop from the config (service.localizer_loop.loop_from_config; the defaults,
+        with the environment's MACROLOC_* over them, without one), with covariance; `surfaces`: the model's walls, to
+        check registrations against the frames' depth (graph.surfaces)."""
         cfg = cfg or MacrolocConfig()
         chain = cfg.perception.to_params()
         params = FrontEndParams.configured(cfg)
         shared = pipeline.disparity if pipeline is not None else None
         visual = VisualOdometry(shared, chain) if cfg.service.odometry == "visual" else None  # type: ignore[arg-type]
 
-        def front_end(session: LocalizationSession) -> FrontEnd:
-            return cls(model, session, T_body_cam, pipeline, params, visual)
+        def front_end(loop: LocalizerLoop) -> FrontEnd:
+            return cls(model, loop, T_body_cam, pipeline, params, visual)
 
         if snapshot is None:
-            return front_end(session_from_config(cfg, model, surfaces=surfaces, covariance=True))
+            return front_end(loop_from_config(cfg, model, surfaces=surfaces, covariance=True))
         saved = snapshot if isinstance(snapshot, SavedMap) else SavedMap.from_snapshot(snapshot, model)
-        restored = front_end(session_from_config(cfg, model, saved=saved, surfaces=surfaces, covariance=True))
+        restored = front_end(loop_from_config(cfg, model, saved=saved, surfaces=surfaces, covariance=True))
         restored.restored = saved
         restored.places = KeyframePlaces(saved, keep_views=True, config=params.place)
         return restored
@@ -157,31 +157,31 @@ class FrontEnd:
     # --- inputs -------------------------------------------------------------------------------------------------
 
     def imu(self, ev: ImuIn) -> None:
-        """A specific force sample, to the session: with the next odometry sample it gives up in the body frame;
+        """A specific force sample, to the localizer loop: with the next odometry sample it gives up in the body frame;
         kept for the visual odometry's next frame where it runs."""
-        self.session.imu(np.asarray(ev.accel_mps2, float))
+        self.loop.imu(np.asarray(ev.accel_mps2, float))
         if self.visual is not None:
             imu = pb.Imu(accel_mps2=vector3(ev.accel_mps2), gyro_radps=vector3(ev.gyro_radps))
             imu.header.stamp_ns = ev.stamp_ns
             self._imu.append(imu)
 
     def odometry(self, ev: OdometryIn) -> Estimate:
-        """An odometry sample: to the session (gravity's up), then the sightings that waited for it, then its own
+        """An odometry sample: to the localizer loop (gravity's up), then the sightings that waited for it, then its own
         frame (no sightings)."""
         self._odometry_pose(ev.stamp_ns, ev.T_map_body)
-        return self.session.frame(FrameIn(ev.stamp_ns, ev.T_map_body, []))
+        return self.loop.frame(FrameIn(ev.stamp_ns, ev.T_map_body, []))
 
     def _odometry_pose(self, stamp_ns: int, T_odom_body: np.ndarray) -> None:
-        """An odometry pose (the vehicle's, or the visual odometry's of a stereo frame): to the session (gravity's
+        """An odometry pose (the vehicle's, or the visual odometry's of a stereo frame): to the loop (gravity's
         up) and the buffer, then the sightings that waited for it, each a frame at its own stamp."""
-        self.session.odometry(stamp_ns, T_odom_body)
+        self.loop.odometry(stamp_ns, T_odom_body)
         self._odometry.add(stamp_ns, T_odom_body)
         if self._pending:  # sightings waiting for this odometry (keys arrive through separate channels)
             pending, self._pending = self._pending, []
             for p in pending:
                 T_odom_at = self.odometry_at(p.stamp_ns)
                 if T_odom_at is not None:
-                    self.session.frame(FrameIn(p.stamp_ns, T_odom_at, p.to_body(T_odom_at)))
+                    self.loop.frame(FrameIn(p.stamp_ns, T_odom_at, p.to_body(T_odom_at)))
                 elif p.stamp_ns < stamp_ns - ODOMETRY_MATCH_NS:
                     self.unmatched += 1
                 else:
@@ -192,14 +192,14 @@ class FrontEnd:
         for their odometry, the keyframe timer); the graph, its landmarks and T_cad_map stay."""
         self._odometry.clear()
         self._pending.clear()
-        self.session.new_time_base()  # with gravity's history: it differentiates the odometry over stamps
+        self.loop.new_time_base()  # with gravity's history: it differentiates the odometry over stamps
 
     def depth(self, stamp_ns: int, points_body: np.ndarray) -> None:
         """Depth points (N, 3, body frame) measured at stamp_ns: given to the next keyframe, for the surface check
         of registrations (graph.surfaces). Without odometry at that stamp they are dropped."""
         T_odom_body = self.odometry_at(stamp_ns)
         if T_odom_body is not None:
-            self.session.add_depth(T_odom_body, points_body)
+            self.loop.add_depth(T_odom_body, points_body)
 
     def observations(self, ev: ObservationsIn) -> Estimate | None:
         """Sightings from the wire (body, left-camera or odometry frame): a frame at the odometry pose of their
@@ -213,7 +213,7 @@ class FrontEnd:
     def stereo(self, ev: StereoIn) -> Estimate | None:
         """A stereo frame (see module doc), its images decoded once, where the work needs them: its odometry where
         the visual odometry runs, perceived where the cadence says, its depth points and place, then a frame of the
-        session at the odometry pose of its stamp. Without that pose, its sightings wait for it (its depth and
+        localizer loop at the odometry pose of its stamp. Without that pose, its sightings wait for it (its depth and
         place are dropped) and the answer is the pose tracked at the last estimate's (None before any).
         `sightings` holds what it perceived."""
         frame, stamp_ns = ev.frame, ev.stamp_ns
@@ -236,7 +236,7 @@ class FrontEnd:
             measure_depth = self.stereo_depth.deferred(left, right, stereo_rig(frame), T_body_cam)
         due = self._stereo_frames % self.params.perceive_every == 0
         self._stereo_frames += 1
-        up_body = self.up_body  # the session's, from the IMU: which way is down for the chain
+        up_body = self.up_body  # the loop's, from the IMU: which way is down for the chain
         self.sightings = self.pipeline(frame, up_body, flight_frame.images) if due else []
         if frame.HasField("depth") and self.localizer.surfaces is not None:  # the vehicle's depth image
             d = self.params.depth
@@ -246,9 +246,9 @@ class FrontEnd:
             if self.sightings:
                 sightings = self.sightings
                 self._sightings_frame(stamp_ns, lambda _: sightings)
-            return None if self.last is None else self.session.pose_at(stamp_ns, self.last.T_map_body)
+            return None if self.last is None else self.loop.pose_at(stamp_ns, self.last.T_map_body)
         placed = self._place(flight_frame, T_odom_body, T_body_cam, up_body)
-        return self.session.frame(FrameIn(stamp_ns, T_odom_body, self.sightings, points_body=points_body,
+        return self.loop.frame(FrameIn(stamp_ns, T_odom_body, self.sightings, points_body=points_body,
                                           dead_reckoned_s=dead_reckoned_s, placed=placed,
                                           measure_depth=measure_depth))
 
@@ -285,7 +285,7 @@ class FrontEnd:
                 self._pending.pop(0)
                 self.unmatched += 1
             return None
-        return self.session.frame(FrameIn(stamp_ns, T_odom_body, to_body(T_odom_body)))
+        return self.loop.frame(FrameIn(stamp_ns, T_odom_body, to_body(T_odom_body)))
 
     def prior(self, ev: PriorIn) -> str | None:
         """The operator's prior (graph.prior) to the localizer: a pose becomes T_cad_map = T_cad_body times the inverse
@@ -305,7 +305,7 @@ class FrontEnd:
                 return "initialpose/no_odometry"
             T_cad_map = ev.T_cad_body @ np.linalg.inv(T_odom_body)
         prior = PosePrior(T_cad_map, ev.sigma_xy_m, ev.sigma_yaw_rad, ev.storey, band)
-        self.session.localizer.set_prior(prior)
+        self.loop.localizer.set_prior(prior)
         log.info("operator's prior: %s (%s)", prior.describe(), self.status)
         return None
 
@@ -324,17 +324,17 @@ class FrontEnd:
 
     @property
     def localizer(self) -> Localizer:
-        return self.session.localizer
+        return self.loop.localizer
 
     @property
     def last(self) -> Estimate | None:
         """The newest estimate (a late keyframe for an older stamp does not replace a newer pose)."""
-        return self.session.last
+        return self.loop.last
 
     @property
     def graph_restarts(self) -> int:
         """Times the pose graph failed (indeterminate, non-finite) and started afresh."""
-        return self.session.restarts
+        return self.loop.restarts
 
     @property
     def status(self) -> str:
@@ -350,8 +350,8 @@ class FrontEnd:
 
     @property
     def up_body(self) -> np.ndarray | None:
-        """Gravity's up in the body frame at the newest odometry sample (the session's), when known."""
-        return self.session.up_body
+        """Gravity's up in the body frame at the newest odometry sample (the loop's), when known."""
+        return self.loop.up_body
 
     def snapshot(self, building: str, sha256: str) -> pb.MapSnapshot:
         """The map as saved and served (service.saved_map.map_snapshot)."""
@@ -368,8 +368,8 @@ class FrontEnd:
 
 def make_front_end(cfg: MacrolocConfig, model: BuildingModel, surfaces: SurfaceIndex | None,
                    snapshot: pb.MapSnapshot | SavedMap | None = None) -> FrontEnd:
-    """THE factory of the per-frame path, the one `serve` and `replay` build: the session from the config, with
-    covariance (service.session.session_from_config), restored from a saved map where given, the perception chain
+    """THE factory of the per-frame path, the one `serve` and `replay` build: the localizer loop from the config, with
+    covariance (service.localizer_loop.loop_from_config), restored from a saved map where given, the perception chain
     where [service] perception asks for it (service.frames.configured_pipeline), [perception] detect_every's
     cadence; `surfaces`: the model's walls ([graph] surface_check), None without."""
     return FrontEnd.fresh_or_restored(model, snapshot, cfg, surfaces, configured_pipeline(cfg))

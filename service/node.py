@@ -251,7 +251,7 @@ class LocalizationService:
 
     def _answer_frame(self, ev: StereoIn) -> None:
         """The frame's pose at once, on its intake thread (service.frame_answers); the worker perceives it later."""
-        snapshot, T_odom_body = self.front_end.session.snapshot, self._odometry.at(ev.stamp_ns, newest_if_later=True)
+        snapshot, T_odom_body = self.front_end.loop.snapshot, self._odometry.at(ev.stamp_ns, newest_if_later=True)
         est = snapshot.at(ev.stamp_ns, T_odom_body) if snapshot is not None and T_odom_body is not None else \
             Estimate(ev.stamp_ns, self.front_end.status, np.eye(4))
         self._publish_pose(est)
@@ -380,9 +380,9 @@ class LocalizationService:
         if est.stamp_ns >= self._last_pose_ns:
             self._publish(est)
             return
-        stamp_ns, snapshot = self._last_pose_ns, self.front_end.session.snapshot
+        stamp_ns, snapshot = self._last_pose_ns, self.front_end.loop.snapshot
         T_odom_body = self._odometry.at(stamp_ns, newest_if_later=True)
-        if self.front_end.session.keyframe and snapshot is not None and T_odom_body is not None:
+        if self.front_end.loop.keyframe and snapshot is not None and T_odom_body is not None:
             self._publish(snapshot.at(stamp_ns, T_odom_body))
 
     def _publish_pose(self, est: Estimate) -> None:

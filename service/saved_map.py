@@ -41,7 +41,7 @@ from macroloc.graph.registrar import FirstOfRegistrar, Registrar
 from macroloc.graph.relocalize import Alignment, KnownRect, ObservedRect
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import matrix_from_pose, pose_from_matrix, vector3
-from macroloc.service.session import SessionSettings
+from macroloc.service.localizer_loop import LoopSettings
 from macroloc.service.state import SavedMapFile, view_from_wire, view_to_wire
 
 log = logging.getLogger(__name__)
@@ -93,13 +93,13 @@ class SavedMap:
         return self.views
 
     def registrar(self, model: BuildingModel,
-                  with_surfaces: bool = False) -> Callable[[SessionSettings], Registrar]:
+                  with_surfaces: bool = False) -> Callable[[LoopSettings], Registrar]:
         """The registrar of a run started from this map, from the session's settings (for
-        service.session.session_from_config): `RestoredRegistrar`."""
+        service.localizer_loop.loop_from_config): `RestoredRegistrar`."""
         log.info("starting from a saved map: %d linked landmarks, %d keyframe views, T_cad_map %s", len(self.linked),
                  len(self.views), "saved" if self.T_cad_map is not None else "absent")
 
-        def restored(s: SessionSettings) -> Registrar:
+        def restored(s: LoopSettings) -> Registrar:
             fallback = model_registrar(model, s.localizer.registration, s.storey_hint, with_surfaces, s.method)
             return RestoredRegistrar(model, self.T_cad_map, self.linked, fallback, params=s.localizer,
                                      with_surfaces=with_surfaces)

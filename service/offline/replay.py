@@ -153,7 +153,7 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
             if event is None:
                 continue
             answer = front_end.handle(event)
-            if answer is not None and front_end.session.keyframe:
+            if answer is not None and front_end.loop.keyframe:
                 keyframe, update_ms = True, max(update_ms, answer.update_ms)
             if isinstance(event, ObservationsIn) and event.frame_id == "body":
                 sent += [Sighting(o.type, o.corners) for o in event.features if o.corners is not None]

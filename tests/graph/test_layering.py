@@ -78,7 +78,7 @@ def test_the_running_service_never_imports_offline() -> None:
 def test_the_rooms_exist() -> None:
     """A guard on the tests above: the folders they read are where they look."""
     assert (ROOT / "service" / "offline" / "replay.py").is_file()
-    assert (ROOT / "service" / "session.py").is_file()
+    assert (ROOT / "service" / "front_end.py").is_file() and (ROOT / "service" / "localizer_loop.py").is_file()
     assert (ROOT / "proto" / "recording.py").is_file()
     assert (ROOT / "cli" / "main.py").is_file()
     assert (ROOT / "sim" / "agent.py").is_file()

@@ -19,7 +19,7 @@ from macroloc.graph.errors import UserInputError
 from macroloc.graph.keyframes import KeyframeRule
 from macroloc.graph.params import IsamSettings, LocalizerParams
 from macroloc.service.config import LEGACY_GRAPH_KEYS, GraphConfig, MacrolocConfig, load_config
-from macroloc.service.session import SessionSettings, settings_from_config
+from macroloc.service.localizer_loop import LoopSettings, settings_from_config
 
 TABLES = [name for name, f in GraphConfig.model_fields.items() if dataclasses.is_dataclass(f.annotation)]
 
@@ -38,7 +38,7 @@ def _other(value: object) -> object:
     return value * 0.5 + 0.0625 if value <= 1.0 else value * 1.5 + 0.125  # fractions stay fractions
 
 
-def _leaves(settings: SessionSettings) -> list[object]:
+def _leaves(settings: LoopSettings) -> list[object]:
     def flat(x: object) -> list[object]:
         return [v for item in x for v in flat(item)] if isinstance(x, tuple) else [x]
 
@@ -52,7 +52,7 @@ def _toml(value: object) -> str:
 def test_the_default_graph_section_is_the_components_defaults() -> None:
     """No key set: the localizer's, the keyframe rule's and iSAM2's own defaults, as before the tables."""
     s = settings_from_config(MacrolocConfig().graph)
-    assert s == SessionSettings()
+    assert s == LoopSettings()
     assert s.localizer == LocalizerParams() and s.isam == IsamSettings(relinearize_threshold=0.01)
     assert s.rule == KeyframeRule(0.25, 0.15, 0.34, while_exploring=False, without_sightings_m=0.0)
     assert s.localizer.registration.inlier_threshold_m == 0.6 and s.storey_hint is None

@@ -33,7 +33,7 @@ def test_the_configured_gravity_estimate_is_the_backend_s_also_after_a_new_time_
 
     cfg = load_config(None, perception={"gravity": {"window_s": 2.0, "max_specific_force_mps2": 12.0}})
     backend = FrontEnd.fresh_or_restored(duplex_model, None, cfg)
-    gravity = backend.session.gravity
+    gravity = backend.loop.gravity
     assert gravity.params.window_s == 2.0 and gravity.params.max_specific_force_mps2 == 12.0
     backend.new_time_base()
-    assert backend.session.gravity._estimator.params.window_s == 2.0
+    assert backend.loop.gravity._estimator.params.window_s == 2.0

@@ -14,8 +14,8 @@ from macroloc.graph.localizer import Localizer, LocalizerParams
 from macroloc.graph.mapstore import KeyframeView
 from macroloc.graph.posegraph import PoseGraph
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
+from macroloc.service.localizer_loop import LoopSettings
 from macroloc.service.saved_map import SavedMap, read_saved_map, saved_map_of, write_saved_map
-from macroloc.service.session import SessionSettings
 from macroloc.service.state import SavedMapFile
 from tests.graph.corridor_flight import UP, fly, model_registrar
 from tests.graph.scenes import corridor_model, make_T, rot_z, sightings_from, straight_flight
@@ -31,7 +31,7 @@ def test_a_saved_map_re_localizes_a_new_flight_by_the_doors_it_linked(tmp_path: 
     saved = read_saved_map(write_saved_map(tmp_path / "flight.pb", first, None, None, "corridor"), CORRIDOR)
     assert len(saved.linked) == len(first.links) > 3 and saved.T_cad_map is not None
     T_odom_cad = make_T(rot_z(-1.2), np.array([-4.0, 7.0, 0.0]))
-    registrar = saved.registrar(CORRIDOR)(SessionSettings())
+    registrar = saved.registrar(CORRIDOR)(LoopSettings())
     loc = Localizer(CORRIDOR, PoseGraph(), registrar, LocalizerParams())
     rng = np.random.default_rng(5)
     for k, T in enumerate(poses[:6]):

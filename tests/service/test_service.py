@@ -302,7 +302,7 @@ def test_the_service_takes_the_configured_perception_parameters(office_path, tmp
     assert front_end.params.place is not None and front_end.params.place.min_inliers == 55
     assert front_end.places.config == front_end.params.place
     assert front_end.params.depth.depth_image_stride_px == 12 and front_end.params.perceive_every == 2
-    assert front_end.session.gravity.params.window_s == 1.5
+    assert front_end.loop.gravity.params.window_s == 1.5
     assert front_end.visual is not None
 
 

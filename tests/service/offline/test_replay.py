@@ -231,8 +231,8 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
     from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
     from macroloc.proto.recording import pose_from_matrix
     from macroloc.service.front_end import FrontEnd
+    from macroloc.service.localizer_loop import FrameIn
     from macroloc.service.places import Placed
-    from macroloc.service.session import FrameIn
     from macroloc.service.state import view_to_wire
     from tests.graph.scenes import corridor_model, make_T, rot_z
 
@@ -251,7 +251,7 @@ def test_a_restored_maps_views_place_the_run_and_are_carried_where_it_has_none()
     assert backend.restored is not None and len(backend.restored.placed_views()) == 2
     assert not backend.supersedes_saved()  # not localized yet: the saved map is kept
     T_odom_body = make_T(rot_z(-0.7), np.array([3.0, 4.0, 1.4]))  # the new run's odometry frame is another one
-    est = backend.session.frame(FrameIn(10, T_odom_body, placed=Placed(T_cad_map_old @ here, view())))
+    est = backend.loop.frame(FrameIn(10, T_odom_body, placed=Placed(T_cad_map_old @ here, view())))
     assert est.status == "localized" and est.T_cad_body is not None
     assert np.allclose(est.T_cad_body, T_cad_map_old @ here, atol=1e-6)
     assert backend.supersedes_saved()
@@ -281,7 +281,7 @@ def test_the_graph_section_reaches_the_localizer(tmp_path: Path) -> None:
     """Every [graph] key the config documents for the localizer is the localizer's, from a config file (the
     service and the replay both build their localizer from it)."""
     from macroloc.service.config import load_config
-    from macroloc.service.session import settings_from_config
+    from macroloc.service.localizer_loop import settings_from_config
 
     path = tmp_path / "config.toml"
     path.write_text("[graph.anchor]\ncad_link_max_turn_deg = 4.5\n[graph.judge]\nsurface_turn_deg = 0.0\n"
@@ -335,7 +335,7 @@ def test_the_vehicles_recorded_odometry_places_each_frame() -> None:
     assert len(estimates) == len(frames)
     for f, est in zip(frames, estimates, strict=True):
         assert est.stamp_ns == f.stamp_ns and np.allclose(est.T_map_body, T_map_body(f.stamp_ns))
-    up_body = front_end.session.up_body
+    up_body = front_end.loop.up_body
     assert up_body is not None and np.allclose(up_body, T_map_body(frames[-1].stamp_ns)[:3, :3].T @ [0, 0, 1.0],
                                                atol=1e-3)
 

@@ -1,4 +1,4 @@
-"""service.session: the one loop around the localizer that the replay and the service both run."""
+"""service.localizer_loop: the one loop around the localizer that the replay and the service both run."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 from macroloc.graph.localizer import Localizer
 from macroloc.service.front_end import FrontEnd
 from macroloc.service.inputs import OdometryIn
-from macroloc.service.session import FrameIn, make_session
+from macroloc.service.localizer_loop import FrameIn, make_loop
 from tests.graph.corridor_flight import model_registrar
 from tests.graph.scenes import corridor_model, make_T
 
@@ -21,12 +21,12 @@ def test_the_service_and_the_replay_make_the_same_keyframes() -> None:
     become keyframes (here every 0.28 m: 0.04 m a frame, more than [graph.keyframes] translation_m = 0.25 m)."""
     model = corridor_model()
     backend = FrontEnd.fresh_or_restored(model, None)
-    bare = make_session(model)
+    bare = make_loop(model)
     service, replay = [], []
     for k in range(40):
         stamp_ns = k * 33_000_000
         backend.odometry(OdometryIn(stamp_ns, _T(0.04 * k)))
-        service.append(backend.session.keyframe)
+        service.append(backend.loop.keyframe)
         bare.frame(FrameIn(stamp_ns, _T(0.04 * k)))
         replay.append(bare.keyframe)
     assert service == replay
@@ -34,7 +34,7 @@ def test_the_service_and_the_replay_make_the_same_keyframes() -> None:
 
 
 def test_dead_reckoned_seconds_add_up_until_the_next_keyframe(monkeypatch) -> None:  # noqa: ANN001
-    session = make_session(corridor_model())
+    session = make_loop(corridor_model())
     given: list[float] = []
     add_keyframe = Localizer.add_keyframe
 
@@ -51,7 +51,7 @@ def test_dead_reckoned_seconds_add_up_until_the_next_keyframe(monkeypatch) -> No
 def test_a_frame_s_depth_is_measured_only_where_it_becomes_a_keyframe(monkeypatch) -> None:  # noqa: ANN001
     """`FrameIn.measure_depth` is called for the keyframes (every 0.28 m here, as above) and no other frame, and
     the keyframe takes what it measured."""
-    session = make_session(corridor_model())
+    session = make_loop(corridor_model())
     measured: list[int] = []
     taken: list[np.ndarray] = []
     depth_at = Localizer._depth_at
@@ -74,14 +74,14 @@ def test_a_fresh_graph_keeps_the_old_one_s_settings_and_camera() -> None:
     """Where the pose graph fails the session starts a new localizer: with the failed one's iSAM2 settings (its
     window, not the defaults) and camera position, whether the session was made by the factory or directly."""
     from macroloc.graph.posegraph import IsamSettings, PoseGraph
-    from macroloc.service.session import LocalizationSession
+    from macroloc.service.localizer_loop import LocalizerLoop
 
     model = corridor_model()
     T_body_cam = np.eye(4)
     T_body_cam[:3, 3] = (0.1, 0.05, 0.02)
     settings = IsamSettings(window_keyframes=300, marginalise_landmarks=False)
     old = Localizer(model, PoseGraph(settings), model_registrar(model), T_body_cam=T_body_cam)  # the tests' registrar
-    new = LocalizationSession(old).fresh(old)
+    new = LocalizerLoop(old).fresh(old)
     assert new is not old and new.graph.settings == settings
     assert np.allclose(new.viewer_body, old.viewer_body) and new.registrar is old.registrar
 
@@ -90,11 +90,11 @@ def test_the_snapshot_gives_a_frame_between_keyframes_the_session_s_own_pose() -
     """What the service answers a stereo frame with on its arrival (`PoseSnapshot.at`, from the newest keyframe,
     without the localizer) is what the session itself gives that frame between keyframes: pose, CAD pose, status."""
     from macroloc.graph.posegraph import PoseGraph
-    from macroloc.service.session import LocalizationSession
+    from macroloc.service.localizer_loop import LocalizerLoop
     from tests.graph.scenes import drifting_odometry, sightings_from, straight_flight
 
     model = corridor_model()
-    session = LocalizationSession(Localizer(model, PoseGraph(), model_registrar(model)))
+    session = LocalizerLoop(Localizer(model, PoseGraph(), model_registrar(model)))
     truth = straight_flight(60, step_m=0.1)
     odometry = drifting_odometry(truth)
     compared = 0
@@ -162,7 +162,7 @@ def test_a_frame_s_own_up_is_used_instead_of_the_session_s() -> None:
     IMU is used only where the frame brings none."""
     from unittest import mock
 
-    session = make_session(corridor_model())
+    session = make_loop(corridor_model())
     session.imu(np.array([[0.0, 0.0, 9.81]]))
     session.odometry(0, _T(0.0))
     own = np.array([0.0, 0.1, 1.0]) / np.linalg.norm([0.0, 0.1, 1.0])
@@ -175,10 +175,10 @@ def test_a_frame_s_own_up_is_used_instead_of_the_session_s() -> None:
 
 def test_the_configured_gravity_reaches_the_session() -> None:
     from macroloc.service.config import load_config
-    from macroloc.service.session import session_from_config
+    from macroloc.service.localizer_loop import loop_from_config
 
     cfg = load_config(None, perception={"gravity": {"window_s": 2.0}})
-    assert session_from_config(cfg, corridor_model()).gravity.params.window_s == 2.0
+    assert loop_from_config(cfg, corridor_model()).gravity.params.window_s == 2.0
 
 
 def test_a_keyframe_older_than_the_newest_pose_moves_it() -> None:
@@ -188,7 +188,7 @@ def test_a_keyframe_older_than_the_newest_pose_moves_it() -> None:
     from tests.graph.scenes import sightings_from, straight_flight
 
     model = corridor_model()
-    session = make_session(model, registrar=model_registrar(model))
+    session = make_loop(model, registrar=model_registrar(model))
     poses = straight_flight(30)
     localized_at = None
     for k, T in enumerate(poses):

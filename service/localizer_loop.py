@@ -1,4 +1,4 @@
-"""One localization session: the per-frame loop around `graph.localizer.Localizer` that `serve`, `replay`, `demo`
+"""The localizer loop: the per-frame loop around `graph.localizer.Localizer` that `serve`, `replay`, `demo`
 and the benchmarks all run, and the one factory that builds it from the config.
 
 Its inputs, in the order they come: `imu(accel)` (the IMU's specific forces), `odometry(stamp, T_odom_body)` (each
@@ -7,10 +7,10 @@ perception.gravity.ImuGravity) and `frame(FrameIn)` (one frame: odometry pose, s
 seconds dead-reckoned, a place-recognition result), which returns the `Estimate`. It owns what makes the figures:
 gravity's up, the keyframe rule (`graph.keyframes.KeyframeRule`), the depth hand-over to the next keyframe, the
 dead-reckoned seconds summed until a keyframe takes them, the hand-off of a frame placed in a saved map (or whose
-view is kept: always a keyframe), and a fresh graph where an update fails. The drivers only assemble frames: the
-replay from a recording (service.offline.replay), the service from its wire events (service.front_end: odometry by
-stamp, sightings waiting for their odometry). Both read `up_body` for the perception chain and place recognition,
-which run before the frame is handed in (service.places.KeyframePlaces.at_frame decides when that works).
+view is kept: always a keyframe), and a fresh graph where an update fails. Its one caller is the per-frame front
+end (service.front_end), which `serve` and `replay` both run: it assembles the frames from the vehicle's events
+(odometry by stamp, sightings waiting for their odometry, stereo frames perceived) and reads `up_body` for the
+perception chain and place recognition, which run before the frame is handed in. ("Session" is Zenoh's word here.)
 
 Frames: odom = the vehicle's odometry frame (the localizer's map frame), body, cad. Metres, nanoseconds.
 """
@@ -45,8 +45,8 @@ log = logging.getLogger(__name__)
 class FrameIn:
     """One frame's inputs. T_odom_body: 4x4 odometry pose at `stamp_ns`; sightings: corners in the body frame;
     points_body: (N, 3) depth points, body frame, measured at this frame; up_body: gravity's up, body frame, where
-    the driver knows it otherwise than from the IMU (the simulator's truth), else None: the session's own
-    (`LocalizationSession.up_body`); dead_reckoned_s: seconds since the previous frame the odometry only
+    the driver knows it otherwise than from the IMU (the simulator's truth), else None: the loop's own
+    (`LocalizerLoop.up_body`); dead_reckoned_s: seconds since the previous frame the odometry only
     extrapolated; placed: the frame's pose in a saved map and/or its view to keep (service.places); measure_depth:
     this frame's depth points (N, 3, body frame), measured when called: called only where the frame becomes a
     keyframe."""
@@ -64,7 +64,7 @@ class FrameIn:
 @dataclass(frozen=True)
 class PoseSnapshot:
     """The newest keyframe's estimate and odometry pose, replaced whole after each keyframe: `at` gives what
-    `LocalizationSession.frame` gives a frame between keyframes, from any thread, without the localizer."""
+    `LocalizerLoop.frame` gives a frame between keyframes, from any thread, without the localizer."""
 
     estimate: Estimate  # the localizer's track() at the keyframe itself
     T_odom_kf: np.ndarray  # the keyframe's odometry pose
@@ -78,8 +78,8 @@ class PoseSnapshot:
 
 
 @dataclass(frozen=True)
-class SessionSettings:
-    """Typed arguments of a session's components, read from the config by `settings_from_config`."""
+class LoopSettings:
+    """Typed arguments of a localizer loop's components, read from the config by `settings_from_config`."""
 
     localizer: LocalizerParams = field(default_factory=LocalizerParams)
     rule: KeyframeRule = field(default_factory=KeyframeRule)
@@ -90,7 +90,7 @@ class SessionSettings:
     gravity: GravityParams = field(default_factory=GravityParams)  # gravity's up from the IMU ([perception.gravity])
 
 
-class LocalizationSession:
+class LocalizerLoop:
     """See module doc. One thread only."""
 
     def __init__(self, localizer: Localizer, rule: KeyframeRule | None = None, covariance: bool = False,
@@ -242,11 +242,11 @@ def _finite(est: Estimate) -> bool:
 
 
 def settings_from_config(graph: GraphConfig, *, storey_hint: str | None = None, method: str = "robust",
-                         covariance: bool = False) -> SessionSettings:
+                         covariance: bool = False) -> LoopSettings:
     """The factory's half that reads the config's [graph] section: typed arguments for the components, each
     [graph.<part>] table its part of `LocalizerParams`, [graph.keyframes] the `KeyframeRule`, [graph.isam] the
     `IsamSettings`. `storey_hint`: a checked one (BuildingModel.checked_storey), else the section's own."""
-    return SessionSettings(graph.localizer_params(), graph.keyframes, graph.isam,
+    return LoopSettings(graph.localizer_params(), graph.keyframes, graph.isam,
                            storey_hint if storey_hint is not None else graph.storey_hint, method, covariance)
 
 
@@ -262,28 +262,28 @@ def make_localizer(model: BuildingModel, storey_hint: str | None = None, T_body_
     return Localizer(model, PoseGraph(isam), registrar, params, T_body_cam=T_body_cam, surfaces=surfaces)
 
 
-def make_session(model: BuildingModel, settings: SessionSettings | None = None, *,
+def make_loop(model: BuildingModel, settings: LoopSettings | None = None, *,
                  surfaces: SurfaceIndex | None = None, T_body_cam: np.ndarray | None = None,
-                 registrar: Registrar | None = None) -> LocalizationSession:
-    """A session from typed settings (`session_from_config` reads them from the config). `registrar`: instead
+                 registrar: Registrar | None = None) -> LocalizerLoop:
+    """A localizer loop from typed settings (`loop_from_config` reads them from the config). `registrar`: instead
     of the whole model's (e.g. service.front_end's after a restart from a saved map)."""
-    s = settings or SessionSettings()
+    s = settings or LoopSettings()
     localizer = make_localizer(model, s.storey_hint, T_body_cam, s.localizer, s.isam, surfaces, registrar,
                                s.method)
 
     def fresh(old: Localizer) -> Localizer:
         return Localizer(model, PoseGraph(s.isam), old.registrar, s.localizer, T_body_cam, surfaces)
 
-    return LocalizationSession(localizer, s.rule, s.covariance, fresh, s.gravity)
+    return LocalizerLoop(localizer, s.rule, s.covariance, fresh, s.gravity)
 
 
-def session_from_config(cfg: MacrolocConfig, model: BuildingModel, *,
+def loop_from_config(cfg: MacrolocConfig, model: BuildingModel, *,
                         saved: SavedMap | None = None, surfaces: SurfaceIndex | None = None,
                         T_body_cam: np.ndarray | None = None,
-                        registrar: Callable[[SessionSettings], Registrar] | None = None,
+                        registrar: Callable[[LoopSettings], Registrar] | None = None,
                         storey_hint: str | None = None, method: str | None = None,
-                        covariance: bool = False) -> LocalizationSession:
-    """THE factory: a session from the whole config in `model`, what `serve`, `replay`, `demo` and the benchmarks
+                        covariance: bool = False) -> LocalizerLoop:
+    """THE factory: a localizer loop from the whole config in `model`, what `serve`, `replay`, `demo` and the benchmarks
     run ([graph] for the localizer, [perception.gravity] for gravity's up from the IMU, [localize] method for the
     registration's search). `saved`: the saved map to start from (service.saved_map); `surfaces`: the model's
     walls, for the surface check; `T_body_cam`: the left camera in the body frame; `registrar`: makes the
@@ -296,5 +296,5 @@ def session_from_config(cfg: MacrolocConfig, model: BuildingModel, *,
     settings = replace(settings, gravity=cfg.perception.gravity)
     if saved is not None:
         registrar = saved.registrar(model, with_surfaces=surfaces is not None)
-    return make_session(model, settings, surfaces=surfaces, T_body_cam=T_body_cam,
+    return make_loop(model, settings, surfaces=surfaces, T_body_cam=T_body_cam,
                         registrar=None if registrar is None else registrar(settings))
