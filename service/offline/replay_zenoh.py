@@ -232,14 +232,15 @@ def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, fl
     if latencies:
         result.latency_ms = {"p50": float(np.percentile(latencies, 50)), "p99": float(np.percentile(latencies, 99)),
                              "n": float(len(latencies))}
-    frames = sorted(sent_at)  # each frame's last pose at its stamp, as the offline replay records its own
+    # each answered frame's last pose at its stamp, as the offline replay records its own (a frame the service did
+    # not answer, pushed out of its queue when not in lock-step, is left out rather than counted as exploring)
+    frames = sorted(stamp for stamp in sent_at if stamp in poses)
     trace = ReplayTrace()
     for stamp in frames:
-        pose = poses.get(stamp)
+        pose = poses[stamp][0]
         trace.t_s.append((stamp - first_stamp) * 1e-9)
-        trace.status.append("exploring" if pose is None else pb.PoseEstimate.Status.Name(pose[0].status).lower())
-        trace.T_est.append(matrix_from_pose(pose[0].T_cad_body) if pose is not None and pose[0].HasField("T_cad_body")
-                           else None)
+        trace.status.append(pb.PoseEstimate.Status.Name(pose.status).lower())
+        trace.T_est.append(matrix_from_pose(pose.T_cad_body) if pose.HasField("T_cad_body") else None)
         trace.T_true.append(truth.get(stamp, np.full((4, 4), np.nan)))
     if not frames:
         return
