@@ -129,11 +129,10 @@ class StereoDepth:
 class PerceptionPipeline:
     """StereoFrame -> sightings (corners in the body frame, metres) through the perception chain."""
 
-    def __init__(self, perception, default_T_body_cam: np.ndarray) -> None:  # noqa: ANN001 - perception.Perception
+    def __init__(self, perception) -> None:  # noqa: ANN001 - perception.Perception
         """`disparity`: the chain's matcher where it is a shared FrameDisparity (one SGBM a frame for the chain,
         the depth points and the visual odometry), else None."""
         self.perception = perception
-        self.default_T_body_cam = default_T_body_cam
         self.disparity = perception.matcher if isinstance(perception.matcher, FrameDisparity) else None
 
     def __call__(self, frame: pb.StereoFrame, up_body: np.ndarray | None = None,
@@ -142,23 +141,36 @@ class PerceptionPipeline:
         a frame without camera info cannot be perceived and gives no sightings. `up_body`: gravity's up (the
         session's), which tells the chain which way is down; `images()`: the frame's decoded pair (decoded here
         without)."""
-        info = frame.info
-        if not frame.HasField("info") or info.fx <= 0 or info.baseline_m <= 0:
+        if not calibrated(frame):
             return []
         left, right = images() if images is not None else (decode_image(frame.left), decode_image(frame.right))
-        rig = stereo_rig(frame)
-        T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else self.default_T_body_cam
+        rig, T_body_cam = stereo_rig(frame), stereo_T_body_cam(frame)
         result = self.perception.process(StereoPair(left, right, rig, gravity_cam(up_body, T_body_cam),
                                                     frame.header.stamp_ns))
         return [Sighting(f.type, apply(T_body_cam, f.corners_cam), truncated=f.truncated)
                 for f in result.features]
 
 
-def stereo_rig(frame: pb.StereoFrame):  # noqa: ANN201 - perception.calib.StereoRig
+def calibrated(frame: pb.StereoFrame) -> bool:
+    """Whether a frame can be perceived and measured: its CameraInfo with a positive focal length and baseline, and
+    both images (a ground-truth-only flight's frames carry neither)."""
+    info = frame.info
+    return frame.HasField("info") and info.fx > 0 and info.baseline_m > 0 and bool(frame.left.data) and \
+        bool(frame.right.data)
+
+
+def stereo_rig(frame: pb.StereoFrame) -> StereoRig:
     """The stereo rig a frame's CameraInfo describes (the images' size from the frame: service.inputs checked that
     they agree with the info's)."""
     info = frame.info
     return StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
+
+
+def stereo_T_body_cam(frame: pb.StereoFrame) -> np.ndarray:
+    """The left camera in the body frame (4x4): the frame's CameraInfo's, else the forward-looking stereo pair's
+    (common.geometry: the simulator's)."""
+    info = frame.info
+    return matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
 
 
 def make_perception_pipeline(threads: int | None = None, detector_model: Path | None = None,
@@ -173,7 +185,7 @@ def make_perception_pipeline(threads: int | None = None, detector_model: Path | 
         p = params or PerceptionParams()
         chain = Perception.create(detector_model, threads=threads or plan.onnxruntime,
                                   disparity=FrameDisparity(SgbmMatcher(p.stereo)), params=p)
-        return PerceptionPipeline(chain, forward_stereo_T_body_cam())
+        return PerceptionPipeline(chain)
     except Exception as exc:  # missing weights or runtime: the service still runs, without perception
         log.warning("perception chain unavailable (%s): stereo frames are not perceived", exc)
         return None
@@ -189,7 +201,7 @@ def depth_points_body(frame: pb.StereoFrame, stride_px: int = 8, max_range_m: fl
     ok = np.isfinite(depth_m) & (depth_m > 0) & (depth_m <= max_range_m)
     z = depth_m[ok]
     points_cam = np.column_stack([(u[ok] - info.cx) / info.fx * z, (v[ok] - info.cy) / info.fy * z, z])  # pinhole
-    T_body_cam = matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
+    T_body_cam = stereo_T_body_cam(frame)
     return points_cam @ T_body_cam[:3, :3].T + T_body_cam[:3, 3]
 
 

@@ -31,7 +31,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.features import BuildingModel
 from macroloc.graph.geo import GeoReference
 from macroloc.graph.localizer import Estimate, Localizer, Sighting
@@ -40,16 +39,18 @@ from macroloc.graph.prior import PosePrior, storey_band_m
 from macroloc.graph.surfaces import SurfaceIndex
 from macroloc.perception.params import DepthPointsParams, PlaceParams
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
-from macroloc.proto.recording import FlightFrame, matrix_from_pose, pose_from_matrix, vector3
+from macroloc.proto.recording import FlightFrame, pose_from_matrix, vector3
 from macroloc.service.config import MacrolocConfig
 from macroloc.service.frame_answers import ODOMETRY_MATCH_NS, OdometryBuffer
 from macroloc.service.frames import (
     FramePipeline,
     NullPipeline,
     StereoDepth,
+    calibrated,
     configured_pipeline,
     depth_points_body,
     stereo_rig,
+    stereo_T_body_cam,
 )
 from macroloc.service.inputs import (
     ClockReset,
@@ -219,21 +220,18 @@ class FrontEnd:
         frame, stamp_ns = ev.frame, ev.stamp_ns
         flight_frame = FlightFrame(stamp_ns, frame, imu=self._imu)  # its `images()` decode the pair once
         self._imu = []
-        calibrated = frame.HasField("info") and frame.info.fx > 0 and frame.info.baseline_m > 0 and \
-            bool(frame.left.data) and bool(frame.right.data)
-        T_body_cam = matrix_from_pose(frame.info.T_body_cam) if frame.info.HasField("T_body_cam") else \
-            forward_stereo_T_body_cam()
+        measurable, T_body_cam = calibrated(frame), stereo_T_body_cam(frame)
         points_body: np.ndarray | None = None
         measure_depth: Callable[[], np.ndarray] | None = None
         dead_reckoned_s = 0.0
-        if self.visual is not None and calibrated:  # its pose first: gravity's up comes with it
+        if self.visual is not None and measurable:  # its pose first: gravity's up comes with it
             self._odometry_pose(stamp_ns, self.visual(flight_frame, *flight_frame.images()))
             v = self.visual
             points_body, measure_depth, dead_reckoned_s = v.points_body, v.measure_depth, v.dead_reckoned_s
-        elif self.stereo_depth is not None and calibrated:
-            left, right = flight_frame.images()
-            points_body = self.stereo_depth(left, right, stereo_rig(frame), T_body_cam)
-            measure_depth = self.stereo_depth.deferred(left, right, stereo_rig(frame), T_body_cam)
+        elif self.stereo_depth is not None and measurable:
+            (left, right), rig = flight_frame.images(), stereo_rig(frame)
+            points_body = self.stereo_depth(left, right, rig, T_body_cam)
+            measure_depth = self.stereo_depth.deferred(left, right, rig, T_body_cam)
         due = self._stereo_frames % self.params.perceive_every == 0
         self._stereo_frames += 1
         up_body = self.up_body  # the loop's, from the IMU: which way is down for the chain

@@ -17,10 +17,10 @@ import numpy as np
 
 from macroloc.graph.mapstore import VIEW_SPACING_DEG, VIEW_SPACING_M, KeyframeView
 from macroloc.graph.rigid import rotation_angle_deg
-from macroloc.perception.calib import StereoRig
 from macroloc.perception.place import PlaceParams, PlaceRecognizer
 from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import FlightFrame
+from macroloc.service.frames import calibrated, stereo_rig
 
 if TYPE_CHECKING:
     from macroloc.service.saved_map import SavedMap
@@ -67,7 +67,7 @@ class KeyframePlaces:
         `FlightFrame.images`): none after localizing between views. Nothing from a frame without images or
         calibration (a ground-truth flight's)."""
         stereo, stamp_ns = frame.stereo, frame.stamp_ns
-        if not self.active or stereo.info.fx <= 0 or not stereo.left.data or not stereo.right.data:
+        if not self.active or not calibrated(stereo):
             return Placed(None, None)
         place = self.stored is not None and status != "localized" and \
             (self._last_try_ns is None or (stamp_ns - self._last_try_ns) * 1e-9 >= self.every_s)
@@ -95,9 +95,7 @@ class KeyframePlaces:
     def _recognizer_for(self, frame: pb.StereoFrame, T_body_cam: np.ndarray) -> PlaceRecognizer:
         """The recognizer, made for the first frame's camera (the stored views loaded into it)."""
         if self._recognizer is None:
-            info = frame.info
-            rig = StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, frame.left.width, frame.left.height)
-            self._recognizer = PlaceRecognizer(rig, T_body_cam, self.config)
+            self._recognizer = PlaceRecognizer(stereo_rig(frame), T_body_cam, self.config)
             if self.stored is not None:
                 self._recognizer.use(self.stored.placed_views())
                 log.info("place recognition: %d stored views", len(self.stored.placed_views()))

@@ -17,16 +17,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from macroloc.graph.rigid import rotation_aligning
-from macroloc.perception.calib import StereoRig
 from macroloc.perception.inertial import InertialDeadReckoning
 from macroloc.perception.odometry import StereoOdometry
 from macroloc.perception.params import PerceptionParams
 from macroloc.perception.stereo import FrameDisparity, SgbmMatcher
-from macroloc.proto.recording import FlightFrame, matrix_from_pose
-from macroloc.service.frames import StereoDepth
+from macroloc.proto.recording import FlightFrame
+from macroloc.service.frames import StereoDepth, stereo_rig, stereo_T_body_cam
 
 if TYPE_CHECKING:
-    from macroloc.perception.calib import StereoRig
     from macroloc.perception.odometry import StereoOdometry
     from macroloc.perception.params import PerceptionParams
     from macroloc.perception.stereo import FrameDisparity
@@ -56,10 +54,9 @@ class VisualOdometry:
         self._last_stamp_ns: int | None = None
 
     def __call__(self, frame: FlightFrame, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        info = frame.stereo.info
-        T_body_cam = matrix_from_pose(info.T_body_cam)
+        T_body_cam = stereo_T_body_cam(frame.stereo)
         if self._odometry is None:
-            rig = _rig(info)
+            rig = stereo_rig(frame.stereo)
             self._odometry = StereoOdometry(rig, self._params.odometry, disparity=self._disparity)
             T_odom_body0 = np.eye(4)
             up_body = _up_from_imu(frame)
@@ -124,11 +121,6 @@ def _gyro_rotation(samples: list, last_ns: int | None) -> np.ndarray | None:
         w = np.array([s.gyro_radps.x, s.gyro_radps.y, s.gyro_radps.z])
         R = R @ Rotation.from_rotvec(w * dt).as_matrix()
     return R
-
-
-def _rig(info) -> StereoRig:  # noqa: ANN001 - pb.CameraInfo
-    """The stereo rig a recorded frame's CameraInfo describes."""
-    return StereoRig(info.fx, info.fy, info.cx, info.cy, info.baseline_m, info.width, info.height)
 
 
 def _specific_forces(frame: FlightFrame) -> np.ndarray:

@@ -19,12 +19,12 @@ from typing import Protocol
 
 import numpy as np
 
-from macroloc.common.geometry import forward_stereo_T_body_cam
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.localizer import Estimate, Localizer, Sighting
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from macroloc.proto.recording import FlightFrame, matrix_from_pose, read_flight
+from macroloc.service.frames import stereo_T_body_cam
 from macroloc.service.front_end import FrontEnd
 from macroloc.service.health import DropCounter
 from macroloc.service.inputs import ClockReset, InputLimits, InputParser, ObservationsIn
@@ -164,7 +164,7 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
             busy_at_localized = time.perf_counter() - start
         sink(est)
         seen = [*sent, *front_end.sightings]
-        recorder.frame(frame, FrameSeen(_T_body_cam(frame), seen), est)
+        recorder.frame(frame, FrameSeen(stereo_T_body_cam(frame.stereo), seen), est)
         trace.stamp_ns.append(frame.stamp_ns)
         _record(trace, (frame.stamp_ns - t0) * 1e-9, est,
                 matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None, keyframe, len(seen),
@@ -186,10 +186,6 @@ class FrameSeen:
     T_body_cam: np.ndarray
     sightings: list[Sighting]
 
-
-def _T_body_cam(frame: FlightFrame) -> np.ndarray:
-    info = frame.stereo.info
-    return matrix_from_pose(info.T_body_cam) if info.HasField("T_body_cam") else forward_stereo_T_body_cam()
 
 
 def _record(trace: ReplayTrace, t_s: float, est: Estimate, T_true: np.ndarray | None, is_kf: bool,

@@ -130,7 +130,6 @@ def test_the_service_s_chain_is_told_which_way_is_down_by_the_session_s_up() -> 
     """The service's pipeline hands the chain gravity in the camera frame from the up it is given (the session's,
     from the IMU), as a replay's chain has it; without one, none."""
     pytest.importorskip("onnxruntime")
-    from macroloc.common.geometry import forward_stereo_T_body_cam
     from macroloc.perception.pipeline import Perception
     from macroloc.service.frames import PerceptionPipeline
 
@@ -138,7 +137,7 @@ def test_the_service_s_chain_is_told_which_way_is_down_by_the_session_s_up() -> 
     given = []
     process = chain.process
     chain.process = lambda pair: given.append(pair.gravity_cam) or process(pair)  # type: ignore[method-assign]
-    pipeline = PerceptionPipeline(chain, forward_stereo_T_body_cam())
+    pipeline = PerceptionPipeline(chain)
     pipeline(_plane_frame(), np.array([0.0, 0.0, 1.0]))
     pipeline(_plane_frame())
     assert given[0] is not None and np.allclose(given[0], [0.0, 1.0, 0.0])  # the optical frame's y points down
