@@ -13,7 +13,6 @@ the recording's ground truth (CAD frame, no alignment), with the frame-in -> pos
 
 from __future__ import annotations
 
-import itertools
 import logging
 import threading
 import time
@@ -269,9 +268,6 @@ def replay_command(flight: Iterable[FlightFrame], options: ReplayOptions, connec
     (`replay_over_zenoh`'s `answered`)."""
     if speed < 0:
         raise UserInputError("--speed must be >= 0")
-    frames = iter(flight)
-    first = next(frames, None)
-    sender = vehicle_for(options.checked(), first, visual_if_none=False)
+    sender = vehicle_for(options.checked(), None, visual_if_none=False)  # `auto`: decided at the first frame
     cfg = ZenohConfig(mode="peer", connect=connect or ["tcp/127.0.0.1:7447"], listen=[])
-    return replay_over_zenoh(itertools.chain([first] if first is not None else [], frames), cfg, vehicle,
-                             None, speed, answered=speed == 0, sender=sender).to_json()
+    return replay_over_zenoh(flight, cfg, vehicle, None, speed, answered=speed == 0, sender=sender).to_json()

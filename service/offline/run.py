@@ -17,6 +17,7 @@ What a replay's `observations` mean, as settings of the vehicle and the service:
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -127,18 +128,13 @@ def replay_flight(flight: Path | Iterable[FlightFrame], building: Path, cfg: Mac
     saved = read_saved_map(saved_map, model) if saved_map is not None else None
     front_end = make_front_end(run_cfg, model, prepared.surfaces, saved)
     log.info("replay: %s observations, odometry %s", options.observations, vehicle.choice)
-    result = replay_as_service(_chain(first, frames), front_end, vehicle, limits_from_config(run_cfg.inputs, model),
-                               run_cfg.service.cameras, sink, recorder)
+    result = replay_as_service(itertools.chain([first], frames), front_end, vehicle,
+                               limits_from_config(run_cfg.inputs, model), run_cfg.service.cameras, sink, recorder)
     return Replayed(result, front_end)
 
 
 def _frames(flight: Path | Iterable[FlightFrame]) -> Iterable[FlightFrame]:
     return read_flight(flight) if isinstance(flight, Path) else flight
-
-
-def _chain(first: FlightFrame, rest: Iterable[FlightFrame]) -> Iterable[FlightFrame]:
-    yield first
-    yield from rest
 
 
 def replay_offline(flight: Path | Iterable[FlightFrame], building: Path, cfg: MacrolocConfig,
