@@ -205,8 +205,8 @@ class PerceptionConfig(_Section):
     wall_plane: WallPlaneParams = Field(default_factory=lambda: _PERCEPTION.wall_plane,
                                         description="[perception.wall_plane]: the wall an opening sits in")
     odometry: VisualOdometryParams = Field(default_factory=lambda: _PERCEPTION.odometry,
-                                           description="[perception.odometry]: a replay's stereo visual odometry (the "
-                                           "service takes the vehicle's odometry)")
+                                           description="[perception.odometry]: the stereo visual odometry, where "
+                                           "[service] odometry = visual")
     gravity: GravityParams = Field(default_factory=lambda: _PERCEPTION.gravity,
                                    description="[perception.gravity]: gravity's up from the IMU, in the service and a "
                                    "replay alike")
@@ -215,7 +215,8 @@ class PerceptionConfig(_Section):
     place: PlaceParams = Field(default_factory=lambda: _PERCEPTION.place,
                                description="[perception.place]: keyframes placed in a saved map's views")
     inertial: InertialParams = Field(default_factory=lambda: _PERCEPTION.inertial,
-                                     description="[perception.inertial]: the IMU's dead reckoning in a replay")
+                                     description="[perception.inertial]: the visual odometry's dead reckoning on "
+                                     "the IMU where it loses track")
     proposals: ProposalParams = Field(default_factory=lambda: _PERCEPTION.proposals,
                                       description="[perception.proposals]: doors proposed from geometry (perceive)")
     size_check: SizeTolerance = Field(default_factory=lambda: _PERCEPTION.size_check,

@@ -190,8 +190,6 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
                     put_odometry(m.message)
                 else:
                     pubs[m.key].put(m.message.SerializeToString())
-            result.odometry = "source" if sender.sightings is not None and sender.odometry == "simulated" else \
-                sender.odometry or "none"
             if answered:
                 deadline = time.monotonic() + 10.0
                 while not poses.has(frame.stamp_ns) and time.monotonic() < deadline:
@@ -199,6 +197,8 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
             if frame.ground_truth is not None:
                 truth[frame.stamp_ns] = matrix_from_pose(frame.ground_truth.T_cad_body)
             result.frames += 1
+        result.odometry = "source" if sender.sightings is not None and sender.odometry == "simulated" else \
+            sender.odometry or "none"
         last = max(sent_at, default=None)
         deadline = time.monotonic() + 10.0
         while last is not None and not poses.has(last) and time.monotonic() < deadline:
