@@ -128,9 +128,10 @@ class TransformTree:
         return chain
 
 
-@dataclass
+@dataclass(eq=False)
 class CameraCalibration:
-    """One camera's sensor_msgs/CameraInfo: K (3x3), D, R (3x3 rectifying rotation), P (3x4), image size."""
+    """One camera's sensor_msgs/CameraInfo: K (3x3), D, R (3x3 rectifying rotation), P (3x4), image size.
+    Two are equal when every field is (a driver repeats its camera info with every image)."""
 
     width: int
     height: int
@@ -149,6 +150,16 @@ class CameraCalibration:
         return cls(int(msg.width), int(msg.height), np.asarray(msg.k, float).reshape(3, 3),
                    np.asarray(msg.d, float).ravel(), np.asarray(msg.r, float).reshape(3, 3), P,
                    str(msg.distortion_model or "plumb_bob"), str(msg.header.frame_id).lstrip("/"))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, CameraCalibration):
+            return NotImplemented
+        return ((self.width, self.height, self.distortion_model, self.frame_id)
+                == (other.width, other.height, other.distortion_model, other.frame_id)
+                and all(np.array_equal(a, b) for a, b in ((self.K, other.K), (self.D, other.D), (self.R, other.R),
+                                                           (self.P, other.P))))
+
+    __hash__ = None  # type: ignore[assignment]  # mutable arrays: equal, never hashed
 
     @property
     def is_rectified(self) -> bool:

@@ -9,7 +9,9 @@ Each ROS message is converted with the same code that reads ROS 2 bags (`service
 before anything is decoded: a raw image whose declared size exceeds the pixel cap or disagrees with its data, or
 a compressed one whose header does (`perception.image_header`), is dropped and counted
 (`ros_image/image_too_large`, `ros_image/bad_image`), as is a payload that is not CDR of the topic's type
-(`ros_<name>/not_cdr`) and a frame before both camera infos arrived (`ros_image/no_camera_info`).
+(`ros_<name>/not_cdr`). The two camera infos and the images arrive on their own intake threads, in no fixed order:
+a pair completed before both camera infos waits for them and enters the service when the second arrives (the
+latest such pair only; one it replaces is counted, `ros_image/no_camera_info`).
 """
 
 from __future__ import annotations
@@ -73,6 +75,7 @@ class RosSensorInputs:
         self._info: dict[str, CameraCalibration] = {}
         self._rectifier: StereoRectifier | None = None
         self._waiting: dict[str, dict[int, np.ndarray]] = {"left": {}, "right": {}}
+        self._unready: tuple[int, np.ndarray, np.ndarray] | None = None  # a pair waiting for the camera infos
 
     def intakes(self) -> dict[str, tuple[Any, str, bool, int]]:
         t = self.topics
@@ -80,8 +83,9 @@ class RosSensorInputs:
         if t.left and t.right and t.left_info and t.right_info:
             out[t.left] = (lambda p: self.image("left", p), "stereo", True, 4)
             out[t.right] = (lambda p: self.image("right", p), "stereo", True, 4)
-            out[t.left_info] = (lambda p: self.camera_info("left", p), "stereo", False, 4)
-            out[t.right_info] = (lambda p: self.camera_info("right", p), "stereo", False, 4)
+            # heavy like the images: a camera info returns the pair that waited for it, if any
+            out[t.left_info] = (lambda p: self.camera_info("left", p), "stereo", True, 4)
+            out[t.right_info] = (lambda p: self.camera_info("right", p), "stereo", True, 4)
         if t.imu:
             out[t.imu] = (self.imu, "imu", False, 1024)
         return out
@@ -97,7 +101,8 @@ class RosSensorInputs:
         msg = self._decode("imu", payload, IMU)
         return None if msg is None else self.parser.imu(imu_message(msg).SerializeToString())
 
-    def camera_info(self, side: str, payload: bytes) -> None:
+    def camera_info(self, side: str, payload: bytes) -> StereoIn | None:
+        """Keep a side's calibration; the pair that waited for it, once both sides are known."""
         msg = self._decode(f"{side}_info", payload, CAMERA_INFO)
         if msg is None:
             return None
@@ -110,7 +115,13 @@ class RosSensorInputs:
             if self._info.get(side) != calibration:
                 self._info[side] = calibration
                 self._rectifier = None  # rebuilt from both at the next pair
-        return None
+            if self._unready is None:
+                return None
+            rectifier = self._rectifier_now()
+            if rectifier is None:
+                return None
+            (stamp, left, right), self._unready = self._unready, None
+            return self._frame(stamp, left, right, rectifier)
 
     def _sized(self, msg: Any) -> bool:
         """Whether the image may be converted: its size read without decoding, within the cap, consistent."""
@@ -153,9 +164,14 @@ class RosSensorInputs:
                 return None
             left, right = (array, partner) if side == "left" else (partner, array)
             rectifier = self._rectifier_now()
-        if rectifier is None:
-            self.drops.drop("ros_image/no_camera_info")
-            return None
+            if rectifier is None:
+                if self._unready is not None:
+                    self.drops.drop("ros_image/no_camera_info")
+                self._unready = (stamp, left, right)
+                return None
+            return self._frame(stamp, left, right, rectifier)  # under the lock: stamps reach the parser in order
+
+    def _frame(self, stamp: int, left: np.ndarray, right: np.ndarray, rectifier: StereoRectifier) -> StereoIn | None:
         left, right = rectifier(left, right)
         T_body_cam = self.T_body_cam if self.T_body_cam is not None else default_T_body_cam(rectifier.baseline_m)
         frame = pb.StereoFrame(camera_id=self.camera_id, left=encode_image(left, "raw"),

@@ -60,3 +60,39 @@ def test_ros_images_camera_info_and_imu_enter_as_the_services_own_inputs(duplex_
         wait_for(lambda: counts().get("ros_image/image_too_large") == 1 and counts().get("ros_imu/not_cdr") == 1,
                  what="the bad ROS inputs counted")
         assert service.rates["stereo"].total == 5  # type: ignore[attr-defined]
+
+
+def test_a_pair_before_the_camera_infos_waits_for_them_and_only_the_latest_waits() -> None:
+    """Camera infos and images arrive on their own intake threads, in no fixed order: a pair completed before
+    both infos enters when the second info arrives; a second such pair replaces it (counted)."""
+    from macroloc.service.health import DropCounter
+    from macroloc.service.inputs import InputParser
+    from macroloc.service.ros_sensors import RosSensorInputs, RosSensorTopics
+
+    drops = DropCounter()
+    topics = RosSensorTopics(left="cam0/image_raw", right="cam1/image_raw", left_info="cam0/camera_info",
+                             right_info="cam1/camera_info")
+    ros = RosSensorInputs(topics, InputParser(["cam0"], drops), drops, "cam0", None, 10**7, lambda: 0)
+    m = _Messages(typestore())
+    info = pb.CameraInfo(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5, baseline_m=0.12)
+    rng = np.random.default_rng(1)
+
+    def image(side: str, stamp: int, array: np.ndarray) -> bytes:
+        return to_cdr(m.image(encode_image(array, "raw"), stamp, side, False, None), "sensor_msgs/msg/Image")
+
+    for stamp in (100_000_000, 200_000_000):
+        left, right = _pair(rng)
+        assert ros.image("left", image("cam0", stamp, left)) is None
+        assert ros.image("right", image("cam1", stamp, right)) is None  # paired, but no camera info yet
+    assert drops.counts() == {"ros_image/no_camera_info": 1}  # the first pair, replaced by the second
+    assert ros.camera_info("left", to_cdr(m.camera_info(info, 0, "cam0", np.zeros(5), 0.12),
+                                          "sensor_msgs/msg/CameraInfo")) is None
+    waited = ros.camera_info("right", to_cdr(m.camera_info(info, 0, "cam1", np.zeros(5), 0.12),
+                                             "sensor_msgs/msg/CameraInfo"))
+    assert waited is not None and waited.stamp_ns == 200_000_000
+    assert ros.camera_info("right", to_cdr(m.camera_info(info, 0, "cam1", np.zeros(5), 0.12),
+                                           "sensor_msgs/msg/CameraInfo")) is None  # given once
+    left, right = _pair(rng)
+    assert ros.image("right", image("cam1", 300_000_000, right)) is None
+    later = ros.image("left", image("cam0", 300_000_000, left))
+    assert later is not None and later.stamp_ns == 300_000_000
