@@ -252,3 +252,12 @@ def _mesh_nodes(path: Path) -> list[tuple[str, list[str], np.ndarray, np.ndarray
     nodes, unit_m, _ = read_nodes(path)
     scale = unit_m if unit_m else 1.0  # metres per file unit (the hospital's DAE files: centimetres)
     return [(n.name, n.names, n.vertices * scale, n.faces) for n in nodes]
+
+
+def occluding_triangles(path: str | Path) -> np.ndarray:
+    """(T, 3, 3) the building's triangles that hide what lies behind them, CAD frame, metres
+    (service.offline.self_label): all of them, its doors' leaves as the model has them (closed, mostly) and its
+    windows' glass included. A door's own leaf lies within its opening's frame and does not hide it (the
+    labeller's occlusion tolerance); a door seen through another's opening is hidden, as it is behind a closed
+    door."""
+    return load_scene(path).triangles_cad

@@ -1,5 +1,6 @@
-"""`macroloc adapt-detector BUILDING --out DIR`: a door/window detector adapted to one building from renders of
-its own model, for the config's `perception.detector_model`."""
+"""`macroloc adapt-detector BUILDING --out DIR`: a door/window detector adapted to one building, from renders of
+its own model or (`--recording`) from a flight the user's own vehicle recorded, labelled by the model where the
+service's pose is held (service.offline.self_label), for the config's `perception.detector_model`."""
 
 from __future__ import annotations
 
@@ -37,6 +38,16 @@ def _init_weights(text: str) -> Path | None:
     return path
 
 
+def training_args(photos: Path, frames: Path, out: Path, init: Path | None, steps: int | None,
+                  threads: int) -> list[str]:
+    """`perception.train`'s arguments for a building's frames (rendered or labelled from a recording): a fine-tune
+    of `init` (FINE_TUNE_STEPS at FINE_TUNE_LR), or from scratch where it is None (SCRATCH_STEPS)."""
+    start = ["--init", str(init), "--lr", str(FINE_TUNE_LR)] if init is not None else []
+    n_steps = steps or (FINE_TUNE_STEPS if init is not None else SCRATCH_STEPS)
+    return ["--facades", str(photos), "--sim", str(frames), "--steps", str(n_steps), "--threads", str(threads),
+            "--out", str(out), "--report", str(out / "report"), *start]
+
+
 def register(app: typer.Typer) -> None:
     @app.command("adapt-detector")
     def adapt_detector(
@@ -58,6 +69,15 @@ def register(app: typer.Typer) -> None:
                                             "with the real indoor photos ($MACROLOC_SHARED_DATA/images/indoor_doors, "
                                             "where present) half of each batch, and the held-out test splits "
                                             "reported."),
+        recording: Path | None = typer.Option(None, "--recording", "-r", help="A flight your own vehicle recorded "
+                                              "in this building (macroloc MCAP, or a ROS 2 bag: see `macroloc "
+                                              "replay --help`): replayed as the service runs it, and its frames "
+                                              "labelled by the building's model wherever the pose is held, "
+                                              "instead of rendered flights."),
+        config: Path | None = typer.Option(None, "--config", help="macroloc config file for the --recording's "
+                                           "replay (its detector, cameras, odometry): as `macroloc replay`'s."),
+        labels_only: bool = typer.Option(False, "--labels-only", help="With --recording: write the labelled frames "
+                                         "and their report, do not train."),
         json_out: bool = typer.Option(False, "--json", help="Print {model, frames, doors, windows, figures}."),
     ) -> None:
         """Adapt the door/window detector to one building: render seeded flights through its model, label every
@@ -67,8 +87,13 @@ def register(app: typer.Typer) -> None:
         perception/models/detector.pt) for 1000 steps; `--init none` trains from scratch (2400 steps). On
         held-out Office_A flights (seeds 1-2) door AP50: generic 0.28, from scratch 0.54, fine-tuned 0.61 (6-15 min
         on 1 thread), and the fine-tuned one keeps indoor door AP50 0.86 on real photos (from scratch: 0.51).
-        Use it with `perception.detector_model = "DIR/detector.onnx"` in the config. Needs torch:
-        pip install -e '.\\[train]'.
+        With --recording, the frames are your camera's own: the flight is replayed through the service's per-frame
+        path (perception on, the config's detector), and each frame where the pose is held (localized, at most one
+        frame per 0.2 s) is written with the model's doors and windows in view as labels: occluded ones (by the
+        model's own geometry) and ones the pose is too uncertain to box are left out, boxes cut by the border are
+        flagged; DIR/frames/report.json counts every decision. The flight must localize with the detector you
+        have (the generic one, or an operator's prior). Use it with `perception.detector_model =
+        "DIR/detector.onnx"` in the config. Needs torch: pip install -e '.\\[train]'.
         """
         import importlib.util
         import json
@@ -80,6 +105,17 @@ def register(app: typer.Typer) -> None:
         existing_file(building, "building model")
         seed_list = _seeds(seeds)
         init_path = _init_weights(init)
+        if recording is not None:
+            existing_file(recording, "recording")
+        if labels_only and recording is None:
+            raise UserInputError("--labels-only labels a --recording: give one")
+        if recording is not None and labels_only:
+            counts = _self_label(building, recording, out / "frames", config)
+            if json_out:
+                print_json(counts)
+            else:
+                typer.echo(_self_label_line(counts, out / "frames"))
+            return
         if importlib.util.find_spec("torch") is None:
             raise UserInputError("adapt-detector trains with torch, which is not installed: "
                                  "pip install -e '.[train]' (or make train)")
@@ -95,19 +131,47 @@ def register(app: typer.Typer) -> None:
         if not is_quiet():
             logging.getLogger().setLevel(logging.INFO)  # rendering and training take minutes: show progress
         frames = out / "frames"
-        counts = render_training_frames(building, frames, seed_list, duration, every)
+        if recording is not None:
+            counts = _self_label(building, recording, frames, config)
+            log_line = _self_label_line(counts, frames)
+            if counts["door"] + counts["window"] == 0:
+                raise UserInputError(log_line + ": nothing to train on (the flight must localize: see "
+                                     "`macroloc replay --report` for why it did not)")
+            logging.getLogger(__name__).info(log_line)
+        else:
+            counts = render_training_frames(building, frames, seed_list, duration, every)
         if counts["door"] + counts["window"] == 0:
             raise UserInputError(f"no door or window came into view in {counts['images']} rendered frames of "
                                  f"{building.name}: try other --seeds or a longer --duration")
-        start = ["--init", str(init_path), "--lr", str(FINE_TUNE_LR)] if init_path is not None else []
-        n_steps = steps or (FINE_TUNE_STEPS if init_path is not None else SCRATCH_STEPS)
-        train_main(["--facades", str(photos), "--sim", str(frames), "--steps", str(n_steps), "--threads", str(threads),
-                    "--out", str(out), "--report", str(out / "report"), *start])
+        train_main(training_args(photos, frames, out, init_path, steps, threads))
         model = out / "detector.onnx"
         figures = json.loads(model.with_suffix(".json").read_text()).get("figures", {})
         if json_out:
             print_json({"model": str(model), "frames": counts["images"], "doors": counts["door"],
                         "windows": counts["window"], "figures": figures})
             return
-        typer.echo(f"{model}: trained on {counts['images']} rendered frames ({counts['door']} doors, "
+        kind = "labelled frames of your flight" if recording is not None else "rendered frames"
+        typer.echo(f"{model}: trained on {counts['images']} {kind} ({counts['door']} doors, "
                    f"{counts['window']} windows); set perception.detector_model to it in the config")
+
+
+def _self_label(building: Path, recording: Path, frames: Path, config: Path | None) -> dict:
+    """The recording replayed with perception and labelled where its pose is held (service.offline.self_label);
+    {"images", "door", "window", "report"}, the report also written to frames/report.json."""
+    import json
+
+    from macroloc.service.config import load_config
+    from macroloc.service.offline.self_label import label_recording
+    from macroloc.sim.scene import occluding_triangles
+
+    report = label_recording(recording, building, load_config(config), occluding_triangles(building), frames)
+    (frames / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    return {"images": report["frames"].get("labelled", 0), "door": report["doors"], "window": report["windows"],
+            "report": report}
+
+
+def _self_label_line(counts: dict, frames: Path) -> str:
+    r = counts["report"]
+    seen = sum(r["frames"].values())
+    return (f"{frames}: {counts['images']} of {seen} frames labelled ({counts['door']} doors, {counts['window']} "
+            f"windows, {r['cut']} cut by the border); frames {r['frames']}, boxes {r['boxes']}")

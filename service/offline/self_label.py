@@ -1,0 +1,316 @@
+"""The building labels its own doors: where a replayed flight's pose is held, the model's doors and windows are
+projected into the frame's left image and written as YOLO labels (0 door, 1 window) for `perception.train --sim`,
+so that a detector can be fine-tuned on the user's own camera in the user's own building (`macroloc
+adapt-detector --recording`).
+
+`SelfLabeller` is a replay's `FrameRecorder` (service.offline.replay): the poses are those the service itself gives
+on its one per-frame path. Its decisions, each counted in the report:
+
+Per frame:
+- `not_localized`: the estimate is not `localized` (the service's own rule: anchored and held to the model,
+  graph.anchoring.held), or it has no covariance;
+- `too_soon`: less than `every_s` after the last labelled frame (frames at 30 Hz are near copies);
+- `labelled`: the frame is written, with whatever boxes it has (a frame of a held pose with no door in view is a
+  true negative, which a detector needs as much).
+
+Per door or window of the model, in a labelled frame:
+- `behind`: no part of its opening in front of the camera's near plane;
+- `outside`: its opening, clipped to the near plane, projects outside the image;
+- `hidden`: fewer than `min_visible_fraction` of the samples of its opening lie inside the image and in view. A
+  sample is out of view when the segment from the camera to it meets a surface of the model (walls, slabs,
+  stairs, the model's furniture, its doors' leaves as modelled, its windows) nearer than the sample by more than
+  `occlusion_tol_m` (the model's own depth, ray-cast: `ModelDepth`; an opening's own leaf or glass lies within
+  that tolerance of it). The fraction is the one the simulator's truth
+  labels use (sim.export), so the two label sets mean the same;
+- `too_small`: its box is under `min_box_px` on a side;
+- `uncertain`: at one of the pose's `sigmas`-sigma points (the pose moved by `sigmas` standard deviations along
+  each principal axis of its 6x6 covariance, both ways: 12 poses) the box overlaps the labelled one at IoU under
+  0.5, the score by which a detection is matched: where the pose is that uncertain, the label may not be the
+  door;
+- `labelled`, flagged `cut` where the image border cut its box.
+
+The box is the opening's rectangle projected (clipped to the near plane, then to the image), the convention of
+the simulator's truth labels. Occlusion the model does not know (people, furniture added after the model, a door
+leaf closed) is not seen by this test.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import gtsam
+import numpy as np
+
+from macroloc.common.parameters import Parameters, param
+from macroloc.graph.features import MacroFeature
+from macroloc.graph.localizer import Estimate, Localizer
+from macroloc.graph.rigid import invert
+from macroloc.proto.recording import FlightFrame
+from macroloc.service.assets import prepare_building
+from macroloc.service.config import MacrolocConfig
+from macroloc.service.offline.replay import FrameSeen
+from macroloc.service.offline.run import ReplayOptions, replay_flight
+
+log = logging.getLogger(__name__)
+
+YOLO_CLASS = {"door": 0, "window": 1}
+
+
+@dataclass(frozen=True)
+class SelfLabelParams(Parameters):
+    """What the self-labeller labels (module doc)."""
+
+    every_s: float = param(0.2, "at most one labelled frame per this many seconds of flight (consecutive frames "
+                           "at 30 Hz are near copies)", ge=0)
+    min_visible_fraction: float = param(0.25, "a door or window is labelled when at least this share of its opening "
+                                        "is inside the image and in view (the simulator's truth labels use the "
+                                        "same)", gt=0, le=1)
+    min_box_px: float = param(12.0, "a box smaller than this on a side is not labelled (too few pixels for the "
+                              "detector's stride-16 grid to learn from)", ge=1)
+    samples: int = param(6, "samples per side of an opening for the occlusion test (samples x samples rays)", ge=2)
+    occlusion_tol_m: float = param(0.25, "a model surface nearer than an opening's sample by more than this hides "
+                                   "it: an opening's frame and reveal stand proud of its rectangle (the "
+                                   "simulator's truth uses the same tolerance)", gt=0)
+    sigmas: float = param(3.0, "the pose error, in standard deviations of its covariance along each principal "
+                          "axis, that must leave a box within IoU 0.5 of itself for it to be labelled", gt=0)
+    near_m: float = param(0.1, "the camera's near plane, m", gt=0)
+    jpeg_quality: int = param(92, "JPEG quality of the written frames", ge=50, le=100)
+
+
+class ModelDepth:
+    """The model's own depth along rays: segments tested against its triangles (Moller-Trumbore, vectorized),
+    each segment only against the triangles whose bounding box meets the segment set's."""
+
+    def __init__(self, triangles_cad: np.ndarray) -> None:
+        """`triangles_cad`: (T, 3, 3) occluding triangles, CAD frame, metres."""
+        tri = np.asarray(triangles_cad, np.float64).reshape(-1, 3, 3)
+        self.v0 = tri[:, 0]
+        self.e1 = tri[:, 1] - tri[:, 0]
+        self.e2 = tri[:, 2] - tri[:, 0]
+        self.lo = tri.min(axis=1)
+        self.hi = tri.max(axis=1)
+
+    def hidden(self, origin_cad: np.ndarray, points_cad: np.ndarray, tol_m: float) -> np.ndarray:
+        """(N,) whether a surface lies on the segment from `origin_cad` to each point, nearer than the point by more
+        than `tol_m`."""
+        points = np.asarray(points_cad, np.float64).reshape(-1, 3)
+        out = np.zeros(len(points), bool)
+        if len(points) == 0 or len(self.v0) == 0:
+            return out
+        lo = np.minimum(points.min(axis=0), origin_cad)
+        hi = np.maximum(points.max(axis=0), origin_cad)
+        near = np.flatnonzero(np.all(self.hi >= lo, axis=1) & np.all(self.lo <= hi, axis=1))
+        if len(near) == 0:
+            return out
+        v0, e1, e2 = self.v0[near], self.e1[near], self.e2[near]
+        d = points - origin_cad  # (N, 3) segment directions, length = the point's distance
+        for start in range(0, len(points), 64):  # bounded memory: 64 rays x the triangles near them
+            dd = d[start:start + 64]
+            p = np.cross(dd[:, None, :], e2[None, :, :])  # (n, T, 3)
+            det = np.einsum("tk,ntk->nt", e1, p)
+            ok = np.abs(det) > 1e-12
+            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+            s = origin_cad - v0  # (T, 3)
+            u = np.einsum("tk,ntk->nt", s, p) * inv
+            q = np.cross(s, e1)  # (T, 3)
+            v = np.einsum("nk,tk->nt", dd, q) * inv
+            t = np.einsum("tk,tk->t", e2, q)[None, :] * inv  # along the segment, 1 = at the point
+            hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+            length = np.linalg.norm(dd, axis=1)
+            cut = 1.0 - tol_m / np.maximum(length, 1e-9)  # nearer than the point by more than tol_m
+            out[start:start + 64] = np.any(hit & (t < cut[:, None]), axis=1)
+        return out
+
+
+@dataclass(frozen=True)
+class Box:
+    """One label: a door or window of the model in one frame (pixels, pixel centres at integers)."""
+
+    frame: str
+    feature_id: str
+    type: str
+    box_xyxy: tuple[float, float, float, float]
+    visible_fraction: float
+    cut: bool
+
+
+@dataclass
+class SelfLabelReport:
+    """Counts of each decision (module doc) and the boxes written."""
+
+    frames: Counter[str] = field(default_factory=Counter)
+    boxes: Counter[str] = field(default_factory=Counter)
+    labels: list[Box] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        kinds = Counter(b.type for b in self.labels)
+        return {"frames": dict(self.frames), "boxes": dict(self.boxes), "doors": kinds["door"],
+                "windows": kinds["window"], "cut": sum(b.cut for b in self.labels)}
+
+
+def _clip_near(corners_cam: np.ndarray, near_m: float) -> np.ndarray:
+    """The polygon of `corners_cam` (in order) clipped to z >= near_m (Sutherland-Hodgman, one plane)."""
+    out = []
+    n = len(corners_cam)
+    for i in range(n):
+        a, b = corners_cam[i], corners_cam[(i + 1) % n]
+        a_in, b_in = a[2] >= near_m, b[2] >= near_m
+        if a_in:
+            out.append(a)
+        if a_in != b_in:
+            s = (near_m - a[2]) / (b[2] - a[2])
+            out.append(a + s * (b - a))
+    return np.array(out).reshape(-1, 3)
+
+
+def sigma_poses(T_cad_body: np.ndarray, covariance: np.ndarray, sigmas: float) -> list[np.ndarray]:
+    """The pose moved by `sigmas` standard deviations along each principal axis of its covariance (6x6, [rot;
+    trans] in the body's tangent, GTSAM's convention), both ways: 12 poses T_cad_body."""
+    values, vectors = np.linalg.eigh(np.asarray(covariance, float))
+    out = []
+    for value, vector in zip(values, vectors.T, strict=True):
+        step = sigmas * np.sqrt(max(float(value), 0.0)) * vector
+        out += [T_cad_body @ gtsam.Pose3.Expmap(sign * step).matrix() for sign in (1.0, -1.0)]
+    return out
+
+
+def _box(corners_cad: np.ndarray, T_cam_cad: np.ndarray, camera: tuple[float, float, float, float], near_m: float,
+         ) -> tuple[float, float, float, float] | None:
+    """The projected box of an opening (unclipped to the image), or None where it lies behind the near plane."""
+    fx, fy, cx, cy = camera
+    clipped = _clip_near(corners_cad @ T_cam_cad[:3, :3].T + T_cam_cad[:3, 3], near_m)
+    if len(clipped) < 3:
+        return None
+    u, v = fx * clipped[:, 0] / clipped[:, 2] + cx, fy * clipped[:, 1] / clipped[:, 2] + cy
+    return float(u.min()), float(v.min()), float(u.max()), float(v.max())
+
+
+def _clip(box: tuple[float, float, float, float], width: int, height: int) -> tuple[float, float, float, float]:
+    return max(box[0], -0.5), max(box[1], -0.5), min(box[2], width - 0.5), min(box[3], height - 0.5)
+
+
+def _iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
+    ix, iy = min(a[2], b[2]) - max(a[0], b[0]), min(a[3], b[3]) - max(a[1], b[1])
+    inter = max(ix, 0.0) * max(iy, 0.0)
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / union if union > 0 else 0.0
+
+
+class SelfLabeller:
+    """Writes a replay's held frames with the model's doors and windows as YOLO labels (module doc) under
+    `out_dir` (images/, labels/, data.yaml: the layout `perception.train --sim` reads; PREFIX.boxes.jsonl: each
+    box with its door's id, visible fraction and whether the border cut it), the files named PREFIX_STAMP."""
+
+    def __init__(self, features: list[MacroFeature], depth: ModelDepth, out_dir: Path, prefix: str,
+                 params: SelfLabelParams | None = None) -> None:
+        self.features = [f for f in features if f.type in YOLO_CLASS]
+        self.depth = depth
+        self.out_dir, self.prefix = out_dir, prefix
+        self.params = params or SelfLabelParams()
+        self.report = SelfLabelReport()
+        self._last_ns: int | None = None
+        (out_dir / "images").mkdir(parents=True, exist_ok=True)
+        (out_dir / "labels").mkdir(parents=True, exist_ok=True)
+        names = "\n".join(f"  {v}: {k}" for k, v in YOLO_CLASS.items())
+        (out_dir / "data.yaml").write_text(f"path: .\ntrain: images\nval: images\nnames:\n{names}\n")
+        for old in [*(out_dir / "images").glob(f"{prefix}_*"), *(out_dir / "labels").glob(f"{prefix}_*")]:
+            old.unlink()  # this recording's frames of an earlier run (another recording's stay)
+        self._boxes = (out_dir / f"{prefix}.boxes.jsonl").open("w")
+
+    def frame(self, frame: FlightFrame, inputs: FrameSeen, estimate: Estimate) -> None:
+        p = self.params
+        if estimate.status != "localized" or estimate.T_cad_body is None or estimate.covariance is None \
+                or not frame.stereo.left.data:
+            self.report.frames["not_localized"] += 1
+            return
+        if self._last_ns is not None and (frame.stamp_ns - self._last_ns) * 1e-9 < p.every_s:
+            self.report.frames["too_soon"] += 1
+            return
+        self._last_ns = frame.stamp_ns
+        self.report.frames["labelled"] += 1
+        name = f"{self.prefix}_{frame.stamp_ns}"
+        info = frame.stereo.info
+        boxes = self.boxes(estimate, inputs.T_body_cam, info.fx, info.fy, info.cx, info.cy,
+                           frame.stereo.left.width, frame.stereo.left.height, name)
+        left = frame.images()[0]
+        cv2.imwrite(str(self.out_dir / "images" / f"{name}.jpg"), left, [cv2.IMWRITE_JPEG_QUALITY, p.jpeg_quality])
+        w, h = frame.stereo.left.width, frame.stereo.left.height
+        lines = []
+        for b in boxes:
+            x0, y0, x1, y1 = b.box_xyxy
+            cx, cy = ((x0 + x1) / 2 + 0.5) / w, ((y0 + y1) / 2 + 0.5) / h
+            lines.append(f"{YOLO_CLASS[b.type]} {cx:.6f} {cy:.6f} {(x1 - x0) / w:.6f} {(y1 - y0) / h:.6f}\n")
+            self._boxes.write(json.dumps(asdict(b)) + "\n")
+        (self.out_dir / "labels" / f"{name}.txt").write_text("".join(lines))
+        self.report.labels += boxes
+
+    def boxes(self, estimate: Estimate, T_body_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+              width: int, height: int, frame_name: str = "") -> list[Box]:
+        """The labels of one frame seen from `estimate`'s pose (module doc); each decision counted."""
+        p = self.params
+        assert estimate.T_cad_body is not None and estimate.covariance is not None
+        T_cad_cam = estimate.T_cad_body @ T_body_cam
+        T_cam_cad = invert(T_cad_cam)
+        camera = (fx, fy, cx, cy)
+        at_sigmas = [invert(T @ T_body_cam) for T in sigma_poses(estimate.T_cad_body, estimate.covariance, p.sigmas)]
+        origin = T_cad_cam[:3, 3]
+        out: list[Box] = []
+        grid = (np.arange(p.samples) + 0.5) / p.samples
+        uu, vv = (a.ravel() for a in np.meshgrid(grid, grid))
+        for f in self.features:
+            c = f.corners_cad
+            whole = _box(c, T_cam_cad, camera, p.near_m)
+            if whole is None:
+                self.report.boxes["behind"] += 1
+                continue
+            box = _clip(whole, width, height)
+            if box[2] <= box[0] or box[3] <= box[1]:
+                self.report.boxes["outside"] += 1
+                continue
+            samples = c[0] + uu[:, None] * (c[1] - c[0]) + vv[:, None] * (c[3] - c[0])
+            s_cam = samples @ T_cam_cad[:3, :3].T + T_cam_cad[:3, 3]
+            z = np.maximum(s_cam[:, 2], 1e-9)
+            su, sv = fx * s_cam[:, 0] / z + cx, fy * s_cam[:, 1] / z + cy
+            seen = (s_cam[:, 2] >= p.near_m) & (su >= -0.5) & (su <= width - 0.5) & (sv >= -0.5) & \
+                (sv <= height - 0.5)
+            if seen.any():
+                seen[seen] = ~self.depth.hidden(origin, samples[seen], p.occlusion_tol_m)
+            fraction = float(seen.mean())
+            if fraction < p.min_visible_fraction:
+                self.report.boxes["hidden"] += 1
+                continue
+            if min(box[2] - box[0], box[3] - box[1]) < p.min_box_px:
+                self.report.boxes["too_small"] += 1
+                continue
+            moved = (_box(c, T, camera, p.near_m) for T in at_sigmas)
+            if any(b is None or _iou(_clip(b, width, height), box) < 0.5 for b in moved):
+                self.report.boxes["uncertain"] += 1
+                continue
+            cut = bool(whole[0] < -0.5 or whole[1] < -0.5 or whole[2] > width - 0.5 or whole[3] > height - 0.5)
+            self.report.boxes["labelled"] += 1
+            out.append(Box(frame_name, f.id, str(f.type), box, round(fraction, 3), cut))
+        return out
+
+    def finish(self, localizer: Localizer) -> None:
+        self._boxes.close()
+
+
+def label_recording(recording: Path, building: Path, cfg: MacrolocConfig, occluders_cad: np.ndarray, out_dir: Path,
+                    params: SelfLabelParams | None = None) -> dict:
+    """Replay `recording` in `building` as the service runs it with `cfg` (perception on: the frames' own camera
+    and the config's detector; service.offline.run.replay_flight) and label its held frames into `out_dir`
+    (`SelfLabeller`; `occluders_cad`: (T, 3, 3) the model's triangles). The report's
+    counts, with the replay's `localized_at_s` and `localized_s` (how long the pose was localized)."""
+    model = prepare_building(building, cfg.graph, cfg.planning).model
+    labeller = SelfLabeller(model.features, ModelDepth(occluders_cad), out_dir, recording.stem, params)
+    log.info("labelling %s: replaying it with perception; frames where the pose is held are labelled by %s",
+             recording.name, building.name)
+    replayed = replay_flight(recording, building, cfg, ReplayOptions(observations="perception"), recorder=labeller)
+    result = replayed.result.to_json()
+    return {**labeller.report.to_json(), "localized_at_s": result.get("time_to_localize_s"),
+            "wrong_localizations": result.get("wrong_localizations"), "frames_in_flight": result.get("frames")}
