@@ -69,11 +69,14 @@ def register(app: typer.Typer) -> None:
                                             "with the real indoor photos ($MACROLOC_SHARED_DATA/images/indoor_doors, "
                                             "where present) half of each batch, and the held-out test splits "
                                             "reported."),
-        recording: Path | None = typer.Option(None, "--recording", "-r", help="A flight your own vehicle recorded "
-                                              "in this building (macroloc MCAP, or a ROS 2 bag: see `macroloc "
-                                              "replay --help`): replayed as the service runs it, and its frames "
-                                              "labelled by the building's model wherever the pose is held, "
-                                              "instead of rendered flights."),
+        recording: list[Path] = typer.Option(None, "--recording", "-r", help="A flight your own vehicle recorded "
+                                             "in this building (a macroloc MCAP, or a ROS 2 bag: a folder with "
+                                             "metadata.yaml, or one .mcap of ROS 2 messages): replayed as the "
+                                             "service runs it, and its frames labelled by the building's model "
+                                             "wherever the pose is held, instead of rendered flights. "
+                                             "Repeatable: several flights."),
+        topic: list[str] = typer.Option(None, "--topic", help="ROS 2 bags: NAME=/ros/topic, as `macroloc replay "
+                                        "--topic`."),
         config: Path | None = typer.Option(None, "--config", help="macroloc config file for the --recording's "
                                            "replay (its detector, cameras, odometry): as `macroloc replay`'s."),
         labels_only: bool = typer.Option(False, "--labels-only", help="With --recording: write the labelled frames "
@@ -105,12 +108,14 @@ def register(app: typer.Typer) -> None:
         existing_file(building, "building model")
         seed_list = _seeds(seeds)
         init_path = _init_weights(init)
-        if recording is not None:
-            existing_file(recording, "recording")
-        if labels_only and recording is None:
+        recordings = list(recording or [])
+        for path in recordings:
+            if not path.exists():
+                raise UserInputError(f"recording not found: {path}")
+        if labels_only and not recordings:
             raise UserInputError("--labels-only labels a --recording: give one")
-        if recording is not None and labels_only:
-            counts = _self_label(building, recording, out / "frames", config)
+        if recordings and labels_only:
+            counts = _self_label(building, recordings, out / "frames", config, topic)
             if json_out:
                 print_json(counts)
             else:
@@ -131,8 +136,8 @@ def register(app: typer.Typer) -> None:
         if not is_quiet():
             logging.getLogger().setLevel(logging.INFO)  # rendering and training take minutes: show progress
         frames = out / "frames"
-        if recording is not None:
-            counts = _self_label(building, recording, frames, config)
+        if recordings:
+            counts = _self_label(building, recordings, frames, config, topic)
             log_line = _self_label_line(counts, frames)
             if counts["door"] + counts["window"] == 0:
                 raise UserInputError(log_line + ": nothing to train on (the flight must localize: see "
@@ -150,23 +155,37 @@ def register(app: typer.Typer) -> None:
             print_json({"model": str(model), "frames": counts["images"], "doors": counts["door"],
                         "windows": counts["window"], "figures": figures})
             return
-        kind = "labelled frames of your flight" if recording is not None else "rendered frames"
+        kind = "labelled frames of your flights" if recordings else "rendered frames"
         typer.echo(f"{model}: trained on {counts['images']} {kind} ({counts['door']} doors, "
                    f"{counts['window']} windows); set perception.detector_model to it in the config")
 
 
-def _self_label(building: Path, recording: Path, frames: Path, config: Path | None) -> dict:
-    """The recording replayed with perception and labelled where its pose is held (service.offline.self_label);
-    {"images", "door", "window", "report"}, the report also written to frames/report.json."""
+def _self_label(building: Path, recordings: list[Path], frames: Path, config: Path | None,
+                topics: list[str] | None) -> dict:
+    """Each recording replayed with perception and labelled where its pose is held (service.offline.self_label);
+    {"images", "door", "window", "report"}: the report per recording and in total, also written to
+    frames/report.json."""
     import json
 
     from macroloc.service.config import load_config
+    from macroloc.service.offline.ros_bag import RosTopics
     from macroloc.service.offline.self_label import label_recording
     from macroloc.sim.scene import occluding_triangles
 
-    report = label_recording(recording, building, load_config(config), occluding_triangles(building), frames)
+    cfg = load_config(config)
+    occluders = occluding_triangles(building)
+    parsed = RosTopics.parse(topics or [])
+    per = {path.name: label_recording(path, building, cfg, occluders, frames, topics=parsed) for path in recordings}
+    total: dict = {"frames": {}, "boxes": {}, "doors": 0, "windows": 0, "cut": 0}
+    for r in per.values():
+        for part in ("frames", "boxes"):
+            for k, n in r[part].items():
+                total[part][k] = total[part].get(k, 0) + n
+        for k in ("doors", "windows", "cut"):
+            total[k] += r[k]
+    report = {**total, "recordings": per}
     (frames / "report.json").write_text(json.dumps(report, indent=2) + "\n")
-    return {"images": report["frames"].get("labelled", 0), "door": report["doors"], "window": report["windows"],
+    return {"images": total["frames"].get("labelled", 0), "door": total["doors"], "window": total["windows"],
             "report": report}
 
 

@@ -54,6 +54,7 @@ from macroloc.proto.recording import FlightFrame
 from macroloc.service.assets import prepare_building
 from macroloc.service.config import MacrolocConfig
 from macroloc.service.offline.replay import FrameSeen
+from macroloc.service.offline.ros_bag import open_flight
 from macroloc.service.offline.run import ReplayOptions, replay_flight
 
 log = logging.getLogger(__name__)
@@ -301,16 +302,19 @@ class SelfLabeller:
 
 
 def label_recording(recording: Path, building: Path, cfg: MacrolocConfig, occluders_cad: np.ndarray, out_dir: Path,
-                    params: SelfLabelParams | None = None) -> dict:
-    """Replay `recording` in `building` as the service runs it with `cfg` (perception on: the frames' own camera
-    and the config's detector; service.offline.run.replay_flight) and label its held frames into `out_dir`
-    (`SelfLabeller`; `occluders_cad`: (T, 3, 3) the model's triangles). The report's
-    counts, with the replay's `localized_at_s` and `localized_s` (how long the pose was localized)."""
+                    params: SelfLabelParams | None = None, topics: dict[str, str] | None = None) -> dict:
+    """Replay `recording` (a macroloc MCAP or a ROS 2 bag with its `topics`: service.offline.ros_bag.open_flight)
+    in `building` as the service runs it with `cfg` (perception on: the frames' own camera and the config's
+    detector; service.offline.run.replay_flight) and label its held frames into `out_dir` (`SelfLabeller`, files
+    named after the recording; `occluders_cad`: (T, 3, 3) the model's triangles). The report's counts, with the
+    replay's `localized_at_s`, `wrong_localizations` (where the recording has ground truth) and
+    `frames_in_flight`."""
     model = prepare_building(building, cfg.graph, cfg.planning).model
     labeller = SelfLabeller(model.features, ModelDepth(occluders_cad), out_dir, recording.stem, params)
     log.info("labelling %s: replaying it with perception; frames where the pose is held are labelled by %s",
              recording.name, building.name)
-    replayed = replay_flight(recording, building, cfg, ReplayOptions(observations="perception"), recorder=labeller)
+    frames = open_flight(recording, topics, cfg.camera)
+    replayed = replay_flight(frames, building, cfg, ReplayOptions(observations="perception"), recorder=labeller)
     result = replayed.result.to_json()
     return {**labeller.report.to_json(), "localized_at_s": result.get("time_to_localize_s"),
             "wrong_localizations": result.get("wrong_localizations"), "frames_in_flight": result.get("frames")}
