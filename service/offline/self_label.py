@@ -29,6 +29,11 @@ Per door or window of the model, in a labelled frame:
   door;
 - `labelled`, flagged `cut` where the image border cut its box.
 
+A door or window that is there but not labelled (too small, uncertain, or partly in view under the fraction) is
+greyed out in the written frame: its box (an uncertain one's: the boxes of all its sigma points) filled with the
+frame's mean colour, the labelled boxes spared. A detector trained on the frame is then never taught that a real
+door is background, which an unlabelled door in a labelled frame would teach it.
+
 The box is the opening's rectangle projected (clipped to the near plane, then to the image), the convention of
 the simulator's truth labels. Occlusion the model does not know (people, furniture added after the model, a door
 leaf closed) is not seen by this test.
@@ -60,6 +65,8 @@ from macroloc.service.offline.run import ReplayOptions, replay_flight
 log = logging.getLogger(__name__)
 
 YOLO_CLASS = {"door": 0, "window": 1}
+SHEET_TILES = 12  # frames on a recording's contact sheet
+SHEET_BGR = {"door": (40, 200, 40), "window": (30, 140, 230)}
 
 
 @dataclass(frozen=True)
@@ -147,11 +154,12 @@ class SelfLabelReport:
     frames: Counter[str] = field(default_factory=Counter)
     boxes: Counter[str] = field(default_factory=Counter)
     labels: list[Box] = field(default_factory=list)
+    greyed: int = 0  # regions greyed out in the written frames
 
     def to_json(self) -> dict:
         kinds = Counter(b.type for b in self.labels)
         return {"frames": dict(self.frames), "boxes": dict(self.boxes), "doors": kinds["door"],
-                "windows": kinds["window"], "cut": sum(b.cut for b in self.labels)}
+                "windows": kinds["window"], "cut": sum(b.cut for b in self.labels), "greyed": self.greyed}
 
 
 def _clip_near(corners_cam: np.ndarray, near_m: float) -> np.ndarray:
@@ -202,6 +210,30 @@ def _iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
     return inter / union if union > 0 else 0.0
 
 
+def _pixels(lo: float, hi: float, touching: bool) -> slice:
+    """The pixels (centres at integers) that [lo, hi] touches, or that lie wholly inside it."""
+    if touching:
+        return slice(max(int(np.floor(lo + 0.5)), 0), max(int(np.ceil(hi - 0.5)) + 1, 0))
+    return slice(max(int(np.ceil(lo + 0.5)), 0), max(int(np.floor(hi - 0.5)) + 1, 0))
+
+
+def grey_out(image: np.ndarray, regions: list[tuple[float, float, float, float]],
+             spared: list[tuple[float, float, float, float]]) -> np.ndarray:
+    """A copy of `image` with each region (pixels, xyxy) filled with the image's mean colour, except inside the
+    `spared` boxes."""
+    if not regions:
+        return image
+    h, w = image.shape[:2]
+    fill = np.zeros((h, w), bool)
+    for x0, y0, x1, y1 in regions:  # every pixel the region touches (pixel i spans [i - 0.5, i + 0.5])
+        fill[_pixels(y0, y1, touching=True), _pixels(x0, x1, touching=True)] = True
+    for x0, y0, x1, y1 in spared:  # but those wholly inside a labelled box
+        fill[_pixels(y0, y1, touching=False), _pixels(x0, x1, touching=False)] = False
+    out = image.copy()
+    out[fill] = image.reshape(h * w, -1).mean(axis=0).astype(image.dtype).squeeze()
+    return out
+
+
 class SelfLabeller:
     """Writes a replay's held frames with the model's doors and windows as YOLO labels (module doc) under
     `out_dir` (images/, labels/, data.yaml: the layout `perception.train --sim` reads; PREFIX.boxes.jsonl: each
@@ -215,6 +247,7 @@ class SelfLabeller:
         self.params = params or SelfLabelParams()
         self.report = SelfLabelReport()
         self._last_ns: int | None = None
+        self.greyed: list[tuple[float, float, float, float]] = []  # the last frame's unlabelled openings, pixels
         (out_dir / "images").mkdir(parents=True, exist_ok=True)
         (out_dir / "labels").mkdir(parents=True, exist_ok=True)
         names = "\n".join(f"  {v}: {k}" for k, v in YOLO_CLASS.items())
@@ -238,9 +271,10 @@ class SelfLabeller:
         info = frame.stereo.info
         boxes = self.boxes(estimate, inputs.T_body_cam, info.fx, info.fy, info.cx, info.cy,
                            frame.stereo.left.width, frame.stereo.left.height, name)
-        left = frame.images()[0]
-        cv2.imwrite(str(self.out_dir / "images" / f"{name}.jpg"), left, [cv2.IMWRITE_JPEG_QUALITY, p.jpeg_quality])
         w, h = frame.stereo.left.width, frame.stereo.left.height
+        left = grey_out(frame.images()[0], self.greyed, [b.box_xyxy for b in boxes])
+        self.report.greyed += len(self.greyed)
+        cv2.imwrite(str(self.out_dir / "images" / f"{name}.jpg"), left, [cv2.IMWRITE_JPEG_QUALITY, p.jpeg_quality])
         lines = []
         for b in boxes:
             x0, y0, x1, y1 = b.box_xyxy
@@ -252,8 +286,10 @@ class SelfLabeller:
 
     def boxes(self, estimate: Estimate, T_body_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float,
               width: int, height: int, frame_name: str = "") -> list[Box]:
-        """The labels of one frame seen from `estimate`'s pose (module doc); each decision counted."""
+        """The labels of one frame seen from `estimate`'s pose (module doc); each decision counted, and the regions
+        of the doors and windows there but not labelled in `greyed`."""
         p = self.params
+        self.greyed = []
         assert estimate.T_cad_body is not None and estimate.covariance is not None
         T_cad_cam = estimate.T_cad_body @ T_body_cam
         T_cam_cad = invert(T_cad_cam)
@@ -284,13 +320,19 @@ class SelfLabeller:
             fraction = float(seen.mean())
             if fraction < p.min_visible_fraction:
                 self.report.boxes["hidden"] += 1
+                if fraction > 0:
+                    self.greyed.append(box)
                 continue
             if min(box[2] - box[0], box[3] - box[1]) < p.min_box_px:
                 self.report.boxes["too_small"] += 1
+                self.greyed.append(box)
                 continue
-            moved = (_box(c, T, camera, p.near_m) for T in at_sigmas)
+            moved = [_box(c, T, camera, p.near_m) for T in at_sigmas]
             if any(b is None or _iou(_clip(b, width, height), box) < 0.5 for b in moved):
                 self.report.boxes["uncertain"] += 1
+                reach = [box, *(_clip(b, width, height) for b in moved if b is not None)]
+                self.greyed.append((min(b[0] for b in reach), min(b[1] for b in reach), max(b[2] for b in reach),
+                                    max(b[3] for b in reach)))
                 continue
             cut = bool(whole[0] < -0.5 or whole[1] < -0.5 or whole[2] > width - 0.5 or whole[3] > height - 0.5)
             self.report.boxes["labelled"] += 1
@@ -298,7 +340,31 @@ class SelfLabeller:
         return out
 
     def finish(self, localizer: Localizer) -> None:
+        """Close the box list and draw `PREFIX.labels.png`: up to `SHEET_TILES` labelled frames with boxes, spread
+        over the flight, each box drawn (doors green, windows orange; a box cut by the border dashed-thin)."""
         self._boxes.close()
+        by_frame: dict[str, list[Box]] = {}
+        for b in self.report.labels:
+            by_frame.setdefault(b.frame, []).append(b)
+        names = sorted(by_frame)
+        if not names:
+            return
+        picked = [names[i] for i in np.linspace(0, len(names) - 1, min(SHEET_TILES, len(names))).round().astype(int)]
+        tiles = []
+        for name in dict.fromkeys(picked):
+            image = cv2.imread(str(self.out_dir / "images" / f"{name}.jpg"), cv2.IMREAD_COLOR)
+            if image is None:
+                continue
+            for b in by_frame[name]:
+                x0, y0, x1, y1 = (int(round(v)) for v in b.box_xyxy)
+                cv2.rectangle(image, (x0, y0), (x1, y1), SHEET_BGR[b.type], 1 if b.cut else 2)
+            tiles.append(cv2.resize(image, (320, int(round(image.shape[0] * 320 / image.shape[1])))))
+        if tiles:
+            h = max(t.shape[0] for t in tiles)
+            tiles = [cv2.copyMakeBorder(t, 0, h - t.shape[0], 0, 0, cv2.BORDER_CONSTANT) for t in tiles]
+            tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % 4)
+            rows = [np.hstack(tiles[i:i + 4]) for i in range(0, len(tiles), 4)]
+            cv2.imwrite(str(self.out_dir / f"{self.prefix}.labels.png"), np.vstack(rows))
 
 
 def label_recording(recording: Path, building: Path, cfg: MacrolocConfig, occluders_cad: np.ndarray, out_dir: Path,

@@ -121,3 +121,24 @@ def test_a_rendered_flight_labelled_from_its_true_poses_agrees_with_the_simulato
     labeller.finish(None)  # type: ignore[arg-type]
     assert checked >= 5 and labeller.report.boxes["hidden"] >= 5
     assert len(list((tmp_path / "labels").glob("*.txt"))) == labeller.report.frames["labelled"] >= 10
+    assert (tmp_path / "r.labels.png").is_file()  # the contact sheet
+
+
+def test_an_opening_there_but_not_labelled_is_greyed_out_and_a_labelled_one_spared(tmp_path: Path) -> None:
+    """A door too uncertain to box is still a door: greyed out (its sigma points' boxes), so that a detector
+    trained on the frame is not taught that it is background; a labelled box inside the region keeps its pixels."""
+    from macroloc.service.offline.self_label import grey_out
+
+    near, far = _door(4.0), _door(12.0, y=0.2)
+    labeller = _labeller(tmp_path, [near, far], np.zeros((0, 3, 3)))
+    # 3 sigma of 1 deg turns the view by 16 px: the near door's 68 px wide box keeps IoU 0.62, the far one's 23 px
+    # wide box drops to 0.18
+    labels = labeller.boxes(_estimate(sigma_m=0.02, sigma_deg=1.0), T_BODY_CAM, FX, FX, 319.5, 239.5, W, H)
+    assert [b.feature_id for b in labels] == [near.id] and labeller.report.boxes == {"labelled": 1, "uncertain": 1}
+    (region,) = labeller.greyed
+    far_box = (319.5 - FX * 0.65 / 12, 239.5 - FX * 1.0 / 12, 319.5 - FX * -0.25 / 12, 239.5 + FX * 1.0 / 12)
+    assert region[0] < far_box[0] and region[2] > far_box[2]  # wider than its own box: where it could be
+    image = np.random.default_rng(0).integers(0, 255, (H, W, 3), np.uint8)
+    out = grey_out(image, [(100.0, 100.0, 200.0, 200.0)], [(150.0, 150.0, 300.0, 300.0)])
+    assert (out[100:150, 100:201] == out[100, 100]).all() and (out[151:200, 151:200] == image[151:200, 151:200]).all()
+    assert (out[:100] == image[:100]).all() and (out[201:] == image[201:]).all()
