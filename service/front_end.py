@@ -128,6 +128,7 @@ class FrontEnd:
         self._odometry = OdometryBuffer()  # stamp_ns -> T_odom_body
         self._pending: list[_Pending] = []  # sightings that arrived before the odometry of their stamp
         self.unmatched = 0  # sightings dropped: no odometry near their stamp
+        self.keyframe_updates, self.keyframe_update_ms_total = 0, 0.0  # the pose graph's updates at keyframes
         self.restored: SavedMap | None = None  # the saved map this run started from (service.saved_map)
 
     @classmethod
@@ -259,12 +260,13 @@ class FrontEnd:
 
     def handle(self, event: object) -> Estimate | None:
         """One input event of the vehicle (module doc), in the order sent: its estimate, where it gives one."""
-        if isinstance(event, StereoIn):
-            return self.stereo(event)
-        if isinstance(event, OdometryIn):
-            return self.odometry(event)
-        if isinstance(event, ObservationsIn):
-            return self.observations(event)
+        if isinstance(event, (StereoIn, OdometryIn, ObservationsIn)):
+            answer = self.stereo(event) if isinstance(event, StereoIn) else self.odometry(event) \
+                if isinstance(event, OdometryIn) else self.observations(event)
+            if answer is not None and self.loop.keyframe:
+                self.keyframe_updates += 1
+                self.keyframe_update_ms_total += answer.update_ms
+            return answer
         if isinstance(event, ImuIn):
             self.imu(event)
         elif isinstance(event, ClockReset):
@@ -328,6 +330,11 @@ class FrontEnd:
     def last(self) -> Estimate | None:
         """The newest estimate (a late keyframe for an older stamp does not replace a newer pose)."""
         return self.loop.last
+
+    @property
+    def isam_update_ms_mean(self) -> float:
+        """The mean time of the pose graph's update at a keyframe so far, ms (0 before the first)."""
+        return self.keyframe_update_ms_total / self.keyframe_updates if self.keyframe_updates else 0.0
 
     @property
     def graph_restarts(self) -> int:

@@ -491,6 +491,7 @@ class LocalizationService:
         msg.dropped["queue_overrun"] = self.queue.dropped
         msg.dropped["observations/no_odometry"] = self.front_end.unmatched
         msg.dropped["graph/restarted"] = self.front_end.graph_restarts
+        msg.latencies_ms["isam_update_mean"] = self.front_end.isam_update_ms_mean  # at keyframes, since the start
         msg.counts["queued"] = len(self.queue)
         msg.latencies_ms["worker_busy"] = (time.monotonic() - self._worker_beat_s) * 1e3  # > stall_after_s: stalled
         return msg

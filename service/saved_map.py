@@ -175,7 +175,7 @@ def map_snapshot(localizer: Localizer, last: Estimate | None, started_from: Save
         snap.storey = _storey_of(model, last.matches)
     own = []
     for j, lm in localizer.landmarks.items():
-        f = snap.landmarks_map.add(type=lm.type, id=localizer.links.get(j, ""))
+        f = snap.landmarks_map.add(type=lm.type, id=localizer.links.get(j, ""), source_id=lm.truth_id or "")
         corners = lm.corners(localizer.graph.T_map_rect(j))
         f.corners.extend(vector3(c) for c in corners)
         own.append((lm.type, f.id, np.asarray(corners).mean(axis=0)))

@@ -51,6 +51,7 @@ class ZenohReplayResult:
     duration_s: float = 0.0  # wall clock of the playback
     localized: bool = False
     time_to_localize_s: float | None = None  # recording time of the first pose in the model
+    processing_to_localize_s: float | None = None  # wall time from the first frame sent to that pose's arrival
     ape_rmse_m: float | None = None  # poses in the model vs ground truth, CAD frame, no alignment
     ape_max_m: float | None = None
     rpe_1s_rmse_m: float | None = None
@@ -62,6 +63,9 @@ class ZenohReplayResult:
     landmarks: int | None = None  # ... its landmarks
     status_final: str | None = None  # ... and its localization status
     cad_links: int | None = None  # the service's map at the end: landmarks linked to a CAD feature
+    wrong_links: int | None = None  # ... linked to another feature than the one its vehicle's sighting named
+    isam_update_ms_mean: float | None = None  # the service's last diagnostics: its pose graph's update at keyframes
+    dropped: dict[str, int] = field(default_factory=dict)  # ... and the inputs it dropped, by kind
     position_sigma_final_m: float | None = None  # the last pose's covariance: largest position sigma
     # the service's last pose of each frame's stamp: (status, T_cad_body or None), for comparing runs (not in JSON)
     poses_cad: dict[int, tuple[str, np.ndarray | None]] = field(default_factory=dict, repr=False)
@@ -71,11 +75,14 @@ class ZenohReplayResult:
                 "processing_fps": round(self.frames / self.duration_s, 1) if self.duration_s > 0 else None,
                 "odometry": self.odometry,
                 "localized": self.localized, "time_to_localize_s": self.time_to_localize_s,
+                "processing_to_localize_s": self.processing_to_localize_s,
                 "ape_rmse_m": self.ape_rmse_m, "ape_max_m": self.ape_max_m, "rpe_1s_rmse_m": self.rpe_1s_rmse_m,
                 "wrong_localizations": self.wrong_localizations,
                 "wrong_while_localized_s": round(self.wrong_while_localized_s, 3),
                 "keyframes": self.keyframes, "landmarks": self.landmarks, "cad_links": self.cad_links,
+                "wrong_links": self.wrong_links, "isam_update_ms_mean": self.isam_update_ms_mean,
                 "status_final": self.status_final, "position_sigma_final_m": self.position_sigma_final_m,
+                "dropped": {k: n for k, n in sorted(self.dropped.items()) if n},
                 "latency_ms": {k: round(v, 3) for k, v in self.latency_ms.items()}}
 
 
@@ -116,11 +123,13 @@ class ServiceIdle:
 
     def __init__(self, session: zenoh.Session, key: str) -> None:
         self._idle_ns: list[int] = []  # wall-clock stamps of the diagnostics that found the service idle
+        self.last: pb.Diagnostics | None = None
         self._lock = threading.Lock()
         self._sub = session.declare_subscriber(key, self._on_diagnostics)
 
     def _on_diagnostics(self, sample: zenoh.Sample) -> None:
         msg = pb.Diagnostics.FromString(sample.payload.to_bytes())
+        self.last = msg
         if msg.counts.get("queued", 1) == 0 and msg.latencies_ms.get("worker_busy", np.inf) < self.IDLE_BUSY_MS:
             with self._lock:
                 self._idle_ns.append(msg.header.stamp_ns)
@@ -215,14 +224,19 @@ def replay_over_zenoh(flight: Path | Iterable[FlightFrame], zenoh_cfg: ZenohConf
             if reply.ok is not None:
                 snapshot = pb.MapSnapshot.FromString(reply.ok.payload.to_bytes())
                 result.cad_links = sum(1 for lm in snapshot.landmarks_map if lm.id)
+                result.wrong_links = sum(1 for lm in snapshot.landmarks_map
+                                         if lm.id and lm.source_id and lm.id != lm.source_id)
+        if idle.last is not None:
+            result.isam_update_ms_mean = round(idle.last.latencies_ms.get("isam_update_mean", 0.0), 3)
+            result.dropped = dict(idle.last.dropped)
         for pub in pubs.values():
             pub.undeclare()
-    _score(result, poses.poses, sent_at, truth, first_stamp or 0)
+    _score(result, poses.poses, sent_at, truth, first_stamp or 0, start_wall)
     return result
 
 
 def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, float]], sent_at: dict[int, float],
-           truth: dict[int, np.ndarray], first_stamp: int) -> None:
+           truth: dict[int, np.ndarray], first_stamp: int, start_wall: float) -> None:
     result.poses = len(poses)
     result.poses_cad = {stamp: (pb.PoseEstimate.Status.Name(p.status).lower(),
                                 matrix_from_pose(p.T_cad_body) if p.HasField("T_cad_body") else None)
@@ -247,6 +261,7 @@ def _score(result: ZenohReplayResult, poses: dict[int, tuple[pb.PoseEstimate, fl
     result.localized = score.first is not None
     if score.first is not None:
         result.time_to_localize_s = round(trace.t_s[score.first], 3)
+        result.processing_to_localize_s = round(poses[frames[score.first]][1] - start_wall, 3)
     if score.ape.n:
         result.ape_rmse_m, result.ape_max_m = round(score.ape.rmse, 4), round(score.ape.max, 4)
     if score.rpe_1s.n:

@@ -124,20 +124,22 @@ class Odometry(_message.Message):
     def __init__(self, header: _Optional[_Union[Header, _Mapping]] = ..., T_map_body: _Optional[_Union[Pose, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ObservedFeature(_message.Message):
-    __slots__ = ("type", "score", "corners", "box_xyxy", "id", "centroid")
+    __slots__ = ("type", "score", "corners", "box_xyxy", "id", "centroid", "source_id")
     TYPE_FIELD_NUMBER: _ClassVar[int]
     SCORE_FIELD_NUMBER: _ClassVar[int]
     CORNERS_FIELD_NUMBER: _ClassVar[int]
     BOX_XYXY_FIELD_NUMBER: _ClassVar[int]
     ID_FIELD_NUMBER: _ClassVar[int]
     CENTROID_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_ID_FIELD_NUMBER: _ClassVar[int]
     type: str
     score: float
     corners: _containers.RepeatedCompositeFieldContainer[Vector3]
     box_xyxy: _containers.RepeatedScalarFieldContainer[float]
     id: str
     centroid: Vector3
-    def __init__(self, type: _Optional[str] = ..., score: _Optional[float] = ..., corners: _Optional[_Iterable[_Union[Vector3, _Mapping]]] = ..., box_xyxy: _Optional[_Iterable[float]] = ..., id: _Optional[str] = ..., centroid: _Optional[_Union[Vector3, _Mapping]] = ...) -> None: ...
+    source_id: str
+    def __init__(self, type: _Optional[str] = ..., score: _Optional[float] = ..., corners: _Optional[_Iterable[_Union[Vector3, _Mapping]]] = ..., box_xyxy: _Optional[_Iterable[float]] = ..., id: _Optional[str] = ..., centroid: _Optional[_Union[Vector3, _Mapping]] = ..., source_id: _Optional[str] = ...) -> None: ...
 
 class ObservedFeatures(_message.Message):
     __slots__ = ("header", "features")

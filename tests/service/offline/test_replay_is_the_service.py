@@ -64,5 +64,8 @@ def test_a_perceived_flight_gives_the_same_estimates_offline_and_through_the_ser
     ours, theirs = offline.to_json(), served.to_json()
     for key in ("ape_rmse_m", "ape_max_m", "rpe_1s_rmse_m", "wrong_while_localized_s", "position_sigma_final_m"):
         assert theirs[key] == pytest.approx(ours[key], abs=1e-3), key
-    for key in ("localized", "wrong_localizations", "keyframes", "landmarks", "cad_links", "status_final"):
+    for key in ("localized", "wrong_localizations", "keyframes", "landmarks", "cad_links", "wrong_links",
+                "status_final", "dropped"):
         assert theirs[key] == ours[key], key
+    assert set(ours) <= set(theirs), set(ours) - set(theirs)  # every figure, the timings included
+    assert theirs["isam_update_ms_mean"] > 0 and theirs["processing_to_localize_s"] > 0
