@@ -47,10 +47,10 @@ BUILDINGS = {"office_a": ROOT / "data/buildings/office_a.ifc",
              "duplex": ROOT / "data/buildings/duplex.ifc"}
 DETECTORS = {"office_a": ROOT / "data/buildings/office_a_detector/detector.onnx"}
 COMPARED = ("time_to_localize_s", "ape_rmse_m", "ape_max_m", "wrong_localizations", "status_final")
-# the figures both transports give (the service's answers carry no APE maximum), compared to the decimals the
+# the figures both transports give, compared to the decimals the
 # over-Zenoh JSON keeps (service.offline.replay_zenoh: the time to 1 ms; the offline JSON's to 0.1 ms)
 COMPARED_TRANSPORTS = ("time_to_localize_s", "ape_rmse_m", "ape_max_m", "wrong_localizations",
-                       "wrong_while_localized_s", "status_final", "keyframes", "landmarks", "cad_links")
+                       "wrong_while_localized_s", "status_final", "keyframes", "landmarks", "cad_links", "wrong_links")
 TRANSPORT_DECIMALS = {"time_to_localize_s": 3, "ape_rmse_m": 4, "ape_max_m": 4, "wrong_while_localized_s": 3}
 OVER_ZENOH = "over-zenoh"  # the last word of a run's key played into a service
 TARGET_S, TARGET_APE_M = 5.0, 0.10
