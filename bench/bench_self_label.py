@@ -27,16 +27,8 @@ import numpy as np
 
 from macroloc.proto.recording import decode_image, read_flight
 from macroloc.service.config import load_config
-from macroloc.service.offline.self_label import YOLO_CLASS, SelfLabelParams, _clip_near, label_recording
+from macroloc.service.offline.self_label import YOLO_CLASS, SelfLabelParams, clip_near, iou, label_recording
 from macroloc.sim.scene import occluding_triangles
-
-
-def iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = ix * iy
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / union if union > 0 else 0.0
 
 
 def truth_of_frame(frame, params: SelfLabelParams) -> dict[str, dict]:  # noqa: ANN001 - FlightFrame
@@ -49,7 +41,7 @@ def truth_of_frame(frame, params: SelfLabelParams) -> dict[str, dict]:  # noqa: 
         if f.type not in YOLO_CLASS or len(f.box_xyxy) != 4:
             continue
         corners = np.array([[c.x, c.y, c.z] for c in f.corners])
-        clipped = _clip_near(corners, params.near_m)
+        clipped = clip_near(corners, params.near_m)
         area = 0.0
         if len(clipped) >= 3:
             px = np.c_[info.fx * clipped[:, 0] / clipped[:, 2] + info.cx,

@@ -162,7 +162,7 @@ class SelfLabelReport:
                 "windows": kinds["window"], "cut": sum(b.cut for b in self.labels), "greyed": self.greyed}
 
 
-def _clip_near(corners_cam: np.ndarray, near_m: float) -> np.ndarray:
+def clip_near(corners_cam: np.ndarray, near_m: float) -> np.ndarray:
     """The polygon of `corners_cam` (in order) clipped to z >= near_m (Sutherland-Hodgman, one plane)."""
     out = []
     n = len(corners_cam)
@@ -192,7 +192,7 @@ def _box(corners_cad: np.ndarray, T_cam_cad: np.ndarray, camera: tuple[float, fl
          ) -> tuple[float, float, float, float] | None:
     """The projected box of an opening (unclipped to the image), or None where it lies behind the near plane."""
     fx, fy, cx, cy = camera
-    clipped = _clip_near(corners_cad @ T_cam_cad[:3, :3].T + T_cam_cad[:3, 3], near_m)
+    clipped = clip_near(corners_cad @ T_cam_cad[:3, :3].T + T_cam_cad[:3, 3], near_m)
     if len(clipped) < 3:
         return None
     u, v = fx * clipped[:, 0] / clipped[:, 2] + cx, fy * clipped[:, 1] / clipped[:, 2] + cy
@@ -203,7 +203,8 @@ def _clip(box: tuple[float, float, float, float], width: int, height: int) -> tu
     return max(box[0], -0.5), max(box[1], -0.5), min(box[2], width - 0.5), min(box[3], height - 0.5)
 
 
-def _iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
+def iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
+    """Intersection over union of two boxes (x0, y0, x1, y1)."""
     ix, iy = min(a[2], b[2]) - max(a[0], b[0]), min(a[3], b[3]) - max(a[1], b[1])
     inter = max(ix, 0.0) * max(iy, 0.0)
     union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
@@ -328,7 +329,7 @@ class SelfLabeller:
                 self.greyed.append(box)
                 continue
             moved = [_box(c, T, camera, p.near_m) for T in at_sigmas]
-            if any(b is None or _iou(_clip(b, width, height), box) < 0.5 for b in moved):
+            if any(b is None or iou(_clip(b, width, height), box) < 0.5 for b in moved):
                 self.report.boxes["uncertain"] += 1
                 reach = [box, *(_clip(b, width, height) for b in moved if b is not None)]
                 self.greyed.append((min(b[0] for b in reach), min(b[1] for b in reach), max(b[2] for b in reach),

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.bench_self_label import iou, truth_of_frame
+from bench.bench_self_label import truth_of_frame
 from macroloc.graph.features import MacroFeature
 from macroloc.graph.localizer import Estimate
 from macroloc.proto.recording import matrix_from_pose, read_flight
 from macroloc.service.frames import stereo_T_body_cam
 from macroloc.service.offline.replay import FrameSeen
-from macroloc.service.offline.self_label import ModelDepth, SelfLabeller, SelfLabelParams
+from macroloc.service.offline.self_label import ModelDepth, SelfLabeller, SelfLabelParams, iou
 from macroloc.sim.scene import occluding_triangles
 
 # the camera (OpenCV: x right, y down, z forward) on a body whose x is forward: z up
