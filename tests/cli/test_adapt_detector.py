@@ -59,7 +59,9 @@ def test_a_recorded_flight_is_labelled_where_its_pose_is_held(tmp_path: Path, ca
                  "--labels-only", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     report = json.loads((tmp_path / "a" / "frames" / "report.json").read_text())
-    assert doc["report"] == report and report["wrong_localizations"] == 0
+    flight_report = report["recordings"]["office.mcap"]
+    assert doc["report"] == report and flight_report["wrong_localizations"] == 0
     assert doc["images"] == report["frames"]["labelled"] > 0 and doc["door"] > 0
-    assert sum(report["frames"].values()) == report["frames_in_flight"]
+    assert sum(report["frames"].values()) == flight_report["frames_in_flight"]
+    assert (tmp_path / "a" / "frames" / "office.labels.png").is_file()
     assert len(list((tmp_path / "a" / "frames" / "labels").glob("office_*.txt"))) == doc["images"]
