@@ -25,9 +25,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from macroloc.perception.trainset import YOLO_CLASSES, yolo_folder, yolo_line
 from macroloc.proto.recording import decode_image, read_flight
 from macroloc.service.config import load_config
-from macroloc.service.offline.self_label import YOLO_CLASS, SelfLabelParams, clip_near, iou, label_recording
+from macroloc.service.offline.self_label import SelfLabelParams, clip_near, iou, label_recording
 from macroloc.sim.scene import occluding_triangles
 
 
@@ -38,7 +39,7 @@ def truth_of_frame(frame, params: SelfLabelParams) -> dict[str, dict]:  # noqa: 
     info = frame.stereo.info
     out = {}
     for k, f in enumerate(gt.features_cam):
-        if f.type not in YOLO_CLASS or len(f.box_xyxy) != 4:
+        if f.type not in YOLO_CLASSES or len(f.box_xyxy) != 4:
             continue
         corners = np.array([[c.x, c.y, c.z] for c in f.corners])
         clipped = clip_near(corners, params.near_m)
@@ -60,11 +61,7 @@ def _is_truth_label(t: dict, params: SelfLabelParams) -> bool:
 
 def write_yolo(out: Path, name: str, image: np.ndarray, boxes: list[tuple[str, tuple]], w: int, h: int) -> None:
     cv2.imwrite(str(out / "images" / f"{name}.jpg"), image, [cv2.IMWRITE_JPEG_QUALITY, 92])
-    lines = []
-    for kind, (x0, y0, x1, y1) in boxes:
-        cx, cy = ((x0 + x1) / 2 + 0.5) / w, ((y0 + y1) / 2 + 0.5) / h
-        lines.append(f"{YOLO_CLASS[kind]} {cx:.6f} {cy:.6f} {(x1 - x0) / w:.6f} {(y1 - y0) / h:.6f}\n")
-    (out / "labels" / f"{name}.txt").write_text("".join(lines))
+    (out / "labels" / f"{name}.txt").write_text("".join(yolo_line(kind, box, w, h) + "\n" for kind, box in boxes))
 
 
 def check_labels(recording: Path, labelled: Path, truth_out: Path | None = None,
@@ -79,8 +76,7 @@ def check_labels(recording: Path, labelled: Path, truth_out: Path | None = None,
         labels.setdefault(b["frame"], []).append(b)
     labelled_frames = {p.stem for p in (labelled / "labels").glob(f"{recording.stem}_*.txt")}
     if truth_out:
-        for sub in ("images", "labels"):
-            (truth_out / sub).mkdir(parents=True, exist_ok=True)
+        yolo_folder(truth_out)
     right, wrong, same_feature = 0, 0, 0
     why: Counter[str] = Counter()
     truth_in_labelled, found = 0, 0

@@ -44,3 +44,18 @@ def draw_features(image: np.ndarray, features: Sequence, rejected: Sequence = ()
         cv2.putText(out, text, (x0, max(12, y0 - 6)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
         cv2.putText(out, text, (x0, max(12, y0 - 6)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
     return out
+
+
+def contact_sheet(tiles_bgr: list[np.ndarray], columns: int = 4, tile_width: int = 320) -> np.ndarray:
+    """(rows * h, columns * tile_width, 3) uint8 grid of the tiles, each resized to `tile_width`."""
+    if not tiles_bgr:
+        return np.zeros((10, 10, 3), np.uint8)
+    h0, w0 = tiles_bgr[0].shape[:2]
+    th = int(round(h0 * tile_width / w0))
+    rows = (len(tiles_bgr) + columns - 1) // columns
+    sheet = np.zeros((rows * th, columns * tile_width, 3), np.uint8)
+    for i, tile in enumerate(tiles_bgr):
+        r, c = divmod(i, columns)
+        sheet[r * th:(r + 1) * th, c * tile_width:(c + 1) * tile_width] = cv2.resize(
+            tile, (tile_width, th), interpolation=cv2.INTER_AREA)
+    return sheet

@@ -49,6 +49,25 @@ class Sample:
     classes: np.ndarray
 
 
+YOLO_CLASSES = {"door": 0, "window": 1}  # the classes of the frames this project writes (rendered, self-labelled)
+
+
+def yolo_line(kind: str, box_xyxy: tuple[float, float, float, float], width_px: int, height_px: int) -> str:
+    """One YOLO label line `class cx cy w h` (normalised, the image spanning [0, 1]) of a box in pixels with pixel
+    centres at integers (the image spanning [-0.5, W - 0.5])."""
+    x0, y0, x1, y1 = box_xyxy
+    cx, cy = ((x0 + x1) / 2 + 0.5) / width_px, ((y0 + y1) / 2 + 0.5) / height_px
+    return f"{YOLO_CLASSES[kind]} {cx:.6f} {cy:.6f} {(x1 - x0) / width_px:.6f} {(y1 - y0) / height_px:.6f}"
+
+
+def yolo_folder(out_dir: Path) -> None:
+    """Make `out_dir` a YOLO folder of this project's classes: images/, labels/ and data.yaml."""
+    (out_dir / "images").mkdir(parents=True, exist_ok=True)
+    (out_dir / "labels").mkdir(parents=True, exist_ok=True)
+    names = "\n".join(f"  {v}: {k}" for k, v in YOLO_CLASSES.items())
+    (out_dir / "data.yaml").write_text(f"path: .\ntrain: images\nval: images\nnames:\n{names}\n")
+
+
 def read_yolo_labels(label_path: Path, width_px: int, height_px: int,
                      class_map: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """YOLO `class cx cy w h` (normalised) -> (boxes_xyxy in pixels (K,4), mapped classes (K,))."""

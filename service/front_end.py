@@ -260,22 +260,29 @@ class FrontEnd:
 
     def handle(self, event: object) -> Estimate | None:
         """One input event of the vehicle (module doc), in the order sent: its estimate, where it gives one."""
-        if isinstance(event, (StereoIn, OdometryIn, ObservationsIn)):
-            answer = self.stereo(event) if isinstance(event, StereoIn) else self.odometry(event) \
-                if isinstance(event, OdometryIn) else self.observations(event)
-            if answer is not None and self.loop.keyframe:
-                self.keyframe_updates += 1
-                self.keyframe_update_ms_total += answer.update_ms
-            return answer
         if isinstance(event, ImuIn):
             self.imu(event)
-        elif isinstance(event, ClockReset):
+            return None
+        if isinstance(event, ClockReset):
             self.new_time_base()
-        elif isinstance(event, PriorIn):
+            return None
+        if isinstance(event, PriorIn):
             self.prior(event)
-        else:
-            raise TypeError(f"not an input event of the front end: {type(event).__name__}")
-        return None
+            return None
+        answer = self._estimate(event)
+        if answer is not None and self.loop.keyframe:
+            self.keyframe_updates += 1
+            self.keyframe_update_ms_total += answer.update_ms
+        return answer
+
+    def _estimate(self, event: object) -> Estimate | None:
+        if isinstance(event, StereoIn):
+            return self.stereo(event)
+        if isinstance(event, OdometryIn):
+            return self.odometry(event)
+        if isinstance(event, ObservationsIn):
+            return self.observations(event)
+        raise TypeError(f"not an input event of the front end: {type(event).__name__}")
 
     def _sightings_frame(self, stamp_ns: int, to_body: Callable[[np.ndarray], list[Sighting]]) -> Estimate | None:
         T_odom_body = self.odometry_at(stamp_ns)

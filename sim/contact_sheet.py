@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from macroloc.perception.draw import contact_sheet  # noqa: F401 - the grid, shared with the self-labeller's sheet
 from macroloc.sim.groundtruth import FeatureInView
 
 COLOURS_BGR = {"door": (40, 200, 40), "window": (230, 140, 30)}
@@ -26,18 +27,3 @@ def annotate(image_bgr: np.ndarray, features: list[FeatureInView], label: str = 
     if label:
         cv2.putText(out, label, (6, out.shape[0] - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
     return out
-
-
-def contact_sheet(tiles_bgr: list[np.ndarray], columns: int = 4, tile_width: int = 320) -> np.ndarray:
-    """(rows * h, columns * tile_width, 3) uint8 grid of the tiles, each resized to `tile_width`."""
-    if not tiles_bgr:
-        return np.zeros((10, 10, 3), np.uint8)
-    h0, w0 = tiles_bgr[0].shape[:2]
-    th = int(round(h0 * tile_width / w0))
-    rows = (len(tiles_bgr) + columns - 1) // columns
-    sheet = np.zeros((rows * th, columns * tile_width, 3), np.uint8)
-    for i, tile in enumerate(tiles_bgr):
-        r, c = divmod(i, columns)
-        sheet[r * th:(r + 1) * th, c * tile_width:(c + 1) * tile_width] = cv2.resize(
-            tile, (tile_width, th), interpolation=cv2.INTER_AREA)
-    return sheet

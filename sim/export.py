@@ -18,14 +18,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from macroloc.perception.trainset import YOLO_CLASSES, yolo_folder, yolo_line
 from macroloc.sim.flight import FlightParams
 from macroloc.sim.groundtruth import FeatureInView
 from macroloc.sim.simulator import SimulationParams, Simulator
 
 log = logging.getLogger(__name__)
-
-YOLO_CLASSES = {"door": 0, "window": 1}
-
 
 def yolo_lines(features: list[FeatureInView], width: int, height: int, min_visible_fraction: float = 0.25,
                min_box_px: float = 6.0) -> list[str]:
@@ -33,14 +31,12 @@ def yolo_lines(features: list[FeatureInView], width: int, height: int, min_visib
     [-0.5, W - 0.5]); YOLO's are normalised with the image spanning [0, 1]."""
     lines = []
     for f in features:
-        cls = YOLO_CLASSES.get(f.type)
-        if cls is None or f.visible_fraction < min_visible_fraction:
+        if f.type not in YOLO_CLASSES or f.visible_fraction < min_visible_fraction:
             continue
         x0, y0, x1, y1 = (float(v) for v in f.box_xyxy)
         if x1 - x0 < min_box_px or y1 - y0 < min_box_px:
             continue
-        cx, cy = ((x0 + x1) / 2 + 0.5) / width, ((y0 + y1) / 2 + 0.5) / height
-        lines.append(f"{cls} {cx:.6f} {cy:.6f} {(x1 - x0) / width:.6f} {(y1 - y0) / height:.6f}")
+        lines.append(yolo_line(f.type, (x0, y0, x1, y1), width, height))
     return lines
 
 
@@ -56,10 +52,7 @@ class YoloExporter:
     counts: dict[str, int] = field(default_factory=lambda: {"images": 0, "door": 0, "window": 0})
 
     def __post_init__(self) -> None:
-        (self.out_dir / "images").mkdir(parents=True, exist_ok=True)
-        (self.out_dir / "labels").mkdir(parents=True, exist_ok=True)
-        names = "\n".join(f"  {v}: {k}" for k, v in YOLO_CLASSES.items())
-        (self.out_dir / "data.yaml").write_text(f"path: .\ntrain: images\nval: images\nnames:\n{names}\n")
+        yolo_folder(self.out_dir)
 
     def add(self, index: int, left_bgr: np.ndarray, features: list[FeatureInView]) -> bool:
         """Write frame `index` when it is one of every `every_n`; returns whether it was written."""

@@ -55,6 +55,8 @@ from macroloc.common.parameters import Parameters, param
 from macroloc.graph.features import MacroFeature
 from macroloc.graph.localizer import Estimate, Localizer
 from macroloc.graph.rigid import invert
+from macroloc.perception.draw import contact_sheet
+from macroloc.perception.trainset import YOLO_CLASSES, yolo_folder, yolo_line
 from macroloc.proto.recording import FlightFrame
 from macroloc.service.assets import prepare_building
 from macroloc.service.config import MacrolocConfig
@@ -64,7 +66,6 @@ from macroloc.service.offline.run import ReplayOptions, replay_flight
 
 log = logging.getLogger(__name__)
 
-YOLO_CLASS = {"door": 0, "window": 1}
 SHEET_TILES = 12  # frames on a recording's contact sheet
 SHEET_BGR = {"door": (40, 200, 40), "window": (30, 140, 230)}
 
@@ -117,17 +118,18 @@ class ModelDepth:
             return out
         v0, e1, e2 = self.v0[near], self.e1[near], self.e2[near]
         d = points - origin_cad  # (N, 3) segment directions, length = the point's distance
+        s = origin_cad - v0  # (T, 3): of the rays' common origin, the same for every chunk
+        q = np.cross(s, e1)  # (T, 3)
+        q_e2 = np.einsum("tk,tk->t", e2, q)[None, :]
         for start in range(0, len(points), 64):  # bounded memory: 64 rays x the triangles near them
             dd = d[start:start + 64]
             p = np.cross(dd[:, None, :], e2[None, :, :])  # (n, T, 3)
             det = np.einsum("tk,ntk->nt", e1, p)
             ok = np.abs(det) > 1e-12
             inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-            s = origin_cad - v0  # (T, 3)
             u = np.einsum("tk,ntk->nt", s, p) * inv
-            q = np.cross(s, e1)  # (T, 3)
             v = np.einsum("nk,tk->nt", dd, q) * inv
-            t = np.einsum("tk,tk->t", e2, q)[None, :] * inv  # along the segment, 1 = at the point
+            t = q_e2 * inv  # along the segment, 1 = at the point
             hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
             length = np.linalg.norm(dd, axis=1)
             cut = 1.0 - tol_m / np.maximum(length, 1e-9)  # nearer than the point by more than tol_m
@@ -242,17 +244,14 @@ class SelfLabeller:
 
     def __init__(self, features: list[MacroFeature], depth: ModelDepth, out_dir: Path, prefix: str,
                  params: SelfLabelParams | None = None) -> None:
-        self.features = [f for f in features if f.type in YOLO_CLASS]
+        self.features = [f for f in features if f.type in YOLO_CLASSES]
         self.depth = depth
         self.out_dir, self.prefix = out_dir, prefix
         self.params = params or SelfLabelParams()
         self.report = SelfLabelReport()
         self._last_ns: int | None = None
         self.greyed: list[tuple[float, float, float, float]] = []  # the last frame's unlabelled openings, pixels
-        (out_dir / "images").mkdir(parents=True, exist_ok=True)
-        (out_dir / "labels").mkdir(parents=True, exist_ok=True)
-        names = "\n".join(f"  {v}: {k}" for k, v in YOLO_CLASS.items())
-        (out_dir / "data.yaml").write_text(f"path: .\ntrain: images\nval: images\nnames:\n{names}\n")
+        yolo_folder(out_dir)
         for old in [*(out_dir / "images").glob(f"{prefix}_*"), *(out_dir / "labels").glob(f"{prefix}_*")]:
             old.unlink()  # this recording's frames of an earlier run (another recording's stay)
         self._boxes = (out_dir / f"{prefix}.boxes.jsonl").open("w")
@@ -269,20 +268,15 @@ class SelfLabeller:
         self._last_ns = frame.stamp_ns
         self.report.frames["labelled"] += 1
         name = f"{self.prefix}_{frame.stamp_ns}"
-        info = frame.stereo.info
-        boxes = self.boxes(estimate, inputs.T_body_cam, info.fx, info.fy, info.cx, info.cy,
-                           frame.stereo.left.width, frame.stereo.left.height, name)
-        w, h = frame.stereo.left.width, frame.stereo.left.height
+        info, w, h = frame.stereo.info, frame.stereo.left.width, frame.stereo.left.height
+        boxes = self.boxes(estimate, inputs.T_body_cam, info.fx, info.fy, info.cx, info.cy, w, h, name)
         left = grey_out(frame.images()[0], self.greyed, [b.box_xyxy for b in boxes])
         self.report.greyed += len(self.greyed)
         cv2.imwrite(str(self.out_dir / "images" / f"{name}.jpg"), left, [cv2.IMWRITE_JPEG_QUALITY, p.jpeg_quality])
-        lines = []
         for b in boxes:
-            x0, y0, x1, y1 = b.box_xyxy
-            cx, cy = ((x0 + x1) / 2 + 0.5) / w, ((y0 + y1) / 2 + 0.5) / h
-            lines.append(f"{YOLO_CLASS[b.type]} {cx:.6f} {cy:.6f} {(x1 - x0) / w:.6f} {(y1 - y0) / h:.6f}\n")
             self._boxes.write(json.dumps(asdict(b)) + "\n")
-        (self.out_dir / "labels" / f"{name}.txt").write_text("".join(lines))
+        (self.out_dir / "labels" / f"{name}.txt").write_text("".join(yolo_line(b.type, b.box_xyxy, w, h) + "\n"
+                                                                     for b in boxes))
         self.report.labels += boxes
 
     def boxes(self, estimate: Estimate, T_body_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float,
@@ -359,13 +353,9 @@ class SelfLabeller:
             for b in by_frame[name]:
                 x0, y0, x1, y1 = (int(round(v)) for v in b.box_xyxy)
                 cv2.rectangle(image, (x0, y0), (x1, y1), SHEET_BGR[b.type], 1 if b.cut else 2)
-            tiles.append(cv2.resize(image, (320, int(round(image.shape[0] * 320 / image.shape[1])))))
+            tiles.append(image)
         if tiles:
-            h = max(t.shape[0] for t in tiles)
-            tiles = [cv2.copyMakeBorder(t, 0, h - t.shape[0], 0, 0, cv2.BORDER_CONSTANT) for t in tiles]
-            tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % 4)
-            rows = [np.hstack(tiles[i:i + 4]) for i in range(0, len(tiles), 4)]
-            cv2.imwrite(str(self.out_dir / f"{self.prefix}.labels.png"), np.vstack(rows))
+            cv2.imwrite(str(self.out_dir / f"{self.prefix}.labels.png"), contact_sheet(tiles))
 
 
 def label_recording(recording: Path, building: Path, cfg: MacrolocConfig, occluders_cad: np.ndarray, out_dir: Path,
