@@ -145,9 +145,9 @@ def register(app: typer.Typer) -> None:
             logging.getLogger(__name__).info(log_line)
         else:
             counts = render_training_frames(building, frames, seed_list, duration, every)
-        if counts["door"] + counts["window"] == 0:
-            raise UserInputError(f"no door or window came into view in {counts['images']} rendered frames of "
-                                 f"{building.name}: try other --seeds or a longer --duration")
+            if counts["door"] + counts["window"] == 0:
+                raise UserInputError(f"no door or window came into view in {counts['images']} rendered frames of "
+                                     f"{building.name}: try other --seeds or a longer --duration")
         train_main(training_args(photos, frames, out, init_path, steps, threads))
         model = out / "detector.onnx"
         figures = json.loads(model.with_suffix(".json").read_text()).get("figures", {})
@@ -176,12 +176,12 @@ def _self_label(building: Path, recordings: list[Path], frames: Path, config: Pa
     occluders = occluding_triangles(building)
     parsed = RosTopics.parse(topics or [])
     per = {path.name: label_recording(path, building, cfg, occluders, frames, topics=parsed) for path in recordings}
-    total: dict = {"frames": {}, "boxes": {}, "doors": 0, "windows": 0, "cut": 0}
+    total: dict = {"frames": {}, "boxes": {}, "doors": 0, "windows": 0, "cut": 0, "greyed": 0}
     for r in per.values():
         for part in ("frames", "boxes"):
             for k, n in r[part].items():
                 total[part][k] = total[part].get(k, 0) + n
-        for k in ("doors", "windows", "cut"):
+        for k in ("doors", "windows", "cut", "greyed"):
             total[k] += r[k]
     report = {**total, "recordings": per}
     (frames / "report.json").write_text(json.dumps(report, indent=2) + "\n")
