@@ -46,6 +46,10 @@ class LandmarkParams(Parameters):
     truncated_sigma_m: float = param(
         0.5, "position sigma along an axis on which the sighting is cut by the image border, m", gt=0)
     max_range_m: float = param(7.0, "sightings further away make no landmark: their corners are too coarse, m", gt=0)
+    one_factor_per_keyframe: bool = param(
+        True, "the frames carried into a keyframe add one factor per landmark, their mean (graph.landmark_map): their "
+        "errors are shared, so a factor per frame makes the graph as much surer of a door as the camera's frame rate "
+        "is high (docs/measurements.md, \"One factor per keyframe\")")
     far_range_m: float = param(
         20.0, "doors and windows seen beyond the 7 m sighting range, up to this range, check candidate poses by their "
         "bearings and, before any door came within range, resect the pose, m (their stereo range is coarse, their "
@@ -63,7 +67,8 @@ class RegistrationParams(Parameters):
     """When and how the map's landmarks are registered to the model (the registrar, graph.registrar)."""
 
     min_sightings_to_register: int = param(
-        2, "a landmark takes part in registration once seen this often (one sighting may be a passing false detection)",
+        2, "a landmark takes part in registration once seen from this many keyframes (one sighting may be a passing "
+        "false detection, and the frames of one keyframe see it from one place: graph.sightings.Landmark.n_keyframes)",
         ge=1)
     # an aligned landmark this close to a same-type CAD feature supports a pose: the registrar's inlier and ambiguity
     # tolerance (RobustParams.inlier_threshold_m and ambiguity_tau_m), the judge's turns' too

@@ -55,7 +55,7 @@ import gtsam
 import numpy as np
 
 from macroloc.graph.params import IsamSettings
-from macroloc.graph.rigid import levelled
+from macroloc.graph.rigid import levelled_about
 
 log = logging.getLogger(__name__)
 
@@ -198,8 +198,11 @@ class PoseGraph:
 
     def add_anchor(self, T_map_cad_guess: np.ndarray) -> None:
         """The CAD anchor variable A(0) = T_map_cad, initialised from a registration, levelled (see
-        ANCHOR_PRIOR_SIGMAS)."""
-        T_level = levelled(T_map_cad_guess)
+        ANCHOR_PRIOR_SIGMAS) about the newest keyframe: a guess tilted by a degree or two (a pose fitted to walls)
+        keeps the vehicle where it placed it, not the CAD origin, tens of metres away (levelled about that, a 2 deg
+        tilt moved the vehicle 0.85 m down: docs/measurements.md, "The anchor levelled about the vehicle")."""
+        p_map = self.T_map_body(self.n_keyframes - 1)[:3, 3] if self.n_keyframes else np.zeros(3)
+        T_level = np.linalg.inv(levelled_about(np.linalg.inv(T_map_cad_guess), p_map))
         self._insert(ANCHOR, T_level)
         self._add(gtsam.PriorFactorPose3(ANCHOR, pose3(T_level), diagonal(ANCHOR_PRIOR_SIGMAS)))
         self.has_anchor = True

@@ -88,6 +88,17 @@ def levelled(T: np.ndarray, up_child: np.ndarray | None = None) -> np.ndarray:
     return out
 
 
+def levelled_about(T: np.ndarray, point_child: np.ndarray) -> np.ndarray:
+    """T_parent_child (4x4, both frames z up) with its tilt removed as `levelled` removes it, turned about
+    `point_child` (3,) instead of the child's origin: that point stays where T put it. Between a building's frame and
+    a flight's, a tilt of a degree about an origin 30 m away moves the vehicle half a metre; about the vehicle it
+    moves it not at all."""
+    out = levelled(T)
+    p = np.asarray(point_child, float)
+    out[:3, 3] += (T[:3, :3] - out[:3, :3]) @ p
+    return out
+
+
 def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation R with R a_hat = b_hat (Rodrigues), for unit or non-unit 3-vectors."""
     a = np.asarray(a, dtype=float) / np.linalg.norm(a)

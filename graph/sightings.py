@@ -5,7 +5,7 @@ Frames: body = x forward, y left, z up; map = the flight's odometry frame, z up.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -35,25 +35,43 @@ class Landmark:
     ones, while the median of a few sightings passes (docs/measurements.md, "Change by change")."""
 
     key: int
-    type: str
+    type: str  # the type most of its sightings were called (`add_sighting`)
     sides_m: list[tuple[float, float, bool, bool]]  # each sighting's (width, height, cut sideways, cut vertically)
     truth_id: str | None = None  # scoring only
+    keyframes: set[int] = field(default_factory=set)  # the keyframes that saw it
+    votes: dict[str, int] = field(default_factory=dict)  # sightings per type called
 
     @classmethod
     def first_seen(cls, key: int, kind: str, corners: np.ndarray, truncated: tuple[bool, bool],
-                   truth_id: str | None = None) -> Landmark:
+                   truth_id: str | None = None, keyframe: int | None = None) -> Landmark:
         landmark = cls(key, kind, [], truth_id)
-        landmark.add_sighting(corners, truncated)
+        landmark.add_sighting(corners, truncated, keyframe, kind)
         return landmark
 
     @property
     def n_sightings(self) -> int:
         return len(self.sides_m)
 
-    def add_sighting(self, corners: np.ndarray, truncated: tuple[bool, bool]) -> None:
-        """A sighting's corners (4, 3) in order around the rectangle, in a frame whose z is up (the map's), and
-        whether it was cut (sideways, vertically)."""
+    @property
+    def n_keyframes(self) -> int:
+        """The keyframes that saw it: the count registration asks for (`RegistrationParams.min_sightings_to_register`),
+        since the frames carried into one keyframe saw it from one place within a fraction of a second (a false
+        detection of something lasts as many frames as the camera takes then)."""
+        return len(self.keyframes)
+
+    def add_sighting(self, corners: np.ndarray, truncated: tuple[bool, bool], keyframe: int | None = None,
+                     kind: str | None = None) -> None:
+        """A sighting's corners (4, 3) in order around the rectangle, in a frame whose z is up (the map's), whether
+        it was cut (sideways, vertically), the keyframe it entered the graph with, and the type it was called. The
+        landmark's type is the one most of its sightings were called (the first on a tie): a detector calls one
+        opening a door in some frames and a window in others, and it is one opening."""
         self.sides_m.append((*_sides_m(corners), bool(truncated[0]), bool(truncated[1])))
+        if keyframe is not None:
+            self.keyframes.add(keyframe)
+        if kind is not None:
+            self.votes[kind] = self.votes.get(kind, 0) + 1
+            if self.votes[kind] > self.votes.get(self.type, 0):
+                self.type = kind
 
     def size_m(self) -> tuple[float, float]:
         """(width, height), metres."""

@@ -1,7 +1,10 @@
-"""graph.landmark_map: sightings into landmarks (association by type, distance and facing; range; one sighting of a
-landmark per frame), the sighting factors' sigmas, and the landmarks as the registrar takes them."""
+"""graph.landmark_map: sightings into landmarks (association by distance and facing, the type by majority; range;
+one sighting of a landmark per frame; one factor per landmark per keyframe), the sighting factors' sigmas, and the
+landmarks as the registrar takes them."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -55,11 +58,15 @@ def test_a_sighting_re_observes_the_nearest_landmark() -> None:
         assert reobserved == {nearer} and lmap.landmarks[nearer].n_sightings == 2
 
 
-def test_another_type_at_the_same_place_is_another_landmark() -> None:
-    """Association needs the same type: a window where a door landmark stands starts a new landmark."""
+def test_a_sighting_called_another_type_at_the_same_place_is_the_same_opening() -> None:
+    """Association ignores the type the detector called: a window where a door landmark stands re-observes it (a
+    detector calls one opening a door in some frames, a window in others), and the landmark's type is the one most
+    of its sightings were called (the first on a tie)."""
     lmap, _ = _map()
     lmap.add_frames(0, np.eye(4), [[_sighting(3.0)], [_sighting(3.0, kind="window")]], UP)
-    assert [lm.type for lm in lmap.landmarks.values()] == ["door", "window"]
+    assert [(lm.type, lm.n_sightings) for lm in lmap.landmarks.values()] == [("door", 2)]
+    lmap.add_frames(0, np.eye(4), [[_sighting(3.0, kind="window")]], UP)
+    assert [lm.type for lm in lmap.landmarks.values()] == ["window"]
 
 
 def test_association_needs_the_same_facing_either_side() -> None:
@@ -125,14 +132,39 @@ def test_a_cut_side_loosens_the_sighting_along_it() -> None:
 
 def test_observed_gives_the_landmarks_frames_and_corners_in_the_map() -> None:
     """`observed` returns each landmark's key, type and current frame, and its rectangle (4, 3) of its measured size
-    about that frame, in the map frame; `confirmed` the keys seen often enough."""
+    about that frame, in the map frame; `confirmed` the keys seen from enough keyframes (two frames carried into
+    one keyframe are one)."""
     lmap, graph = _map()
     T_map_body = np.eye(4)
     T_map_body[:3, 3] = [1.0, 2.0, 0.0]
     lmap.add_frames(0, T_map_body, [[_sighting(3.0), _sighting(2.0, 3.0, kind="window")], [_sighting(3.0)]], UP)
+    assert lmap.confirmed(2) == [] and lmap.confirmed(1) == [0, 1] and lmap.landmarks[0].n_sightings == 2
+    graph.add_keyframe(np.eye(4), np.full(6, 0.01), T_map_body)
+    lmap.add_frames(1, T_map_body, [[_sighting(3.0)]], UP)
     assert lmap.confirmed(2) == [0] and lmap.confirmed(1) == [0, 1]
     observed, corners = lmap.observed([1, 0])
     assert [(o.key, o.type) for o in observed] == [(1, "window"), (0, "door")]
     assert all(np.array_equal(o.T_map_rect, graph.T_map_rect(o.key)) for o in observed)
     truth = door("D", (4.0, 2.0), (-1.0, 0.0)).corners_cad
     assert sorted(map(tuple, np.round(corners[1], 6))) == sorted(map(tuple, np.round(truth, 6)))
+
+
+def test_the_frames_of_one_keyframe_add_one_factor_per_landmark_at_their_mean() -> None:
+    """Three frames carried into one keyframe see a door 4 cm apart: one factor, at the mean of the three, with
+    one sighting's sigmas (their errors are shared: module doc); each frame still counts as a sighting of it (its
+    size). With `one_factor_per_keyframe` off, a factor per frame."""
+    frames = [[_sighting(3.0, y)] for y in (-0.04, 0.0, 0.04)]
+    lmap, graph = _map()
+    lmap.add_frames(0, np.eye(4), frames, UP)
+    (factor,) = _sighting_factors(graph, 0)
+    assert lmap.landmarks[0].n_sightings == 3
+    one, _ = _map()
+    one.add_frames(0, np.eye(4), frames[1:2], UP)
+    (middle,) = _sighting_factors(one.graph, 0)
+    assert np.allclose(factor.measured().matrix(), middle.measured().matrix(), atol=1e-9)
+    assert np.allclose(factor.noiseModel().sigmas(), middle.noiseModel().sigmas(), rtol=1e-3)  # ranges alike
+    each = LandmarkMap(replace(PARAMS, one_factor_per_keyframe=False), graph := PoseGraph(record_batch=True),
+                       VIEWER_BODY)
+    graph.add_first_keyframe(np.eye(4))
+    each.add_frames(0, np.eye(4), frames, UP)
+    assert len(_sighting_factors(graph, 0)) == 3

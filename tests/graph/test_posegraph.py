@@ -71,6 +71,26 @@ def test_the_anchor_stays_level_against_tilted_links() -> None:
     assert T_cad_map is not None and tilt_deg(T_cad_map[:3, :3]) < 0.2
 
 
+def test_a_tilted_anchor_guess_is_levelled_about_the_vehicle_not_the_cad_origin() -> None:
+    """A registration's T_cad_map 2 deg off level with the CAD origin 30 m from the vehicle (Office_A s5201's
+    case): levelled about the CAD origin it would move the vehicle ~1 m in height; about the newest keyframe the
+    vehicle stays where the guess put it, and the anchor is level."""
+    from macroloc.graph.rigid import rotation_aligning
+
+    graph = PoseGraph()
+    graph.add_first_keyframe(np.eye(4))
+    T_map_body = make_T(rot_z(0.3), np.array([4.0, -1.0, 1.2]))
+    graph.add_keyframe(T_map_body, np.full(6, 0.01), T_map_body)
+    tilted = rotation_aligning(UP, [np.sin(np.radians(2.0)), 0.0, np.cos(np.radians(2.0))]) @ rot_z(1.0)
+    T_cad_map_guess = make_T(tilted, np.array([30.0, -12.0, 0.5]))
+    graph.add_anchor(np.linalg.inv(T_cad_map_guess))
+    graph.update()
+    T_cad_map = graph.T_cad_map()
+    assert T_cad_map is not None and tilt_deg(T_cad_map[:3, :3]) < 1e-6
+    vehicle_guess, vehicle = (T @ T_map_body[:, 3] for T in (T_cad_map_guess, T_cad_map))
+    assert np.linalg.norm(vehicle - vehicle_guess) < 1e-6
+
+
 def test_a_windowed_graph_equals_batch_on_its_live_keyframes_and_keeps_the_old_ones_readable(corridor) -> None:
     """The 50-keyframe oracle flight with a window of 20 keyframes marginalised 10 at a time (far shorter than
     the default, to marginalise within 50 keyframes). Batch equality becomes approximate: a marginalised chunk

@@ -6,7 +6,16 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from macroloc.graph.rigid import apply, invert, levelled, rot_z, rotation_aligning, weighted_rigid_fit, yaw_rigid_fit
+from macroloc.graph.rigid import (
+    apply,
+    invert,
+    levelled,
+    levelled_about,
+    rot_z,
+    rotation_aligning,
+    weighted_rigid_fit,
+    yaw_rigid_fit,
+)
 from tests.graph.helpers import random_T
 
 seeds = st.integers(0, 2**32 - 1)
@@ -98,6 +107,23 @@ def test_levelled_to_a_measured_up_puts_that_up_on_z(tilt: list[float], yaw: flo
     L = levelled(T, up_child)
     assert np.allclose(L[:3, :3] @ (up_child / np.linalg.norm(up_child)), [0.0, 0.0, 1.0], atol=1e-9)
     assert np.allclose(L[:3, 3], T[:3, 3]) and np.isclose(np.linalg.det(L[:3, :3]), 1.0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(tilt=st.floats(0.0, 0.5), tilt_dir=st.floats(-np.pi, np.pi), yaw=st.floats(-np.pi, np.pi),
+       point=st.lists(st.floats(-50, 50), min_size=3, max_size=3))
+def test_levelled_about_a_point_keeps_that_point_and_levels_as_levelled(tilt: float, tilt_dir: float, yaw: float,
+                                                                      point: list[float]) -> None:
+    """levelled_about(T, p) has levelled(T)'s rotation and puts p where T put it."""
+    axis = np.array([np.cos(tilt_dir), np.sin(tilt_dir), 0.0])
+    T = np.eye(4)
+    T[:3, :3] = rotation_aligning(np.array([0.0, 0.0, 1.0]), np.cos(tilt) * np.array([0.0, 0.0, 1.0])
+                                  + np.sin(tilt) * np.cross(axis, [0.0, 0.0, 1.0])) @ rot_z(yaw)
+    T[:3, 3] = [30.0, -12.0, 0.5]
+    p = np.array(point)
+    L = levelled_about(T, p)
+    assert np.allclose(L[:3, :3], levelled(T)[:3, :3], atol=1e-12)
+    assert np.allclose(apply(L, p[None]), apply(T, p[None]), atol=1e-9)
 
 
 @settings(max_examples=25, deadline=None)
