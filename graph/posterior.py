@@ -236,12 +236,20 @@ def match_logdensity(T: np.ndarray, shapes: ObservedShapes, index: ModelIndex, s
 
 
 def features_in_view(T: np.ndarray, matched: np.ndarray, shapes: ObservedShapes, index: ModelIndex,
-                     model: ObservationModel) -> np.ndarray:
+                     model: ObservationModel, hulls: dict[bytes, np.ndarray] | None = None) -> np.ndarray:
     """Indices of the CAD features in view under one pose T (4, 4): within view_margin_m (plan) of the convex hull
-    of the matched observations' centroids (CAD) and within view_band_m of their heights."""
+    of the matched observations' centroids (CAD) and within view_band_m of their heights. `hulls`: a cache of the
+    hulls of matched sets in the observations' own frame, for the poses of one search (a level pose turns about z,
+    so the hull of the moved centroids in plan is the moved hull: one hull per matched set, not per pose)."""
     if not matched.any():
         return np.zeros(0, dtype=int)
     p = shapes.centroids[matched] @ T[:3, :3].T + T[:3, 3]
+    hull = None
+    if hulls is not None and T[2, 2] >= 1.0 - 1e-12:  # level (upright): the plan hull moves with the pose
+        key = matched.tobytes()
+        if key not in hulls:
+            hulls[key] = _hull_ccw(shapes.centroids[matched][:, :2])
+        hull = hulls[key] @ T[:2, :2].T + T[:2, 3]
     lo_z, hi_z = p[:, 2].min() - model.view_band_m, p[:, 2].max() + model.view_band_m
     centre = p[:, :2].mean(axis=0)
     radius = float(np.linalg.norm(p[:, :2] - centre, axis=1).max()) + model.view_margin_m
@@ -251,7 +259,7 @@ def features_in_view(T: np.ndarray, matched: np.ndarray, shapes: ObservedShapes,
         return cand
     c = index.centroids[cand]
     cand, c = cand[(c[:, 2] >= lo_z) & (c[:, 2] <= hi_z)], c[(c[:, 2] >= lo_z) & (c[:, 2] <= hi_z)]
-    return cand[_within_hull(p[:, :2], c[:, :2], model.view_margin_m)]
+    return cand[_within_hull(p[:, :2], c[:, :2], model.view_margin_m, hull)]
 
 
 def _hull_ccw(points: np.ndarray) -> np.ndarray:
@@ -278,10 +286,11 @@ def _turn(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
 
 
-def _within_hull(points: np.ndarray, query: np.ndarray, margin: float) -> np.ndarray:
+def _within_hull(points: np.ndarray, query: np.ndarray, margin: float, hull: np.ndarray | None = None
+                 ) -> np.ndarray:
     """Whether each query point (M, 2) lies within `margin` of the convex hull of points (P, 2) (a segment or a
-    point where they are collinear or one)."""
-    hull = _hull_ccw(points)
+    point where they are collinear or one); `hull`: that hull (`_hull_ccw`), where it is known."""
+    hull = _hull_ccw(points) if hull is None else hull
     if len(hull) >= 3:
         edge = np.roll(hull, -1, axis=0) - hull
         normal = np.column_stack([edge[:, 1], -edge[:, 0]]) / np.linalg.norm(edge, axis=1)[:, None]  # outward
@@ -307,12 +316,13 @@ def pose_evidence(T: np.ndarray, shapes: ObservedShapes, index: ModelIndex, mode
     ll = np.where(keep, log_m, log_fd).sum(axis=1)  # misses aside: an upper bound
     in_view, missed = np.full(len(T), -1), np.full(len(T), -1)
     best = -np.inf
+    hulls: dict[bytes, np.ndarray] = {}
     for k in np.argsort(-ll, kind="stable"):  # a pose NEGLIGIBLE_LOG below the likeliest so far: its misses unasked
         if ll[k] < best - NEGLIGIBLE_LOG:
             break
-        view = features_in_view(T[k], keep[k], shapes, index, model)
+        view = features_in_view(T[k], keep[k], shapes, index, model, hulls)
         in_view[k] = len(view)
-        missed[k] = len(np.setdiff1d(view, match[k][keep[k]]))
+        missed[k] = len(view) - int(np.isin(view, match[k][keep[k]], assume_unique=True).sum())
         ll[k] += missed[k] * np.log(model.miss_probability)
         best = max(best, float(ll[k]))
     return PoseEvidence(ll, match, in_view, missed)

@@ -15,13 +15,14 @@ from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
 
 from macroloc.graph.features import BuildingModel, MacroFeature
-from macroloc.graph.model_index import ModelIndex
+from macroloc.graph.model_index import ModelIndex, index_for
 from macroloc.graph.observations import Observation, ObservationSet
 from macroloc.graph.params import ObservationModel, RobustParams
 from macroloc.graph.posterior import (
     Sigmas,
     _within_hull,  # the in-view test's kernel, tested directly
     decide,
+    features_in_view,
     pose_evidence,
     posterior,
 )
@@ -186,6 +187,25 @@ def test_in_view_is_within_the_margin_of_the_hull_as_qhull_gives_it(seed: int) -
     hull = ConvexHull(points)
     expected = np.all(query @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0.5, axis=1)
     assert (_within_hull(points, query, 0.5) == expected).all()
+
+
+@given(st.integers(0, 2**32 - 1))
+@settings(max_examples=20, deadline=None)
+def test_the_hull_kept_for_a_matched_set_gives_the_features_in_view_of_each_pose(seed: int) -> None:
+    """`features_in_view` with one search's hull cache: for level poses (the cached hull moved with the pose) and
+    tilted ones (a hull of their own) the same features as without it."""
+    rng = np.random.default_rng(seed)
+    features = random_building(rng, 40)
+    index = index_for(BuildingModel("random", f"test-hull-cache-{seed}", features))
+    shapes = observed_shapes(_observe(features[:12], np.eye(4)), np.zeros(12, dtype=np.int8))
+    matched = rng.random(12) < 0.7
+    matched[:3] = True
+    hulls: dict[bytes, np.ndarray] = {}
+    for k in range(6):
+        T = _yaw_T(float(rng.uniform(-180, 180)), rng.normal(size=3)) if k % 3 else random_T(rng)
+        expected = features_in_view(T, matched, shapes, index, MODEL)
+        assert np.array_equal(features_in_view(T, matched, shapes, index, MODEL, hulls), expected)
+    assert len(hulls) == 1
 
 
 def test_in_view_of_collinear_observations_is_a_strip_about_their_segment() -> None:
