@@ -30,7 +30,6 @@ from macroloc.graph.surfaces import SurfaceCheck, SurfaceIndex, align_to_surface
 
 log = logging.getLogger(__name__)
 V = TypeVar("V")
-HELD_TILT_RAD = 1e-6  # the roll and pitch of a candidate T_cad_map in its wall fit: both frames are z up (gravity)
 FarRivals = Callable[[np.ndarray, list[np.ndarray]], list[np.ndarray]]  # (T_best, rivals) -> those not contradicted
 
 
@@ -365,11 +364,12 @@ class SurfaceJudge:
         return self.surfaces.check(moved, apply(T_cad_map, origins_map))
 
     def refined(self, T_cad_map: np.ndarray, points_map: np.ndarray) -> np.ndarray:
-        """A candidate pose fitted to the walls by the map's depth points (point-to-plane, roll, pitch and height
-        held: the map's z is gravity's, so a candidate turns about z only, and the walls hardly see the height, and
-        a few sloped faces would set it alone; the floor fits after localizing take it from the doors'), or as it
-        was where the fit fails or moves the points further than `surface_refine_m`. A pose from two or three doors'
-        corners is off by tenths of a metre and a degree or two (their corners are coarse at range):
+        """A candidate pose fitted to the walls by the map's depth points (point-to-plane, roll and pitch held near
+        the candidate's and the height held: the walls hardly see the height, and a few sloped faces would set it
+        alone; the floor fits after localizing take it from the doors'; a tilt the points ask for is the keyframes'
+        attitude error, and the anchor is levelled about the vehicle, `PoseGraph.add_anchor`), or as it was where
+        the fit fails or moves the points further than `surface_refine_m`. A pose from two or three doors' corners
+        is off by tenths of a metre and a degree or two (their corners are coarse at range):
         enough to put points beyond the check's tolerance of their walls, and lines of sight through a doorway
         into its jambs. The check should judge the place a candidate stands for, not its error."""
         if self.params.surface_refine_m <= 0:
@@ -378,7 +378,7 @@ class SurfaceJudge:
         # the points are in the map frame, not around one camera: no range-dependent noise in their weights
         fit = align_to_surfaces(self.surfaces, points_map, T_cad_map, iterations=8, depth_sigma_per_m2=0.0,
                                 max_distance_m=self.params.surface_refine_m, sigma_m=self.surface_fit_sigma_m,
-                                hold_height=True, tilt_sigma_rad=HELD_TILT_RAD)
+                                hold_height=True)
         if fit is None:
             return T_cad_map
         moved = np.linalg.norm(apply(np.linalg.inv(T_cad_map) @ fit.T_cad_body, points_map) - points_map, axis=1)

@@ -49,7 +49,7 @@ class LandmarkParams(Parameters):
     one_factor_per_keyframe: bool = param(
         True, "the frames carried into a keyframe add one factor per landmark, their mean (graph.landmark_map): their "
         "errors are shared, so a factor per frame makes the graph as much surer of a door as the camera's frame rate "
-        "is high (docs/measurements.md, \"One factor per keyframe\")")
+        "is high (docs/measurements.md, \"Issue 56: the service's accuracy mended\")")
     far_range_m: float = param(
         20.0, "doors and windows seen beyond the 7 m sighting range, up to this range, check candidate poses by their "
         "bearings and, before any door came within range, resect the pose, m (their stereo range is coarse, their "

@@ -200,7 +200,7 @@ class PoseGraph:
         """The CAD anchor variable A(0) = T_map_cad, initialised from a registration, levelled (see
         ANCHOR_PRIOR_SIGMAS) about the newest keyframe: a guess tilted by a degree or two (a pose fitted to walls)
         keeps the vehicle where it placed it, not the CAD origin, tens of metres away (levelled about that, a 2 deg
-        tilt moved the vehicle 0.85 m down: docs/measurements.md, "The anchor levelled about the vehicle")."""
+        tilt moved the vehicle 0.85 m down: docs/measurements.md, "Issue 56: the service's accuracy mended")."""
         p_map = self.T_map_body(self.n_keyframes - 1)[:3, 3] if self.n_keyframes else np.zeros(3)
         T_level = np.linalg.inv(levelled_about(np.linalg.inv(T_map_cad_guess), p_map))
         self._insert(ANCHOR, T_level)

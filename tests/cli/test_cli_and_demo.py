@@ -186,11 +186,11 @@ def _busy(stop: threading.Event) -> None:
 
 
 def test_lockstep_flies_the_same_flight_on_an_idle_and_a_loaded_machine() -> None:
-    """The vehicle's clock waits for the service: 4 simulated seconds of seed 1 (localized at 1.4 s) give the same
+    """The vehicle's clock waits for the service: 5 simulated seconds of seed 1 (localized at 2.6 s) give the same
     flight to the digit, once as it is and once with a busy thread beside it."""
     from macroloc.cli.demo import DemoParams, run_demo
 
-    params = DemoParams(seed=1, timeout_s=4.0, lockstep=True, observations="truth")
+    params = DemoParams(seed=1, timeout_s=5.0, lockstep=True, observations="truth")
     first = run_demo(params=params)
     stop = threading.Event()
     load = threading.Thread(target=_busy, args=(stop,), daemon=True)

@@ -39,6 +39,16 @@ def test_line_fit_recovers_a_line_through_noise_and_outliers(point, direction, s
     assert line.distances_m(np.asarray(point)[None])[0] < 0.02
 
 
+@pytest.mark.xfail(strict=True, reason="known defect (2026-12-07): gross outliers at both ends of a short side pull "
+                   "the paper's first TLS fit 20 deg off, and the MAD cut then admits them; found by hypothesis, rare "
+                   "(0 of 20,000 random draws), left because changing the line fit moves every perception figure")
+def test_line_fit_outliers_at_both_ends_of_a_vertical_side() -> None:
+    """The counterexample hypothesis found for the property above (point (0, 0, 1), direction z, seed 128969252):
+    3 of the 8 outliers sit at the segment's ends (t = -1.0, 0.94, 0.96 of [-1, 1]), 0.80-0.96 m off the line."""
+    test_line_fit_recovers_a_line_through_noise_and_outliers.hypothesis.inner_test((0.0, 0.0, 1.0), (0.0, 0.0, 1.0),
+                                                                                   128969252)
+
+
 def test_closest_point_to_ray():
     from macroloc.perception.reconstruct import Line3D
 

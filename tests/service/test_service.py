@@ -169,7 +169,8 @@ def test_restart_from_the_saved_map_relocalizes_at_once(office_path, office_mode
     flight.range_m = 2.5
     with running_service(service_config(office_path, tmp_path, port)), client(port) as s:
         poses = Collector(s, "macroloc/t1/pose", pb.PoseEstimate)
-        T = fly(s, flight, T, 12, first_stamp_ns=5 * 10**9, observe_every=1)  # 0.4 s: past a keyframe interval
+        # 0.8 s: past two keyframe intervals (a landmark takes part once seen from two keyframes)
+        T = fly(s, flight, T, 24, first_stamp_ns=5 * 10**9, observe_every=1)
         assert len(flight.observations(0, T).features) < 4  # the whole-model registration needs 4
         wait_for(lambda: _localized_at(poses, T), what="re-localized from the saved map")
 
