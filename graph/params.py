@@ -38,7 +38,8 @@ class OdometryFactorParams(Parameters):
 class LandmarkParams(Parameters):
     """Sightings into landmarks (graph.landmarks): association, range, and the sighting factor's sigmas."""
 
-    associate_m: float = param(0.6, "a sighting this close to a same-type landmark re-observes it, m")
+    associate_m: float = param(
+        0.6, "a sighting this close to a landmark facing alike re-observes it, whatever type it was called, m")
     sighting_sigma_m: tuple[float, float] = param(
         (0.03, 0.004), "a sighting's position sigma is a + b * range^2 (stereo), [a m, b 1/m]")
     sighting_sigma_rad: tuple[float, float] = param(
