@@ -29,7 +29,8 @@ from macroloc.graph.params import AnchorParams, FarParams, RegistrationParams, S
 from macroloc.graph.posegraph import PoseGraph
 from macroloc.graph.prior import PosePrior
 from macroloc.graph.registrar import Registrar
-from macroloc.graph.relocalize import Alignment
+from macroloc.graph.relocalize import Alignment, ObservedRect
+from macroloc.graph.robust import RobustParams
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +108,8 @@ class Anchoring:
                 and result.fallback is not None:
             result = result.fallback()
             choice = self._choose(result, stamp_ns)
+        if choice.T_cad_map is not None and not choice.registrars and len(keys) >= 2:
+            choice = self._unrivalled_by_one(choice, observed, corners)
         T_cad_map, registrars = choice.T_cad_map, choice.registrars
         if T_cad_map is None and self.prior is not None and result.status == "ambiguous":
             T_cad_map = self.prior.pick(self._tied(choice, result), self.graph.T_map_body(self.graph.n_keyframes - 1))
@@ -142,6 +145,50 @@ class Anchoring:
         self.links.last_link_ns = stamp_ns
         self.graph.update(extra_iterations=2)
         self.links.link_new(self.landmarks.landmarks, stamp_ns)
+
+    def _unrivalled_by_one(self, choice: Choice, observed: list[ObservedRect], corners: list[np.ndarray]
+                           ) -> Choice:
+        """The walls' choice among candidates from several landmarks (`choice`), or none where a pose from one
+        of the landmarks alone rivals it (`Judge.rivals_from_one`): then the two are left tied. Any one landmark
+        may be a false detection that a wrong pose puts on a model door; asked only where a landmark the pose puts
+        by a CAD feature differs from it in size (`_sizes_alike`): a true landmark of the feature's size on it is
+        evidence that the pose from one landmark lacks (Office_A's seed 5901: a false door 1.52 m wide on a door
+        1.07 m wide, docs/measurements.md, "A false door that lands on a model door")."""
+        assert choice.T_cad_map is not None
+        if self._sizes_alike(choice.T_cad_map, [o.key for o in observed]):
+            return choice
+        poses = [np.asarray(T, float) for lm, c in zip(observed, corners, strict=True)
+                 for T, _ in self.registrar([lm], [c]).candidates]
+        points_map, origins_map = self.depth.points_map()
+        T_newest = self.graph.T_map_body(self.graph.n_keyframes - 1)
+        rivals = self.judge.rivals_from_one(
+            choice.T_cad_map, poses, points_map, origins_map, self.landmarks.centres_map([o.key for o in observed]),
+            lambda T_best, rivals: self.far.not_contradicted(T_best, rivals, T_newest))
+        if not rivals:
+            return choice
+        return Choice(None, False, True, (choice.T_cad_map, *rivals))
+
+    def _sizes_alike(self, T_cad_map: np.ndarray, keys: list[int]) -> bool:
+        """Whether every landmark of `keys` that T_cad_map puts within `inlier_threshold_m` of a CAD feature has
+        that feature's width and height within the registration's `size_tolerance_m` (the rule by which a
+        rectangle is alike to a feature, graph.robust; a side cut by the image border in every sighting: at
+        least the feature's less the tolerance)."""
+        tolerance_m = RobustParams().size_tolerance_m  # the flight's registrar keeps the method's default
+        features = [f for f in self.links.features.values() if f.orientation == "vertical"]
+        if not features:
+            return True
+        centroids = np.stack([f.centroid_cad for f in features])
+        for j in keys:
+            x_cad = (T_cad_map @ self.graph.T_map_rect(j))[:3, 3]
+            d = np.linalg.norm(centroids - x_cad, axis=1)
+            k = int(np.argmin(d))
+            if d[k] > self.params.inlier_threshold_m:
+                continue
+            lm, f = self.landmarks.landmarks[j], features[k]
+            for size, cad, cut in zip(lm.size_m(), (f.width_m, f.height_m), lm.cut(), strict=True):
+                if (size < cad - tolerance_m) if cut else abs(size - cad) >= tolerance_m:
+                    return False
+        return True
 
     def _tied(self, choice: Choice, result: Alignment) -> list[np.ndarray]:
         """The poses an 'ambiguous' attempt left tied, for a prior to pick from (graph.prior): with the walls, their

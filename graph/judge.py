@@ -167,6 +167,37 @@ class SurfaceJudge:
         return Choice(candidates[best] if confirmed else None, False, best_fits and rivalled,
                       () if confirmed or not rivalled else (candidates[best], *rivals))
 
+    def rivals_from_one(self, T_cad_map: np.ndarray, poses: list[np.ndarray], points_map: np.ndarray,
+                        origins_map: np.ndarray, landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals
+                        ) -> list[np.ndarray]:
+        """Of the `poses` (T_cad_map each, from one landmark alone), those that rival the pose `choose` took,
+        `T_cad_map`: a different pose that scores within `surface_margin` of it by the same points (`points_map`
+        seen from `origins_map`, map frame), or within `surface_margin_unfit` where it does not fit the walls
+        itself (turned and fitted, a true pose fits them as the taken one does), screened, turned and fitted as
+        `choose` weighs the candidates from one door, and that the far sightings do not contradict (`far_rivals`).
+
+        The registrar offers the poses that explain the most landmarks. A false detection that happens to land on
+        a model door under a wrong pose makes that pose explain two, while the true pose explains one, is never
+        offered, and cannot rival it: the walls then confirm the wrong pose against the other wrong ones
+        (docs/measurements.md, "A false door that lands on a model door")."""
+        if not poses or not self.params.surface_one_landmark_rivals:
+            return []
+        sample = self.screening_sample(points_map, origins_map)
+        turned = self.turned([(T, 1) for T in poses], sample[0], 1, 1, landmarks)
+        candidates, moved, checks = self._weighed(turned, None, points_map, origins_map, sample)
+        moved_taken = apply(T_cad_map, points_map)
+        taken = self._checked.get(T_cad_map, partial(self.check, moved_taken, origins_map))
+        p = self.params
+        rivals = [T for T, m, c in zip(candidates, moved, checks, strict=True)
+                  if c.score > taken.score - (p.surface_margin if self.fits(c) else p.surface_margin_unfit)
+                  and poses_differ(T, T_cad_map, m, moved_taken)]
+        if rivals:
+            rivals = far_rivals(T_cad_map, rivals)
+        if rivals:
+            log.info("the pose the walls took (score %.2f) is rivalled by %d poses from one landmark alone (best %.2f)",
+                     taken.score, len(rivals), max(c.score for c in checks))
+        return rivals
+
     def _weighed(self, poses: list[np.ndarray], reg: tuple[np.ndarray, np.ndarray] | None, points_map: np.ndarray,
                  origins_map: np.ndarray, sample: tuple[np.ndarray, np.ndarray]
                  ) -> tuple[list[np.ndarray], list[np.ndarray], list[SurfaceCheck]]:
@@ -399,6 +430,10 @@ class Judge(Protocol):
                walls_map: Sequence[tuple[np.ndarray, np.ndarray]] = (),
                far_explains: Callable[[np.ndarray], bool] = lambda T: False) -> Choice: ...
 
+    def rivals_from_one(self, T_cad_map: np.ndarray, poses: list[np.ndarray], points_map: np.ndarray,
+                        origins_map: np.ndarray, landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals
+                        ) -> list[np.ndarray]: ...
+
 
 class NullJudge:
     """No model surfaces to judge by: no pose is ever checked, and so none is chosen by the walls (only the
@@ -419,6 +454,11 @@ class NullJudge:
                far_explains: Callable[[np.ndarray], bool] = lambda T: False) -> Choice:
         T_reg = result.T_cad_map if result.status == "localized" else None
         return Choice(T_reg, T_reg is not None)
+
+    def rivals_from_one(self, T_cad_map: np.ndarray, poses: list[np.ndarray], points_map: np.ndarray,
+                        origins_map: np.ndarray, landmarks: list[tuple[str, np.ndarray]], far_rivals: FarRivals
+                        ) -> list[np.ndarray]:
+        return []
 
 
 class PerPose(Generic[V]):

@@ -209,6 +209,14 @@ class JudgeParams(Parameters):
         8, "before a candidate pose is taken, its images under up to this many of the building's near-self-maps that "
         "keep as many landmarks by a same-type CAD feature are weighed too (the doors cannot tell them apart); 0: none",
         ge=0)
+    # a candidate from two landmarks or more, one of which differs in size from the CAD feature it puts it by, is
+    # taken only where no pose from one of them alone, different from it, scores within the margins: a false
+    # detection that lands on a model door under a wrong pose makes that pose explain two, while the true pose
+    # explains one and is never offered (docs/measurements.md, "A false door that lands on a model door")
+    surface_one_landmark_rivals: bool = param(
+        True, "a candidate pose from two landmarks or more, one of them unlike its CAD feature in size, is taken only "
+        "where no different pose from one of them alone scores within the margins (a false detection may land on a "
+        "model door)")
 
 
 @dataclass(frozen=True)

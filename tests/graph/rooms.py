@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from macroloc.graph.features import BuildingModel
 from macroloc.graph.localizer import Localizer, LocalizerParams
 from macroloc.graph.posegraph import PoseGraph
 from macroloc.graph.registrar import Registrar
@@ -98,10 +99,11 @@ T_WRONG = make_T(rot_z(0.35), np.array([3.0, 2.0, 0.0]))  # 20 degrees and a met
 
 
 def fly_in_room(room: SurfaceIndex | None, registrar: Registrar, with_points: bool = True,
-                n_walls: int = 5, **params: float) -> Localizer:
-    """Three keyframes that see two doors of a corridor model (the registrar ignores where they are) and the
-    room's walls around the flight; `params`: LocalizerParams beside the defaults."""
-    model = corridor_model()
+                n_walls: int = 5, model: BuildingModel | None = None, **params: float) -> Localizer:
+    """Three keyframes that see two doors of a corridor model (`model`: it, or a model whose first features are
+    its; the registrar ignores where they are) and the room's walls around the flight; `params`: LocalizerParams
+    beside the defaults."""
+    model = model or corridor_model()
     rng = np.random.default_rng(3)
     loc = Localizer(model, PoseGraph(), registrar, localizer_params(surface_min_points=100, **params),  # type: ignore[arg-type]
                     surfaces=room)

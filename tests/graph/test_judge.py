@@ -30,7 +30,7 @@ from tests.graph.rooms import (
     room_mesh,
     seen_points,
 )
-from tests.graph.scenes import door, make_T, rot_z, sightings_from
+from tests.graph.scenes import corridor_model, door, make_T, rot_z, sightings_from
 
 
 def test_the_walls_choose_the_true_candidate(room: SurfaceIndex) -> None:
@@ -284,3 +284,51 @@ def test_a_twin_the_walls_tell_apart_is_taken_or_refused_by_them(room: SurfaceIn
         T_cad_map = loc.graph.T_cad_map()
         assert loc.status == "localized" and T_cad_map is not None
         assert np.linalg.norm(T_cad_map[:3, 3] - T_TRUE[:3, 3]) < 0.05
+
+
+
+class FalseDoorRegistrar:
+    """From two landmarks or more, one wrong pose explaining both (`T_wrong`); from one landmark alone, the true
+    pose among that landmark's poses."""
+
+    min_landmarks = 4
+    candidates_from = 2
+
+    def __init__(self, T_wrong: np.ndarray) -> None:
+        self.T_wrong = T_wrong
+
+    def __call__(self, landmarks, corners_map) -> Alignment:  # noqa: ANN001
+        if len(landmarks) == 1:
+            elsewhere = self.T_wrong @ make_T(rot_z(0.5), np.zeros(3))
+            return Alignment("ambiguous", None, [], 1, [(T_TRUE, 1), (elsewhere, 1)])
+        return Alignment("ambiguous", None, [], 2, [(self.T_wrong, 2)])
+
+
+@pytest.mark.parametrize(("one_landmark_rivals", "window_width_m", "taken"),
+                         [(True, 1.85, None), (False, 1.85, "wrong"), (True, 1.35, "wrong")])
+def test_a_pose_from_two_landmarks_is_not_taken_over_a_pose_from_one_where_a_size_disagrees(
+        one_landmark_rivals: bool, window_width_m: float, taken: str | None) -> None:
+    """Office_A's fresh seed 5901 (docs/measurements.md, "A false door that lands on a model door"): a wrong pose
+    put two landmarks on model doors, one of them a false door 1.52 m wide on a door 1.07 m wide; the true pose
+    explained one, was never offered, and the walls confirmed the wrong pose, 36 m off. Here the walls of a box
+    room fit the flight and its half-turn alike, and the half-turn puts the door and the window seen on a door of
+    the door's size and on a window 0.5 m wider than the one seen: the true pose from one landmark alone rivals
+    it. Where the window's size agrees (1.35 m, as seen), both landmarks are evidence, and the pose stands."""
+    v, f = room_mesh()
+    box = SurfaceIndex.from_mesh(v, f[:8], SurfaceParams(spacing_m=0.05))  # the 4 outer walls: alike half-turned
+    T_wrong = HALF_TURN @ T_TRUE
+    corridor = corridor_model()
+    # where the half-turn puts the door (F01) and the window (F02) the flight sees
+    images = [door("D-image", (8.64, 5.0), (0.0, 1.0), width=0.81),
+              door("W-image", (4.4, 2.0), (0.0, -1.0), kind="window", width=window_width_m, bottom=0.9, height=1.2)]
+    model = BuildingModel(source="corridor", sha256=f"corridor-images-{window_width_m}",
+                          features=[*corridor.features, *images], storeys=["L1"])
+    loc = fly_in_room(box, FalseDoorRegistrar(T_wrong), n_walls=4, model=model,
+                      surface_one_landmark_rivals=one_landmark_rivals)
+    if taken is None:
+        assert loc.status == "ambiguous" and loc.graph.T_cad_map() is None
+        assert any(np.linalg.norm(T[:3, 3] - T_TRUE[:3, 3]) < 0.1 for T in loc.rivals)
+    else:
+        T_cad_map = loc.graph.T_cad_map()
+        assert loc.status == "localized" and T_cad_map is not None
+        assert np.linalg.norm(T_cad_map[:3, 3] - T_wrong[:3, 3]) < 0.1
