@@ -236,20 +236,25 @@ def match_logdensity(T: np.ndarray, shapes: ObservedShapes, index: ModelIndex, s
 
 
 def features_in_view(T: np.ndarray, matched: np.ndarray, shapes: ObservedShapes, index: ModelIndex,
-                     model: ObservationModel, hulls: dict[bytes, np.ndarray] | None = None) -> np.ndarray:
+                     model: ObservationModel, hulls: dict[bytes, tuple[np.ndarray, np.ndarray]] | None = None
+                     ) -> np.ndarray:
     """Indices of the CAD features in view under one pose T (4, 4): within view_margin_m (plan) of the convex hull
     of the matched observations' centroids (CAD) and within view_band_m of their heights. `hulls`: a cache of the
-    hulls of matched sets in the observations' own frame, for the poses of one search (a level pose turns about z,
-    so the hull of the moved centroids in plan is the moved hull: one hull per matched set, not per pose)."""
+    hulls' edges (`_hull_edges`) of matched sets in the observations' own frame, for the poses of one search (a
+    level pose turns about z, so the hull of the moved centroids in plan is the moved hull: one hull per matched
+    set, not per pose, its edges' normals turned and offsets moved)."""
     if not matched.any():
         return np.zeros(0, dtype=int)
     p = shapes.centroids[matched] @ T[:3, :3].T + T[:3, 3]
-    hull = None
+    edges = None
     if hulls is not None and T[2, 2] >= 1.0 - 1e-12:  # level (upright): the plan hull moves with the pose
         key = matched.tobytes()
         if key not in hulls:
-            hulls[key] = _hull_ccw(shapes.centroids[matched][:, :2])
-        hull = hulls[key] @ T[:2, :2].T + T[:2, 3]
+            hulls[key] = _hull_edges(_hull_ccw(shapes.centroids[matched][:, :2]))
+        normal, offset = hulls[key]
+        if len(normal):  # its edges' outward normals turn with the pose, and their offsets move with it
+            normal = normal @ T[:2, :2].T
+            edges = (normal, offset + normal @ T[:2, 3])
     lo_z, hi_z = p[:, 2].min() - model.view_band_m, p[:, 2].max() + model.view_band_m
     centre = p[:, :2].mean(axis=0)
     radius = float(np.linalg.norm(p[:, :2] - centre, axis=1).max()) + model.view_margin_m
@@ -258,8 +263,22 @@ def features_in_view(T: np.ndarray, matched: np.ndarray, shapes: ObservedShapes,
     if not len(cand):
         return cand
     c = index.centroids[cand]
-    cand, c = cand[(c[:, 2] >= lo_z) & (c[:, 2] <= hi_z)], c[(c[:, 2] >= lo_z) & (c[:, 2] <= hi_z)]
-    return cand[_within_hull(p[:, :2], c[:, :2], model.view_margin_m, hull)]
+    band = (c[:, 2] >= lo_z) & (c[:, 2] <= hi_z)
+    cand, c = cand[band], c[band]
+    if edges is not None:
+        return cand[np.all(c[:, :2] @ edges[0].T - edges[1] <= model.view_margin_m, axis=1)]
+    return cand[_within_hull(p[:, :2], c[:, :2], model.view_margin_m)]
+
+
+def _hull_edges(hull: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The outward unit normals (H, 2) of a counter-clockwise hull's edges (`_hull_ccw`) and their offsets (H,): a
+    point x is within m of the hull where x . normal - offset <= m for every edge; none where the hull is a segment
+    or a point (fewer than 3 vertices)."""
+    if len(hull) < 3:
+        return np.zeros((0, 2)), np.zeros(0)
+    edge = np.roll(hull, -1, axis=0) - hull
+    normal = np.column_stack([edge[:, 1], -edge[:, 0]]) / np.linalg.norm(edge, axis=1)[:, None]
+    return normal, np.einsum("ec,ec->e", normal, hull)
 
 
 def _hull_ccw(points: np.ndarray) -> np.ndarray:
@@ -292,9 +311,8 @@ def _within_hull(points: np.ndarray, query: np.ndarray, margin: float, hull: np.
     point where they are collinear or one); `hull`: that hull (`_hull_ccw`), where it is known."""
     hull = _hull_ccw(points) if hull is None else hull
     if len(hull) >= 3:
-        edge = np.roll(hull, -1, axis=0) - hull
-        normal = np.column_stack([edge[:, 1], -edge[:, 0]]) / np.linalg.norm(edge, axis=1)[:, None]  # outward
-        return np.all(query @ normal.T - np.einsum("ec,ec->e", normal, hull) <= margin, axis=1)
+        normal, offset = _hull_edges(hull)
+        return np.all(query @ normal.T - offset <= margin, axis=1)
     a = points[np.argmin(points @ (points[-1] - points[0]))]
     b = points[np.argmax(points @ (points[-1] - points[0]))]
     ab = b - a
@@ -316,7 +334,7 @@ def pose_evidence(T: np.ndarray, shapes: ObservedShapes, index: ModelIndex, mode
     ll = np.where(keep, log_m, log_fd).sum(axis=1)  # misses aside: an upper bound
     in_view, missed = np.full(len(T), -1), np.full(len(T), -1)
     best = -np.inf
-    hulls: dict[bytes, np.ndarray] = {}
+    hulls: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
     for k in np.argsort(-ll, kind="stable"):  # a pose NEGLIGIBLE_LOG below the likeliest so far: its misses unasked
         if ll[k] < best - NEGLIGIBLE_LOG:
             break
@@ -378,9 +396,9 @@ class Posterior:
 
 
 def pose_posterior(T: np.ndarray, shapes: ObservedShapes, index: ModelIndex, model: ObservationModel,
-                   distinct: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> Posterior:
+                   distinct: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> Posterior:
     """The posterior (module doc) over candidate poses T (K, 4, 4) (map' -> CAD): each pose once (a candidate that
-    `distinct(A (M, 4, 4), B (4, 4), anchor (P, 3))` finds alike to a likelier one is the same pose found twice,
+    `distinct(T, anchor (P, 3))`, (K, K) bool, finds alike to a likelier one is the same pose found twice,
     anchor: the likeliest pose's matched observations), then `decide`."""
     T = np.asarray(T, dtype=float).reshape(-1, 4, 4)
     sig = Sigmas.of(shapes, model)
@@ -391,9 +409,12 @@ def pose_posterior(T: np.ndarray, shapes: ObservedShapes, index: ModelIndex, mod
     if len(order):
         first = ev.match[order[0]] >= 0
         anchor = shapes.centroids[first] if first.any() else shapes.centroids
+        pairs = distinct(T, anchor)
+        free = np.ones(len(T), dtype=bool)  # not alike to a kept pose
         for k in order:
-            if not kept or distinct(T[kept], T[k], anchor).all():
+            if free[k]:
                 kept.append(int(k))
+                free &= pairs[k]
     p, p_none = posterior(ev.loglik[kept], null)
     status, named = decide(p, model.epsilon)
     return Posterior(kept, p, ev.loglik[kept], (ev.match[kept] >= 0).sum(axis=1), ev.missed[kept], p_none, status,

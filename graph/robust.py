@@ -16,7 +16,7 @@ Frames: observations in `map`, features in `cad`; gravity-aligned `map'` = R_g m
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -617,7 +617,7 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
         verdicts = _verify_all(candidates, prep, index, noise, params)
     k_best = int(np.argmax([v.loglik for v in verdicts]))
     post = pose_posterior(np.stack([p.T for p in candidates]), prep.shapes, index, params.observation,
-                          lambda A, B, anchor: _distinct_T(A, B, anchor, params))
+                          lambda T, anchor: _distinct_pairs(T, anchor, params))
     # The posterior is over the poses found. Without gravity the search can miss the truth, and three rectangles
     # fit a wrong pose (docs/measurements.md, "Issue 58"): there, below min_inliers_without_gravity, today's rule.
     by_posterior = params.decision == "posterior" and (
@@ -636,26 +636,22 @@ def _decide(poses: list[_Pose], hyps: _Hypotheses, prep: _Prepared, index: Model
     if n_best < max(min_inliers, params.min_inlier_fraction * n) or (by_posterior and post.status == "not_localized"):
         return RegistrationResult("not_localized", None, [], n_best, None, diagnostics=diag, posterior=post_json)
     anchor = prep.centroids[v_best.inlier]
-    scored = sorted(zip(verdicts, candidates, strict=True), key=lambda vp: -vp[0].loglik)
-    apart = _distinct_T(np.stack([p.T for _, p in scored]), best.T, anchor, params)
-    rivals = [(v, p) for (v, p), a in zip(scored, apart, strict=True) if p is not best and a]
-    close: list[tuple[Verdict, _Pose]] = []
-    for v, p in rivals:  # the rivals within the margin, each pose once
-        if v.loglik >= v_best.loglik - margin(v.n_inliers) \
-                and (not close or _distinct_T(np.stack([q.T for _, q in close]), p.T, anchor, params).all()):
-            close.append((v, p))
+    distinct_pairs = _distinct_pairs(np.stack([p.T for p in candidates]), anchor, params)
+    scored = sorted(range(len(candidates)), key=lambda k: -verdicts[k].loglik)
+    rivals = [k for k in scored if candidates[k] is not best and distinct_pairs[k_best, k]]
+    # the rivals within the margin, each pose once
+    close = [(verdicts[k], candidates[k]) for k in _each_pose_once(
+        distinct_pairs, rivals, lambda k: verdicts[k].loglik >= v_best.loglik - margin(verdicts[k].n_inliers))]
     if by_posterior:  # the poses that share the posterior's mass, or none
         close = [(verdicts[k], candidates[k]) for k in post.named[1:]]
-    diag.update(rival_loglik=round(rivals[0][0].loglik, 2) if rivals else None,
-                rival_inliers=rivals[0][0].n_inliers if rivals else 0)
+    diag.update(rival_loglik=round(verdicts[rivals[0]].loglik, 2) if rivals else None,
+                rival_inliers=verdicts[rivals[0]].n_inliers if rivals else 0)
     pairs = [(int(i), int(v_best.match[i])) for i in np.flatnonzero(v_best.inlier)]
     T_cad_map = best.T @ prep.T_mp_m
-    distinct: list[np.ndarray] = []
-    candidate_poses: list[tuple[np.ndarray, int]] = []
-    for v, p in [(v_best, best)] + sorted(zip(verdicts, candidates, strict=True), key=lambda vp: -vp[0].n_inliers):
-        if v.n_inliers >= min_inliers and (not distinct or _distinct_T(np.stack(distinct), p.T, anchor, params).all()):
-            distinct.append(p.T)
-            candidate_poses.append((p.T @ prep.T_mp_m, v.n_inliers))
+    by_inliers = [k_best, *sorted(range(len(candidates)), key=lambda k: -verdicts[k].n_inliers)]
+    distinct_k = _each_pose_once(distinct_pairs, by_inliers, lambda k: verdicts[k].n_inliers >= min_inliers)
+    distinct = [candidates[k].T for k in distinct_k]
+    candidate_poses = [(candidates[k].T @ prep.T_mp_m, verdicts[k].n_inliers) for k in distinct_k]
     if n_best < params.complete_below:
         kept = [(T[:3, :3], apply(T, prep.centroids)) for T in distinct]
         candidate_poses += [(make_T(hyps.R[h], hyps.t[h]) @ prep.T_mp_m, n_best)
@@ -743,6 +739,35 @@ def _distinct_T(A: np.ndarray, B: np.ndarray, anchor: np.ndarray, params: Robust
     moved_apart = np.sqrt(np.einsum("kij,kij->ki", diff, diff)).sum(axis=1) > params.distinct_m * len(anchor)
     cos = (np.einsum("kij,ij->k", A[:, :3, :3], B[:3, :3]) - 1.0) / 2.0  # trace(R_A R_B^T) = 1 + 2 cos(angle)
     return moved_apart | (np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) > params.distinct_deg)
+
+
+def _distinct_pairs(T: np.ndarray, anchor: np.ndarray, params: RobustParams) -> np.ndarray:
+    """(K, K) bool: `_distinct_T` of each pose of T (K, 4, 4) against each other. The anchor's centroid moved
+    apart by more than distinct_m decides most pairs (the mean of the points' displacements is at least the
+    displacement of their mean), or a turn by more than distinct_deg; `_distinct_T` the rest, row by row."""
+    T = np.asarray(T, dtype=float).reshape(-1, 4, 4)
+    centre = anchor.mean(axis=0) if len(anchor) else np.zeros(3)
+    moved = T[:, :3, :3] @ centre + T[:, :3, 3]  # (K, 3)
+    gap = np.linalg.norm(moved[:, None] - moved[None], axis=2)
+    cos = (np.einsum("kij,lij->kl", T[:, :3, :3], T[:, :3, :3]) - 1.0) / 2.0
+    out = (gap > params.distinct_m) | (np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) > params.distinct_deg)
+    for k in np.flatnonzero((~out).sum(axis=1) > 1):  # a row with an undecided pair besides the pose itself
+        undecided = np.flatnonzero(~out[k])
+        out[k, undecided] = _distinct_T(T[undecided], T[k], anchor, params)
+    return out
+
+
+def _each_pose_once(distinct: np.ndarray, order: Sequence[int],
+                    eligible: Callable[[int], bool] = lambda k: True) -> list[int]:
+    """Of K poses, in `order`, those `eligible` that are distinct from every one kept before (`distinct`: (K, K)
+    bool, `_distinct_pairs`)."""
+    free = np.ones(len(distinct), dtype=bool)  # not alike to a kept pose
+    kept: list[int] = []
+    for k in order:
+        if free[k] and eligible(k):
+            kept.append(k)
+            free &= distinct[k]
+    return kept
 
 
 def _seed_bests(first: _Pose, hyps: _Hypotheses, prep: _Prepared, index: ModelIndex, params: RobustParams,

@@ -200,7 +200,7 @@ def test_the_hull_kept_for_a_matched_set_gives_the_features_in_view_of_each_pose
     shapes = observed_shapes(_observe(features[:12], np.eye(4)), np.zeros(12, dtype=np.int8))
     matched = rng.random(12) < 0.7
     matched[:3] = True
-    hulls: dict[bytes, np.ndarray] = {}
+    hulls: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
     for k in range(6):
         T = _yaw_T(float(rng.uniform(-180, 180)), rng.normal(size=3)) if k % 3 else random_T(rng)
         expected = features_in_view(T, matched, shapes, index, MODEL)
