@@ -65,9 +65,10 @@ def write_yolo(out: Path, name: str, image: np.ndarray, boxes: list[tuple[str, t
 
 
 def check_labels(recording: Path, labelled: Path, truth_out: Path | None = None,
-                 params: SelfLabelParams | None = None) -> dict:
+                 params: SelfLabelParams | None = None, fix_s: float | None = None) -> dict:
     """The self-labels of `recording` under `labelled` against its truth (module doc); with `truth_out`, the truth
-    labels of the whole flight at the labeller's cadence written there."""
+    labels of the whole flight at the labeller's cadence written there; with `fix_s` (the first fix, s of flight),
+    the boxes of the frames before it (labelled back from it) counted apart too."""
     params = params or SelfLabelParams()
     labels: dict[str, list[dict]] = {}
     boxes_file = labelled / f"{recording.stem}.boxes.jsonl"
@@ -82,7 +83,11 @@ def check_labels(recording: Path, labelled: Path, truth_out: Path | None = None,
     truth_in_labelled, found = 0, 0
     last_truth_ns = None
     truth_written: Counter[str] = Counter()
+    before: Counter[str] = Counter()
+    first_ns = None
     for frame in read_flight(recording):
+        first_ns = frame.stamp_ns if first_ns is None else first_ns
+        is_before = fix_s is not None and (frame.stamp_ns - first_ns) * 1e-9 < fix_s
         name = f"{recording.stem}_{frame.stamp_ns}"
         due = last_truth_ns is None or (frame.stamp_ns - last_truth_ns) * 1e-9 >= params.every_s
         if name not in labelled_frames and not (truth_out and due):
@@ -100,6 +105,7 @@ def check_labels(recording: Path, labelled: Path, truth_out: Path | None = None,
         for b in labels.get(name, []):
             best = max(((iou(tuple(b["box_xyxy"]), t["box"]), fid) for fid, t in truth.items()
                         if t["type"] == b["type"]), default=(0.0, ""))
+            before.update(["boxes", "right" if best[0] >= 0.5 else "wrong"] if is_before else [])
             if best[0] >= 0.5:
                 right += 1
                 matched.add(best[1])
@@ -114,7 +120,8 @@ def check_labels(recording: Path, labelled: Path, truth_out: Path | None = None,
     return {"precision": round(right / max(right + wrong, 1), 4), "right": right, "wrong": wrong,
             "same_feature": same_feature, "wrong_why": dict(why),
             "recall_in_labelled_frames": round(found / max(truth_in_labelled, 1), 4),
-            "truth_labels_in_labelled_frames": truth_in_labelled, "truth_written": dict(truth_written)}
+            "truth_labels_in_labelled_frames": truth_in_labelled, "truth_written": dict(truth_written),
+            "before_fix": dict(before)}
 
 
 def main() -> None:
@@ -130,7 +137,7 @@ def main() -> None:
                              occluding_triangles(args.building), args.out)
     label_s = time.perf_counter() - t0
     out = {"recording": args.recording.name, "label_s": round(label_s, 1), "report": report,
-           **check_labels(args.recording, args.out, args.truth_out)}
+           **check_labels(args.recording, args.out, args.truth_out, fix_s=report.get("localized_at_s"))}
     print(json.dumps(out, indent=1))
 
 

@@ -92,9 +92,10 @@ def register(app: typer.Typer) -> None:
         on 1 thread), and the fine-tuned one keeps indoor door AP50 0.86 on real photos (from scratch: 0.51).
         With --recording, the frames are your camera's own: the flight is replayed through the service's per-frame
         path (perception on, the config's detector), and each frame where the pose is held (localized, at most one
-        frame per 0.2 s) is written with the model's doors and windows in view as labels: occluded ones (by the
-        model's own geometry) and ones the pose is too uncertain to box are left out, boxes cut by the border are
-        flagged; DIR/frames/report.json counts every decision. The flight must localize with the detector you
+        frame per 0.2 s), and each frame of the minute before it was held (labelled from its keyframe in the
+        pose graph once anchored), is written with the model's doors and windows in view as labels: occluded ones
+        (by the model's own geometry) and ones the pose is too uncertain to box are left out, boxes cut by the
+        border are flagged; DIR/frames/report.json counts every decision. The flight must localize with the detector you
         have (the generic one, or an operator's prior). Use it with `perception.detector_model =
         "DIR/detector.onnx"` in the config. Needs torch: pip install -e '.\\[train]'.
         """
@@ -185,8 +186,8 @@ def _self_label(building: Path, recordings: list[Path], frames: Path, config: Pa
             total[k] += r[k]
     report = {**total, "recordings": per}
     (frames / "report.json").write_text(json.dumps(report, indent=2) + "\n")
-    return {"images": total["frames"].get("labelled", 0), "door": total["doors"], "window": total["windows"],
-            "report": report}
+    images = total["frames"].get("labelled", 0) + total["frames"].get("labelled_before_fix", 0)
+    return {"images": images, "door": total["doors"], "window": total["windows"], "report": report}
 
 
 def _self_label_line(counts: dict, frames: Path) -> str:

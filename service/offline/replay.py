@@ -21,6 +21,7 @@ import numpy as np
 
 from macroloc.graph.errors import UserInputError
 from macroloc.graph.localizer import Estimate, Localizer, Sighting
+from macroloc.graph.posegraph import PoseGraph
 from macroloc.graph.rigid import rotation_angle_deg
 from macroloc.graph.trajectory_metrics import ErrorStats, ape_translation, rpe_translation
 from macroloc.proto.recording import FlightFrame, matrix_from_pose, read_flight
@@ -164,7 +165,7 @@ def replay_as_service(flight: Path | Iterable[FlightFrame], front_end: FrontEnd,
             busy_at_localized = time.perf_counter() - start
         sink(est)
         seen = [*sent, *front_end.sightings]
-        recorder.frame(frame, FrameSeen(stereo_T_body_cam(frame.stereo), seen), est)
+        recorder.frame(frame, FrameSeen(stereo_T_body_cam(frame.stereo), seen, front_end.localizer.graph), est)
         trace.stamp_ns.append(frame.stamp_ns)
         _record(trace, (frame.stamp_ns - t0) * 1e-9, est,
                 matrix_from_pose(frame.ground_truth.T_cad_body) if frame.ground_truth else None, keyframe, len(seen),
@@ -185,6 +186,7 @@ class FrameSeen:
 
     T_body_cam: np.ndarray
     sightings: list[Sighting]
+    graph: PoseGraph | None = None  # the service's pose graph, as it stands after the frame
 
 
 

@@ -8,7 +8,15 @@ on its one per-frame path. Its decisions, each counted in the report:
 
 Per frame:
 - `not_localized`: the estimate is not `localized` (the service's own rule: anchored and held to the model,
-  graph.anchoring.held), or it has no covariance;
+  graph.anchoring.held), or it has no covariance, and no held pose came within `before_fix_s` after it;
+- `labelled_before_fix`: a frame before the pose was held (the first fix, or a pose found again), labelled when it
+  is, from its keyframe as the pose graph then holds it: anchored and re-optimized with the doors linked at the
+  fix, which many of the keyframes before it saw (T_cad_map times the keyframe's T_map_body, its marginal
+  covariance), carried to the frame by the odometry (the service's own carry between keyframes; the covariance
+  carried by the adjoint, plus the drift the pose graph assumes over that path, `[graph.odometry]`). Keyframes
+  that left the graph's window (marginalised) have no covariance left: their frames are not labelled. The frames
+  before a fix are most of a flight that localizes late (Office_A seed 4101: 22 s of 60 s, docs/measurements.md,
+  "Issue 55 item 5: labels before the first fix");
 - `too_soon`: less than `every_s` after the last labelled frame (frames at 30 Hz are near copies);
 - `labelled`: the frame is written, with whatever boxes it has (a frame of a held pose with no door in view is a
   true negative, which a detector needs as much).
@@ -43,7 +51,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -54,9 +62,12 @@ import numpy as np
 from macroloc.common.parameters import Parameters, param
 from macroloc.graph.features import MacroFeature
 from macroloc.graph.localizer import Estimate, Localizer
+from macroloc.graph.params import OdometryFactorParams
+from macroloc.graph.posegraph import PoseGraph
 from macroloc.graph.rigid import invert
 from macroloc.perception.draw import contact_sheet
 from macroloc.perception.trainset import YOLO_CLASSES, yolo_folder, yolo_line
+from macroloc.proto.macroloc.v1 import macroloc_pb2 as pb
 from macroloc.proto.recording import FlightFrame
 from macroloc.service.assets import prepare_building
 from macroloc.service.config import MacrolocConfig
@@ -88,6 +99,10 @@ class SelfLabelParams(Parameters):
     sigmas: float = param(3.0, "the pose error, in standard deviations of its covariance along each principal "
                           "axis, that must leave a box within IoU 0.5 of itself for it to be labelled", gt=0)
     near_m: float = param(0.1, "the camera's near plane, m", gt=0)
+    before_fix_s: float = param(
+        60.0, "frames up to this long before the pose is held (the first fix, or found again) are labelled from it, "
+        "back along the odometry, their covariance grown by its drift (0: none; further back, the drift leaves "
+        "every box uncertain: 0.03 m per metre travelled is a 3-sigma of 2.7 m after 30 m)", ge=0)
     jpeg_quality: int = param(92, "JPEG quality of the written frames", ge=50, le=100)
 
 
@@ -135,6 +150,20 @@ class ModelDepth:
             cut = 1.0 - tol_m / np.maximum(length, 1e-9)  # nearer than the point by more than tol_m
             out[start:start + 64] = np.any(hit & (t < cut[:, None]), axis=1)
         return out
+
+
+@dataclass(frozen=True)
+class _Waiting:
+    """A frame kept while the pose was not held: its left image encoded (as recorded where JPEG or PNG, else as
+    PNG), its keyframe and pose from it, the camera's pose on the body and its intrinsics."""
+
+    stamp_ns: int
+    encoded: bytes
+    keyframe: int  # the newest keyframe at the frame
+    T_kf_body: np.ndarray  # the frame's pose from it (the odometry's)
+    path_m: float  # the odometry's path from it
+    T_body_cam: np.ndarray
+    info: object
 
 
 @dataclass(frozen=True)
@@ -243,13 +272,19 @@ class SelfLabeller:
     box with its door's id, visible fraction and whether the border cut it), the files named PREFIX_STAMP."""
 
     def __init__(self, features: list[MacroFeature], depth: ModelDepth, out_dir: Path, prefix: str,
-                 params: SelfLabelParams | None = None) -> None:
+                 params: SelfLabelParams | None = None, odometry: OdometryFactorParams | None = None) -> None:
+        """`odometry`: the drift the pose graph assumes, which grows a frame's covariance before a fix."""
         self.features = [f for f in features if f.type in YOLO_CLASSES]
         self.depth = depth
         self.out_dir, self.prefix = out_dir, prefix
         self.params = params or SelfLabelParams()
+        self.odometry = odometry or OdometryFactorParams()
         self.report = SelfLabelReport()
         self._last_ns: int | None = None
+        self._waiting: deque[_Waiting] = deque()  # frames since the pose was last held, every `every_s`
+        self._path_m = 0.0  # the odometry's path length so far (map frame)
+        self._last_xyz: np.ndarray | None = None
+        self._keyframes: dict[int, tuple[np.ndarray, float]] = {}  # keyframe -> its T_map_body then, path at it
         self.greyed: list[tuple[float, float, float, float]] = []  # the last frame's unlabelled openings, pixels
         yolo_folder(out_dir)
         for old in [*(out_dir / "images").glob(f"{prefix}_*"), *(out_dir / "labels").glob(f"{prefix}_*")]:
@@ -258,19 +293,80 @@ class SelfLabeller:
 
     def frame(self, frame: FlightFrame, inputs: FrameSeen, estimate: Estimate) -> None:
         p = self.params
-        if estimate.status != "localized" or estimate.T_cad_body is None or estimate.covariance is None \
-                or not frame.stereo.left.data:
-            self.report.frames["not_localized"] += 1
+        xyz = estimate.T_map_body[:3, 3]
+        if self._last_xyz is not None:
+            self._path_m += float(np.linalg.norm(xyz - self._last_xyz))
+        self._last_xyz = xyz.copy()
+        if estimate.keyframe >= 0 and estimate.keyframe not in self._keyframes:  # the keyframe's own frame
+            self._keyframes[estimate.keyframe] = (estimate.T_map_body.copy(), self._path_m)
+        held = estimate.status == "localized" and estimate.T_cad_body is not None and estimate.covariance is not None
+        if held and self._waiting:
+            self._label_waiting(inputs.graph)
+        soon = self._last_ns is not None and (frame.stamp_ns - self._last_ns) * 1e-9 < p.every_s
+        if not held or not frame.stereo.left.data:
+            if p.before_fix_s > 0 and frame.stereo.left.data and not soon and estimate.keyframe in self._keyframes:
+                self._wait(frame, inputs, estimate)
+            else:
+                self.report.frames["not_localized"] += 1
             return
-        if self._last_ns is not None and (frame.stamp_ns - self._last_ns) * 1e-9 < p.every_s:
+        if soon:
             self.report.frames["too_soon"] += 1
             return
         self._last_ns = frame.stamp_ns
         self.report.frames["labelled"] += 1
-        name = f"{self.prefix}_{frame.stamp_ns}"
-        info, w, h = frame.stereo.info, frame.stereo.left.width, frame.stereo.left.height
-        boxes = self.boxes(estimate, inputs.T_body_cam, info.fx, info.fy, info.cx, info.cy, w, h, name)
-        left = grey_out(frame.images()[0], self.greyed, [b.box_xyxy for b in boxes])
+        self._write(frame.stamp_ns, frame.images()[0], estimate, inputs.T_body_cam, frame.stereo.info)
+
+    def _wait(self, frame: FlightFrame, inputs: FrameSeen, estimate: Estimate) -> None:
+        """Keep a frame while the pose is not held, for the next held pose to label (`_label_waiting`): its image,
+        its keyframe and its pose from that keyframe (the odometry's, as the service carries a keyframe's estimate
+        to the frames after it); frames more than `before_fix_s` older than the newest are let go."""
+        self._last_ns = frame.stamp_ns
+        left = frame.stereo.left
+        encoded = left.data if left.encoding in (pb.Image.JPEG, pb.Image.PNG) else \
+            cv2.imencode(".png", frame.images()[0])[1].tobytes()  # raw pixels kept losslessly, compressed
+        T_map_kf, path_at_kf_m = self._keyframes[estimate.keyframe]
+        self._waiting.append(_Waiting(frame.stamp_ns, bytes(encoded), estimate.keyframe,
+                                      invert(T_map_kf) @ estimate.T_map_body, self._path_m - path_at_kf_m,
+                                      inputs.T_body_cam, frame.stereo.info))
+        while (frame.stamp_ns - self._waiting[0].stamp_ns) * 1e-9 > self.params.before_fix_s:
+            self._waiting.popleft()
+            self.report.frames["not_localized"] += 1
+
+    def _label_waiting(self, graph: PoseGraph | None) -> None:
+        """Label the frames kept since the pose was last held (module doc): each from its keyframe as the pose
+        graph now holds it, anchored (T_cad_map times the keyframe's re-optimized T_map_body, with its marginal
+        covariance), carried to the frame by the odometry; a frame whose keyframe has left the graph's window
+        (marginalised, no covariance left) is not labelled."""
+        T_cad_map = None if graph is None else graph.T_cad_map()
+        o = self.odometry
+        while self._waiting:
+            w = self._waiting.popleft()
+            if graph is None or T_cad_map is None or w.keyframe < graph.live_from or w.keyframe >= graph.n_keyframes:
+                self.report.frames["not_localized"] += 1
+                continue
+            T_map_kf = graph.T_map_body(w.keyframe)
+            adjoint = gtsam.Pose3(invert(w.T_kf_body)).AdjointMap()  # a keyframe-body perturbation, in the frame's
+            drift = np.r_[np.full(3, o.odometry_rot_sigma_per_m * w.path_m),
+                          np.full(3, o.odometry_sigma_per_m * w.path_m)]
+            covariance = adjoint @ graph.covariance_cad_body(w.keyframe) @ adjoint.T + np.diag(drift**2)
+            T_map_body = T_map_kf @ w.T_kf_body
+            estimate = Estimate(w.stamp_ns, "localized", T_map_body, T_cad_map @ T_map_body, T_cad_map, covariance)
+            image = cv2.imdecode(np.frombuffer(w.encoded, np.uint8), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                self.report.frames["not_localized"] += 1
+                continue
+            self.report.frames["labelled_before_fix"] += 1
+            self._write(w.stamp_ns, image, estimate, w.T_body_cam, w.info)
+
+    def _write(self, stamp_ns: int, image: np.ndarray, estimate: Estimate, T_body_cam: np.ndarray,
+               info: object) -> None:
+        """Write one labelled frame (its left image, its boxes from `estimate`'s pose)."""
+        p = self.params
+        name = f"{self.prefix}_{stamp_ns}"
+        h, w = image.shape[:2]
+        fx, fy, cx, cy = (float(getattr(info, k)) for k in ("fx", "fy", "cx", "cy"))
+        boxes = self.boxes(estimate, T_body_cam, fx, fy, cx, cy, w, h, name)
+        left = grey_out(image, self.greyed, [b.box_xyxy for b in boxes])
         self.report.greyed += len(self.greyed)
         cv2.imwrite(str(self.out_dir / "images" / f"{name}.jpg"), left, [cv2.IMWRITE_JPEG_QUALITY, p.jpeg_quality])
         for b in boxes:
@@ -335,8 +431,11 @@ class SelfLabeller:
         return out
 
     def finish(self, localizer: Localizer) -> None:
-        """Close the box list and draw `PREFIX.labels.png`: up to `SHEET_TILES` labelled frames with boxes, spread
-        over the flight, each box drawn (doors green, windows orange; a box cut by the border dashed-thin)."""
+        """Count the frames still kept (no held pose came after them), close the box list and draw
+        `PREFIX.labels.png`: up to `SHEET_TILES` labelled frames with boxes, spread over the flight, each box drawn
+        (doors green, windows orange; a box cut by the border dashed-thin)."""
+        self.report.frames["not_localized"] += len(self._waiting)
+        self._waiting.clear()
         self._boxes.close()
         by_frame: dict[str, list[Box]] = {}
         for b in self.report.labels:
@@ -367,7 +466,8 @@ def label_recording(recording: Path, building: Path, cfg: MacrolocConfig, occlud
     replay's `localized_at_s`, `wrong_localizations` (where the recording has ground truth) and
     `frames_in_flight`."""
     model = prepare_building(building, cfg.graph, cfg.planning).model
-    labeller = SelfLabeller(model.features, ModelDepth(occluders_cad), out_dir, recording.stem, params)
+    labeller = SelfLabeller(model.features, ModelDepth(occluders_cad), out_dir, recording.stem, params,
+                            cfg.graph.odometry)
     log.info("labelling %s: replaying it with perception; frames where the pose is held are labelled by %s",
              recording.name, building.name)
     frames = open_flight(recording, topics, cfg.camera)

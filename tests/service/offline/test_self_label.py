@@ -11,6 +11,7 @@ import pytest
 from bench.bench_self_label import truth_of_frame
 from macroloc.graph.features import MacroFeature
 from macroloc.graph.localizer import Estimate
+from macroloc.graph.posegraph import PoseGraph
 from macroloc.proto.recording import matrix_from_pose, read_flight
 from macroloc.service.frames import stereo_T_body_cam
 from macroloc.service.offline.replay import FrameSeen
@@ -142,3 +143,82 @@ def test_an_opening_there_but_not_labelled_is_greyed_out_and_a_labelled_one_spar
     out = grey_out(image, [(100.0, 100.0, 200.0, 200.0)], [(150.0, 150.0, 300.0, 300.0)])
     assert (out[100:150, 100:201] == out[100, 100]).all() and (out[151:200, 151:200] == image[151:200, 151:200]).all()
     assert (out[:100] == image[:100]).all() and (out[201:] == image[201:]).all()
+
+
+
+def _anchored_graph(T_map_bodies: list[np.ndarray], T_cad_map: np.ndarray, held_sigma_m: float = 0.01) -> PoseGraph:
+    """A pose graph of keyframes at `T_map_bodies` (their odometry exact, 1 cm and 0.1 deg a step), anchored by the
+    newest keyframe's CAD pose measured to `held_sigma_m` (T_cad_map of the truth)."""
+    graph = PoseGraph()
+    graph.add_first_keyframe(T_map_bodies[0])
+    for prev, curr in zip(T_map_bodies[:-1], T_map_bodies[1:], strict=True):
+        graph.add_keyframe(np.linalg.inv(prev) @ curr, np.r_[np.full(3, np.radians(0.1)), np.full(3, 0.01)], curr)
+    graph.add_anchor(np.linalg.inv(T_cad_map))
+    i = graph.n_keyframes - 1
+    sigmas = np.r_[np.full(3, np.radians(0.2)), np.full(3, held_sigma_m)]
+    graph.add_cad_pose(i, T_cad_map @ T_map_bodies[-1], np.diag(sigmas**-2.0))
+    graph.update(extra_iterations=2)
+    return graph
+
+
+def test_frames_before_the_fix_are_labelled_from_their_keyframes_in_the_anchored_graph(
+        tmp_path: Path, rendered_office_flight: Path, office_path: Path, office_model) -> None:  # noqa: ANN001
+    """Frames while the pose is not held are kept, and labelled when it is: each from its keyframe as the pose
+    graph then holds it (anchored), carried to the frame by the odometry. Here the map frame is the CAD frame turned
+    30 deg and moved, a keyframe every 10 frames, the pose held from 5 s on: every box from before agrees with the
+    simulator's truth, as the held frames' do."""
+    params = SelfLabelParams(every_s=0.5)
+    labeller = SelfLabeller(office_model.features, ModelDepth(occluding_triangles(office_path)), tmp_path, "b",
+                            params)
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    T_cad_map = np.array([[c, -s, 0, 5.0], [s, c, 0, -3.0], [0, 0, 1, 0.2], [0, 0, 0, 1]])
+    frames = list(read_flight(rendered_office_flight))
+    held_from = next(k for k, f in enumerate(frames) if (f.stamp_ns - frames[0].stamp_ns) * 1e-9 >= 5.0)
+    T_map_bodies = [np.linalg.inv(T_cad_map) @ matrix_from_pose(f.ground_truth.T_cad_body) for f in frames]
+    graph = _anchored_graph(T_map_bodies[: held_from + 1: 10], T_cad_map)
+    truths = {}
+    for k, frame in enumerate(frames):
+        T_map_body = T_map_bodies[k]
+        if k >= held_from:
+            estimate = _estimate(sigma_m=0.01, sigma_deg=0.1, T_cad_body=T_cad_map @ T_map_body)
+            estimate.T_map_body = T_map_body
+        else:
+            estimate = Estimate(frame.stamp_ns, "exploring", T_map_body, keyframe=k // 10)
+        labeller.frame(frame, FrameSeen(stereo_T_body_cam(frame.stereo), [], graph), estimate)
+        truths[f"b_{frame.stamp_ns}"] = truth_of_frame(frame, params)
+    labeller.finish(None)  # type: ignore[arg-type]
+    frames_by = labeller.report.frames
+    assert frames_by["labelled_before_fix"] >= 9 and frames_by["labelled"] >= 3  # 0-5 s every 0.5 s; 5-7 s
+    before = [b for b in labeller.report.labels if int(b.frame[2:]) - frames[0].stamp_ns < 5e9]
+    assert len(before) >= 3
+    for box in before:
+        best = max(iou(box.box_xyxy, t["box"]) for t in truths[box.frame].values() if t["type"] == box.type)
+        assert best >= 0.5, f"{box.feature_id} labelled at {box.box_xyxy} in {box.frame}"
+    assert len(list((tmp_path / "labels").glob("b_*.txt"))) == frames_by["labelled"] + frames_by["labelled_before_fix"]
+
+
+def test_the_drift_from_a_keyframe_leaves_its_doors_uncertain_and_older_frames_are_let_go(
+        tmp_path: Path, rendered_office_flight: Path) -> None:
+    """A frame kept 30 m of odometry after its keyframe carries the drift the pose graph assumes (0.03 m/m: 0.9 m,
+    3 sigma 2.7 m): no door 6 m ahead can be boxed from it; 0 m after it, the door is boxed. Without the graph, or
+    with its keyframe no longer in it, nothing is labelled. Frames more than `before_fix_s` before the newest are
+    let go."""
+    frame = next(iter(read_flight(rendered_office_flight)))
+    seen = FrameSeen(T_BODY_CAM, [])
+    T_body = np.eye(4)
+    T_body[2, 3] = 1.0
+    graph = _anchored_graph([T_body], np.eye(4))
+    for path_m, target, expected in ((0.0, graph, {"labelled": 1}), (30.0, graph, {"uncertain": 1}),
+                                     (0.0, None, {})):
+        labeller = _labeller(tmp_path / f"p{path_m}{target is None}", [_door(6.0)], np.zeros((0, 3, 3)))
+        labeller._keyframes[0] = (T_body, -path_m)  # the keyframe path_m of odometry before the frame
+        labeller.frame(frame, seen, Estimate(frame.stamp_ns, "exploring", T_body, keyframe=0))
+        labeller._label_waiting(target)
+        assert labeller.report.boxes == expected
+        assert labeller.report.frames == ({"labelled_before_fix": 1} if target else {"not_localized": 1})
+    labeller = _labeller(tmp_path / "old", [_door(6.0)], np.zeros((0, 3, 3)))
+    labeller.params = SelfLabelParams(before_fix_s=1.0, every_s=0.0)
+    for k in range(3):
+        frame.stamp_ns = k * 1_000_000_000
+        labeller.frame(frame, seen, Estimate(frame.stamp_ns, "exploring", T_body, keyframe=0))
+    assert len(labeller._waiting) == 2 and labeller.report.frames == {"not_localized": 1}
