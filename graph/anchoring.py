@@ -109,7 +109,7 @@ class Anchoring:
             result = result.fallback()
             choice = self._choose(result, stamp_ns)
         if choice.T_cad_map is not None and not choice.registrars and len(keys) >= 2:
-            choice = self._unrivalled_by_one(choice, observed, corners)
+            choice = self._unrivalled_by_one(choice, keys, observed, corners)
         T_cad_map, registrars = choice.T_cad_map, choice.registrars
         if T_cad_map is None and self.prior is not None and result.status == "ambiguous":
             T_cad_map = self.prior.pick(self._tied(choice, result), self.graph.T_map_body(self.graph.n_keyframes - 1))
@@ -146,8 +146,8 @@ class Anchoring:
         self.graph.update(extra_iterations=2)
         self.links.link_new(self.landmarks.landmarks, stamp_ns)
 
-    def _unrivalled_by_one(self, choice: Choice, observed: list[ObservedRect], corners: list[np.ndarray]
-                           ) -> Choice:
+    def _unrivalled_by_one(self, choice: Choice, keys: list[int], observed: list[ObservedRect],
+                           corners: list[np.ndarray]) -> Choice:
         """The walls' choice among candidates from several landmarks (`choice`), or none where a pose from one
         of the landmarks alone rivals it (`Judge.rivals_from_one`): then the two are left tied. Any one landmark
         may be a false detection that a wrong pose puts on a model door; asked only where a landmark the pose puts
@@ -155,14 +155,14 @@ class Anchoring:
         evidence that the pose from one landmark lacks (Office_A's seed 5901: a false door 1.52 m wide on a door
         1.07 m wide, docs/measurements.md, "A false door that lands on a model door")."""
         assert choice.T_cad_map is not None
-        if self._sizes_alike(choice.T_cad_map, [o.key for o in observed]):
+        if self._sizes_alike(choice.T_cad_map, keys):
             return choice
         poses = [np.asarray(T, float) for lm, c in zip(observed, corners, strict=True)
                  for T, _ in self.registrar([lm], [c]).candidates]
         points_map, origins_map = self.depth.points_map()
         T_newest = self.graph.T_map_body(self.graph.n_keyframes - 1)
         rivals = self.judge.rivals_from_one(
-            choice.T_cad_map, poses, points_map, origins_map, self.landmarks.centres_map([o.key for o in observed]),
+            choice.T_cad_map, poses, points_map, origins_map, self.landmarks.centres_map(keys),
             lambda T_best, rivals: self.far.not_contradicted(T_best, rivals, T_newest))
         if not rivals:
             return choice

@@ -100,9 +100,9 @@ class SelfLabelParams(Parameters):
                           "axis, that must leave a box within IoU 0.5 of itself for it to be labelled", gt=0)
     near_m: float = param(0.1, "the camera's near plane, m", gt=0)
     before_fix_s: float = param(
-        60.0, "frames up to this long before the pose is held (the first fix, or found again) are labelled from it, "
-        "back along the odometry, their covariance grown by its drift (0: none; further back, the drift leaves "
-        "every box uncertain: 0.03 m per metre travelled is a 3-sigma of 2.7 m after 30 m)", ge=0)
+        60.0, "frames up to this long before the pose is held (the first fix, or found again) are labelled once it "
+        "is, from their keyframes in the anchored pose graph (0: none; a keyframe that left the graph's window "
+        "has no covariance left, and its frames are not labelled)", ge=0)
     jpeg_quality: int = param(92, "JPEG quality of the written frames", ge=50, le=100)
 
 
